@@ -1,0 +1,32 @@
+# dotshell — set-up and everyday commands. `make demo` and `make test` work on a fresh machine.
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test bench validate clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test]'
+	touch $(STAMP)
+
+## demo: create the venv, install, and run a full 360° scan of the simulated metal cylinder
+demo: $(STAMP)
+	$(VENV)/bin/dotshell scan profiles/sim-metal-cylinder.toml --out runs
+
+## test: the test suite (reduced resolutions; a few minutes on 2 cores)
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+## bench: speed and memory figures against peers measured in the same run
+bench: $(STAMP)
+	$(PY) benchmarks/run.py
+
+## validate: full-resolution accuracy checks (the figures quoted in docs/)
+validate: $(STAMP)
+	$(PY) -m pytest -q -m slow tests
+
+clean:
+	rm -rf $(VENV) .venv-bench-contrib runs .pytest_cache

@@ -1,0 +1,217 @@
+"""The ``dotshell`` command. Thin: parses arguments, calls the core API, shows events.
+
+Exit codes: 0 success, 2 user error (bad profile, unknown backend, missing file, device or
+calibration problem — one paragraph on stderr, no traceback), 130 interrupted (frames kept).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                           TimeElapsedColumn, TimeRemainingColumn)
+from rich.table import Table
+
+from dotshell import __version__
+from dotshell.errors import DotshellError
+from dotshell.events import (EventBus, FrameCaptured, Message, ScanStarted, StepStarted,
+                             ViewCaptured, ViewReconstructed)
+
+err = Console(stderr=True, highlight=False)
+out = Console(highlight=False)
+
+
+def _pm(args: argparse.Namespace):
+    from dotshell.plugins import get_plugin_manager
+
+    pm = get_plugin_manager(strict=args.strict_plugins)
+    for e in pm.load_errors:
+        err.print(f"[yellow]warning:[/] {e}")
+    return pm
+
+
+class ScanProgress:
+    """Renders scan events as progress bars (views, frames, ETA) and log lines."""
+
+    def __init__(self, console: Console) -> None:
+        self.progress = Progress(TextColumn("{task.description:<12}"), BarColumn(),
+                                 MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("ETA"),
+                                 TimeRemainingColumn(), console=console, transient=False)
+        self.tasks: dict[str, Any] = {}
+        self.console = console
+
+    def __call__(self, ev) -> None:
+        p = self.progress
+        if isinstance(ev, ScanStarted):
+            self.tasks["views"] = p.add_task("views", total=ev.n_views)
+            self.tasks["frames"] = p.add_task("frames", total=ev.n_views * ev.frames_per_view)
+        elif isinstance(ev, FrameCaptured) and "frames" in self.tasks:
+            p.advance(self.tasks["frames"])
+        elif isinstance(ev, ViewCaptured) and "views" in self.tasks:
+            p.advance(self.tasks["views"])
+        elif isinstance(ev, ViewReconstructed):
+            p.console.print(f"  view {ev.view:3d}: {ev.n_points:8d} points")
+        elif isinstance(ev, StepStarted) and ev.step not in ("acquire",):
+            p.console.print(f"[dim]→ {ev.step}[/]")
+        elif isinstance(ev, Message):
+            style = {"warning": "yellow", "error": "red"}.get(ev.level, "dim")
+            p.console.print(f"[{style}]{ev.level}:[/] {ev.text}")
+
+
+def _print_report(report: dict[str, Any], run_dir: Path) -> None:
+    from dotshell.pipeline.validate import table1
+
+    rows = table1(report)
+    if rows:
+        t = Table(title="Validation (paper's Table 1 layout)")
+        t.add_column("")
+        t.add_column(report.get("profile", ""))
+        for k, v in rows:
+            t.add_row(k, v)
+        out.print(t)
+    elif "validation" in report:
+        out.print(f"validation: {report['validation']}")
+    cloud = report.get("cloud", {})
+    out.print(f"cloud: {cloud.get('points', 0)} points → {run_dir / 'cloud.ply'}")
+    for name, rel in (report.get("previews") or {}).items():
+        out.print(f"preview {name}: {run_dir / rel}")
+    out.print(f"run: {run_dir}  (status: {report.get('status', '?')})")
+
+
+def cmd_scan(args: argparse.Namespace) -> int:
+    from dotshell.pipeline.scan import scan
+    from dotshell.profile import load_profile
+
+    pm = _pm(args)
+    profile = load_profile(args.profile, pm, args.set)
+    bus = EventBus()
+    view = ScanProgress(err)
+    bus.subscribe(view)
+    stop = threading.Event()
+    with view.progress:
+        result = scan(profile, pm, args.out, bus=bus, stop=stop, calibration_file=args.calibration)
+    _print_report(result.report, result.run_dir)
+    return 0 if result.status == "completed" else 1
+
+
+def cmd_reconstruct(args: argparse.Namespace) -> int:
+    from dotshell.pipeline.scan import reconstruct_run
+
+    pm = _pm(args)
+    bus = EventBus()
+    view = ScanProgress(err)
+    bus.subscribe(view)
+    with view.progress:
+        result = reconstruct_run(args.run, pm, bus, calibration_file=args.calibration)
+    _print_report(result.report, result.run_dir)
+    return 0
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from dotshell.profile import DEVICE_ROLES, load_profile
+    from dotshell.rig import Rig
+
+    pm = _pm(args)
+    profile = load_profile(args.profile, pm, args.set)
+    out.print(f"[green]profile OK[/]: {profile.source} ({profile.name})")
+    for role in (*DEVICE_ROLES, "coding"):
+        sec = profile.role(role)
+        if sec:
+            info = pm.backend(role, sec["backend"])
+            out.print(f"  {role:<13} {sec['backend']:<16} from {info.distribution}")
+    out.print(f"  views         {len(profile.angles_deg())}")
+    if args.connect:
+        with Rig(profile, pm) as rig:
+            for role, status in rig.status().items():
+                out.print(f"  [green]connected[/] {role:<13} {status}")
+            cal = rig.calibration(args.calibration)
+            out.print(f"  calibration   {cal.source}: baseline {cal.baseline_mm:.2f} mm")
+        out.print("[green]all devices opened and closed[/]")
+    return 0
+
+
+def cmd_plugins(args: argparse.Namespace) -> int:
+    from dotshell.backends import ROLES
+    from dotshell.settings import describe
+
+    pm = _pm(args)
+    t = Table(title="dotshell backends")
+    for col in ("role", "name", "plugin", "distribution", "summary"):
+        t.add_column(col)
+    for role in ROLES:
+        for name, info in sorted(pm.backends(role).items()):
+            t.add_row(role, name, info.plugin, info.distribution, info.backend.summary)
+    out.print(t)
+    if args.settings:
+        for role in ROLES:
+            for name, info in sorted(pm.backends(role).items()):
+                st = Table(title=f"[{role}] backend = \"{name}\" — [{role}.settings]")
+                for col in ("key", "type", "default", "help"):
+                    st.add_column(col)
+                for row in describe(info.backend.settings_schema):
+                    st.add_row(*row)
+                out.print(st)
+    if pm.load_errors:
+        out.print("[red]plugins that failed to load:[/]")
+        for e in pm.load_errors:
+            out.print(f"  {e}")
+        return 1
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="dotshell", description=(
+        "Instrument shell for structured-light surface scans on DOT rigs. "
+        "See README.md and docs/ for every command and file format."))
+    p.add_argument("--version", action="version", version=f"dotshell {__version__}")
+    p.add_argument("--strict-plugins", action="store_true",
+                   help="fail when any plugin fails to load (for plugin authors and CI)")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def profile_args(sp):
+        sp.add_argument("profile", help="profile TOML file, e.g. profiles/sim-metal-cylinder.toml")
+        sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a profile key (TOML value), e.g. --set scan.views=24")
+        sp.add_argument("--calibration", metavar="FILE",
+                        help="use this calibration.json instead of the profile's")
+
+    sp = sub.add_parser("scan", help="run a scan and process it")
+    profile_args(sp)
+    sp.add_argument("--out", default="runs", help="parent directory of the run (default: runs)")
+    sp.set_defaults(func=cmd_scan)
+
+    sp = sub.add_parser("reconstruct", help="re-process a run from its frames on disk")
+    sp.add_argument("run", help="run directory")
+    sp.add_argument("--calibration", metavar="FILE", help="use this calibration instead")
+    sp.set_defaults(func=cmd_reconstruct)
+
+    sp = sub.add_parser("check", help="validate a profile (and open every device with --connect)")
+    profile_args(sp)
+    sp.add_argument("--connect", action="store_true", help="connect and close every device")
+    sp.set_defaults(func=cmd_check)
+
+    sp = sub.add_parser("plugins", help="list backends by role and plugin load errors")
+    sp.add_argument("--settings", action="store_true", help="also list each backend's settings")
+    sp.set_defaults(func=cmd_plugins)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except DotshellError as exc:
+        err.print(f"[red]error:[/] {exc}", soft_wrap=True)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        err.print("[yellow]interrupted[/]: frames captured so far are kept in the run directory.")
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,36 @@
+"""Exception types. Every :class:`DotshellError` is an expected, user-fixable failure: front
+ends print its message (one paragraph naming the thing and the fix) and exit with code 2."""
+
+
+class DotshellError(Exception):
+    """Base of all expected failures; the message is shown to the user as is."""
+
+    exit_code = 2
+
+
+class ProfileError(DotshellError):
+    """A profile file is missing, unreadable or invalid."""
+
+
+class PluginError(DotshellError):
+    """A plugin failed to load, or a requested backend does not exist."""
+
+
+class CalibrationError(DotshellError):
+    """A calibration is missing, malformed or unusable."""
+
+
+class DeviceError(DotshellError):
+    """A device failed to connect or to perform a step.
+
+    Raised by backends for a recoverable per-step failure (a dropped frame, a timeout); the
+    acquisition runner retries the step before giving up.
+    """
+
+
+class RunError(DotshellError):
+    """A run directory is missing pieces or cannot be processed."""
+
+
+class ReconstructionError(DotshellError):
+    """Processing produced nothing usable (no decoded pixels, empty cloud, ...)."""

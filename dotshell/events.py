@@ -1,0 +1,109 @@
+"""Workflow events and the bus that front ends (CLI, TUI, console) and the run log subscribe to.
+
+Events are small frozen dataclasses; ``to_dict()`` gives the JSON line written to
+``events.jsonl`` (with ``"event"`` = the class name and ``"time"`` = Unix seconds).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+from typing import Any, Callable
+
+
+@dataclass(frozen=True)
+class Event:
+    time: float = field(default_factory=time.time, kw_only=True)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"event": type(self).__name__, **asdict(self)}
+
+
+@dataclass(frozen=True)
+class ScanStarted(Event):
+    run_dir: str
+    profile: str
+    n_views: int
+    frames_per_view: int
+
+
+@dataclass(frozen=True)
+class FrameCaptured(Event):
+    view: int
+    index: int
+    name: str
+
+
+@dataclass(frozen=True)
+class ViewCaptured(Event):
+    view: int
+    angle_deg: float
+    n_frames: int
+
+
+@dataclass(frozen=True)
+class StepStarted(Event):
+    """A pipeline step began: acquire, decode, triangulate, merge, validate, previews."""
+
+    step: str
+    total: int = 0
+
+
+@dataclass(frozen=True)
+class StepProgress(Event):
+    step: str
+    done: int
+    total: int
+
+
+@dataclass(frozen=True)
+class ViewReconstructed(Event):
+    view: int
+    n_points: int
+    decoded_pixels: int
+
+
+@dataclass(frozen=True)
+class Message(Event):
+    """A log line: level is ``info``, ``warning`` or ``error``."""
+
+    level: str
+    text: str
+
+
+@dataclass(frozen=True)
+class ScanFinished(Event):
+    status: str
+    run_dir: str
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+Subscriber = Callable[[Event], None]
+
+
+class EventBus:
+    """Synchronous publish/subscribe. A subscriber that raises is dropped from that event only;
+    the error is re-published as a warning ``Message`` so it is never silent."""
+
+    def __init__(self) -> None:
+        self._subs: list[Subscriber] = []
+
+    def subscribe(self, fn: Subscriber) -> Callable[[], None]:
+        self._subs.append(fn)
+        return lambda: self._subs.remove(fn) if fn in self._subs else None
+
+    def emit(self, event: Event) -> None:
+        for fn in list(self._subs):
+            try:
+                fn(event)
+            except Exception as exc:
+                if isinstance(event, Message) and event.level == "warning":
+                    continue  # avoid loops
+                self.emit(Message(level="warning",
+                                  text=f"event subscriber {fn!r} failed: {type(exc).__name__}: {exc}"))
+
+    def info(self, text: str) -> None:
+        self.emit(Message(level="info", text=text))
+
+    def warn(self, text: str) -> None:
+        self.emit(Message(level="warning", text=text))

@@ -1,0 +1,54 @@
+"""Shape fits for validation: radius about a known axis, and a free least-squares cylinder."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+
+@dataclass(frozen=True)
+class CylinderFit:
+    """A least-squares cylinder (mm). ``axis`` is a unit vector, ``point`` the axis point
+    closest to the cloud's centroid; ``rms_mm`` the RMS of the radial residuals."""
+
+    point: np.ndarray
+    axis: np.ndarray
+    radius_mm: float
+    rms_mm: float
+
+
+def radial_distance(points: np.ndarray, point: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """Distance (mm) of each point (N, 3) from the line through ``point`` along ``axis``."""
+    d = points - point
+    along = d @ axis
+    return np.linalg.norm(d - np.outer(along, axis), axis=1)
+
+
+def fit_cylinder(points: np.ndarray, axis_guess=(0.0, 0.0, 1.0)) -> CylinderFit:
+    """Fit a cylinder to ``points`` (N, 3, mm), starting from an axis along ``axis_guess``
+    through the centroid. Robust to a few outliers (soft-L1 loss)."""
+    pts = np.asarray(points, float)
+    c = pts.mean(axis=0)
+    a0 = np.asarray(axis_guess, float)
+    a0 /= np.linalg.norm(a0)
+    # two unit vectors orthogonal to the axis guess parameterize the axis tilt and offset
+    u = np.cross(a0, [1.0, 0, 0] if abs(a0[0]) < 0.9 else [0, 1.0, 0])
+    u /= np.linalg.norm(u)
+    v = np.cross(a0, u)
+
+    def line(p):
+        axis = a0 + p[2] * u + p[3] * v
+        axis /= np.linalg.norm(axis)
+        return c + p[0] * u + p[1] * v, axis
+
+    def residual(p):
+        point, axis = line(p)
+        return radial_distance(pts, point, axis) - p[4]
+
+    r0 = float(np.median(radial_distance(pts, c, a0)))
+    sol = least_squares(residual, [0, 0, 0, 0, r0], loss="soft_l1", f_scale=0.05)
+    point, axis = line(sol.x)
+    res = residual(sol.x)
+    return CylinderFit(point, axis, float(sol.x[4]), float(np.sqrt(np.mean(res ** 2))))

@@ -1,0 +1,68 @@
+"""Per-view reconstruction: decode frames → triangulate → sample frame → region of interest."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from dotshell.coding import Correspondence, PatternCoding
+from dotshell.errors import CalibrationError
+from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.triangulate import camera_ray_grid, triangulate
+
+
+@dataclass
+class ViewCloud:
+    """One view's points in the sample frame (mm) with the camera pixels they came from."""
+
+    view: int
+    angle_deg: float
+    points: np.ndarray
+    pixels: np.ndarray
+    correspondence: Correspondence
+    stats: dict[str, Any] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def in_roi(points: np.ndarray, roi: dict[str, float]) -> np.ndarray:
+    """Mask of sample-frame points (N, 3) inside the cylindrical region of interest."""
+    r = np.hypot(points[:, 0], points[:, 1])
+    return (r <= roi["radius_mm"]) & (points[:, 2] >= roi["z_min_mm"]) & (
+        points[:, 2] <= roi["z_max_mm"])
+
+
+def check_frames(frames: Sequence[np.ndarray], calib: RigCalibration, view: int) -> None:
+    h, w = frames[0].shape[:2]
+    if (w, h) != calib.camera.size:
+        raise CalibrationError(
+            f"view {view}: frames are {w}x{h} px but the calibration's camera is "
+            f"{calib.camera.width}x{calib.camera.height} px; use the calibration of this camera "
+            "at this resolution.")
+
+
+def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
+                     coding: PatternCoding, calib: RigCalibration,
+                     processing: dict[str, Any]) -> ViewCloud:
+    """Decode one view's frames and triangulate them into sample-frame points (mm)."""
+    check_frames(frames, calib, view)
+    t0 = time.perf_counter()
+    corr = coding.decode(frames, calib.projector.size)
+    t1 = time.perf_counter()
+    ys, xs = np.nonzero(corr.valid)
+    rays = camera_ray_grid(calib.camera)[ys, xs]
+    tri = triangulate(rays, corr.column[ys, xs], calib,
+                      row=None if corr.row is None else corr.row[ys, xs],
+                      row_tolerance_px=processing["row_tolerance_px"],
+                      min_ray_angle_deg=processing["min_ray_angle_deg"])
+    pts = calib.camera_to_sample(tri.points[tri.keep], angle_deg)
+    pixels = np.column_stack([xs, ys])[tri.keep]
+    inside = in_roi(pts, processing["roi"])
+    t2 = time.perf_counter()
+    stats = {**corr.stats, "triangulated": int(tri.keep.sum()),
+             "row_rejected": int(tri.row_rejected.sum()), "grazing": int(tri.grazing.sum()),
+             "outside_roi": int((~inside).sum()), "points": int(inside.sum())}
+    return ViewCloud(view, angle_deg, pts[inside], pixels[inside], corr, stats,
+                     {"decode": t1 - t0, "triangulate": t2 - t1})

@@ -1,0 +1,83 @@
+"""Accuracy report against a known shape, in the form of the paper's Table 1."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.fit import fit_cylinder
+
+
+def field_band_mm(calib: RigCalibration, height_mm: float, step_mm: float = 0.25) -> tuple[float, float]:
+    """Heights (mm above the plate) where the turntable axis is inside both the camera's and the
+    projector's image — the part of an on-axis sample the rig can measure."""
+    z = np.arange(0.0, height_mm + step_mm, step_mm)
+    pts = calib.sample_to_camera(np.column_stack([np.zeros_like(z), np.zeros_like(z), z]), 0.0)
+    cam = calib.camera.project(pts)
+    prj = calib.projector.project(pts @ calib.R.T + calib.T)
+
+    def inside(px, lens):
+        return (px[:, 0] >= 0) & (px[:, 0] <= lens.width - 1) & (px[:, 1] >= 0) & (
+            px[:, 1] <= lens.height - 1)
+
+    ok = inside(cam, calib.camera) & inside(prj, calib.projector)
+    if not ok.any():
+        return (0.0, 0.0)
+    return float(z[ok].min()), float(z[ok].max())
+
+
+def cylinder_report(points: np.ndarray, calib: RigCalibration, v: dict[str, Any],
+                    roi: dict[str, float]) -> dict[str, Any]:
+    """Relative radius error of every lateral-surface point about the turntable axis (as the
+    paper does), a free cylinder fit, and the covered share of the measurable lateral area."""
+    R = v["radius_mm"]
+    lo, hi = field_band_mm(calib, v["height_mm"])
+    lo = max(lo, roi["z_min_mm"]) + v["edge_margin_mm"]
+    hi = min(hi, roi["z_max_mm"], v["height_mm"]) - v["edge_margin_mm"]
+    lateral = points[(points[:, 2] >= lo) & (points[:, 2] <= hi)]
+    if len(lateral) < 10 or hi <= lo:
+        return {"shape": "cylinder", "error": "fewer than 10 points on the lateral surface",
+                "points": int(len(lateral)), "band_mm": [lo, hi]}
+    r = np.hypot(lateral[:, 0], lateral[:, 1])
+    rel = (r - R) / R
+    theta = np.degrees(np.arctan2(lateral[:, 1], lateral[:, 0])) % 360.0
+    nt = int(round(360.0 / v["cell_deg"]))
+    nz = max(1, int(np.ceil((hi - lo) / v["cell_mm"])))
+    ti = np.minimum((theta / 360.0 * nt).astype(int), nt - 1)
+    zi = np.minimum(((lateral[:, 2] - lo) / (hi - lo) * nz).astype(int), nz - 1)
+    covered = np.zeros((nt, nz), bool)
+    covered[ti, zi] = True
+    fit = fit_cylinder(lateral)
+    return {
+        "shape": "cylinder",
+        "true_radius_mm": R,
+        "band_mm": [round(lo, 3), round(hi, 3)],
+        "points": int(len(lateral)),
+        "mean_rel_error_pct": float(np.mean(np.abs(rel)) * 100),
+        "std_rel_error_pct": float(np.std(np.abs(rel)) * 100),
+        "mean_signed_rel_error_pct": float(np.mean(rel) * 100),
+        "rms_radius_error_mm": float(np.sqrt(np.mean((r - R) ** 2))),
+        "p95_abs_radius_error_mm": float(np.percentile(np.abs(r - R), 95)),
+        "coverage_pct": float(covered.mean() * 100),
+        "fit": {"radius_mm": fit.radius_mm, "rms_mm": fit.rms_mm,
+                "axis_tilt_deg": float(np.degrees(np.arccos(min(1.0, abs(fit.axis[2]))))),
+                "axis_offset_mm": float(np.hypot(*fit.point[:2]))},
+    }
+
+
+def table1(report: dict[str, Any]) -> list[tuple[str, str]]:
+    """Rows of the printed accuracy table (paper's Table 1 layout)."""
+    v = report.get("validation") or {}
+    if v.get("shape") != "cylinder" or "mean_rel_error_pct" not in v:
+        return []
+    return [
+        ("True radius", f"{v['true_radius_mm']:.3f} mm"),
+        ("Mean relative error", f"{v['mean_rel_error_pct']:.3f} %"),
+        ("Standard deviation", f"{v['std_rel_error_pct']:.3f} %"),
+        ("RMS radius error", f"{v['rms_radius_error_mm'] * 1000:.1f} µm"),
+        ("Fitted radius", f"{v['fit']['radius_mm']:.4f} mm"),
+        ("Points (lateral band)", f"{v['points']}"),
+        ("Coverage of lateral area", f"{v['coverage_pct']:.1f} %"),
+    ]

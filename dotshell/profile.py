@@ -1,0 +1,204 @@
+"""Hardware and scan profiles (TOML): which backend fills each role, the scan, processing,
+validation and outputs. See ``docs/profiles.md`` for every key.
+
+:func:`load_profile` validates the whole file — core sections against :data:`SCHEMA` and each
+backend's settings against the schema its plugin declares — and raises
+:class:`~dotshell.errors.ProfileError` naming the file, the key path, the bad value and the
+valid choices.
+"""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from dotshell.errors import ProfileError
+from dotshell.plugins import PluginManager
+from dotshell.settings import REQUIRED, Setting, validate_settings
+
+DEVICE_ROLES = ("camera", "projector", "stage", "analyzer", "light_source")
+REQUIRED_ROLES = ("camera", "projector", "stage", "coding")
+
+
+def _role(required: bool) -> Setting:
+    return Setting("table", default=REQUIRED if required else None, schema={
+        "backend": Setting("str", help="name of the backend (see `dotshell plugins`)"),
+        "settings": Setting("table", default={}, help="the backend's own settings"),
+    }, help="backend filling this role")
+
+
+SCHEMA: dict[str, Setting] = {
+    "profile": Setting("table", schema={
+        "name": Setting("str", help="short name, used in run directory names"),
+        "description": Setting("str", default="", help="one line for humans"),
+    }),
+    "camera": _role(True),
+    "projector": _role(True),
+    "stage": _role(True),
+    "analyzer": _role(False),
+    "light_source": _role(False),
+    "coding": _role(True),
+    "calibration": Setting("table", schema={
+        "source": Setting("str", default="file", choices=("file", "ground-truth"),
+                          help="'file' reads `file`; 'ground-truth' asks a simulated rig"),
+        "file": Setting("str", default="", help="calibration.json, relative to the profile"),
+    }),
+    "scan": Setting("table", schema={
+        "views": Setting("int", default=12, min=1, max=3600,
+                         help="views equally spaced over 360 degrees (ignored if angles_deg set)"),
+        "angles_deg": Setting("list[float]", default=[], unit="deg",
+                              help="explicit stage angles; overrides views"),
+        "exposure_ms": Setting("float", default=20.0, min=0.001, unit="ms",
+                               help="camera exposure (when the camera supports it)"),
+        "settle_ms": Setting("float", default=0.0, min=0.0, unit="ms",
+                             help="wait after each projector change before capturing"),
+        "retries": Setting("int", default=2, min=0, max=20,
+                           help="re-tries of a frame capture that raised DeviceError"),
+    }, default={}),
+    "processing": Setting("table", schema={
+        "roi": Setting("table", schema={
+            "radius_mm": Setting("float", default=50.0, min=0.0, unit="mm",
+                                 help="keep points within this distance of the turntable axis"),
+            "z_min_mm": Setting("float", default=0.5, unit="mm",
+                                help="drop points below this height above the stage plate"),
+            "z_max_mm": Setting("float", default=200.0, unit="mm", help="drop points above"),
+        }, default={}),
+        "row_tolerance_px": Setting("float", default=1.5, min=0.1, unit="px",
+                                    help="max |decoded − predicted| projector row "
+                                         "(column+row codings)"),
+        "min_ray_angle_deg": Setting("float", default=5.0, min=0.0, max=89.0, unit="deg",
+                                     help="drop points whose camera ray meets the column plane "
+                                          "more grazing than this"),
+    }, default={}),
+    "validation": Setting("table", schema={
+        "shape": Setting("str", default="none", choices=("none", "cylinder"),
+                         help="known shape of the sample, for the accuracy report"),
+        "radius_mm": Setting("float", default=0.0, min=0.0, unit="mm", help="true radius"),
+        "height_mm": Setting("float", default=0.0, min=0.0, unit="mm", help="true height"),
+        "edge_margin_mm": Setting("float", default=1.0, min=0.0, unit="mm",
+                                  help="band excluded at the top and bottom edges"),
+        "cell_deg": Setting("float", default=2.0, min=0.1, unit="deg",
+                            help="coverage cell width around the axis"),
+        "cell_mm": Setting("float", default=1.0, min=0.05, unit="mm", help="coverage cell height"),
+    }, default={}),
+    "export": Setting("table", default={}, help="one sub-table per exporter backend to run "
+                      "after processing, holding that exporter's settings: [export.NAME]"),
+    "outputs": Setting("table", schema={
+        "previews": Setting("bool", default=True, help="render PNG previews into the run"),
+        "preview_view": Setting("int", default=0, min=0, help="view shown in frame previews"),
+    }, default={}),
+}
+
+
+@dataclass
+class Profile:
+    """A validated profile.
+
+    Attributes:
+        data: the full profile with defaults filled in (backend settings included).
+        source: the file it came from (or ``"<dict>"``), named in errors.
+        base_dir: directory relative paths in the profile are resolved against.
+    """
+
+    data: dict[str, Any]
+    source: str
+    base_dir: Path
+
+    @property
+    def name(self) -> str:
+        return self.data["profile"]["name"]
+
+    def role(self, role: str) -> dict[str, Any] | None:
+        """``{"backend": ..., "settings": {...}}`` for a role, or None when not configured."""
+        return self.data.get(role)
+
+    def angles_deg(self) -> list[float]:
+        """Stage angles of the scan's views in degrees."""
+        scan = self.data["scan"]
+        if scan["angles_deg"]:
+            return list(scan["angles_deg"])
+        n = scan["views"]
+        return [360.0 * i / n for i in range(n)]
+
+    def calibration_path(self) -> Path | None:
+        cal = self.data["calibration"]
+        if cal["source"] != "file":
+            return None
+        return (self.base_dir / cal["file"]).resolve()
+
+    def raw(self) -> dict[str, Any]:
+        """The profile as a plain dict, writable back to TOML."""
+        return copy.deepcopy(self.data)
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str], where: str) -> dict[str, Any]:
+    """Apply ``key.path=VALUE`` overrides (VALUE in TOML syntax; bare words are strings)."""
+    data = copy.deepcopy(data)
+    for item in overrides:
+        if "=" not in item:
+            raise ProfileError(f"override {item!r} is not KEY=VALUE, e.g. scan.views=24.")
+        key, text = item.split("=", 1)
+        try:
+            value = tomllib.loads(f"v = {text}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text
+        node = data
+        parts = key.strip().split(".")
+        for part in parts[:-1]:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ProfileError(f"{where}: override {item!r}: [{part}] is not a table.")
+        node[parts[-1]] = value
+    return data
+
+
+def validate_profile(raw: dict[str, Any], pm: PluginManager, where: str,
+                     base_dir: Path | str = ".") -> Profile:
+    """Validate a parsed profile dict; see :func:`load_profile`."""
+    data = validate_settings(SCHEMA, raw, where)
+    for role in (*DEVICE_ROLES, "coding"):
+        section = data.get(role)
+        if section is None:
+            continue
+        info = pm.backend(role, section["backend"], where)
+        section["settings"] = validate_settings(
+            info.backend.settings_schema, section["settings"], where, f"{role}.settings")
+    for name, settings in data["export"].items():
+        if not isinstance(settings, dict):
+            raise ProfileError(f"{where}: [export.{name}] must be a table of that exporter's "
+                               f"settings (it is {settings!r}); write [export.{name}] on its own line.")
+        info = pm.backend("exporter", name, where)
+        data["export"][name] = validate_settings(info.backend.settings_schema, settings, where,
+                                                 f"export.{name}")
+    cal = data["calibration"]
+    if cal["source"] == "file" and not cal["file"]:
+        raise ProfileError(f"{where}: [calibration] needs file = \"calibration.json\" (a "
+                           "calibration written by dotshell), or source = \"ground-truth\" on a "
+                           "simulated rig.")
+    return Profile(data, where, Path(base_dir))
+
+
+def load_profile(path: str | Path, pm: PluginManager, overrides: list[str] | None = None) -> Profile:
+    """Read, override and validate a profile file.
+
+    Raises:
+        ProfileError: missing/unreadable file, TOML syntax error or invalid content.
+        PluginError: a backend name no installed plugin provides.
+    """
+    path = Path(path)
+    if not path.is_file():
+        near = sorted(p.name for p in path.parent.glob("*.toml")) if path.parent.is_dir() else []
+        hint = f" Profiles in {path.parent}: {', '.join(near)}." if near else ""
+        raise ProfileError(f"profile {path} does not exist.{hint}")
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ProfileError(f"{path}: not valid TOML ({exc}). Fix the syntax at that line.") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ProfileError(f"{path}: cannot be read ({exc}).") from None
+    if overrides:
+        raw = apply_overrides(raw, overrides, str(path))
+    return validate_profile(raw, pm, str(path), path.parent)

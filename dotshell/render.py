@@ -1,0 +1,100 @@
+"""Off-screen previews written as PNG into the run: a captured frame, the decoded column map in
+false colour, and the merged cloud (pyvista, rendered without a display).
+
+Rendering 3-D needs OpenGL; without a display we select VTK's EGL window (mesa). If that is
+impossible the cloud preview is skipped with a warning naming the reason — never a crash.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from dotshell.store import atomic_write_bytes
+
+
+def _write_png(path: Path, image: np.ndarray) -> Path:
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise ValueError(f"cannot encode {path}")
+    atomic_write_bytes(path, buf.tobytes())
+    return path
+
+
+def frame_preview(frame: np.ndarray, path: Path) -> Path:
+    """A captured frame stretched to 8 bits (0.5 and 99.5 percentiles)."""
+    f = frame.astype(np.float32)
+    lo, hi = np.percentile(f, [0.5, 99.5])
+    img = np.clip((f - lo) / max(hi - lo, 1e-6) * 255, 0, 255).astype(np.uint8)
+    return _write_png(path, img)
+
+
+def column_map_preview(column: np.ndarray, valid: np.ndarray, width: int, path: Path) -> Path:
+    """Decoded projector columns in false colour (turbo); undecoded pixels black."""
+    norm = np.zeros(column.shape, np.uint8)
+    norm[valid] = np.clip(column[valid] / max(width - 1, 1) * 255, 0, 255).astype(np.uint8)
+    img = cv2.applyColorMap(norm, cv2.COLORMAP_TURBO)
+    img[~valid] = 0
+    return _write_png(path, img)
+
+
+def _prepare_offscreen() -> None:
+    if not os.environ.get("DISPLAY"):
+        os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+
+
+def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
+                  title: str = "", scalar_name: str = "z [mm]") -> Path:
+    """Render a point cloud (mm) to PNG off-screen with pyvista."""
+    _prepare_offscreen()
+    import pyvista as pv
+
+    cloud = pv.PolyData(np.asarray(points, np.float32))
+    pl = pv.Plotter(off_screen=True, window_size=(900, 900))
+    try:
+        pl.set_background("white")
+        cloud[scalar_name] = points[:, 2] if scalars is None else scalars
+        pl.add_mesh(cloud, scalars=scalar_name, point_size=2, render_points_as_spheres=False,
+                    cmap="viridis", scalar_bar_args={"color": "black"})
+        if title:
+            pl.add_text(title, font_size=10, color="black")
+        pl.camera_position = "iso"
+        pl.camera.azimuth = 30
+        pl.show_axes()
+        tmp = Path(path).with_suffix(".tmp.png")
+        pl.screenshot(str(tmp))
+        os.replace(tmp, path)
+    finally:
+        pl.close()
+    return Path(path)
+
+
+def render_previews(store, clouds, points: np.ndarray, profile, calib, bus) -> dict[str, Any]:
+    """Write the run's previews; returns {name: relative path} and warns on any it skipped."""
+    out: dict[str, Any] = {}
+    pdir = store.path("previews")
+    pdir.mkdir(exist_ok=True)
+    want = profile.data["outputs"]["preview_view"]
+    vc = next((c for c in clouds if c.view == want), clouds[0])
+    frames = store.read_frames(vc.view)
+    out["frame"] = frame_preview(frames[0], pdir / f"frame_view{vc.view:03d}.png")
+    out["columns"] = column_map_preview(vc.correspondence.column, vc.correspondence.valid,
+                                        calib.projector.width,
+                                        pdir / f"columns_view{vc.view:03d}.png")
+    r = np.hypot(points[:, 0], points[:, 1])
+    v = profile.data["validation"]
+    if v["shape"] == "cylinder":
+        scal, name = r - v["radius_mm"], "radius error [mm]"
+    else:
+        scal, name = points[:, 2], "z [mm]"
+    try:
+        out["cloud"] = cloud_preview(points, scal, pdir / "cloud.png",
+                                     f"{profile.name}: {len(points)} points", name)
+    except Exception as exc:  # rendering depends on the machine's OpenGL; degrade, don't crash
+        bus.warn(f"cloud preview skipped: 3-D rendering is not available here "
+                 f"({type(exc).__name__}: {exc}). The cloud is in cloud.ply.")
+    return {k: str(Path(p).relative_to(store.root)) for k, p in out.items()}

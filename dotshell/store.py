@@ -1,0 +1,221 @@
+"""RunStore: one scan's run directory. Every file is written to a temporary name and renamed
+(atomic on POSIX), frames are written losslessly (PNG, 8 or 16 bit) as they arrive, and
+``events.jsonl`` is appended and flushed per event — a crash loses nothing already written.
+
+Layout (see ``docs/run-directory.md``)::
+
+    <run>/profile.toml  calibration.json  manifest.json  events.jsonl  report.json
+    <run>/frames/view_000/000_white.png ...
+    <run>/views/view_000.ply   <run>/cloud.ply   <run>/previews/*.png
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import re
+import tempfile
+
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import tomli_w
+
+from dotshell.errors import RunError
+
+RUN_FORMAT = "dotshell-run/1"
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temporary file in the same directory and a rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def dumps(obj: Any) -> str:
+    return json.dumps(obj, indent=2, default=_json_default)
+
+
+def versions() -> dict[str, str]:
+    """Versions of Python, dotshell and every distribution providing dotshell plugins."""
+    import importlib.metadata as md
+
+    out = {"python": platform.python_version(), "platform": platform.platform()}
+    for name in ("dotshell", "numpy", "opencv-python-headless", "open3d", "pyvista", "pluggy"):
+        try:
+            out[name] = md.version(name)
+        except md.PackageNotFoundError:
+            pass
+    for ep in md.entry_points(group="dotshell"):
+        if ep.dist is not None:
+            out[f"plugin:{ep.name}"] = f"{ep.dist.name} {ep.dist.version}"
+    return out
+
+
+class RunStore:
+    """Reads and writes one run directory."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+        self._events = None
+
+    # ---- creation ---------------------------------------------------------------------------
+
+    @classmethod
+    def create(cls, parent: Path, profile_name: str) -> "RunStore":
+        """A new, empty run directory ``<parent>/<YYYYmmdd-HHMMSS>_<profile>``."""
+        safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", profile_name) or "run"
+        stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
+        parent = Path(parent)
+        parent.mkdir(parents=True, exist_ok=True)
+        for n in range(1000):
+            root = parent / (f"{stamp}_{safe}" + (f"_{n}" if n else ""))
+            try:
+                root.mkdir()
+                return cls(root)
+            except FileExistsError:
+                continue
+        raise RunError(f"cannot create a run directory under {parent}: too many runs this second.")
+
+    @classmethod
+    def open(cls, root: Path) -> "RunStore":
+        """An existing run; raises :class:`RunError` if it is not one."""
+        root = Path(root)
+        if not (root / "manifest.json").is_file():
+            raise RunError(f"{root} is not a dotshell run directory (no manifest.json). Give the "
+                           "directory `dotshell scan` printed at the end of a scan.")
+        return cls(root)
+
+    # ---- generic files ----------------------------------------------------------------------
+
+    def path(self, *parts: str) -> Path:
+        return self.root.joinpath(*parts)
+
+    def write_json(self, name: str, obj: Any) -> Path:
+        p = self.path(name)
+        atomic_write_text(p, dumps(obj))
+        return p
+
+    def read_json(self, name: str) -> Any:
+        p = self.path(name)
+        try:
+            return json.loads(p.read_text())
+        except FileNotFoundError:
+            raise RunError(f"{p} is missing from the run.") from None
+        except json.JSONDecodeError as exc:
+            raise RunError(f"{p} is not valid JSON ({exc}).") from None
+
+    def write_profile(self, data: dict[str, Any]) -> Path:
+        p = self.path("profile.toml")
+        atomic_write_bytes(p, tomli_w.dumps(data).encode())
+        return p
+
+    # ---- manifest ---------------------------------------------------------------------------
+
+    def init_manifest(self, profile_name: str, angles_deg: list[float],
+                      frame_names: list[str]) -> None:
+        self.write_json("manifest.json", {
+            "format": RUN_FORMAT,
+            "profile": profile_name,
+            "created": datetime.now().isoformat(timespec="seconds"),
+            "status": "running",
+            "versions": versions(),
+            "frame_names": frame_names,
+            "views": [{"index": i, "angle_deg": a, "frames": 0, "complete": False}
+                      for i, a in enumerate(angles_deg)],
+        })
+
+    @property
+    def manifest(self) -> dict[str, Any]:
+        return self.read_json("manifest.json")
+
+    def update_manifest(self, **changes: Any) -> None:
+        m = self.manifest
+        m.update(changes)
+        self.write_json("manifest.json", m)
+
+    def mark_view(self, view: int, frames: int, complete: bool) -> None:
+        m = self.manifest
+        m["views"][view].update(frames=frames, complete=complete)
+        self.write_json("manifest.json", m)
+
+    # ---- frames -----------------------------------------------------------------------------
+
+    def frame_path(self, view: int, index: int, name: str) -> Path:
+        return self.path("frames", f"view_{view:03d}", f"{index:03d}_{name}.png")
+
+    def write_frame(self, view: int, index: int, name: str, image: np.ndarray) -> Path:
+        """Write one captured frame losslessly (PNG; uint8 or uint16)."""
+        if image.dtype not in (np.uint8, np.uint16) or image.ndim != 2:
+            raise RunError(f"frame {name} of view {view} is {image.dtype} {image.shape}; cameras "
+                           "must return 2-D uint8 or uint16 images.")
+        ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+        if not ok:
+            raise RunError(f"could not encode frame {name} of view {view} as PNG.")
+        p = self.frame_path(view, index, name)
+        atomic_write_bytes(p, buf.tobytes())
+        return p
+
+    def read_frames(self, view: int) -> list[np.ndarray]:
+        """All frames of a view in capture order, as written."""
+        names = self.manifest["frame_names"]
+        frames = []
+        for i, name in enumerate(names):
+            p = self.frame_path(view, i, name)
+            img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+            if img is None:
+                raise RunError(f"frame {p} is missing or unreadable; view {view} cannot be "
+                               "reconstructed.")
+            frames.append(img)
+        return frames
+
+    # ---- events -----------------------------------------------------------------------------
+
+    def append_event(self, record: dict[str, Any]) -> None:
+        """Append one JSON line to ``events.jsonl`` and flush it."""
+        if self._events is None:
+            self._events = open(self.path("events.jsonl"), "a", encoding="utf-8")
+        self._events.write(json.dumps(record, default=_json_default) + "\n")
+        self._events.flush()
+
+    def close(self) -> None:
+        if self._events is not None:
+            self._events.close()
+            self._events = None
+
+    def events(self) -> list[dict[str, Any]]:
+        p = self.path("events.jsonl")
+        if not p.is_file():
+            return []
+        return [json.loads(line) for line in p.read_text().splitlines() if line.strip()]
+
+

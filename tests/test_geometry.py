@@ -1,0 +1,83 @@
+import numpy as np
+import pytest
+
+from dotshell.geometry.calibration import RigCalibration, rot_z
+from dotshell.geometry.fit import fit_cylinder
+from dotshell.geometry.lens import lens_from_fov
+from dotshell.geometry.triangulate import triangulate
+
+
+def _rig(dist=(-0.08, 0.04, 0.0, 0.0, 0.0), pdist=(0.05, 0.0, 0.0, 0.0, 0.0)):
+    cam = lens_from_fov(640, 512, 2000.0, dist)
+    prj = lens_from_fov(512, 384, 1300.0, pdist)
+    a = np.deg2rad(-22.0)  # projector turned about the camera's y axis
+    R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    C = np.array([75.0, 0.0, 10.0])  # projector centre in camera frame (mm)
+    return RigCalibration(cam, prj, R, -R @ C, axis_point=[0, 15, 200], axis_direction=[0, -1, 0])
+
+
+def test_stage_frame_roundtrip_and_rotation_sense():
+    cal = _rig()
+    p = np.array([[7.7, 0.0, 10.0], [0.0, 7.7, 3.0]])
+    for ang in (0.0, 30.0, 275.0):
+        assert np.allclose(cal.camera_to_sample(cal.sample_to_camera(p, ang), ang), p)
+    # stage at 90°: the sample's +x point appears on the stage frame's +y side
+    cam = cal.sample_to_camera(p[:1], 90.0)
+    aligned = (cam - cal.axis_point) @ cal.stage_basis().T
+    assert np.allclose(aligned, [[0.0, 7.7, 10.0]], atol=1e-9)
+    # stage x axis points towards the camera
+    assert cal.stage_basis()[0] @ -cal.axis_point > 0
+
+
+@pytest.mark.parametrize("use_rows", [True, False])
+def test_triangulation_recovers_points_through_both_lens_distortions(use_rows):
+    cal = _rig()
+    rng = np.random.default_rng(3)
+    X = rng.uniform([-15, -15, 185], [15, 15, 215], size=(500, 3))
+    cam_px = cal.camera.project(X)
+    prj_px = cal.projector.project(X @ cal.R.T + cal.T)
+    tri = triangulate(cal.camera.rays(cam_px), prj_px[:, 0], cal,
+                      row=prj_px[:, 1] if use_rows else None)
+    assert tri.keep.all()
+    assert np.abs(tri.points - X).max() < 1e-6
+
+
+def test_row_consistency_rejects_wrong_rows():
+    cal = _rig()
+    X = np.array([[0.0, 0.0, 200.0], [5.0, 5.0, 205.0]])
+    cam_px = cal.camera.project(X)
+    prj_px = cal.projector.project(X @ cal.R.T + cal.T)
+    rows = prj_px[:, 1] + np.array([0.5, 6.0])
+    tri = triangulate(cal.camera.rays(cam_px), prj_px[:, 0], cal, row=rows, row_tolerance_px=1.5)
+    assert tri.keep.tolist() == [True, False] and tri.row_rejected.tolist() == [False, True]
+
+
+def test_cylinder_fit_recovers_radius_and_axis():
+    rng = np.random.default_rng(0)
+    t = rng.uniform(0, 2 * np.pi, 3000)
+    z = rng.uniform(0, 30, 3000)
+    pts = np.column_stack([7.7 * np.cos(t), 7.7 * np.sin(t), z])
+    tilt = rot_z(0)  # identity; then tilt by 2° about x and shift
+    a = np.deg2rad(2.0)
+    Rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    pts = pts @ (Rx @ tilt).T + [0.3, -0.2, 0]
+    pts += rng.normal(scale=0.01, size=pts.shape)
+    fit = fit_cylinder(pts)
+    assert abs(fit.radius_mm - 7.7) < 0.002
+    assert np.degrees(np.arccos(abs(fit.axis[2]))) == pytest.approx(2.0, abs=0.02)
+    assert fit.rms_mm == pytest.approx(0.01, rel=0.15)  # radial share of isotropic noise
+
+
+def test_calibration_json_roundtrip_and_errors(tmp_path):
+    from dotshell.errors import CalibrationError
+
+    cal = _rig()
+    cal.save(tmp_path / "c.json")
+    back = RigCalibration.load(tmp_path / "c.json")
+    assert np.allclose(back.R, cal.R) and np.allclose(back.camera.dist, cal.camera.dist)
+    assert back.baseline_mm == pytest.approx(cal.baseline_mm)
+    (tmp_path / "bad.json").write_text('{"format": "dotshell-calibration/1", "camera": {}}')
+    with pytest.raises(CalibrationError, match="bad.json: calibration is incomplete"):
+        RigCalibration.load(tmp_path / "bad.json")
+    with pytest.raises(CalibrationError, match="does not exist"):
+        RigCalibration.load(tmp_path / "nope.json")
