@@ -130,8 +130,15 @@ class Profile:
         return (self.base_dir / cal["file"]).resolve()
 
     def raw(self) -> dict[str, Any]:
-        """The profile as a plain dict, writable back to TOML."""
-        return copy.deepcopy(self.data)
+        """The profile as a plain dict, writable back to TOML. TOML has no null: keys whose
+        value is None (absent roles, "automatic" settings) are left out, which reads back as
+        the same defaults."""
+        return _drop_none(self.data)
+
+
+def _drop_none(d: dict[str, Any]) -> dict[str, Any]:
+    return {k: _drop_none(v) if isinstance(v, dict) else copy.deepcopy(v)
+            for k, v in d.items() if v is not None}
 
 
 def apply_overrides(data: dict[str, Any], overrides: list[str], where: str) -> dict[str, Any]:

@@ -48,8 +48,9 @@ def _prepare_offscreen() -> None:
 
 
 def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
-                  title: str = "", scalar_name: str = "z [mm]") -> Path:
-    """Render a point cloud (mm) to PNG off-screen with pyvista."""
+                  title: str = "", scalar_name: str = "z [mm]",
+                  clim: tuple[float, float] | None = None, cmap: str = "viridis") -> Path:
+    """Render a point cloud (mm) to PNG off-screen with pyvista; ``clim`` clips the colours."""
     _prepare_offscreen()
     import pyvista as pv
 
@@ -59,7 +60,7 @@ def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
         pl.set_background("white")
         cloud[scalar_name] = points[:, 2] if scalars is None else scalars
         pl.add_mesh(cloud, scalars=scalar_name, point_size=2, render_points_as_spheres=False,
-                    cmap="viridis", scalar_bar_args={"color": "black"})
+                    cmap=cmap, clim=clim, scalar_bar_args={"color": "black"})
         if title:
             pl.add_text(title, font_size=10, color="black")
         pl.camera_position = "iso"
@@ -87,13 +88,16 @@ def render_previews(store, clouds, points: np.ndarray, profile, calib, bus) -> d
                                         pdir / f"columns_view{vc.view:03d}.png")
     r = np.hypot(points[:, 0], points[:, 1])
     v = profile.data["validation"]
+    style: dict[str, Any] = {}
     if v["shape"] == "cylinder":
         scal, name = r - v["radius_mm"], "radius error [mm]"
+        c = max(0.01, 4 * float(np.median(np.abs(scal))))  # robust: the cap saturates
+        style = {"clim": (-c, c), "cmap": "coolwarm"}
     else:
         scal, name = points[:, 2], "z [mm]"
     try:
         out["cloud"] = cloud_preview(points, scal, pdir / "cloud.png",
-                                     f"{profile.name}: {len(points)} points", name)
+                                     f"{profile.name}: {len(points)} points", name, **style)
     except Exception as exc:  # rendering depends on the machine's OpenGL; degrade, don't crash
         bus.warn(f"cloud preview skipped: 3-D rendering is not available here "
                  f"({type(exc).__name__}: {exc}). The cloud is in cloud.ply.")

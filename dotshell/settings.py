@@ -130,12 +130,12 @@ def validate_settings(schema: Mapping[str, Setting], data: Mapping[str, Any] | N
     out: dict[str, Any] = {}
     for name, s in schema.items():
         key = f"{dot}{name}"
-        if name not in data:
+        if data.get(name) is None:  # absent (TOML has no null; None is our own default)
             if s.required:
                 raise ProfileError(f"{where}: missing required key [{key}] ({s.kind}"
                                    + (f", {s.unit}" if s.unit else "") + f"): {s.help}")
-            out[name] = validate_settings(s.schema, {}, where, key) if (
-                s.kind == "table" and s.schema is not None and s.default in (None, {})) else s.default
+            fill = s.kind == "table" and s.schema is not None and s.default == {}
+            out[name] = validate_settings(s.schema, {}, where, key) if fill else s.default
             continue
         out[name] = _check_value(where, key, data[name], s)
     return out

@@ -33,3 +33,41 @@ def broken_plugin(tmp_path, monkeypatch):
                      "raise ImportError('needs libfoo.so, which is not installed')\n", "broken")
     monkeypatch.syspath_prepend(str(path))
     return path
+
+
+def small_profile_dict(factor: float = 0.25, views: int = 6) -> dict:
+    """The metal-cylinder profile at reduced resolution (fast tests)."""
+    import tomllib
+
+    from dotshell_sim.bench import scale_profile
+
+    raw = tomllib.loads((ROOT / "profiles" / "sim-metal-cylinder.toml").read_text())
+    raw = scale_profile(raw, factor)
+    raw["scan"]["views"] = views
+    return raw
+
+
+def write_profile(path: Path, raw: dict) -> Path:
+    import tomli_w
+
+    path.write_text(tomli_w.dumps(raw))
+    return path
+
+
+@pytest.fixture(scope="session")
+def small_scan(tmp_path_factory):
+    """One reduced-resolution 6-view scan of the metal cylinder, shared by read-only tests."""
+    from dotshell.events import EventBus
+    from dotshell.pipeline.scan import scan
+    from dotshell.plugins import PluginManager
+    from dotshell.profile import load_profile
+
+    tmp = tmp_path_factory.mktemp("scan")
+    prof_path = write_profile(tmp / "small.toml", small_profile_dict())
+    pm = PluginManager()
+    pm.load_entry_points()
+    events = []
+    bus = EventBus()
+    bus.subscribe(events.append)
+    result = scan(load_profile(prof_path, pm), pm, tmp / "runs", bus=bus)
+    return result, events

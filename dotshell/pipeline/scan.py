@@ -93,12 +93,13 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
     status, report = "failed", {}
     try:
         store.write_profile(profile.raw())
+        angles = profile.angles_deg()
+        store.init_manifest(profile.name, angles, [])
         with Rig(profile, pm) as rig:
             calib = rig.calibration(calibration_file)
             calib.save(store.path("calibration.json"))
             patterns = coding.patterns(rig.projector.resolution)
-            angles = profile.angles_deg()
-            store.init_manifest(profile.name, angles, [p.name for p in patterns])
+            store.update_manifest(frame_names=[p.name for p in patterns])
             bus.emit(ScanStarted(run_dir=str(store.root), profile=profile.name,
                                  n_views=len(angles), frames_per_view=len(patterns)))
             bus.emit(StepStarted(step="acquire", total=len(angles) * len(patterns)))
@@ -123,7 +124,8 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
         status = "aborted"
         raise
     finally:
-        store.update_manifest(status=status)
+        if store.path("manifest.json").is_file():
+            store.update_manifest(status=status)
         bus.emit(ScanFinished(status=status, run_dir=str(store.root), summary=_summary(report)))
         for u in unsubs:
             u()

@@ -1,0 +1,360 @@
+"""Tests of the gray-code coding plugin (plugins/dotshell_codings) on synthetic camera frames.
+
+The synthetic camera sees the projector through a known smooth mapping (no simulator): each
+camera pixel's footprint is supersampled, the projected image is looked up at every sample
+(projector pixel c spans [c - 0.5, c + 0.5]), then defocus (Gaussian blur), albedo, noise and
+8-bit quantization are applied.
+
+Run ``python tests/test_graycode.py`` to print the accuracy and timing figures.
+"""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from dotshell.backends import Backend
+from dotshell.coding import Correspondence, PatternCoding
+from dotshell.settings import validate_settings
+from dotshell_codings import dotshell_codings
+from dotshell_codings.graycode import SETTINGS_SCHEMA, GrayCode, code_offset
+
+PROJ = (1024, 768)
+
+
+def make(**settings) -> GrayCode:
+    (backend,) = dotshell_codings()
+    full = validate_settings(backend.settings_schema, settings, "test")
+    return backend.factory(settings=full, context=None)
+
+
+# ---- synthetic camera -----------------------------------------------------------------------
+
+def camera_mapping(xs: np.ndarray, ys: np.ndarray, scale: float = 0.7):
+    """True projector (column, row) seen at camera position (xs, ys); smooth, ~scale projector
+    px per camera px, with some shear and waviness."""
+    u = 200.3 + scale * xs + 0.05 * ys + 3.0 * np.sin(2 * np.pi * ys / 97.0 + 0.3) \
+        + 2.0 * np.sin(2 * np.pi * xs / 151.0)
+    v = 150.7 + scale * ys - 0.04 * xs + 2.5 * np.sin(2 * np.pi * xs / 83.0)
+    return u, v
+
+
+def render(coding: GrayCode, proj=PROJ, cam=(320, 240), ss: int = 4, blur: float = 0.8,
+           noise: float = 1.0, seed: int = 0, scale: float = 0.7, mapping=camera_mapping,
+           dtype=np.uint8, peak: float = 220.0, black_level: float = 8.0, shadow=None,
+           low_contrast=None):
+    """Frames for every pattern of ``coding``, the true (column, row) at pixel centres."""
+    cw, ch = cam
+    rng = np.random.default_rng(seed)
+    off = (np.arange(ss) + 0.5) / ss - 0.5
+    yy, xx = np.mgrid[0:ch, 0:cw].astype(np.float64)
+    sx = (xx[:, :, None, None] + off[None, None, None, :]).reshape(ch, cw, -1)
+    sy = (yy[:, :, None, None] + off[None, None, :, None]).reshape(ch, cw, -1)
+    su, sv = mapping(sx, sy, scale) if mapping is camera_mapping else mapping(sx, sy)
+    pc = np.floor(su + 0.5).astype(np.int64)
+    pr = np.floor(sv + 0.5).astype(np.int64)
+    inside = (pc >= 0) & (pc < proj[0]) & (pr >= 0) & (pr < proj[1])
+    pc, pr = np.clip(pc, 0, proj[0] - 1), np.clip(pr, 0, proj[1] - 1)
+    albedo = 0.75 + 0.2 * np.sin(xx / 40.0) * np.cos(yy / 55.0)
+    frames = []
+    for pat in coding.patterns(proj):
+        img = pat.image.astype(np.float32) / 255.0
+        f = (img[pr, pc] * inside).mean(axis=2)
+        if low_contrast is not None and pat.name not in ("white", "black"):
+            f[low_contrast] = 0.5 + 0.05 * (f[low_contrast] - 0.5)
+        f = cv2.GaussianBlur(f, (0, 0), blur) if blur > 0 else f
+        f = black_level + peak * albedo * f
+        if shadow is not None:
+            f[shadow] = black_level
+        f = f + rng.normal(0.0, noise, f.shape)
+        top = np.iinfo(dtype).max
+        frames.append(np.clip(np.round(f), 0, top).astype(dtype))
+    u, v = mapping(xx, yy, scale) if mapping is camera_mapping else mapping(xx, yy)
+    return frames, u, v
+
+
+def errors(c: Correspondence, u: np.ndarray, v: np.ndarray, margin: int = 4):
+    """Error arrays of integer and sub-pixel decoding on valid pixels away from the border."""
+    m = c.valid.copy()
+    m[:margin], m[-margin:], m[:, :margin], m[:, -margin:] = False, False, False, False
+    return m, c.column[m] - u[m], (c.row[m] - v[m]) if c.row is not None else None
+
+
+def rms(e: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(e ** 2)))
+
+
+# ---- plugin and patterns --------------------------------------------------------------------
+
+def test_backend_and_protocol():
+    (backend,) = dotshell_codings()
+    assert isinstance(backend, Backend) and backend.name == "graycode"
+    defaults = validate_settings(backend.settings_schema, {}, "test")
+    assert defaults["axes"] == "both" and defaults["inverse"] is True
+    assert defaults["drop_low_bits"] == 0 and defaults["subpixel"] is True
+    assert isinstance(make(), PatternCoding)
+    assert set(SETTINGS_SCHEMA) >= {"axes", "inverse", "min_contrast", "shadow_threshold",
+                                    "drop_low_bits", "subpixel"}
+
+
+def test_pattern_sequence_1024x768():
+    pats = make().patterns(PROJ)
+    names = [p.name for p in pats]
+    assert len(pats) == 42 and len(set(names)) == 42
+    assert names[:6] == ["white", "black", "col_00", "col_00_inv", "col_01", "col_01_inv"]
+    assert names[22:24] == ["row_00", "row_00_inv"] and names[-1] == "row_09_inv"
+    for p in pats:
+        assert p.image.dtype == np.uint8 and p.image.shape == (768, 1024)
+        assert set(np.unique(p.image)) <= {0, 255}
+    assert [p.name for p in make(axes="columns").patterns(PROJ)][-1] == "col_09_inv"
+    assert len(make(axes="columns").patterns(PROJ)) == 22
+    assert len(make(inverse=False).patterns(PROJ)) == 22
+    assert len(make(drop_low_bits=2).patterns(PROJ)) == 2 + 2 * 16
+    assert make().frame_names(PROJ) == names
+
+
+@pytest.mark.parametrize("size", [1000, 912, 1140, 700, 5])
+def test_centred_code(size):
+    """Column c carries Gray(c + (2^n - W)//2): the stripe structure is mirror-symmetric about
+    the projector centre (for even (2^n - W)/2 exactly), adjacent columns differ in one bit."""
+    proj = (size, 4)
+    pats = make(axes="columns").patterns(proj)
+    bits = np.array([p.image[0] // 255 for p in pats[2::2]])        # (n, W)
+    n = bits.shape[0]
+    assert n == int(np.ceil(np.log2(size)))
+    assert np.all(np.abs(np.diff(bits.astype(int), axis=1)).sum(axis=0) == 1)
+    g = (bits.astype(np.int64) << np.arange(n - 1, -1, -1)[:, None]).sum(axis=0)
+    v = np.arange(size) + code_offset(size)
+    assert np.array_equal(g, v ^ (v >> 1))
+    if ((1 << n) - size) % 2 == 0:
+        # reflected code: coarser bits mirror about the centre, the MSB inverts
+        assert np.array_equal(bits[1:], bits[1:, ::-1]) and np.array_equal(bits[0], 1 - bits[0, ::-1])
+
+
+# ---- exact decoding of the projected images themselves --------------------------------------
+
+@pytest.mark.parametrize("proj, kw", [((1024, 768), {}), ((1000, 700), {}), ((912, 1140), {}),
+                                      ((1000, 700), {"inverse": False}),
+                                      ((912, 1140), {"subpixel": False})])
+def test_identity_decode(proj, kw):
+    g = make(**kw)
+    c = g.decode([p.image for p in g.patterns(proj)], proj)
+    w, h = proj
+    assert c.valid.all() and c.column.dtype == np.float32
+    assert np.array_equal(c.column, np.broadcast_to(np.arange(w, dtype=np.float32), (h, w)))
+    assert np.array_equal(c.row, np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w)))
+    assert c.stats["decoded"] == w * h and c.stats["pixels"] == w * h
+
+
+@pytest.mark.parametrize("proj, drop", [((1000, 700), 1), ((912, 1140), 3)])
+def test_identity_drop_low_bits(proj, drop):
+    g = make(drop_low_bits=drop, subpixel=False)
+    c = g.decode([p.image for p in g.patterns(proj)], proj)
+    w, h = proj
+    assert c.valid.all()
+    half = (1 << drop) / 2
+    # integer estimate: centre of the decoded block (clipped to the projector)
+    assert np.abs(c.column - np.arange(w)[None]).max() <= half
+    assert np.abs(c.row - np.arange(h)[:, None]).max() <= half
+    # with sub-pixel edges the blocks are interpolated back to full resolution
+    c2 = make(drop_low_bits=drop).decode([p.image for p in g.patterns(proj)], proj)
+    inner = np.abs(c2.column - np.arange(w)[None])[:, 2 << drop:-(2 << drop)]
+    assert inner.max() < 1e-3
+
+
+def test_uint16_and_columns_only():
+    g = make(axes="columns")
+    frames = [p.image.astype(np.uint16) * 16 for p in g.patterns((1000, 50))]  # 12-bit data
+    c = g.decode(frames, (1000, 50))
+    assert c.row is None and c.valid.all()
+    assert np.array_equal(c.column[0], np.arange(1000, dtype=np.float32))
+
+
+def test_wrong_frame_count():
+    g = make()
+    with pytest.raises(ValueError):
+        g.decode([p.image for p in g.patterns(PROJ)][:-1], PROJ)
+    with pytest.raises(ValueError):
+        make(drop_low_bits=10).patterns(PROJ)
+
+
+# ---- synthetic camera -----------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def scene():
+    g = make()
+    ch, cw = 240, 320
+    yy, xx = np.mgrid[0:ch, 0:cw]
+    shadow = (xx > 250) & (yy > 180)
+    low = (xx < 40) & (yy > 190)
+    frames, u, v = render(g, ss=8, shadow=shadow, low_contrast=low)
+    return g, frames, u, v, shadow, low
+
+
+def _away_from(mask: np.ndarray, px: int = 4) -> np.ndarray:
+    """Pixels farther than px from mask (defocus mixes the regions near its border)."""
+    return ~cv2.dilate(mask.astype(np.uint8), np.ones((2 * px + 1, 2 * px + 1), np.uint8)).astype(bool)
+
+
+def test_synthetic_decode_accuracy(scene):
+    g, frames, u, v, shadow, low = scene
+    keep = _away_from(shadow | low)
+    c = g.decode(frames, PROJ)
+    c.valid &= keep
+    m, ec, er = errors(c, u, v)
+    assert m.sum() > 0.99 * keep[4:-4, 4:-4].sum()
+    ci = make(subpixel=False).decode(frames, PROJ)
+    ci.valid &= keep
+    mi, eci, eri = errors(ci, u, v)
+    # integer decoding equals the rounded truth, except where the truth is so close to a stripe
+    # boundary (0.5 mod 1) that the edge-localization noise (~0.02 px) decides either way
+    for dec, true in ((ci.column[mi], u[mi]), (ci.row[mi], v[mi])):
+        exact = dec == np.floor(true + 0.5)
+        far = np.abs(true % 1.0 - 0.5) > 0.1
+        assert exact[far].mean() >= 0.999 and exact.mean() >= 0.95
+        assert np.abs(dec - true).max() < 0.5 + 0.15
+    # sub-pixel: far below the integer quantization (~0.29 px RMS)
+    assert rms(ec) < 0.1 and rms(er) < 0.1
+    assert rms(ec) < 0.4 * rms(eci) and rms(er) < 0.4 * rms(eri)
+    assert np.abs(ec).max() < 1.0 and np.abs(er).max() < 1.0
+    assert c.stats["refined_column"] > 0.95 * c.stats["decoded"]
+    c = g.decode(frames, PROJ)
+    assert c.column.dtype == np.float32 and np.isnan(c.column[~c.valid]).all()
+    assert np.isnan(c.row[~c.valid]).all()
+    # near the masked regions (defocus mixes them in) errors stay within one projector pixel
+    assert np.nanmax(np.abs(c.column - u)) < 1.5 and np.nanmax(np.abs(c.row - v)) < 1.5
+
+
+def test_synthetic_masks(scene):
+    g, frames, u, v, shadow, low = scene
+    c = g.decode(frames, PROJ)
+    s = c.stats
+    assert s["pixels"] == s["decoded"] + s["shadow"] + s["low_contrast"] + s["out_of_range"]
+    assert not c.valid[shadow].any()
+    assert s["shadow"] >= shadow.sum() and s["shadow"] < 1.3 * shadow.sum()
+    inner = _away_from(~low, 2)  # the region less its blurred border
+    assert not c.valid[inner].any() and s["low_contrast"] >= inner.sum()
+    assert s["low_contrast"] < low.sum() + 0.02 * s["pixels"]
+
+
+def test_out_of_range():
+    """A camera looking past the projector's right edge: decoded values beyond W are masked."""
+    g = make(axes="columns")
+    w = 1000  # 24 unused codes on each side of the centred code
+    frames, u, v = render(g, proj=(w, 8), mapping=lambda x, y: (900.0 + 0.7 * x, 0 * y + 3.0),
+                          cam=(320, 20), blur=0.6)
+    c = g.decode(frames, (w, 8))
+    past = u > w + 1
+    assert not c.valid[past].any()
+    # beyond the projector the image is dark: shadow, except that the stripe code does not
+    # exist there either; both make the pixel invalid
+    assert c.stats["shadow"] + c.stats["out_of_range"] >= past.sum()
+    m = c.valid & (u < w - 2)
+    assert m.sum() > 0 and np.abs(c.column[m] - u[m]).max() < 1.0
+    # an impossible code (beyond the 1000 used columns) reported as out_of_range
+    imgs = [p.image.copy() for p in g.patterns((w, 8))]
+    n = (len(imgs) - 2) // 2
+    code = 1023  # binary all ones -> Gray 1000000000
+    gbits = [(code ^ (code >> 1)) >> (n - 1 - i) & 1 for i in range(n)]
+    for i, bit in enumerate(gbits):
+        imgs[2 + 2 * i][:, 0] = 255 * bit
+        imgs[3 + 2 * i][:, 0] = 255 * (1 - bit)
+    c = g.decode(imgs, (w, 8))
+    assert not c.valid[:, 0].any() and c.stats["out_of_range"] == 8
+
+
+@pytest.mark.parametrize("proj", [(1000, 700), (912, 1140)])
+def test_synthetic_non_power_of_two(proj):
+    g = make()
+    frames, u, v = render(g, proj=proj, cam=(200, 160), seed=3)
+    c = g.decode(frames, proj)
+    m, ec, er = errors(c, u, v)
+    assert m.mean() > 0.8
+    assert np.mean(np.abs(ec) < 0.5) > 0.99 and np.mean(np.abs(er) < 0.5) > 0.99
+    assert rms(ec) < 0.1 and rms(er) < 0.1
+
+
+def test_synthetic_inverse_false():
+    g = make(inverse=False)
+    frames, u, v = render(g, cam=(200, 160), seed=4)
+    c = g.decode(frames, PROJ)
+    m, ec, er = errors(c, u, v)
+    assert m.mean() > 0.8
+    assert rms(ec) < 0.15 and rms(er) < 0.15
+
+
+@pytest.mark.parametrize("drop", [1, 2])
+def test_synthetic_drop_low_bits(drop):
+    g = make(drop_low_bits=drop)
+    frames, u, v = render(g, cam=(200, 160), seed=5)
+    ci = make(drop_low_bits=drop, subpixel=False).decode(frames, PROJ)
+    m, eci, eri = errors(ci, u, v)
+    block = 1 << drop
+    # integer: the block containing the truth (block centre within half a block + rounding)
+    assert np.mean(np.abs(eci) <= block / 2 + 0.5) > 0.99
+    c = g.decode(frames, PROJ)
+    m, ec, er = errors(c, u, v)
+    assert rms(ec) < 0.15 and rms(er) < 0.15 and rms(ec) < 0.3 * rms(eci)
+
+
+def test_coarse_camera():
+    """Camera pixels larger than projector pixels (1.6 projector px per camera px): adjacent
+    pixels skip codes; decoding stays exact, refinement uses two-step anchors."""
+    g = make()
+    frames, u, v = render(g, cam=(200, 160), scale=1.6, ss=6, blur=0.5, seed=6)
+    c = g.decode(frames, PROJ)
+    m, ec, er = errors(c, u, v)
+    assert m.mean() > 0.5
+    assert np.mean(np.abs(ec) < 1.0) > 0.99 and np.mean(np.abs(er) < 1.0) > 0.99
+
+
+def _timing_frames(shape=(1024, 1280), **kw):
+    g = make(**kw)
+    h, w = shape
+    frames = []
+    rng = np.random.default_rng(0)
+    noise = rng.normal(0, 40, shape).astype(np.float32)
+    for p in g.patterns(PROJ):
+        f = cv2.resize(p.image, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+        frames.append(np.clip(f * 3000 / 255 + 200 + noise, 0, 65535).astype(np.uint16))
+    return g, frames
+
+
+def time_decode(repeats: int = 3, **kw) -> float:
+    g, frames = _timing_frames(**kw)
+    best = np.inf
+    for _ in range(repeats):
+        t = time.perf_counter()
+        g.decode(frames, PROJ)
+        best = min(best, time.perf_counter() - t)
+    return best
+
+
+def test_timing_1280x1024_uint16(capsys):
+    t = time_decode(repeats=1)
+    with capsys.disabled():
+        print(f"\n[graycode] decode 42 x 1280x1024 uint16: {t * 1000:.0f} ms")
+
+
+if __name__ == "__main__":
+    g = make()
+    for label, kw, rkw in [("default 0.7 proj px/cam px", {}, {}),
+                           ("noise 3", {}, {"noise": 3.0}),
+                           ("blur 1.5", {}, {"blur": 1.5}),
+                           ("inverse=false", {"inverse": False}, {}),
+                           ("drop_low_bits=1", {"drop_low_bits": 1}, {}),
+                           ("drop_low_bits=2", {"drop_low_bits": 2}, {})]:
+        frames, u, v = render(make(**kw), ss=8, **rkw)
+        c = make(**kw).decode(frames, PROJ)
+        ci = make(subpixel=False, **kw).decode(frames, PROJ)
+        m, ec, er = errors(c, u, v)
+        mi, eci, eri = errors(ci, u, v)
+        exact = np.mean(ci.column[mi] == np.floor(u[mi] + 0.5))
+        print(f"{label:28s} valid {m.mean():.3f} int==round(truth) {exact:.3f}"
+              f"  col RMS int {rms(eci):.3f} sub {rms(ec):.3f}"
+              f"  row RMS int {rms(eri):.3f} sub {rms(er):.3f}  stats {c.stats}")
+    for kw in [{}, {"subpixel": False}, {"axes": "columns"}]:
+        print(f"decode 42x1280x1024 uint16 {kw}: {time_decode(**kw) * 1000:.0f} ms")
