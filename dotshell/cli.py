@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
                            TimeElapsedColumn, TimeRemainingColumn)
 from rich.table import Table
@@ -31,7 +32,7 @@ def _pm(args: argparse.Namespace):
 
     pm = get_plugin_manager(strict=args.strict_plugins)
     for e in pm.load_errors:
-        err.print(f"[yellow]warning:[/] {e}")
+        err.print(f"[yellow]warning:[/] {escape(str(e))}")
     return pm
 
 
@@ -60,7 +61,7 @@ class ScanProgress:
             p.console.print(f"[dim]→ {ev.step}[/]")
         elif isinstance(ev, Message):
             style = {"warning": "yellow", "error": "red"}.get(ev.level, "dim")
-            p.console.print(f"[{style}]{ev.level}:[/] {ev.text}")
+            p.console.print(f"[{style}]{ev.level}:[/] {escape(ev.text)}")
 
 
 def _print_report(report: dict[str, Any], run_dir: Path) -> None:
@@ -75,7 +76,7 @@ def _print_report(report: dict[str, Any], run_dir: Path) -> None:
             t.add_row(k, v)
         out.print(t)
     elif "validation" in report:
-        out.print(f"validation: {report['validation']}")
+        out.print(f"validation: {escape(str(report['validation']))}")
     cloud = report.get("cloud", {})
     out.print(f"cloud: {cloud.get('points', 0)} points → {run_dir / 'cloud.ply'}")
     for name, rel in (report.get("previews") or {}).items():
@@ -128,7 +129,7 @@ def cmd_check(args: argparse.Namespace) -> int:
     if args.connect:
         with Rig(profile, pm) as rig:
             for role, status in rig.status().items():
-                out.print(f"  [green]connected[/] {role:<13} {status}")
+                out.print(f"  [green]connected[/] {role:<13} {escape(str(status))}")
             cal = rig.calibration(args.calibration)
             out.print(f"  calibration   {cal.source}: baseline {cal.baseline_mm:.2f} mm")
         out.print("[green]all devices opened and closed[/]")
@@ -145,21 +146,21 @@ def cmd_plugins(args: argparse.Namespace) -> int:
         t.add_column(col)
     for role in ROLES:
         for name, info in sorted(pm.backends(role).items()):
-            t.add_row(role, name, info.plugin, info.distribution, info.backend.summary)
+            t.add_row(role, name, info.plugin, info.distribution, escape(info.backend.summary))
     out.print(t)
     if args.settings:
         for role in ROLES:
             for name, info in sorted(pm.backends(role).items()):
-                st = Table(title=f"[{role}] backend = \"{name}\" — [{role}.settings]")
+                st = Table(title=escape(f"[{role}] backend = \"{name}\" — [{role}.settings]"))
                 for col in ("key", "type", "default", "help"):
                     st.add_column(col)
                 for row in describe(info.backend.settings_schema):
-                    st.add_row(*row)
+                    st.add_row(*map(escape, row))
                 out.print(st)
     if pm.load_errors:
         out.print("[red]plugins that failed to load:[/]")
         for e in pm.load_errors:
-            out.print(f"  {e}")
+            out.print(f"  {escape(str(e))}")
         return 1
     return 0
 
@@ -206,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except DotshellError as exc:
-        err.print(f"[red]error:[/] {exc}", soft_wrap=True)
+        err.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
         return exc.exit_code
     except KeyboardInterrupt:
         err.print("[yellow]interrupted[/]: frames captured so far are kept in the run directory.")

@@ -1,0 +1,102 @@
+"""The dotshell command: user errors are one paragraph with exit code 2, never a traceback."""
+
+import subprocess
+import sys
+
+import pytest
+
+from conftest import ROOT, small_profile_dict, write_profile
+from dotshell.cli import main
+
+
+def run_cli(capsys, *args):
+    code = main(list(args))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _one_paragraph(err: str) -> str:
+    assert "Traceback" not in err
+    text = " ".join(err.split())
+    assert text.startswith("error: ")
+    return text
+
+
+def test_missing_profile_file(capsys, tmp_path):
+    code, _, err = run_cli(capsys, "check", str(tmp_path / "nope.toml"))
+    assert code == 2 and "profile" in _one_paragraph(err) and "does not exist" in err
+
+
+def test_toml_syntax_error_names_file(capsys, tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text("[scan\nviews = 3\n")
+    code, _, err = run_cli(capsys, "check", str(p))
+    assert code == 2 and "bad.toml: not valid TOML" in _one_paragraph(err)
+
+
+@pytest.mark.parametrize("mutate, fragment", [
+    (lambda r: r["scan"].update(viewz=3), "unknown key [scan.viewz]. Valid keys here: angles_deg"),
+    (lambda r: r["scan"].update(views="twelve"), "[scan.views] = 'twelve' is invalid: expected an integer"),
+    (lambda r: r["camera"]["settings"].update(bit_depth=10), "[camera.settings.bit_depth] = 10 is not a valid choice"),
+    (lambda r: r["camera"].update(backend="basler"), "[camera.backend] = 'basler' is not an installed camera backend. Valid choices: 'sim-camera'"),
+    (lambda r: r.pop("stage"), "missing required key [stage]"),
+    (lambda r: r["calibration"].update(source="file"), "[calibration] needs file ="),
+])
+def test_profile_errors_name_file_key_value_and_choices(capsys, tmp_path, mutate, fragment):
+    raw = small_profile_dict()
+    mutate(raw)
+    p = write_profile(tmp_path / "p.toml", raw)
+    code, _, err = run_cli(capsys, "check", str(p))
+    text = _one_paragraph(err)
+    assert code == 2 and str(p) in text and fragment in text
+
+
+def test_missing_calibration_file(capsys, tmp_path):
+    raw = small_profile_dict()
+    raw["calibration"] = {"file": "cal/calibration.json"}
+    p = write_profile(tmp_path / "p.toml", raw)
+    code, _, err = run_cli(capsys, "check", str(p), "--connect")
+    assert code == 2 and "calibration.json does not exist" in _one_paragraph(err)
+
+
+def test_broken_plugin_warns_and_strict_mode_exits_2(capsys, tmp_path, broken_plugin):
+    p = write_profile(tmp_path / "p.toml", small_profile_dict())
+    code, out, err = run_cli(capsys, "check", str(p))
+    assert code == 0 and "plugin 'broken'" in err and "needs libfoo.so" in err
+    code, _, err = run_cli(capsys, "--strict-plugins", "check", str(p))
+    assert code == 2 and "needs libfoo.so" in _one_paragraph(err)
+    code, out, _ = run_cli(capsys, "plugins")
+    assert code == 1 and "failed to load" in out and "sim-camera" in out
+
+
+def test_check_connect_opens_every_device(capsys, tmp_path):
+    p = write_profile(tmp_path / "p.toml", small_profile_dict())
+    code, out, _ = run_cli(capsys, "check", str(p), "--connect")
+    assert code == 0 and "all devices opened and closed" in out
+    assert out.count("connected") >= 3 and "ground-truth" in out
+
+
+def test_plugins_lists_roles_names_and_distributions(capsys):
+    code, out, _ = run_cli(capsys, "plugins", "--settings")
+    assert code == 0
+    for word in ("camera", "sim-camera", "graycode", "dotshell 0.1.0", "focal_px"):
+        assert word in out
+
+
+def test_reconstruct_on_a_non_run_is_a_user_error(capsys, tmp_path):
+    code, _, err = run_cli(capsys, "reconstruct", str(tmp_path))
+    assert code == 2 and "not a dotshell run directory" in _one_paragraph(err)
+
+
+def test_installed_command_scans_with_override_and_prints_table(tmp_path):
+    """The real console script, as a user runs it (tiny bench, 3 views)."""
+    p = write_profile(tmp_path / "p.toml", small_profile_dict(factor=0.2, views=3))
+    exe = [sys.executable, "-m", "dotshell.cli"]
+    r = subprocess.run([*exe, "scan", str(p), "--out", str(tmp_path / "runs"),
+                        "--set", "outputs.previews=false"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "Mean relative error" in r.stdout and "run:" in r.stdout
+    runs = list((tmp_path / "runs").iterdir())
+    assert len(runs) == 1 and (runs[0] / "cloud.ply").is_file()
+    assert not (runs[0] / "previews").exists()
