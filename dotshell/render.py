@@ -80,12 +80,17 @@ def render_previews(store, clouds, points: np.ndarray, profile, calib, bus) -> d
     pdir = store.path("previews")
     pdir.mkdir(exist_ok=True)
     want = profile.data["outputs"]["preview_view"]
-    vc = next((c for c in clouds if c.view == want), clouds[0])
-    frames = store.read_frames(vc.view)
-    out["frame"] = frame_preview(frames[0], pdir / f"frame_view{vc.view:03d}.png")
-    out["columns"] = column_map_preview(vc.correspondence.column, vc.correspondence.valid,
-                                        calib.projector.width,
-                                        pdir / f"columns_view{vc.view:03d}.png")
+    vc = next((c for c in clouds if c.view == want and c.correspondence is not None), None)
+    if vc is None:
+        bus.warn(f"frame previews skipped: view {want} ([outputs] preview_view) was not "
+                 "reconstructed")
+    else:
+        first = store.frame_path(vc.view, 0, store.manifest["frame_names"][0])
+        out["frame"] = frame_preview(cv2.imread(str(first), cv2.IMREAD_UNCHANGED),
+                                     pdir / f"frame_view{vc.view:03d}.png")
+        out["columns"] = column_map_preview(vc.correspondence.column, vc.correspondence.valid,
+                                            calib.projector.width,
+                                            pdir / f"columns_view{vc.view:03d}.png")
     r = np.hypot(points[:, 0], points[:, 1])
     v = profile.data["validation"]
     style: dict[str, Any] = {}

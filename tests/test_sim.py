@@ -138,40 +138,60 @@ def test_geometry_triangulates_back_onto_the_cylinder(rig):
         assert s[:, 2].min() > 0 and s[:, 2].max() < 30
 
 
-def test_stripe_edge_lands_where_geometry_says(rig):
-    """A vertical black/white edge at projector x = c - 0.5 appears (noise-free, after
-    supersampling and defocus) at the camera column the ray tracer predicts."""
-    cam, proj, stage = rig["camera"], rig["projector"], rig["stage"]
-    stage.move_to(0.0)
+def _crossing(profile: np.ndarray, near: float) -> float:
+    """Sub-pixel position where a 1-D profile crosses 0.5 (linear interpolation), nearest
+    ``near``."""
+    j = np.flatnonzero(np.diff(np.sign(profile - 0.5)) != 0)
+    j = j[np.argmin(np.abs(j - near))]
+    return j + (0.5 - profile[j]) / (profile[j + 1] - profile[j])
+
+
+def test_stripe_edge_lands_where_geometry_says():
+    """A vertical black/white edge between projector columns c-1 and c (at x = c - 0.5)
+    renders where the ray tracer puts it: (1) the rendered row equals an independent
+    evaluation (trace each sub-pixel ray, bilinear edge, area average) and (2) its 50 % crossing
+    is at the traced camera column within the error of a linear-interpolation edge estimator
+    (no half-pixel convention slips)."""
+    prof = scale_profile(load_profile(), FACTOR)
+    prof["camera"]["settings"]["defocus_sigma_px"] = 0.0
+    prof["projector"]["settings"]["defocus_sigma_px"] = 0.0
+    prof["projector"]["settings"]["black_level"] = 0.0
+    rig = build_rig(prof, RigContext())
+    for d in rig.values():
+        d.connect()
+    cam, proj = rig["camera"], rig["projector"]
     pw, ph = proj.resolution
-    cal = cam.ground_truth_calibration()
     renderer = cam.world.renderer()
-    images = {}
-    for name, pattern in (("white", full(255, proj)), ("black", full(0, proj))):
-        proj.show(pattern)
-        images[name] = cam.expected_electrons()
-    row = int(cal.camera.K[1, 2])
-    xs = np.arange(0.0, cam.resolution[0], 0.01)
+    ss = renderer.ss
+    w = cam.resolution[0]
+    row = 128
+    proj.show(full(0, proj))
+    black = cam.expected_electrons()[row]  # ambient light only
+    proj.show(full(255, proj))
+    white = cam.expected_electrons()[row] - black
+    # independent evaluation: sub-pixel rays of this row
+    sub = (np.arange(ss) + 0.5) / ss - 0.5
+    px = (np.arange(w)[:, None, None] + sub[None, None, :]) + 0 * sub[None, :, None]
+    py = row + sub[None, :, None] + 0 * px
+    tr_sub = renderer.trace(np.column_stack([px.ravel(), py.ravel()]), 0.0)
+    xs = np.arange(0.0, w - 1, 0.005)
     tr = renderer.trace(np.column_stack([xs, np.full_like(xs, row)]), 0.0)
-    errors = []
     for c in (100, 120, 140, 160):
         edge = np.zeros((ph, pw), np.uint8)
         edge[:, :c] = 255
         proj.show(edge)
-        img = cam.expected_electrons()
-        norm = (img[row] - images["black"][row]) / np.maximum(
-            images["white"][row] - images["black"][row], 1e-6)
-        ok = (tr.material == CYL) & tr.lit
-        u = np.where(ok, tr.projector[:, 0], np.nan)
-        k = np.flatnonzero((u[:-1] < c - 0.5) & (u[1:] >= c - 0.5) | (u[:-1] >= c - 0.5)
-                           & (u[1:] < c - 0.5))
+        img = cam.expected_electrons()[row] - black
+        rendered = img / np.maximum(white, 1e-9)
+        bilinear = np.clip(c - np.nan_to_num(tr_sub.projector[:, 0], nan=1e9), 0.0, 1.0)
+        wsum = tr_sub.weight.reshape(w, -1).sum(axis=1)
+        reference = (tr_sub.weight * bilinear).reshape(w, -1).sum(axis=1) / np.maximum(wsum, 1e-12)
+        u = np.where((tr.material == CYL) & tr.lit, tr.projector[:, 0], np.nan)
+        k = np.flatnonzero((u[:-1] - (c - 0.5)) * (u[1:] - (c - 0.5)) <= 0)
         assert k.size == 1
         x_true = xs[k[0]]
-        j = np.flatnonzero(np.diff(np.sign(norm - 0.5)) != 0)
-        j = j[np.argmin(np.abs(j - x_true))]
-        x_img = j + (0.5 - norm[j]) / (norm[j + 1] - norm[j])
-        errors.append(x_img - x_true)
-    assert np.abs(errors).max() < 0.05, errors  # camera pixels
+        x_rendered = _crossing(rendered, x_true)
+        assert abs(x_rendered - _crossing(reference, x_true)) < 1e-3  # camera px
+        assert abs(x_rendered - x_true) < 0.15
 
 
 @pytest.mark.parametrize("bits,dtype,top", [(8, np.uint8, 255), (12, np.uint16, 4095)])
@@ -204,12 +224,11 @@ def test_noise_matches_shot_and_read_model():
     mean_dn = stack.mean(axis=0)[flat]
     pred = mean_e[flat] * model.gain_dn_per_e + model.dark_offset_dn
     assert np.abs(np.median(mean_dn - pred)) < 0.5
-    # and read noise alone in the dark (no light at all: projector off, no ambient)
-    dark = make_rig(seed=2, ambient=0.0)
-    dark["projector"].close()
-    frames = np.stack([dark["camera"].capture().astype(float) for _ in range(8)])
+    # and read noise alone (a vanishing exposure collects no electrons)
+    cam.set_exposure(1e-9)
+    frames = np.stack([cam.capture().astype(float) for _ in range(8)])
     std = frames.std(axis=0, ddof=1).mean()
-    assert abs(std - float(dark["camera"].sensor.expected_std_dn(0.0))) < 0.3
+    assert abs(std - float(model.expected_std_dn(0.0))) < 0.3
 
 
 def test_same_seed_reproduces_frames():
@@ -272,7 +291,8 @@ def test_stage_analyzer_laser_state():
 
 
 def test_rotation_moves_an_off_axis_cylinder():
-    prof = scale_profile(load_profile(), FACTOR)
+    prof = scale_profile(load_profile(), FACTOR / 2)
+    prof["camera"]["settings"]["supersample"] = 1
     prof["stage"]["settings"]["scene"]["offset_mm"] = [4.0, 0.0]  # towards the camera at 0°
     rig = build_rig(prof, RigContext())
     for d in rig.values():
@@ -283,17 +303,26 @@ def test_rotation_moves_an_off_axis_cylinder():
         mask = renderer.view(angle).material_fraction(CYL) > 0.5
         cols.append(np.nonzero(mask.any(axis=0))[0].mean())
     # stage x→y at +90°: the cylinder moves sideways; opposite ways at 90° and 270°
-    assert abs(cols[0] - cols[1]) > 20
+    assert abs(cols[0] - cols[1]) > 10
 
 
 def test_hooks_provide_backends():
+    import pluggy
+
+    import dotshell.hookspecs
     import dotshell_sim
 
-    names = {b.name for hook in (dotshell_sim.dotshell_cameras, dotshell_sim.dotshell_projectors,
-                                 dotshell_sim.dotshell_stages, dotshell_sim.dotshell_analyzers,
-                                 dotshell_sim.dotshell_light_sources) for b in hook()}
+    pm = pluggy.PluginManager("dotshell")
+    pm.add_hookspecs(dotshell.hookspecs)
+    pm.register(dotshell_sim, name="sim")
+    names = {b.name for hook in (pm.hook.dotshell_cameras, pm.hook.dotshell_projectors,
+                                 pm.hook.dotshell_stages, pm.hook.dotshell_analyzers,
+                                 pm.hook.dotshell_light_sources)
+             for backends in hook() for b in backends}
     assert names == {"sim-camera", "sim-projector", "sim-turntable", "sim-analyzer",
                      "sim-laser"}
+    (camera,) = pm.hook.dotshell_cameras()[0]
+    assert camera.settings_schema["bit_depth"].default == 12
 
 
 def test_fast_projection_matches_lens_project():

@@ -58,11 +58,16 @@ class Lens:
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """Points (N, 3) in the lens frame (mm) → distorted pixel coordinates (N, 2)."""
-        pts = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
-        if pts.shape[0] == 0:
-            return np.zeros((0, 2))
-        px, _ = cv2.projectPoints(pts, np.zeros(3), np.zeros(3), self.K, self.dist)
-        return px.reshape(-1, 2)
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        x = pts[:, 0] / pts[:, 2]
+        y = pts[:, 1] / pts[:, 2]
+        k1, k2, p1, p2, k3 = self.dist
+        r2 = x * x + y * y
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        K = self.K
+        return np.column_stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]])
 
     def scaled(self, factor: float) -> "Lens":
         """The same lens seen at ``factor`` times the resolution (for reduced-size tests)."""

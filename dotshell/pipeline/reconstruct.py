@@ -16,13 +16,14 @@ from dotshell.geometry.triangulate import camera_ray_grid, triangulate
 
 @dataclass
 class ViewCloud:
-    """One view's points in the sample frame (mm) with the camera pixels they came from."""
+    """One view's points in the sample frame (mm) with the camera pixels (x, y) they came from.
+    ``pixels`` and ``correspondence`` may be dropped (None) once no later step needs them."""
 
     view: int
     angle_deg: float
     points: np.ndarray
-    pixels: np.ndarray
-    correspondence: Correspondence
+    pixels: np.ndarray | None
+    correspondence: Correspondence | None
     stats: dict[str, Any] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
 

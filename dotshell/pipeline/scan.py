@@ -71,6 +71,14 @@ def _make_coding(profile: Profile, pm: PluginManager):
     return pm.create("coding", c["backend"], c["settings"], None, profile.source)
 
 
+def _slim(vc: ViewCloud, profile: Profile) -> ViewCloud:
+    """Drop per-pixel maps no later step needs (all but the preview view's), ~10 MB a view."""
+    vc.pixels = None
+    if vc.view != profile.data["outputs"]["preview_view"]:
+        vc.correspondence = None
+    return vc
+
+
 def _store_view(store: RunStore, vc: ViewCloud, bus: EventBus) -> None:
     write_ply(store.path("views", f"view_{vc.view:03d}.ply"), vc.points)
     bus.emit(ViewReconstructed(view=vc.view, n_points=len(vc.points),
@@ -113,7 +121,7 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
                     break
                 vc = reconstruct_view(view, angle, frames, coding, calib, profile.data["processing"])
                 _store_view(store, vc, bus)
-                clouds.append(vc)
+                clouds.append(_slim(vc, profile))
             else:
                 status = "completed"
         if clouds:
@@ -171,7 +179,7 @@ def reconstruct_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None
             vc = reconstruct_view(v["index"], v["angle_deg"], frames, coding, calib,
                                   profile.data["processing"])
             _store_view(store, vc, bus)
-            clouds.append(vc)
+            clouds.append(_slim(vc, profile))
             bus.emit(StepProgress(step="reconstruct", done=v["index"] + 1, total=len(views)))
         report = finish(store, profile, pm, calib, clouds, bus, {})
         report["status"] = manifest.get("status", "unknown")

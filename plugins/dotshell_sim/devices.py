@@ -1,0 +1,470 @@
+"""Simulated devices sharing one world per rig (``context.shared["dotshell_sim"]``).
+
+The projector stores the shown pattern, the turntable its angle, the analyzer its angle, the
+laser its state; the camera renders the world on ``capture()`` (see :mod:`dotshell_sim.render`).
+
+The default settings describe the reference bench (also written out, with comments, in
+``profiles/sim-metal-cylinder.toml``). All poses are in the **camera frame** (mm; x right,
+y down, z along the camera's optical axis):
+
+* camera 1280×1024, 5.3 µm pixels, f ≈ 33.9 mm (fx = 6400 px) → 40 × 32 mm field at 200 mm;
+  12 bit, full well 10 000 e-, read noise 10 e-; k1 = -0.08.
+* the camera looks down by 15°: the turntable axis (world vertical) is
+  ``(0, -cos 15°, -sin 15°)`` in the camera frame and crosses the optical axis 200 mm in front
+  of the camera; the stage plate is 16 mm below that point along the axis.
+* projector 1024×768, fx = 4480 px → 48 × 36 mm field at 210 mm; its centre is at
+  (80.9, -4.4, 6.3) mm, 210 mm from the crossing point (0, 0, 200) it looks at: a horizontal
+  baseline of ~81 mm and a triangulation angle of 22.7° at the crossing point; k1 = -0.06.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections import OrderedDict
+from typing import Any
+
+import cv2
+import numpy as np
+
+from dotshell.backends import RigContext
+from dotshell.errors import DeviceError
+from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.lens import Lens, lens_from_fov
+from dotshell.settings import Setting, validate_settings
+
+from dotshell_sim.render import Renderer, SensorModel, sensor
+from dotshell_sim.scene import MATERIALS, build_scene
+
+WORLD_KEY = "dotshell_sim"
+
+_TILT = math.radians(15.0)
+#: Reference bench: turntable axis (world up) and the plate point on it, camera frame.
+BENCH_AXIS_DIRECTION = [0.0, round(-math.cos(_TILT), 6), round(-math.sin(_TILT), 6)]
+BENCH_AXIS_POINT = [0.0, round(16 * math.cos(_TILT), 3), round(200 + 16 * math.sin(_TILT), 3)]
+
+# ---- settings schemas -----------------------------------------------------------------------
+
+CAMERA_SCHEMA: dict[str, Setting] = {
+    "width": Setting("int", 1280, "sensor width", "px", min=8),
+    "height": Setting("int", 1024, "sensor height", "px", min=8),
+    "focal_px": Setting("float", 6400.0, "focal length in pixels (fx = fy); 6400 px = 33.9 mm "
+                        "with 5.3 µm pixels, a 40 mm wide field at 200 mm", "px", min=1.0),
+    "cx": Setting("float", None, "principal point x; omit for the image centre", "px"),
+    "cy": Setting("float", None, "principal point y; omit for the image centre", "px"),
+    "dist": Setting("list[float]", [-0.08, 0.12, 0.0, 0.0, 0.0],
+                    "distortion k1, k2, p1, p2, k3 (OpenCV order)", length=5),
+    "bit_depth": Setting("int", 12, "ADC bits: 8 → uint8 frames, 12 → uint16 frames 0..4095",
+                         "bit", choices=(8, 12)),
+    "full_well_e": Setting("float", 10000.0, "full-well capacity", "e-", min=1.0),
+    "read_noise_e": Setting("float", 10.0, "read noise", "e- rms", min=0.0),
+    "gain_dn_per_e": Setting("float", 0.0, "conversion gain; 0 = full well maps to full scale",
+                             "DN/e-", min=0.0),
+    "dark_offset_dn": Setting("float", 8.0, "black level added by the ADC", "DN", min=0.0),
+    "sensitivity_e_per_ms": Setting(
+        "float", 800.0, "electrons per ms from a white Lambertian surface facing a full-white "
+        "projector at its reference distance (lens aperture, QE, projector power in one number)",
+        "e-/ms", min=0.0),
+    "exposure_ms": Setting("float", 20.0, "exposure until set_exposure() is called", "ms",
+                           min=0.0),
+    "ambient": Setting("float", 0.01, "room light relative to full projector light", min=0.0),
+    "defocus_sigma_px": Setting("float", 0.5, "camera defocus (Gaussian sigma); 0 = sharp",
+                                "px", min=0.0),
+    "supersample": Setting("int", 2, "sub-pixel rays per pixel along each axis (pixel-area "
+                           "integration)", min=1, max=4),
+    "seed": Setting("int", 0, "noise seed; frame k uses default_rng([seed, k])", min=0),
+}
+
+PROJECTOR_SCHEMA: dict[str, Setting] = {
+    "width": Setting("int", 1024, "panel width", "px", min=8),
+    "height": Setting("int", 768, "panel height", "px", min=8),
+    "focal_px": Setting("float", 4480.0, "focal length in pixels; 4480 px gives a 48 mm wide "
+                        "field at 210 mm", "px", min=1.0),
+    "cx": Setting("float", None, "principal point x; omit for the panel centre", "px"),
+    "cy": Setting("float", None, "principal point y; omit for the panel centre", "px"),
+    "dist": Setting("list[float]", [-0.06, 0.08, 0.0, 0.0, 0.0],
+                    "distortion k1, k2, p1, p2, k3 (OpenCV order)", length=5),
+    "position_mm": Setting("list[float]", [80.9, -4.4, 6.3],
+                           "projector centre of projection in the camera frame", "mm", length=3),
+    "look_at_mm": Setting("list[float]", [0.0, 0.0, 200.0],
+                          "point on the projector's optical axis, camera frame", "mm", length=3),
+    "up": Setting("list[float]", list(BENCH_AXIS_DIRECTION),
+                  "direction (camera frame) that appears as 'up' (row 0 side) in the "
+                  "projector image; fixes the roll", length=3),
+    "brightness": Setting("float", 1.0, "radiance of full white relative to the reference",
+                          min=0.0),
+    "black_level": Setting("float", 0.002, "light emitted for pattern value 0, relative to 255 "
+                           "(finite contrast)", min=0.0, max=1.0),
+    "defocus_sigma_px": Setting("float", 0.6, "projector defocus (Gaussian sigma on the panel)",
+                                "px", min=0.0),
+}
+
+_SCENE_SCHEMA = {
+    "kind": Setting("str", "cylinder", "sample shape", choices=("cylinder", "none")),
+    "radius_mm": Setting("float", 7.7, "cylinder radius", "mm", min=0.01),
+    "height_mm": Setting("float", 30.0, "cylinder height above the plate", "mm", min=0.01),
+    "offset_mm": Setting("list[float]", [0.0, 0.0], "cylinder axis offset from the turntable "
+                         "axis (sample-frame x, y)", "mm", length=2),
+    "material": Setting("str", "metal", "sample material", choices=tuple(MATERIALS)),
+}
+_PLATE_SCHEMA = {
+    "radius_mm": Setting("float", 30.0, "stage plate radius; 0 = no plate", "mm", min=0.0),
+    "material": Setting("str", "plate", "plate material", choices=tuple(MATERIALS)),
+}
+_BACKGROUND_SCHEMA = {
+    "distance_mm": Setting("float", 80.0, "background plane distance behind the turntable "
+                           "axis; 0 = none (black)", "mm", min=0.0),
+    "material": Setting("str", "background", "background material", choices=tuple(MATERIALS)),
+}
+
+TURNTABLE_SCHEMA: dict[str, Setting] = {
+    "axis_point_mm": Setting("list[float]", list(BENCH_AXIS_POINT),
+                             "point of the rotation axis at the plate surface, camera frame",
+                             "mm", length=3),
+    "axis_direction": Setting("list[float]", list(BENCH_AXIS_DIRECTION),
+                              "rotation axis direction (plate → sample), camera frame", length=3),
+    "steps_per_degree": Setting("float", 0.0, "motor resolution; angles are rounded to whole "
+                                "steps (0 = continuous)", "1/deg", min=0.0),
+    "scene": Setting("table", {}, "the sample on the plate", schema=_SCENE_SCHEMA),
+    "plate": Setting("table", {}, "stage plate (disk at sample z = 0)", schema=_PLATE_SCHEMA),
+    "background": Setting("table", {}, "dark plane behind the sample (fixed, does not turn)",
+                          schema=_BACKGROUND_SCHEMA),
+}
+
+ANALYZER_SCHEMA: dict[str, Setting] = {
+    "initial_deg": Setting("float", 0.0, "analyzer angle after connect", "deg"),
+}
+
+LASER_SCHEMA: dict[str, Setting] = {
+    "wavelength_nm": Setting("float", 780.0, "for the record only (not rendered yet)", "nm",
+                             min=0.0),
+}
+
+
+# ---- the shared world -----------------------------------------------------------------------
+
+class SimWorld:
+    """State shared by the simulated devices of one rig."""
+
+    def __init__(self) -> None:
+        self.camera: SimCamera | None = None
+        self.projector: SimProjector | None = None
+        self.stage: SimTurntable | None = None
+        self.analyzer: SimAnalyzer | None = None
+        self.laser: SimLaser | None = None
+
+    def require(self, who: str) -> tuple["SimProjector", "SimTurntable"]:
+        missing = [(role, name) for role, name, dev in
+                   (("projector", "sim-projector", self.projector),
+                    ("stage", "sim-turntable", self.stage)) if dev is None]
+        if missing:
+            names = " and no ".join(name for _, name in missing)
+            fix = " and ".join(f'[{role}] backend = "{name}"' for role, name in missing)
+            raise DeviceError(
+                f"{who}: the simulated camera has nothing to look at: this rig has no {names}. "
+                f"Add {fix} to the profile (the sim devices of one rig share one world).")
+        return self.projector, self.stage  # type: ignore[return-value]
+
+    def calibration(self, who: str = "sim-camera") -> RigCalibration:
+        """The true rig geometry (source ``"ground-truth"``)."""
+        if self.camera is None:
+            raise DeviceError(f"{who}: no sim-camera in this rig; add [camera] backend = "
+                              "\"sim-camera\" to the profile.")
+        projector, stage = self.require(who)
+        R, T = projector.pose()
+        return RigCalibration(camera=self.camera.lens, projector=projector.lens, R=R, T=T,
+                              axis_point=stage.axis_point, axis_direction=stage.axis_direction,
+                              source="ground-truth")
+
+    def renderer(self) -> Renderer:
+        """The renderer for this world's geometry. Renderers are pure functions of the
+        geometry, so worlds with identical settings (e.g. many test rigs from one profile)
+        share one, with its cached camera rays and views."""
+        cam = self.camera
+        projector, stage = self.require("sim-camera")
+        calib = self.calibration()
+        s = cam.settings
+        key = json.dumps([calib.to_dict(), stage.settings["scene"], stage.settings["plate"],
+                          stage.settings["background"], s["supersample"], s["ambient"],
+                          projector.ref_mm], sort_keys=True)
+        renderer = _RENDERERS.get(key)
+        if renderer is None:
+            renderer = Renderer(calib, stage.scene, supersample=s["supersample"],
+                                ambient=s["ambient"], projector_ref_mm=projector.ref_mm)
+            _RENDERERS[key] = renderer
+            while len(_RENDERERS) > _MAX_RENDERERS:
+                _RENDERERS.popitem(last=False)
+        else:
+            _RENDERERS.move_to_end(key)
+        return renderer
+
+
+#: Renderers shared across worlds, by geometry (a full-resolution renderer with two cached
+#: views holds ~0.3 GB).
+_RENDERERS: OrderedDict[str, Renderer] = OrderedDict()
+_MAX_RENDERERS = 2
+
+
+def world_of(context: RigContext | None) -> SimWorld:
+    """The rig's simulator world (created on first use)."""
+    if context is None:
+        return SimWorld()
+    world = context.shared.get(WORLD_KEY)
+    if world is None:
+        world = context.shared[WORLD_KEY] = SimWorld()
+    return world
+
+
+class _Device:
+    name = "sim"
+
+    def __init__(self, settings: dict, world: SimWorld):
+        self.settings = settings
+        self.world = world
+        self.connected = False
+
+    def connect(self) -> None:
+        self.connected = True
+
+    def close(self) -> None:
+        self.connected = False
+
+    def _check(self, action: str) -> None:
+        if not self.connected:
+            raise DeviceError(f"{self.name}: cannot {action} before connect(); connect the "
+                              "rig first.")
+
+    def status(self) -> dict[str, Any]:
+        return {"connected": self.connected, "simulated": True}
+
+
+# ---- devices --------------------------------------------------------------------------------
+
+class SimCamera(_Device):
+    """Renders the world; satisfies Camera, ExposureControl and GroundTruth."""
+
+    name = "sim-camera"
+
+    def __init__(self, settings: dict, world: SimWorld):
+        super().__init__(settings, world)
+        s = settings
+        self.lens: Lens = lens_from_fov(s["width"], s["height"], s["focal_px"], s["dist"],
+                                        s["cx"], s["cy"])
+        full_scale = (1 << s["bit_depth"]) - 1
+        self.sensor = SensorModel(s["bit_depth"], s["full_well_e"], s["read_noise_e"],
+                                  s["gain_dn_per_e"] or full_scale / s["full_well_e"],
+                                  s["dark_offset_dn"])
+        self.exposure_ms = float(s["exposure_ms"])
+        self.frames = 0
+        world.camera = self
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        return self.lens.size
+
+    @property
+    def bit_depth(self) -> int:
+        return self.sensor.bit_depth
+
+    def set_exposure(self, ms: float) -> None:
+        if not (isinstance(ms, (int, float)) and math.isfinite(ms) and ms > 0):
+            raise DeviceError(f"{self.name}: exposure must be a positive number of ms, got {ms!r}.")
+        self.exposure_ms = float(ms)
+
+    def ground_truth_calibration(self) -> RigCalibration:
+        return self.world.calibration(self.name)
+
+    def expected_electrons(self) -> np.ndarray:
+        """Noise-free signal (H, W) float32 in electrons for the current world state."""
+        self._check("capture")
+        projector, stage = self.world.require(self.name)
+        renderer = self.world.renderer()
+        view = renderer.view(stage.position)
+        irr = renderer.render(view, projector.radiance())
+        irr *= np.float32(self.settings["sensitivity_e_per_ms"] * self.exposure_ms)
+        sigma = self.settings["defocus_sigma_px"]
+        if sigma > 0:
+            irr = cv2.GaussianBlur(irr, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+        return irr
+
+    def capture(self) -> np.ndarray:
+        electrons = self.expected_electrons()
+        rng = np.random.default_rng([self.settings["seed"], self.frames])
+        self.frames += 1
+        return sensor(electrons, self.sensor, rng)
+
+    def status(self) -> dict[str, Any]:
+        return {**super().status(), "exposure_ms": self.exposure_ms, "frames": self.frames,
+                "resolution": list(self.resolution), "bit_depth": self.bit_depth}
+
+
+class SimProjector(_Device):
+    """Stores the shown pattern (defocused, as relative radiance) for the camera."""
+
+    name = "sim-projector"
+
+    def __init__(self, settings: dict, world: SimWorld):
+        super().__init__(settings, world)
+        s = settings
+        self.lens: Lens = lens_from_fov(s["width"], s["height"], s["focal_px"], s["dist"],
+                                        s["cx"], s["cy"])
+        self.ref_mm = float(np.linalg.norm(np.subtract(s["look_at_mm"], s["position_mm"])))
+        self.pose()  # validate the geometry now
+        self._radiance: np.ndarray | None = None
+        self.pattern_name = None
+        world.projector = self
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        return self.lens.size
+
+    def pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R, T) with X_projector = R @ X_camera + T, from position / look-at / up."""
+        s = self.settings
+        c = np.asarray(s["position_mm"], float)
+        z = np.asarray(s["look_at_mm"], float) - c
+        if np.linalg.norm(z) < 1e-6:
+            raise DeviceError(f"{self.name}: look_at_mm equals position_mm; the projector needs "
+                              "a point to look at.")
+        z /= np.linalg.norm(z)
+        y = -np.asarray(s["up"], float)
+        y = y - z * (y @ z)
+        if np.linalg.norm(y) < 1e-6:
+            raise DeviceError(f"{self.name}: 'up' is parallel to the viewing direction; give an "
+                              "up direction across it (e.g. the turntable axis).")
+        y /= np.linalg.norm(y)
+        x = np.cross(y, z)
+        R = np.vstack([x, y, z])
+        return R, -R @ c
+
+    def connect(self) -> None:
+        super().connect()
+        self.show(np.zeros((self.lens.height, self.lens.width), np.uint8))
+
+    def close(self) -> None:
+        super().close()
+        self._radiance = None
+
+    def show(self, pattern: np.ndarray) -> None:
+        self._check("show a pattern")
+        p = np.asarray(pattern)
+        w, h = self.resolution
+        if p.shape != (h, w) or p.dtype not in (np.uint8, np.bool_):
+            raise DeviceError(f"{self.name}: pattern must be a uint8 array of shape ({h}, {w}), "
+                              f"got {p.dtype} {p.shape}.")
+        s = self.settings
+        img = p.astype(np.float32) * np.float32((1.0 if p.dtype == np.bool_ else 1 / 255.0))
+        img = s["brightness"] * (s["black_level"] + (1 - s["black_level"]) * img)
+        img = img.astype(np.float32)
+        if s["defocus_sigma_px"] > 0:
+            img = cv2.GaussianBlur(img, (0, 0), s["defocus_sigma_px"],
+                                   borderType=cv2.BORDER_CONSTANT)
+        self._radiance = img
+
+    def radiance(self) -> np.ndarray | None:
+        """Relative radiance (h, w) float32 after defocus; ``None`` when off."""
+        return self._radiance if self.connected else None
+
+    def status(self) -> dict[str, Any]:
+        return {**super().status(), "resolution": list(self.resolution)}
+
+
+class SimTurntable(_Device):
+    """Rotation stage carrying the scene; stores the angle."""
+
+    name = "sim-turntable"
+
+    def __init__(self, settings: dict, world: SimWorld):
+        super().__init__(settings, world)
+        s = settings
+        self.axis_point = np.asarray(s["axis_point_mm"], float)
+        d = np.asarray(s["axis_direction"], float)
+        if np.linalg.norm(d) < 1e-9:
+            raise DeviceError(f"{self.name}: axis_direction must not be zero.")
+        self.axis_direction = d / np.linalg.norm(d)
+        if np.linalg.norm(np.cross(self.axis_point, self.axis_direction)) < 1e-6:
+            raise DeviceError(f"{self.name}: the rotation axis passes through the camera centre; "
+                              "check axis_point_mm / axis_direction (camera frame, mm).")
+        self.scene = build_scene(s["scene"], s["plate"], s["background"])
+        self._angle = 0.0
+        world.stage = self
+
+    def move_to(self, degrees: float) -> None:
+        self._check("move")
+        if not (isinstance(degrees, (int, float)) and math.isfinite(degrees)):
+            raise DeviceError(f"{self.name}: angle must be a finite number of degrees, got "
+                              f"{degrees!r}.")
+        spd = self.settings["steps_per_degree"]
+        self._angle = round(degrees * spd) / spd if spd > 0 else float(degrees)
+
+    def home(self) -> None:
+        self._check("home")
+        self._angle = 0.0
+
+    @property
+    def position(self) -> float:
+        return self._angle
+
+    def status(self) -> dict[str, Any]:
+        return {**super().status(), "angle_deg": self._angle}
+
+
+class SimAnalyzer(_Device):
+    """Polarization analyzer: stores its angle (no optical effect yet)."""
+
+    name = "sim-analyzer"
+
+    def __init__(self, settings: dict, world: SimWorld):
+        super().__init__(settings, world)
+        self.angle_deg = float(settings["initial_deg"])
+        world.analyzer = self
+
+    def set_angle(self, degrees: float) -> None:
+        self._check("set the analyzer angle")
+        self.angle_deg = float(degrees)
+
+    def status(self) -> dict[str, Any]:
+        return {**super().status(), "angle_deg": self.angle_deg}
+
+
+class SimLaser(_Device):
+    """Trans-illumination laser: on/off state only (not rendered yet)."""
+
+    name = "sim-laser"
+
+    def __init__(self, settings: dict, world: SimWorld):
+        super().__init__(settings, world)
+        self.on = False
+        world.laser = self
+
+    def set(self, on: bool) -> None:
+        self._check("switch the laser")
+        self.on = bool(on)
+
+    def close(self) -> None:
+        self.on = False
+        super().close()
+
+    def status(self) -> dict[str, Any]:
+        return {**super().status(), "on": self.on}
+
+
+# ---- factories ------------------------------------------------------------------------------
+
+def _factory(cls, schema, backend: str):
+    def factory(settings: dict | None = None, context: RigContext | None = None):
+        # settings arrive validated; validating again is idempotent and lets tests pass partial
+        # dicts
+        given = {k: v for k, v in (settings or {}).items() if v is not None}
+        full = validate_settings(schema, given, backend)
+        return cls(full, world_of(context))
+
+    factory.__name__ = f"make_{cls.__name__}"
+    return factory
+
+
+make_camera = _factory(SimCamera, CAMERA_SCHEMA, "sim-camera")
+make_projector = _factory(SimProjector, PROJECTOR_SCHEMA, "sim-projector")
+make_turntable = _factory(SimTurntable, TURNTABLE_SCHEMA, "sim-turntable")
+make_analyzer = _factory(SimAnalyzer, ANALYZER_SCHEMA, "sim-analyzer")
+make_laser = _factory(SimLaser, LASER_SCHEMA, "sim-laser")

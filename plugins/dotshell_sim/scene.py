@@ -1,0 +1,303 @@
+"""Scene geometry for the simulator: shapes that intersect rays exactly, and materials.
+
+Interface: a *shape* has ``intersect(origins, dirs) -> (t, normals)`` with ``t`` = +inf where
+the ray misses, and a ``material`` index. A :class:`Scene` is a list of shapes plus their
+materials; its ``intersect(origins, dirs) -> (t, normals, material_id)`` returns the nearest hit
+(``material_id`` = -1 on a miss). All lengths in mm, directions unit vectors, arrays (N, 3)
+float64; normals are unit and face the incoming ray's side for open surfaces (planes, disks) and
+outwards for closed ones.
+
+:class:`StagedScene` combines the *sample* (cylinder, plate; expressed in the sample frame and
+turning with the stage) and the *fixed* surroundings (background; expressed in the stage frame,
+i.e. the sample frame at 0°). ``at(angle_deg)`` gives a :class:`Scene` in the sample frame for one
+stage angle — see :mod:`dotshell.geometry.calibration` for the frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol, Sequence
+
+import numpy as np
+
+from dotshell.geometry.calibration import rot_z
+
+
+@dataclass(frozen=True)
+class Material:
+    """Reflectance of an opaque surface.
+
+    Attributes:
+        name: short name.
+        albedo: Lambertian (diffuse) albedo, 0..1.
+        specular: weight of the normalized Blinn–Phong lobe, ``ks·(n+8)/8·(N·H)^n``
+            relative to a white Lambertian surface; 0 for a matte surface.
+        shininess: Blinn–Phong exponent ``n`` (larger = sharper highlight).
+    """
+
+    name: str
+    albedo: float
+    specular: float = 0.0
+    shininess: float = 1.0
+
+
+#: Built-in materials by name (the turntable's ``scene.material`` etc. choose among these).
+MATERIALS: dict[str, Material] = {
+    # turned / lightly brushed aluminium or steel: greyish diffuse part and a broad highlight
+    "metal": Material("metal", albedo=0.40, specular=0.25, shininess=60.0),
+    # anodized grey stage plate
+    "plate": Material("plate", albedo=0.35, specular=0.03, shininess=10.0),
+    # black flock / velvet behind the sample
+    "background": Material("background", albedo=0.03),
+    # matte white (spray-painted) calibration object
+    "matte-white": Material("matte-white", albedo=0.85),
+    # mid-grey matte object
+    "matte-grey": Material("matte-grey", albedo=0.45),
+}
+
+_EPS = 1e-9
+
+
+class Shape(Protocol):
+    material: int
+
+    def intersect(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest hit distance ``t`` (N,) (+inf = miss, only t > 0) and unit normals (N, 3)."""
+        ...
+
+
+def _facing(normals: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Flip normals to face against the ray directions (for two-sided open surfaces)."""
+    s = np.where(np.einsum("ij,ij->i", normals, dirs) > 0, -1.0, 1.0)
+    return normals * s[:, None]
+
+
+@dataclass
+class Cylinder:
+    """Solid circular cylinder with a vertical axis (sample-frame z), exact intersection.
+
+    Attributes:
+        radius: mm.
+        height: mm; the cylinder spans z in [z0, z0 + height].
+        center: (x, y) of its axis in the sample frame, mm.
+        z0: bottom, mm (0 = standing on the stage plate).
+        top_cap, bottom_cap: whether the flat ends exist as surfaces.
+        material: index into the scene's materials.
+    """
+
+    radius: float
+    height: float
+    center: tuple[float, float] = (0.0, 0.0)
+    z0: float = 0.0
+    top_cap: bool = True
+    bottom_cap: bool = False
+    material: int = 0
+
+    def intersect(self, origins, dirs):
+        n = len(origins)
+        ox = origins[:, 0] - self.center[0]
+        oy = origins[:, 1] - self.center[1]
+        oz = origins[:, 2]
+        dx, dy, dz = dirs[:, 0], dirs[:, 1], dirs[:, 2]
+        r2 = self.radius * self.radius
+        z1 = self.z0 + self.height
+        t_best = np.full(n, np.inf)
+        normals = np.zeros((n, 3))
+
+        # side: (ox + t dx)^2 + (oy + t dy)^2 = r^2, numerically stable roots
+        a = dx * dx + dy * dy
+        b = ox * dx + oy * dy
+        c = ox * ox + oy * oy - r2
+        disc = b * b - a * c
+        ok = (disc >= 0) & (a > _EPS)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sq = np.sqrt(np.where(ok, disc, 0.0))
+            q = -(b + np.copysign(sq, b))
+            t1 = q / a
+            t2 = c / q
+        tn = np.where(ok, np.minimum(t1, t2), np.inf)
+        tf = np.where(ok, np.maximum(t1, t2), np.inf)
+        for t in (tn, tf):  # nearest root with t > 0 inside the height range
+            z = oz + t * dz
+            good = ok & (t > _EPS) & (z >= self.z0) & (z <= z1) & (t < t_best)
+            t_best = np.where(good, t, t_best)
+            if good.any():
+                px = ox[good] + t[good] * dx[good]
+                py = oy[good] + t[good] * dy[good]
+                normals[good] = np.column_stack([px, py, np.zeros(good.sum())]) / self.radius
+        # caps
+        caps = []
+        if self.top_cap:
+            caps.append((z1, 1.0))
+        if self.bottom_cap:
+            caps.append((self.z0, -1.0))
+        for zc, nz in caps:
+            with np.errstate(invalid="ignore", divide="ignore"):
+                t = (zc - oz) / dz
+            px = ox + t * dx
+            py = oy + t * dy
+            good = (np.abs(dz) > _EPS) & (t > _EPS) & (px * px + py * py <= r2) & (t < t_best)
+            t_best = np.where(good, t, t_best)
+            normals[good] = (0.0, 0.0, nz)
+        return t_best, normals
+
+
+@dataclass
+class Disk:
+    """Horizontal disk z = ``z`` of radius ``radius`` centred on (``center``), two-sided."""
+
+    radius: float
+    z: float = 0.0
+    center: tuple[float, float] = (0.0, 0.0)
+    material: int = 0
+
+    def intersect(self, origins, dirs):
+        dz = dirs[:, 2]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = (self.z - origins[:, 2]) / dz
+        px = origins[:, 0] + t * dirs[:, 0] - self.center[0]
+        py = origins[:, 1] + t * dirs[:, 1] - self.center[1]
+        good = (np.abs(dz) > _EPS) & (t > _EPS) & (px * px + py * py <= self.radius ** 2)
+        t = np.where(good, t, np.inf)
+        normals = np.zeros((len(origins), 3))
+        normals[:, 2] = np.where(dz > 0, -1.0, 1.0)
+        return t, normals
+
+
+@dataclass
+class Plane:
+    """Infinite plane ``normal · X = offset`` (two-sided)."""
+
+    normal: tuple[float, float, float]
+    offset: float
+    material: int = 0
+
+    def intersect(self, origins, dirs):
+        nrm = np.asarray(self.normal, float)
+        nrm = nrm / np.linalg.norm(nrm)
+        den = dirs @ nrm
+        with np.errstate(invalid="ignore", divide="ignore"):
+            t = (self.offset - origins @ nrm) / den
+        good = (np.abs(den) > _EPS) & (t > _EPS)
+        t = np.where(good, t, np.inf)
+        normals = _facing(np.broadcast_to(nrm, dirs.shape).copy(), dirs)
+        return t, normals
+
+
+@dataclass
+class MeshShape:
+    """Triangle mesh (closed or not) intersected with open3d's ``RaycastingScene``.
+
+    Float32 inside open3d: hits are accurate to ~1e-5 mm at 200 mm, fine for objects whose
+    shape is itself the mesh (not for approximating analytic shapes — use those instead).
+    """
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+    material: int = 0
+    _scene: object = field(default=None, repr=False)
+
+    def _raycaster(self):
+        if self._scene is None:
+            import open3d as o3d  # lazy: only mesh scenes need open3d
+
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(np.asarray(self.vertices, np.float32),
+                                np.asarray(self.triangles, np.uint32))
+            self._scene = scene
+        return self._scene
+
+    def intersect(self, origins, dirs):
+        import open3d as o3d
+
+        rays = np.hstack([origins, dirs]).astype(np.float32)
+        ans = self._raycaster().cast_rays(o3d.core.Tensor(rays))
+        t = ans["t_hit"].numpy().astype(np.float64)
+        t[~np.isfinite(t) | (t <= _EPS)] = np.inf
+        normals = ans["primitive_normals"].numpy().astype(np.float64)
+        nn = np.linalg.norm(normals, axis=1, keepdims=True)
+        normals = normals / np.where(nn > 0, nn, 1.0)
+        return t, _facing(normals, dirs)
+
+
+class Scene:
+    """Shapes plus the materials they refer to (by index)."""
+
+    def __init__(self, shapes: Sequence[Shape], materials: Sequence[Material]):
+        self.shapes = list(shapes)
+        self.materials = list(materials)
+
+    def intersect(self, origins: np.ndarray, dirs: np.ndarray):
+        """Nearest hit over all shapes: ``t`` (N,), unit normals (N, 3), material id (N,) int
+        (-1 = miss)."""
+        origins = np.asarray(origins, float)
+        dirs = np.asarray(dirs, float)
+        n = len(origins)
+        t_best = np.full(n, np.inf)
+        normals = np.zeros((n, 3))
+        mat = np.full(n, -1, dtype=np.int16)
+        for shape in self.shapes:
+            t, nrm = shape.intersect(origins, dirs)
+            closer = t < t_best
+            t_best = np.where(closer, t, t_best)
+            normals[closer] = nrm[closer]
+            mat[closer] = shape.material
+        return t_best, normals, mat
+
+
+class _RotatedShape:
+    """A shape given in the stage frame, seen from the sample frame at stage angle θ."""
+
+    def __init__(self, shape: Shape, angle_deg: float):
+        self.shape = shape
+        self.material = shape.material
+        self.R = rot_z(angle_deg)  # sample → stage: p_stage = Rz(θ) p_sample
+
+    def intersect(self, origins, dirs):
+        t, nrm = self.shape.intersect(origins @ self.R.T, dirs @ self.R.T)
+        return t, nrm @ self.R
+
+
+class StagedScene:
+    """Sample shapes (turning with the stage) + fixed shapes (stage frame), shared materials."""
+
+    def __init__(self, sample: Sequence[Shape], fixed: Sequence[Shape],
+                 materials: Sequence[Material]):
+        self.sample = list(sample)
+        self.fixed = list(fixed)
+        self.materials = list(materials)
+
+    def at(self, angle_deg: float) -> Scene:
+        """The scene in the sample frame with the stage at ``angle_deg``."""
+        return Scene(self.sample + [_RotatedShape(s, angle_deg) for s in self.fixed],
+                     self.materials)
+
+
+def build_scene(sample: dict, plate: dict, background: dict) -> StagedScene:
+    """The turntable's scene from its (validated) settings tables.
+
+    Args:
+        sample: ``kind`` ("cylinder" | "none"), ``radius_mm``, ``height_mm``, ``offset_mm``
+            (x, y of the axis in the sample frame), ``material``.
+        plate: ``radius_mm`` (0 = no plate), ``material``.
+        background: ``distance_mm`` (behind the turntable axis, away from the camera; 0 = none),
+            ``material``.
+    """
+    materials: list[Material] = []
+
+    def mat(name: str) -> int:
+        materials.append(MATERIALS[name])
+        return len(materials) - 1
+
+    shapes: list[Shape] = []
+    if sample["kind"] == "cylinder":
+        shapes.append(Cylinder(sample["radius_mm"], sample["height_mm"],
+                               center=tuple(sample["offset_mm"]), material=mat(sample["material"])))
+    if plate["radius_mm"] > 0:
+        shapes.append(Disk(plate["radius_mm"], z=0.0, material=mat(plate["material"])))
+    fixed: list[Shape] = []
+    if background["distance_mm"] > 0:
+        # stage frame: +x points towards the camera, so "behind" is x = -distance
+        fixed.append(Plane((1.0, 0.0, 0.0), -background["distance_mm"],
+                           material=mat(background["material"])))
+    return StagedScene(shapes, fixed, materials)
