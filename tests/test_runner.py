@@ -147,3 +147,25 @@ def test_third_party_plugin_installed_with_pip_is_discovered_and_used(tmp_path, 
     xyz = np.loadtxt(result.run_dir / "cloud.xyz", delimiter=",")
     ply, _ = read_ply(result.run_dir / "cloud.ply")
     assert xyz.shape == ply.shape and np.allclose(xyz, ply, atol=1e-5)
+
+
+def test_disk_write_failure_stops_scan_with_clear_error(tmp_path, monkeypatch):
+    from dotshell.errors import RunError
+    from dotshell.store import RunStore
+
+    real = RunStore.write_frame
+    count = {"n": 0}
+
+    def failing(self, view, index, name, image):
+        count["n"] += 1
+        if count["n"] > 20:
+            raise OSError(28, "No space left on device")
+        return real(self, view, index, name, image)
+
+    monkeypatch.setattr(RunStore, "write_frame", failing)
+    pm = _pm()
+    with pytest.raises(RunError, match="could not write frame .* No space left on device"):
+        scan(_profile(tmp_path, pm), pm, tmp_path / "runs")
+    [run] = list((tmp_path / "runs").iterdir())
+    assert len(list(run.rglob("*.png"))) == 20
+    assert json.loads((run / "manifest.json").read_text())["status"] == "failed"

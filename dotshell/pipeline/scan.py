@@ -113,17 +113,21 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
             bus.emit(StepStarted(step="acquire", total=len(angles) * len(patterns)))
             acq = Acquisition(rig, patterns, store, profile.data["scan"], bus, stop)
             clouds = []
-            for view, angle in enumerate(angles):
-                frames = acq.run_view(view, angle)
-                if frames is None:
-                    status = "aborted"
-                    bus.warn(f"scan stopped during view {view}; frames kept in {store.root}")
-                    break
-                vc = reconstruct_view(view, angle, frames, coding, calib, profile.data["processing"])
-                _store_view(store, vc, bus)
-                clouds.append(_slim(vc, profile))
-            else:
-                status = "completed"
+            try:
+                for view, angle in enumerate(angles):
+                    frames = acq.run_view(view, angle)
+                    if frames is None:
+                        status = "aborted"
+                        bus.warn(f"scan stopped during view {view}; frames kept in {store.root}")
+                        break
+                    vc = reconstruct_view(view, angle, frames, coding, calib,
+                                          profile.data["processing"])
+                    _store_view(store, vc, bus)
+                    clouds.append(_slim(vc, profile))
+                else:
+                    status = "completed"
+            finally:
+                acq.close()
         if clouds:
             report = finish(store, profile, pm, calib, clouds, bus, {"acquire": acq.seconds})
         report["status"] = status

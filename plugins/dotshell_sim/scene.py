@@ -20,6 +20,8 @@ from typing import Protocol, Sequence
 
 import numpy as np
 
+from dotshell.compat import import_open3d
+
 from dotshell.geometry.calibration import rot_z
 
 
@@ -199,7 +201,7 @@ class MeshShape:
 
     def _raycaster(self):
         if self._scene is None:
-            import open3d as o3d  # lazy: only mesh scenes need open3d
+            o3d = import_open3d()  # lazy: only mesh scenes need open3d
 
             scene = o3d.t.geometry.RaycastingScene()
             scene.add_triangles(np.asarray(self.vertices, np.float32),
@@ -208,8 +210,7 @@ class MeshShape:
         return self._scene
 
     def intersect(self, origins, dirs):
-        import open3d as o3d
-
+        o3d = import_open3d()
         rays = np.hstack([origins, dirs]).astype(np.float32)
         ans = self._raycaster().cast_rays(o3d.core.Tensor(rays))
         t = ans["t_hit"].numpy().astype(np.float64)
