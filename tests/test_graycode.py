@@ -25,10 +25,20 @@ from dotshell_codings.graycode import SETTINGS_SCHEMA, GrayCode, code_offset
 PROJ = (1024, 768)
 
 
+def backend(name: str = "graycode") -> Backend:
+    (found,) = [b for b in dotshell_codings() if b.name == name]
+    return found
+
+
+def make_coding(name: str, **settings):
+    """A coding built the way the pipeline builds it: settings validated against the schema."""
+    b = backend(name)
+    full = validate_settings(b.settings_schema, settings, "test")
+    return b.factory(settings=full, context=None)
+
+
 def make(**settings) -> GrayCode:
-    (backend,) = dotshell_codings()
-    full = validate_settings(backend.settings_schema, settings, "test")
-    return backend.factory(settings=full, context=None)
+    return make_coding("graycode", **settings)
 
 
 # ---- synthetic camera -----------------------------------------------------------------------
@@ -42,37 +52,115 @@ def camera_mapping(xs: np.ndarray, ys: np.ndarray, scale: float = 0.7):
     return u, v
 
 
-def render(coding: GrayCode, proj=PROJ, cam=(320, 240), ss: int = 4, blur: float = 0.8,
-           noise: float = 1.0, seed: int = 0, scale: float = 0.7, mapping=camera_mapping,
-           dtype=np.uint8, peak: float = 220.0, black_level: float = 8.0, shadow=None,
-           low_contrast=None):
-    """Frames for every pattern of ``coding``, the true (column, row) at pixel centres."""
+def _samples(cam, ss, mapping, scale, proj):
+    """Supersampled projector indices of every camera pixel's footprint."""
     cw, ch = cam
-    rng = np.random.default_rng(seed)
     off = (np.arange(ss) + 0.5) / ss - 0.5
     yy, xx = np.mgrid[0:ch, 0:cw].astype(np.float64)
     sx = (xx[:, :, None, None] + off[None, None, None, :]).reshape(ch, cw, -1)
     sy = (yy[:, :, None, None] + off[None, None, :, None]).reshape(ch, cw, -1)
     su, sv = mapping(sx, sy, scale) if mapping is camera_mapping else mapping(sx, sy)
-    pc = np.floor(su + 0.5).astype(np.int64)
+    return xx, yy, su, sv
+
+
+def _lookup(su, sv, proj, shift=0.0):
+    pc = np.floor(su + shift + 0.5).astype(np.int64)
     pr = np.floor(sv + 0.5).astype(np.int64)
     inside = (pc >= 0) & (pc < proj[0]) & (pr >= 0) & (pr < proj[1])
-    pc, pr = np.clip(pc, 0, proj[0] - 1), np.clip(pr, 0, proj[1] - 1)
-    albedo = 0.75 + 0.2 * np.sin(xx / 40.0) * np.cos(yy / 55.0)
-    frames = []
+    return np.clip(pc, 0, proj[0] - 1), np.clip(pr, 0, proj[1] - 1), inside
+
+
+def light(coding, proj=PROJ, cam=(320, 240), ss: int = 4, blur: float = 0.8, scale: float = 0.7,
+          mapping=camera_mapping, global_sigma: float = 0.0, global_shift: float = 0.0,
+          global_far: float = 1.0):
+    """Noise-free light fractions per pattern: (name, direct, global) images in [0, 1] before
+    albedo, plus the camera grid and the true (column, row).
+
+    direct: the pattern seen through the camera footprint, defocused by ``blur`` (camera px).
+    global: the pattern spread by a Gaussian of ``global_sigma`` camera pixels (subsurface
+    scattering); the share ``global_far`` of it comes from a region ``global_shift`` projector
+    pixels away (long-range light: an inter-reflection, or light re-emerging far from where it
+    entered). Under a high-frequency pattern it is 1/2 of its value under white.
+    """
+    xx, yy, su, sv = _samples(cam, ss, mapping, scale, proj)
+    pc, pr, inside = _lookup(su, sv, proj)
+    if global_sigma > 0:
+        gc, gr, ginside = _lookup(su, sv, proj, global_shift)
+    out = []
     for pat in coding.patterns(proj):
         img = pat.image.astype(np.float32) / 255.0
-        f = (img[pr, pc] * inside).mean(axis=2)
-        if low_contrast is not None and pat.name not in ("white", "black"):
+        f = (img[pr, pc] * inside).mean(axis=2).astype(np.float32)
+        direct = cv2.GaussianBlur(f, (0, 0), blur) if blur > 0 else f
+        glob = None
+        if global_sigma > 0:
+            g = (img[gr, gc] * ginside).mean(axis=2).astype(np.float32)
+            if global_far < 1:
+                g = global_far * g + (1 - global_far) * f
+            glob = cv2.GaussianBlur(g, (0, 0), global_sigma, borderType=cv2.BORDER_REFLECT)
+        out.append((pat.name, direct, glob))
+    u, v = mapping(xx, yy, scale) if mapping is camera_mapping else mapping(xx, yy)
+    return out, xx, yy, u, v
+
+
+def render(coding: GrayCode, proj=PROJ, cam=(320, 240), ss: int = 4, blur: float = 0.8,
+           noise: float = 1.0, seed: int = 0, scale: float = 0.7, mapping=camera_mapping,
+           dtype=np.uint8, peak: float = 220.0, black_level: float = 8.0, shadow=None,
+           low_contrast=None, direct: float = 1.0, global_weight: float = 0.0,
+           global_sigma: float = 12.0, global_shift: float = 0.0, global_far: float = 1.0):
+    """Frames for every pattern of ``coding``, the true (column, row) at pixel centres.
+
+    Each frame is ``black_level + peak * albedo * (direct * D + global_weight * G)`` plus
+    Gaussian noise, quantized to ``dtype`` (float32: not rounded). D and G as in
+    :func:`light`; ``global_weight = 0`` (default) leaves the global light out."""
+    rng = np.random.default_rng(seed)
+    lights, xx, yy, u, v = light(coding, proj, cam, ss, blur, scale, mapping,
+                                 global_sigma if global_weight > 0 else 0.0, global_shift,
+                                 global_far)
+    albedo = 0.75 + 0.2 * np.sin(xx / 40.0) * np.cos(yy / 55.0)
+    frames = []
+    for name, d, g in lights:
+        f = d.astype(np.float64)
+        if low_contrast is not None and name not in ("white", "black"):
             f[low_contrast] = 0.5 + 0.05 * (f[low_contrast] - 0.5)
-        f = cv2.GaussianBlur(f, (0, 0), blur) if blur > 0 else f
+        f = direct * f + (global_weight * g if g is not None else 0.0)
         f = black_level + peak * albedo * f
         if shadow is not None:
             f[shadow] = black_level
         f = f + rng.normal(0.0, noise, f.shape)
-        top = np.iinfo(dtype).max
-        frames.append(np.clip(np.round(f), 0, top).astype(dtype))
-    u, v = mapping(xx, yy, scale) if mapping is camera_mapping else mapping(xx, yy)
+        if np.issubdtype(np.dtype(dtype), np.integer):
+            f = np.clip(np.round(f), 0, np.iinfo(dtype).max)
+        frames.append(f.astype(dtype))
+    return frames, u, v
+
+
+def render_pdi(coding, direct: float = 0.05, global_weight: float = 0.95, peak: float = 3000.0,
+               read_noise: float = 4.0, e_per_dn: float = 2.5, seed: int = 0, pdi: bool = True,
+               **kw):
+    """12-bit camera frames of a translucent body through a polarizer/analyzer pair.
+
+    The direct (surface) reflection keeps its polarization, the global (subsurface) light is
+    depolarized: I∥ = direct + global/2, I⊥ = global/2 (plus black level, shot and read
+    noise, 12-bit quantization each). ``pdi=True`` returns the float32 PDI frames |I∥ − I⊥|
+    (the global light cancels, the direct signal is ``direct`` = a few % of full scale);
+    ``pdi=False`` the plain uint16 frames without analyzer (I∥ + I⊥)."""
+    rng = np.random.default_rng(seed)
+    lights, xx, yy, u, v = light(coding, global_sigma=kw.pop("global_sigma", 12.0),
+                                 global_shift=kw.pop("global_shift", 0.0), **kw)
+    albedo = 0.75 + 0.2 * np.sin(xx / 40.0) * np.cos(yy / 55.0)
+
+    def expose(signal):
+        dn = 8.0 + peak * albedo * signal
+        dn = dn + rng.normal(0.0, 1.0, dn.shape) * np.sqrt(read_noise ** 2 + dn / e_per_dn)
+        return np.clip(np.round(dn), 0, 4095)
+
+    frames = []
+    for _, d, g in lights:
+        par = expose(direct * d + 0.5 * global_weight * g)
+        perp = expose(0.5 * global_weight * g)
+        if pdi:
+            frames.append(np.abs(par - perp).astype(np.float32))
+        else:
+            frames.append(expose(direct * d + global_weight * g).astype(np.uint16))
     return frames, u, v
 
 
@@ -90,11 +178,12 @@ def rms(e: np.ndarray) -> float:
 # ---- plugin and patterns --------------------------------------------------------------------
 
 def test_backend_and_protocol():
-    (backend,) = dotshell_codings()
-    assert isinstance(backend, Backend) and backend.name == "graycode"
-    defaults = validate_settings(backend.settings_schema, {}, "test")
+    b = backend()
+    assert isinstance(b, Backend) and b.name == "graycode"
+    defaults = validate_settings(b.settings_schema, {}, "test")
     assert defaults["axes"] == "both" and defaults["inverse"] is True
     assert defaults["drop_low_bits"] == 0 and defaults["subpixel"] is True
+    assert defaults["classification"] == "robust" and defaults["direct_min"] == 0.0
     assert isinstance(make(), PatternCoding)
     assert set(SETTINGS_SCHEMA) >= {"axes", "inverse", "min_contrast", "shadow_threshold",
                                     "drop_low_bits", "subpixel"}
@@ -230,14 +319,32 @@ def test_synthetic_decode_accuracy(scene):
 
 def test_synthetic_masks(scene):
     g, frames, u, v, shadow, low = scene
-    c = g.decode(frames, PROJ)
+    c = make(classification="contrast").decode(frames, PROJ)
     s = c.stats
-    assert s["pixels"] == s["decoded"] + s["shadow"] + s["low_contrast"] + s["out_of_range"]
+    assert s["pixels"] == (s["decoded"] + s["shadow"] + s["low_contrast"] + s["uncertain"]
+                           + s["out_of_range"]) and s["uncertain"] == 0
     assert not c.valid[shadow].any()
     assert s["shadow"] >= shadow.sum() and s["shadow"] < 1.3 * shadow.sum()
     inner = _away_from(~low, 2)  # the region less its blurred border
     assert not c.valid[inner].any() and s["low_contrast"] >= inner.sum()
     assert s["low_contrast"] < low.sum() + 0.02 * s["pixels"]
+
+
+def test_synthetic_masks_robust(scene):
+    """Robust classification: the low-contrast region (stripes swinging 5 % around half of
+    white, which to the direct/global separation is strong global light, L_d << L_g) is
+    uncertain, not low_contrast and not decoded; the shadow stays shadow; the rest decodes."""
+    g, frames, u, v, shadow, low = scene
+    c = make(classification="robust").decode(frames, PROJ)
+    s = c.stats
+    assert s["pixels"] == (s["decoded"] + s["shadow"] + s["low_contrast"] + s["uncertain"]
+                           + s["out_of_range"]) and s["low_contrast"] == 0
+    assert not c.valid[shadow].any() and s["shadow"] < 1.3 * shadow.sum()
+    inner = _away_from(~low, 2)
+    assert not c.valid[inner].any() and s["uncertain"] >= inner.sum()
+    assert s["uncertain"] < low.sum() + 0.02 * s["pixels"]
+    keep = _away_from(shadow | low)
+    assert c.valid[keep].mean() > 0.99
 
 
 def test_out_of_range():

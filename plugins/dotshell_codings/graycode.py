@@ -24,6 +24,11 @@ Decoding (all vectorised, one pass per bit):
   negative, so a bit that is weak everywhere (blur, scattering) still marks low_contrast;
 * ``out_of_range``: the decoded block does not overlap ``[0, N)``.
 
+That is ``classification = "contrast"``. With ``"robust"`` (the default) each bit is decided by
+the Xu & Aliaga rule after a direct/global separation (:mod:`dotshell_codings.robust`, see
+docs/codings.md), undecidable bits are *uncertain* instead of weak, and such pixels count as
+``uncertain``.
+
 Sub-pixel refinement (``subpixel = true``): along each camera row (columns) or camera column
 (rows), between two adjacent valid pixels whose codes differ by one step, exactly one Gray bit
 flips; the zero crossing of that bit's difference signal ``d`` gives the camera position of the
@@ -37,13 +42,15 @@ interpolation between them; others keep the integer value.
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
 
 from dotshell.coding import Correspondence, PatternFrame
 from dotshell.settings import Setting
+from dotshell_codings.robust import direct_global, full_scale, noise_sigma, robust_bits
 
 SETTINGS_SCHEMA: dict[str, Setting] = {
     "axes": Setting(
@@ -53,10 +60,31 @@ SETTINGS_SCHEMA: dict[str, Setting] = {
         "bool", True,
         help="project each bit with its inverse and compare the pair (robust to albedo and "
              "defocus); false: compare with the per-pixel (white + black) / 2"),
+    "classification": Setting(
+        "str", "robust", choices=("contrast", "robust"),
+        help="how each bit is decided: 'contrast' = pattern > inverse, bits weaker than "
+             "min_contrast mark the pixel low_contrast; 'robust' = Xu & Aliaga's rule with "
+             "direct/global separation (bit decided or uncertain); without inverses "
+             "'contrast' is used"),
     "min_contrast": Setting(
         "float", 0.1, min=0.0, max=1.0,
         help="minimum |pattern - inverse| as a fraction of the pixel's white - black range "
-             "(without inverses: 2 |pattern - mid|); weaker bits mark the pixel low_contrast"),
+             "(without inverses: 2 |pattern - mid|); weaker bits mark the pixel low_contrast "
+             "(classification = 'contrast' only)"),
+    "direct_min": Setting(
+        "float", 0.0, min=0.0, max=1.0,
+        help="robust classification: minimum direct light L_d as a fraction of full scale; "
+             "below it every bit is uncertain. 0 = adaptive: 8 x the camera noise sigma "
+             "estimated from the black frame"),
+    "high_frequency_pairs": Setting(
+        "int", 2, min=1, max=8,
+        help="robust classification: the k finest pattern/inverse pairs of each axis used "
+             "for the direct/global separation"),
+    "black_level": Setting(
+        "float", 0.0, min=0.0, max=0.5,
+        help="robust classification: projector black level b relative to white as it "
+             "remains in the frames after the captured black frame is subtracted (0: the "
+             "black frame already carries it)"),
     "shadow_threshold": Setting(
         "float", 0.03, min=0.0, max=1.0,
         help="minimum white - black as a fraction of the frames' full scale; below it the "
@@ -67,13 +95,20 @@ SETTINGS_SCHEMA: dict[str, Setting] = {
              "finest stripe width)"),
     "subpixel": Setting(
         "bool", True, help="refine coordinates between sub-pixel stripe-edge positions"),
+    "centred": Setting(
+        "bool", True,
+        help="centre the code on the projector (pixel c carries code c + (2**n - N) // 2); "
+             "false: pixel c carries code c, as SLStudio and OpenCV's GrayCodePattern do"),
     "bit_depth": Setting(
         "int", 0, min=0, max=16,
         help="significant bits of the camera frames, for the shadow threshold's full scale; "
              "0 = automatic (8 for uint8; for uint16 the smallest depth holding the white "
-             "frame's maximum, at least 8)"),
+             "frame's maximum, at least 8; float32 frames: the white frame's 99.5th "
+             "percentile)"),
 }
 
+#: robust classification with direct_min = 0: L_d must exceed this many noise sigmas
+AUTO_DIRECT_MIN_SIGMAS = 8.0
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 _MAX_SUBPIXEL_SPAN = 2  # anchors may be at most this many code steps apart
 
@@ -102,11 +137,11 @@ def _gray_to_binary(g: np.ndarray) -> np.ndarray:
 class _Axis:
     """Code geometry of one projector axis."""
 
-    def __init__(self, prefix: str, size: int, drop: int) -> None:
+    def __init__(self, prefix: str, size: int, drop: int, centred: bool = True) -> None:
         self.prefix = prefix
         self.size = size
         self.n = code_bits(size)
-        self.offset = code_offset(size)
+        self.offset = code_offset(size) if centred else 0
         self.drop = drop
         self.nb = self.n - drop
         if self.nb < 1:
@@ -137,14 +172,58 @@ class _Axis:
         return j.astype(np.float64) * self.block - self.offset - 0.5
 
 
+@dataclass
+class FrameLevels:
+    """Per-pixel levels of one view, from its white and black frames.
+
+    Attributes:
+        black: float32 black frame (subtracted before the robust classification).
+        range: float32 white - black.
+        shadow: bool, white - black below ``shadow_threshold`` × ``full_scale``.
+        full_scale: the frames' full-scale value (see :func:`robust.full_scale`).
+        noise: camera noise σ from the black frame (frame units).
+    """
+
+    black: np.ndarray
+    range: np.ndarray
+    shadow: np.ndarray
+    full_scale: float
+    noise: float
+
+
+@dataclass
+class AxisDecode:
+    """Integer decoding of one projector axis."""
+
+    axis: _Axis
+    first_pair: int  # index of the axis' first pattern (pair) after white and black
+    code: np.ndarray  # int32 coarse code value per pixel
+    integer: np.ndarray  # projector coordinate of the decoded block's centre (clipped)
+    weak: np.ndarray  # a weak/uncertain bit that is not tolerated
+    tolerated: np.ndarray
+    out_of_range: np.ndarray
+
+
 class GrayCode:
-    """Gray-code :class:`dotshell.coding.PatternCoding`; keyword arguments as the settings."""
+    """Gray-code :class:`dotshell.coding.PatternCoding`; keyword arguments as the settings.
+
+    Subclasses change what is projected for each code bit (:meth:`projected_stripes`) and how
+    projected bits turn back into Gray bits (:meth:`gray_bits`)."""
+
+    label = "gray code"
 
     def __init__(self, axes: str = "both", inverse: bool = True, min_contrast: float = 0.1,
                  shadow_threshold: float = 0.03, drop_low_bits: int = 0, subpixel: bool = True,
-                 bit_depth: int = 0) -> None:
+                 bit_depth: int = 0, classification: str = "robust", direct_min: float = 0.0,
+                 high_frequency_pairs: int = 2, black_level: float = 0.0,
+                 centred: bool = True) -> None:
         if axes not in ("columns", "both"):
             raise ValueError(f"axes must be 'columns' or 'both', not {axes!r}")
+        if classification not in ("contrast", "robust"):
+            raise ValueError(f"classification must be 'contrast' or 'robust', not "
+                             f"{classification!r}")
+        if classification == "robust" and not inverse:
+            classification = "contrast"  # the rule needs inverses; see the setting's help
         self.axes = axes
         self.inverse = bool(inverse)
         self.min_contrast = float(min_contrast)
@@ -152,15 +231,24 @@ class GrayCode:
         self.drop_low_bits = int(drop_low_bits)
         self.subpixel = bool(subpixel)
         self.bit_depth = int(bit_depth)
+        self.classification = classification
+        self.direct_min = float(direct_min)
+        self.high_frequency_pairs = int(high_frequency_pairs)
+        self.black_level = float(black_level)
+        self.centred = bool(centred)
 
     # ---- patterns ------------------------------------------------------------------------
 
     def _axes(self, projector_size: tuple[int, int]) -> list[_Axis]:
         w, h = (int(s) for s in projector_size)
-        axes = [_Axis("col", w, self.drop_low_bits)]
+        axes = [_Axis("col", w, self.drop_low_bits, self.centred)]
         if self.axes == "both":
-            axes.append(_Axis("row", h, self.drop_low_bits))
+            axes.append(_Axis("row", h, self.drop_low_bits, self.centred))
         return axes
+
+    def projected_stripes(self, ax: _Axis, i: int) -> np.ndarray:
+        """uint8 0/1 vector over the projector axis: what is projected for code bit ``i``."""
+        return ax.bit_stripes(i)
 
     def frame_names(self, projector_size: tuple[int, int]) -> list[str]:
         """Names of :meth:`patterns`, without rendering them."""
@@ -177,7 +265,7 @@ class GrayCode:
                   PatternFrame("black", np.zeros((h, w), np.uint8))]
         for ax in self._axes(projector_size):
             for i in range(ax.nb):
-                s = ax.bit_stripes(i) * np.uint8(255)
+                s = self.projected_stripes(ax, i) * np.uint8(255)
                 img = np.broadcast_to(s[None, :] if ax.prefix == "col" else s[:, None], (h, w))
                 name = f"{ax.prefix}_{i:02d}"
                 frames.append(PatternFrame(name, np.ascontiguousarray(img)))
@@ -187,115 +275,65 @@ class GrayCode:
 
     # ---- decoding ------------------------------------------------------------------------
 
-    def _full_scale(self, white: np.ndarray) -> float:
-        if self.bit_depth:
-            return float((1 << self.bit_depth) - 1)
-        if white.dtype == np.uint8:
-            return 255.0
-        if np.issubdtype(white.dtype, np.integer):
-            peak = int(white.max()) if white.size else 0
-            return float((1 << max(8, min(16, peak.bit_length()))) - 1)
-        return float(white.max()) if white.size else 1.0
+    def levels(self, white: np.ndarray, black: np.ndarray) -> FrameLevels:
+        """Shadow mask, full scale and noise floor from the white and black frames."""
+        full = full_scale(white, self.bit_depth)
+        w = white.astype(np.float32)
+        b = black.astype(np.float32)
+        rng = w - b
+        if not np.issubdtype(white.dtype, np.integer):
+            rng = np.nan_to_num(rng, nan=0.0, posinf=0.0, neginf=0.0)
+        return FrameLevels(b, rng, rng < self.shadow_threshold * full, full, noise_sigma(black))
 
-    def decode(self, frames: Sequence[np.ndarray], projector_size: tuple[int, int]) -> Correspondence:
-        axes = self._axes(projector_size)
+    def _check_frames(self, frames: Sequence[np.ndarray], axes: list[_Axis]) -> list[np.ndarray]:
         per_bit = 2 if self.inverse else 1
         expected = 2 + per_bit * sum(ax.nb for ax in axes)
         if len(frames) != expected:
-            raise ValueError(f"gray code expects {expected} frames for projector "
-                             f"{tuple(projector_size)}, got {len(frames)}")
+            raise ValueError(f"{self.label} expects {expected} frames for projector "
+                             f"{tuple(ax.size for ax in axes)}, got {len(frames)}")
         frames = [np.asarray(f) for f in frames]
         shape = frames[0].shape
         if len(shape) != 2 or any(f.shape != shape for f in frames):
             raise ValueError("frames must be 2-D arrays of one shape")
+        if not np.issubdtype(frames[0].dtype, np.integer):
+            frames = [np.nan_to_num(f.astype(np.float32, copy=False)) for f in frames]
+        return frames
 
-        white = frames[0].astype(np.float32)
-        black = frames[1].astype(np.float32)
-        rng = white - black
-        shadow = rng < self.shadow_threshold * self._full_scale(frames[0])
-        mid = None if self.inverse else 0.5 * (white + black)
-        # contrast test |d| < thr, with d = P - I (or P - mid, which swings half as far)
-        thr = (self.min_contrast * (1.0 if self.inverse else 0.5)) * np.maximum(rng, 0.0)
-        del white, black
-
-        def diff(k: int) -> np.ndarray:  # difference signal of projected frame-pair k
-            p = frames[2 + per_bit * k]
-            if self.inverse:
-                return p.astype(np.float32) - frames[3 + per_bit * k].astype(np.float32)
-            return p.astype(np.float32) - mid
-
-        flat_frames = [f.reshape(-1) for f in frames]
-        flat_mid = None if mid is None else mid.reshape(-1)
-        flat_rng = rng.reshape(-1)
-
-        def pair_d(k: int, flat: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
-            """Difference signal of frame-pair k at flat indices flat and flat + step."""
-            p = flat_frames[2 + per_bit * k]
-            q = flat_frames[3 + per_bit * k] if self.inverse else flat_mid
-            both = np.concatenate([flat, flat + step])
-            d = p[both].astype(np.float32) - q[both].astype(np.float32)
-            d /= np.maximum(flat_rng[both], np.float32(1e-6))  # albedo steps don't move the edge
-            return d[:flat.size], d[flat.size:]
-
-        low_contrast = np.zeros(shape, bool)
-        out_of_range = np.zeros(shape, bool)
-        tolerated = np.zeros(shape, bool)
-        results = []
+    def decode(self, frames: Sequence[np.ndarray], projector_size: tuple[int, int]) -> Correspondence:
+        axes = self._axes(projector_size)
+        frames = self._check_frames(frames, axes)
+        lv = self.levels(frames[0], frames[1])
+        pairs = _Pairs(frames, self.inverse, lv)
+        classify = self._classifier(pairs, axes, lv)
+        decoded = []
         first = 0
         for ax in axes:
-            gray = np.zeros(shape, np.int32)
-            n_weak = np.zeros(shape, np.uint8)
-            n_weak_edge = np.zeros(shape, np.uint8)
-            weak_bit = np.zeros(shape, np.int32)
-            for i in range(ax.nb):
-                d = diff(first + i)
-                gray <<= 1
-                gray |= d > 0
-                weak = np.abs(d) < thr
-                n_weak += weak
-                np.copyto(weak_bit, i, where=weak)
-                # a weak bit is on its own stripe edge when it has a strongly positive and a
-                # strongly negative 4-neighbour
-                pos = cv2.dilate((d > thr).view(np.uint8), _CROSS)
-                neg = cv2.dilate((d < -thr).view(np.uint8), _CROSS)
-                n_weak_edge += weak & (pos & neg).view(bool)
-            code = _gray_to_binary(gray)
-            # a single weak bit is harmless when flipping it moves the code by one step
-            k = (ax.nb - 1) - weak_bit  # its position from the LSB
-            flipped = code ^ ((np.int32(2) << k) - 1)
-            edge_ok = (n_weak == 1) & (n_weak_edge == 1) & (np.abs(flipped - code) == 1)
-            weak_px = (n_weak > 0) & ~edge_ok
-            tolerated |= edge_ok
-            lo, hi = ax.block_range(code)
-            oor = (hi < 0) | (lo > ax.size - 1)
-            integer = 0.5 * (np.maximum(lo, 0) + np.minimum(hi, ax.size - 1))
-            low_contrast |= weak_px
-            out_of_range |= oor
-            results.append((ax, first, code, integer))
+            decoded.append(_decode_axis(ax, first, self.gray_bits(ax, first, classify)))
             first += ax.nb
-
-        low_contrast &= ~shadow
-        out_of_range &= ~shadow & ~low_contrast
-        valid = ~(shadow | low_contrast | out_of_range)
-
-        coords = []
-        refined: dict[str, int] = {}
-        for ax, first_bit, code, integer in results:
-            coord = integer.astype(np.float32)
-            if self.subpixel:
-                transpose = ax.prefix == "row"
-                fine, ok = _refine(ax, code, valid, transpose,
-                                   lambda i, flat, step, f=first_bit: pair_d(f + i, flat, step))
-                coord = np.where(ok, fine, coord).astype(np.float32)
-                refined[f"refined_{'row' if transpose else 'column'}"] = int(ok.sum())
-            coord[~valid] = np.nan
-            coords.append(coord)
-
+        shadow = lv.shadow
+        weak = np.zeros(shadow.shape, bool)
+        out_of_range = np.zeros(shadow.shape, bool)
+        for d in decoded:
+            weak |= d.weak
+            out_of_range |= d.out_of_range
+        uncertain = np.zeros(shadow.shape, bool)
+        if self.classification == "robust":
+            uncertain = (weak | classify.no_direct) & ~shadow
+            low_contrast = np.zeros(shadow.shape, bool)
+        else:
+            low_contrast = weak & ~shadow
+        out_of_range &= ~(shadow | low_contrast | uncertain)
+        valid = ~(shadow | low_contrast | uncertain | out_of_range)
+        coords, refined = self._coordinates(decoded, valid, pairs)
+        tolerated = np.zeros(shadow.shape, bool)
+        for d in decoded:
+            tolerated |= d.tolerated
         stats = {
             "pixels": int(valid.size),
             "decoded": int(valid.sum()),
             "shadow": int(shadow.sum()),
             "low_contrast": int(low_contrast.sum()),
+            "uncertain": int(uncertain.sum()),
             "out_of_range": int(out_of_range.sum()),
             "edge_tolerated": int((tolerated & valid).sum()),
         }
@@ -303,14 +341,188 @@ class GrayCode:
         return Correspondence(column=coords[0], row=coords[1] if len(coords) > 1 else None,
                               valid=valid, stats=stats)
 
+    def _classifier(self, pairs: "_Pairs", axes: list[_Axis], lv: FrameLevels) -> "_Classifier":
+        if self.classification == "contrast":
+            return _ContrastClassifier(pairs, self.min_contrast, lv)
+        sep_pairs: list[int] = []
+        high: set[int] = set()
+        first = 0
+        for ax in axes:
+            k = min(self.high_frequency_pairs, ax.nb)
+            sep_pairs += list(range(first + ax.nb - k, first + ax.nb))
+            high |= {first + i for i in self.high_frequency_bits(ax)}
+            first += ax.nb
+        ld, lg = direct_global([f for k in sep_pairs for f in pairs.black_subtracted(k)],
+                               self.black_level)
+        m = (self.direct_min * lv.full_scale if self.direct_min > 0
+             else AUTO_DIRECT_MIN_SIGMAS * lv.noise)
+        return _RobustClassifier(pairs, ld, lg, m, high | set(sep_pairs), self.min_contrast)
+
+    def high_frequency_bits(self, ax: _Axis) -> list[int]:
+        """Projected bits (MSB-first indices) in which global light is the same in pattern and
+        inverse: the ``high_frequency_pairs`` finest (the separation's own pairs)."""
+        return list(range(ax.nb - min(self.high_frequency_pairs, ax.nb), ax.nb))
+
+    def gray_bits(self, ax: _Axis, first: int, classify: "_Classifier",
+                  ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+        """(value, weak) of each Gray bit of ``ax``, most significant first."""
+        for i in range(ax.nb):
+            yield classify(first + i)
+
+    def refine_anchors(self, ax: _Axis) -> tuple[int | None, int]:
+        """(bit whose stripe edges anchor the sub-pixel step or None for all, max anchor
+        spacing in code steps)."""
+        return None, _MAX_SUBPIXEL_SPAN
+
+    def _coordinates(self, decoded: list[AxisDecode], valid: np.ndarray, pairs: "_Pairs",
+                     ) -> tuple[list[np.ndarray], dict[str, int]]:
+        coords = []
+        refined: dict[str, int] = {}
+        for d in decoded:
+            coord = d.integer.astype(np.float32)
+            if self.subpixel:
+                transpose = d.axis.prefix == "row"
+                anchor, span = self.refine_anchors(d.axis)
+                fine, ok = _refine(d.axis, d.code, valid, transpose,
+                                   lambda i, flat, step, f=d.first_pair: pairs.d_at(f + i, flat, step),
+                                   anchor, span)
+                coord = np.where(ok, fine, coord).astype(np.float32)
+                refined[f"refined_{'row' if transpose else 'column'}"] = int(ok.sum())
+            coord[~valid] = np.nan
+            coords.append(coord)
+        return coords, refined
+
+
+class _Pairs:
+    """Access to the pattern/inverse frames (or pattern and per-pixel mid-level) of a view."""
+
+    def __init__(self, frames: list[np.ndarray], inverse: bool, lv: FrameLevels) -> None:
+        self.frames = frames
+        self.inverse = inverse
+        self.per_bit = 2 if inverse else 1
+        self.lv = lv
+        self.mid = None if inverse else lv.black + 0.5 * lv.range
+        self.flat = [f.reshape(-1) for f in frames]
+        self.flat_mid = None if self.mid is None else self.mid.reshape(-1)
+        self.flat_rng = lv.range.reshape(-1)
+
+    def pattern(self, k: int) -> np.ndarray:
+        return self.frames[2 + self.per_bit * k]
+
+    def d(self, k: int) -> np.ndarray:
+        """Difference signal of pattern k: pattern − inverse (or pattern − mid)."""
+        p = self.pattern(k).astype(np.float32)
+        if self.inverse:
+            return p - self.frames[3 + self.per_bit * k].astype(np.float32)
+        return p - self.mid
+
+    def black_subtracted(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Pattern k and its inverse minus the black frame (float32)."""
+        return (self.pattern(k).astype(np.float32) - self.lv.black,
+                self.frames[3 + self.per_bit * k].astype(np.float32) - self.lv.black)
+
+    def d_at(self, k: int, flat: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
+        """Range-normalised difference signal of pattern k at flat indices flat and
+        flat + step (albedo steps don't move the edge)."""
+        p = self.flat[2 + self.per_bit * k]
+        q = self.flat[3 + self.per_bit * k] if self.inverse else self.flat_mid
+        both = np.concatenate([flat, flat + step])
+        d = p[both].astype(np.float32) - q[both].astype(np.float32)
+        d /= np.maximum(self.flat_rng[both], np.float32(1e-6))
+        return d[:flat.size], d[flat.size:]
+
+
+class _Classifier:
+    """Decides projected pattern k per pixel: ``(value, weak)`` bool arrays."""
+
+    no_direct: np.ndarray | bool = False
+
+    def __call__(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        raise NotImplementedError
+
+
+class _ContrastClassifier(_Classifier):
+    """value = d > 0; weak where |d| < min_contrast × (white − black) (half that without
+    inverses, where d = pattern − mid swings half as far)."""
+
+    def __init__(self, pairs: _Pairs, min_contrast: float, lv: FrameLevels) -> None:
+        self.pairs = pairs
+        self.thr = (min_contrast * (1.0 if pairs.inverse else 0.5)) * np.maximum(lv.range, 0.0)
+
+    def __call__(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        d = self.pairs.d(k)
+        return d > 0, np.abs(d) < self.thr
+
+
+class _RobustClassifier(_Classifier):
+    """Xu & Aliaga's rule on black-subtracted frames; weak = uncertain.
+
+    High-frequency pairs (the separation's own pairs; every pair of an XOR code) get the
+    rule's ``L_d > L_g`` branch whatever ``L_g``: in them global light is by construction the
+    same in pattern and inverse (what the separation assumes), so it cannot flip the
+    comparison, while the interval tests would reject every blurred pixel near their dense
+    edges. Their bit is uncertain where ``|p − i| < min_contrast · L_d`` — a contrast test
+    relative to the direct light, so it neither rejects everything when global light fills the
+    white frame nor lets noise decide in a faint PDI image."""
+
+    def __init__(self, pairs: _Pairs, ld: np.ndarray, lg: np.ndarray, m: float,
+                 high_frequency: set[int], min_contrast: float) -> None:
+        self.pairs = pairs
+        self.ld, self.lg, self.m = ld, lg, m
+        self.no_direct = ld < m
+        self.high_frequency = high_frequency
+        self.thr = min_contrast * ld
+
+    def __call__(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        p, q = self.pairs.black_subtracted(k)
+        if k in self.high_frequency:
+            d = p - q
+            return d > 0, self.no_direct | (np.abs(d) < self.thr)
+        return robust_bits(p, q, self.ld, self.lg, self.m)
+
+
+def _decode_axis(ax: _Axis, first: int, bits: Iterable[tuple[np.ndarray, np.ndarray]],
+                 ) -> AxisDecode:
+    """Assemble Gray bits (value, weak), MSB first, into the coarse code of one axis.
+
+    A single weak bit is harmless when flipping it moves the code by one step and the pixel
+    is on that bit's stripe edge (a 4-neighbour where the bit is surely 1 and one where it is
+    surely 0); more weak bits, or one off its edge, make the pixel ``weak``."""
+    gray = None
+    for i, (value, weak) in enumerate(bits):
+        if gray is None:
+            shape = value.shape
+            gray = np.zeros(shape, np.int32)
+            n_weak = np.zeros(shape, np.uint8)
+            n_weak_edge = np.zeros(shape, np.uint8)
+            weak_bit = np.zeros(shape, np.int32)
+        gray <<= 1
+        gray |= value
+        n_weak += weak
+        np.copyto(weak_bit, i, where=weak)
+        pos = cv2.dilate((value & ~weak).view(np.uint8), _CROSS)
+        neg = cv2.dilate((~value & ~weak).view(np.uint8), _CROSS)
+        n_weak_edge += weak & (pos & neg).view(bool)
+    code = _gray_to_binary(gray)
+    k = (ax.nb - 1) - weak_bit  # the weak bit's position from the LSB
+    flipped = code ^ ((np.int32(2) << k) - 1)
+    edge_ok = (n_weak == 1) & (n_weak_edge == 1) & (np.abs(flipped - code) == 1)
+    lo, hi = ax.block_range(code)
+    oor = (hi < 0) | (lo > ax.size - 1)
+    integer = 0.5 * (np.maximum(lo, 0) + np.minimum(hi, ax.size - 1))
+    return AxisDecode(ax, first, code, integer, (n_weak > 0) & ~edge_ok, edge_ok, oor)
+
 
 def _refine(ax: _Axis, code: np.ndarray, valid: np.ndarray, transpose: bool,
             pair_d: Callable[[int, np.ndarray, int], tuple[np.ndarray, np.ndarray]],
+            anchor_bit: int | None = None, max_span: int = _MAX_SUBPIXEL_SPAN,
             ) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel coordinates along the camera rows (``transpose``: along the camera columns).
 
     ``code`` and ``valid`` are in camera layout (H, W). ``pair_d(i, flat, step)`` returns the
     difference signal of projected bit ``i`` at flat pixel indices ``flat`` and ``flat + step``.
+    ``anchor_bit``: use only the stripe edges of this bit (one-step code changes where it
+    flips), anchors then up to ``max_span`` code steps apart; None: every edge.
     Returns (coordinate, refined mask) in camera layout.
     """
     H, W = code.shape
@@ -352,8 +564,11 @@ def _refine(ax: _Axis, code: np.ndarray, valid: np.ndarray, transpose: bool,
                 t[sel] = np.where(den != 0, d0 / den, np.float32(0.5))
         return np.clip(t, 0.0, 1.0)
 
-    for k in (1, 2):
-        line, idx = np.nonzero(pair_ok & (step == k))
+    for k in (1, 2) if anchor_bit is None else (1,):
+        sel_k = pair_ok & (step == k)
+        if anchor_bit is not None:
+            sel_k &= flip_bit[np.minimum(lo + 1, len(flip_bit) - 1)] == anchor_bit
+        line, idx = np.nonzero(sel_k)
         if line.size == 0:
             continue
         base = lo[line, idx].astype(np.int64)
@@ -387,7 +602,7 @@ def _refine(ax: _Axis, code: np.ndarray, valid: np.ndarray, transpose: bool,
     span = vr - vl
     with np.errstate(invalid="ignore", divide="ignore"):
         fine = vl + (xs - pl) / (pr - pl) * span
-        ok &= (span != 0) & (np.abs(span) <= _MAX_SUBPIXEL_SPAN * ax.block) & (pr > pl)
+        ok &= (span != 0) & (np.abs(span) <= max_span * ax.block) & (pr > pl)
         # the pixel's own decoded block must lie between the anchors
         own_lo, own_hi = ax.block_range(code_l)
         centre = 0.5 * (own_lo + own_hi)
