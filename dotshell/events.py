@@ -42,6 +42,21 @@ class ViewCaptured(Event):
 
 
 @dataclass(frozen=True)
+class ScanPaused(Event):
+    """The acquisition is waiting before frame ``index`` of ``view`` (everything before it is
+    on disk) until it is resumed or stopped."""
+
+    view: int
+    index: int
+
+
+@dataclass(frozen=True)
+class ScanResumed(Event):
+    view: int
+    index: int
+
+
+@dataclass(frozen=True)
 class StepStarted(Event):
     """A pipeline step began: acquire, decode, triangulate, merge, validate, previews."""
 

@@ -33,3 +33,27 @@ def test_metal_cylinder_full_resolution(tmp_path):
     reconstruct_run(result.run_dir, pm)
     after, _ = read_ply(result.run_dir / "cloud.ply")
     assert np.array_equal(before, after)
+
+
+@pytest.fixture(scope="module")
+def agar_full(tmp_path_factory):
+    pm = PluginManager()
+    pm.load_entry_points()
+    tmp = tmp_path_factory.mktemp("agar-full")
+    return {name: scan(load_profile(ROOT / "profiles" / f"{name}.toml", pm), pm, tmp)
+            for name in ("sim-agar-cylinder", "sim-agar-cylinder-nopdi")}
+
+
+def test_agar_cylinder_pdi_full_resolution(agar_full):
+    v = agar_full["sim-agar-cylinder"].report["validation"]
+    print(json.dumps(v, indent=1))
+    assert v["mean_rel_error_pct"] <= 1.5 and v["std_rel_error_pct"] <= 1.5  # paper: 7.4 ± 7.9
+    assert v["coverage_pct"] >= 90.0
+
+
+def test_agar_without_pdi_is_at_least_5x_worse(agar_full):
+    pdi = agar_full["sim-agar-cylinder"].report["validation"]
+    plain = agar_full["sim-agar-cylinder-nopdi"].report
+    print(json.dumps(plain["validation"], indent=1))
+    assert plain["validation"]["mean_rel_error_pct"] >= 5 * pdi["mean_rel_error_pct"]
+    assert plain["validation"]["mean_signed_rel_error_pct"] < -0.2  # biased inwards

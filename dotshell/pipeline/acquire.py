@@ -19,8 +19,9 @@ import numpy as np
 
 from dotshell.coding import PatternFrame
 from dotshell.devices import ExposureControl
-from dotshell.errors import DeviceError, RunError
-from dotshell.events import EventBus, FrameCaptured, ViewCaptured
+from dotshell.errors import DeviceError, ProfileError, RunError
+from dotshell.events import EventBus, FrameCaptured, ScanPaused, ScanResumed, ViewCaptured
+from dotshell.pipeline.pdi import Shot, plan_shots
 from dotshell.rig import Rig
 from dotshell.store import RunStore
 
@@ -70,33 +71,60 @@ class Acquisition:
     """Captures views of a scan into a :class:`RunStore`."""
 
     def __init__(self, rig: Rig, patterns: list[PatternFrame], store: RunStore,
-                 scan: dict[str, Any], bus: EventBus, stop: threading.Event | None = None) -> None:
+                 scan: dict[str, Any], bus: EventBus, stop: threading.Event | None = None,
+                 running: threading.Event | None = None, shots: list[Shot] | None = None) -> None:
         self.rig = rig
         self.patterns = patterns
+        self.shots = shots or plan_shots(patterns, scan)
+        if any(s.analyzer_deg is not None for s in self.shots) and rig.analyzer is None:
+            raise ProfileError(f"{rig.profile.source}: [scan] pdi = true needs an [analyzer] "
+                               "in the profile (a rotating analyzer in front of the camera).")
         self.store = store
         self.scan = scan
         self.bus = bus
         self.stop = stop or threading.Event()
+        self.running = running  # cleared = pause before the next frame; None = never pause
         self.seconds = 0.0
+        self._analyzer_deg: float | None = None
         self.writer = FrameWriter(store)
         if isinstance(rig.camera, ExposureControl):
             rig.camera.set_exposure(scan["exposure_ms"])
 
-    def _capture(self, pattern: PatternFrame, view: int) -> np.ndarray:
+    def _capture(self, shot: Shot, view: int) -> np.ndarray:
+        pattern = self.patterns[shot.pattern]
         attempts = self.scan["retries"] + 1
         for attempt in range(1, attempts + 1):
             try:
+                if shot.analyzer_deg is not None and shot.analyzer_deg != self._analyzer_deg:
+                    self.rig.analyzer.set_angle(shot.analyzer_deg)
+                    self._analyzer_deg = shot.analyzer_deg
                 self.rig.projector.show(pattern.image)
                 if self.scan["settle_ms"] > 0:
                     time.sleep(self.scan["settle_ms"] / 1000.0)
                 return self.rig.camera.capture()
             except DeviceError as exc:
+                self._analyzer_deg = None  # unknown after a failure: set it again
                 if attempt == attempts:
-                    raise DeviceError(f"view {view}, frame {pattern.name!r}: capture failed "
+                    raise DeviceError(f"view {view}, frame {shot.name!r}: capture failed "
                                       f"{attempts} times; last error: {exc}") from None
-                self.bus.warn(f"view {view}, frame {pattern.name!r}: {exc} — retrying "
+                self.bus.warn(f"view {view}, frame {shot.name!r}: {exc} — retrying "
                               f"({attempt}/{attempts - 1})")
         raise AssertionError("unreachable")
+
+    def _wait_if_paused(self, view: int, index: int) -> bool:
+        """Block while ``running`` is cleared (a pause between frames); False if stopped
+        meanwhile. Pause time is not counted in the acquisition time."""
+        if self.running is None or self.running.is_set():
+            return True
+        self.writer.queue.join()  # frames taken before the pause are on disk while we wait
+        self.bus.emit(ScanPaused(view=view, index=index))
+        t0 = time.perf_counter()
+        while not self.running.wait(0.05):
+            if self.stop.is_set():
+                return False
+        self.seconds -= time.perf_counter() - t0
+        self.bus.emit(ScanResumed(view=view, index=index))
+        return True
 
     def run_view(self, view: int, angle_deg: float) -> list[np.ndarray] | None:
         """Capture all frames of one view; None if the scan was stopped midway (frames taken
@@ -105,16 +133,16 @@ class Acquisition:
         self.rig.stage.move_to(angle_deg)
         frames: list[np.ndarray] = []
         try:
-            for i, pattern in enumerate(self.patterns):
-                if self.stop.is_set():
+            for i, shot in enumerate(self.shots):
+                if self.stop.is_set() or not self._wait_if_paused(view, i):
                     return None
-                frame = self._capture(pattern, view)
-                self.writer.put(view, i, pattern.name, frame)
+                frame = self._capture(shot, view)
+                self.writer.put(view, i, shot.name, frame)
                 frames.append(frame)
-                self.bus.emit(FrameCaptured(view=view, index=i, name=pattern.name))
+                self.bus.emit(FrameCaptured(view=view, index=i, name=shot.name))
         finally:
             self.writer.queue.join()  # every frame taken is on disk before we go on
-            complete = len(frames) == len(self.patterns)
+            complete = len(frames) == len(self.shots)
             self.store.mark_view(view, len(frames), complete)
             self.seconds += time.perf_counter() - t0
         self.writer.check()

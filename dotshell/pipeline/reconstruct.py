@@ -6,6 +6,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
+import cv2
 import numpy as np
 
 from dotshell.coding import Correspondence, PatternCoding
@@ -35,6 +36,17 @@ def in_roi(points: np.ndarray, roi: dict[str, float]) -> np.ndarray:
         points[:, 2] <= roi["z_max_mm"])
 
 
+def speckle_mask(pixels: np.ndarray, depth_mm: np.ndarray, shape: tuple[int, int],
+                 max_jump_mm: float) -> np.ndarray:
+    """True for points whose depth agrees with the median of their 5×5 camera neighbourhood
+    within ``max_jump_mm`` (isolated decoding errors — speckles — fail). Pixels without
+    points count as depth 0, so a point needs mostly valid neighbours to pass."""
+    img = np.zeros(shape, np.float32)
+    img[pixels[:, 1], pixels[:, 0]] = depth_mm
+    med = cv2.medianBlur(img, 5)
+    return np.abs(med[pixels[:, 1], pixels[:, 0]] - depth_mm) <= max_jump_mm
+
+
 def check_frames(frames: Sequence[np.ndarray], calib: RigCalibration, view: int) -> None:
     h, w = frames[0].shape[:2]
     if (w, h) != calib.camera.size:
@@ -58,12 +70,19 @@ def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
                       row=None if corr.row is None else corr.row[ys, xs],
                       row_tolerance_px=processing["row_tolerance_px"],
                       min_ray_angle_deg=processing["min_ray_angle_deg"])
-    pts = calib.camera_to_sample(tri.points[tri.keep], angle_deg)
     pixels = np.column_stack([xs, ys])[tri.keep]
+    cam_pts = tri.points[tri.keep]
+    smooth = np.ones(len(cam_pts), bool)
+    if processing["max_depth_jump_mm"] > 0:
+        smooth = speckle_mask(pixels, cam_pts[:, 2], frames[0].shape[:2],
+                              processing["max_depth_jump_mm"])
+    pts = calib.camera_to_sample(cam_pts[smooth], angle_deg)
+    pixels = pixels[smooth]
     inside = in_roi(pts, processing["roi"])
     t2 = time.perf_counter()
     stats = {**corr.stats, "triangulated": int(tri.keep.sum()),
              "row_rejected": int(tri.row_rejected.sum()), "grazing": int(tri.grazing.sum()),
+             "speckle": int((~smooth).sum()),
              "outside_roi": int((~inside).sum()), "points": int(inside.sum())}
     return ViewCloud(view, angle_deg, pts[inside], pixels[inside], corr, stats,
                      {"decode": t1 - t0, "triangulate": t2 - t1})

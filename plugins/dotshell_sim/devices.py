@@ -100,7 +100,9 @@ PROJECTOR_SCHEMA: dict[str, Setting] = {
 }
 
 _SCENE_SCHEMA = {
-    "kind": Setting("str", "cylinder", "sample shape", choices=("cylinder", "none")),
+    "kind": Setting("str", "cylinder", "sample shape; mouse and gummy-bear are fixed-size "
+                    "mesh phantoms (dotshell_sim.phantoms)",
+                    choices=("cylinder", "none", "mouse", "gummy-bear")),
     "radius_mm": Setting("float", 7.7, "cylinder radius", "mm", min=0.01),
     "height_mm": Setting("float", 30.0, "cylinder height above the plate", "mm", min=0.01),
     "offset_mm": Setting("list[float]", [0.0, 0.0], "cylinder axis offset from the turntable "
@@ -132,7 +134,13 @@ TURNTABLE_SCHEMA: dict[str, Setting] = {
 }
 
 ANALYZER_SCHEMA: dict[str, Setting] = {
-    "initial_deg": Setting("float", 0.0, "analyzer angle after connect", "deg"),
+    "initial_deg": Setting("float", 0.0, "analyzer angle after connect, relative to the "
+                           "projector's polarizer (0 = parallel)", "deg"),
+    "extinction_ratio": Setting("float", 1000.0, "crossed-polarizer extinction (max / min "
+                                "transmission of polarized light); 1000 for a good film "
+                                "polarizer", min=1.0),
+    "transmittance": Setting("float", 0.85, "transmission of polarized light along the "
+                             "analyzer axis", min=0.0, max=1.0),
 }
 
 LASER_SCHEMA: dict[str, Setting] = {
@@ -186,7 +194,7 @@ class SimWorld:
         s = cam.settings
         key = json.dumps([calib.to_dict(), stage.settings["scene"], stage.settings["plate"],
                           stage.settings["background"], s["supersample"], s["ambient"],
-                          projector.ref_mm], sort_keys=True)
+                          projector.ref_mm, stage.target_key], sort_keys=True)
         renderer = _RENDERERS.get(key)
         if renderer is None:
             renderer = Renderer(calib, stage.scene, supersample=s["supersample"],
@@ -280,12 +288,21 @@ class SimCamera(_Device):
         projector, stage = self.world.require(self.name)
         renderer = self.world.renderer()
         view = renderer.view(stage.position)
-        irr = renderer.render(view, projector.radiance())
+        light = renderer.render(view, projector.radiance())
+        analyzer = self.world.analyzer
+        if analyzer is not None and analyzer.connected:
+            t_pol, t_dep = analyzer.transmission()
+            irr = light.polarized * np.float32(t_pol) + light.depolarized * np.float32(t_dep)
+        else:  # no analyzer in the light path
+            irr = light.total
         irr *= np.float32(self.settings["sensitivity_e_per_ms"] * self.exposure_ms)
         sigma = self.settings["defocus_sigma_px"]
         if sigma > 0:
             irr = cv2.GaussianBlur(irr, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
         return irr
+
+    def status(self) -> dict[str, Any]:
+        return {**super().status(), "exposure_ms": self.exposure_ms, "frames": self.frames}
 
     def capture(self) -> np.ndarray:
         electrons = self.expected_electrons()
@@ -386,8 +403,22 @@ class SimTurntable(_Device):
             raise DeviceError(f"{self.name}: the rotation axis passes through the camera centre; "
                               "check axis_point_mm / axis_direction (camera frame, mm).")
         self.scene = build_scene(s["scene"], s["plate"], s["background"])
+        self.target_key: str | None = None  # the calibration target on the stage, if any
         self._angle = 0.0
         world.stage = self
+
+    def place_target(self, board: dict | None, pose: dict | None) -> None:
+        """Put the calibration board (see :mod:`dotshell_sim.target`) on the stage at ``pose``
+        (sample frame); ``None`` takes it off. Satisfies ``dotshell.calibrate.TargetPlacement``."""
+        from dotshell_sim.target import with_target
+
+        s = self.settings
+        self.scene = build_scene(s["scene"], s["plate"], s["background"])
+        self.target_key = None
+        if board is not None and pose is not None:  # the sample is taken off to calibrate
+            self.scene = with_target(build_scene({**s["scene"], "kind": "none"}, s["plate"],
+                                                 s["background"]), board, pose)
+            self.target_key = json.dumps([board, pose], sort_keys=True)
 
     def move_to(self, degrees: float) -> None:
         self._check("move")
@@ -410,7 +441,9 @@ class SimTurntable(_Device):
 
 
 class SimAnalyzer(_Device):
-    """Polarization analyzer: stores its angle (no optical effect yet)."""
+    """Linear polarization analyzer in front of the camera (the projector carries the
+    polarizer). Polarized light passes by Malus' law, cos²φ, down to 1/extinction_ratio;
+    unpolarized light passes half (the mean of the two axes)."""
 
     name = "sim-analyzer"
 
@@ -421,7 +454,17 @@ class SimAnalyzer(_Device):
 
     def set_angle(self, degrees: float) -> None:
         self._check("set the analyzer angle")
+        if not (isinstance(degrees, (int, float)) and math.isfinite(degrees)):
+            raise DeviceError(f"{self.name}: angle must be a finite number of degrees, got "
+                              f"{degrees!r}.")
         self.angle_deg = float(degrees)
+
+    def transmission(self) -> tuple[float, float]:
+        """(transmission of the projector-polarized light, of unpolarized light)."""
+        t = self.settings["transmittance"]
+        leak = 1.0 / self.settings["extinction_ratio"]
+        c2 = math.cos(math.radians(self.angle_deg)) ** 2
+        return t * (c2 + leak * (1 - c2)), t * (1 + leak) / 2
 
     def status(self) -> dict[str, Any]:
         return {**super().status(), "angle_deg": self.angle_deg}

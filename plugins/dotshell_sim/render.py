@@ -37,6 +37,7 @@ from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens
 
 from dotshell_sim.scene import StagedScene
+from dotshell_sim.subsurface import SubsurfaceView, fresnel_transmittance, gaussian_mixture
 
 _CHUNK = 1 << 16          # rays per chunk (bounds the float64 temporaries; cache friendly)
 _SHADOW_OFFSET = 1e-5     # mm, shadow-ray origin offset along the normal (avoids self-hits)
@@ -93,10 +94,24 @@ class Trace:
     shadow: np.ndarray       # (N,) hit faces the projector but another surface blocks it
     weight: np.ndarray       # (N,) projector-light shading weight (0 where not lit)
     ambient: np.ndarray      # (N,) ambient shading weight (ambient · albedo · cos^4)
+    weight_pol: np.ndarray   # (N,) share of ``weight`` that keeps the projector's polarization
+    entering: np.ndarray     # (N,) irradiance entering a turbid material (T_in·cos_i·falloff·vign)
 
     @property
     def lit(self) -> np.ndarray:
         return self.weight > 0
+
+
+@dataclass
+class Light:
+    """Relative image irradiance (H, W) split by polarization state."""
+
+    polarized: np.ndarray    # keeps the projector's linear polarization
+    depolarized: np.ndarray  # unpolarized (diffuse surfaces, subsurface light, room light)
+
+    @property
+    def total(self) -> np.ndarray:
+        return self.polarized + self.depolarized
 
 
 @dataclass
@@ -107,10 +122,14 @@ class View:
     ss: int
     map_x: np.ndarray        # float32 projector column per sample (_OUTSIDE where unlit)
     map_y: np.ndarray        # float32 projector row per sample
-    weight: np.ndarray       # float32 shading weight per sample
-    base: np.ndarray         # float32 (H, W) ambient weight, box-averaged
+    weight: np.ndarray       # float32 shading weight per sample (polarized + depolarized)
+    base: np.ndarray         # float32 (H, W) ambient weight, box-averaged (depolarized)
     material: np.ndarray     # int8 material id per sample (-1 = miss)
     shadow: np.ndarray       # bool per sample: cast shadow of the projector
+    weight_pol: np.ndarray | None = None   # float32 polarization-keeping share of ``weight``
+    entering: np.ndarray | None = None     # float32 irradiance into turbid material per sample
+    subsurface: SubsurfaceView | None = None  # diffuse transport (depolarized)
+    retained: tuple[float, float] = (0.0, 0.0)  # (share of R_total kept polarized, sigma px)
     seconds: float = 0.0     # time the precompute took
 
     def material_fraction(self, material_id: int) -> np.ndarray:
@@ -124,6 +143,37 @@ class View:
     def shadow_fraction(self) -> np.ndarray:
         """(H, W) fraction of each camera pixel's sub-samples in the projector's cast shadow."""
         return _box(self.shadow, self.ss)
+
+
+class _Receivers:
+    """Accumulates, per camera pixel, the sub-samples that hit the turbid material."""
+
+    def __init__(self, width: int, height: int, ss: int) -> None:
+        self.width, self.height, self.ss = width, height, ss
+        self.sums = np.zeros((width * height, 3))
+        self.count = np.zeros(width * height)
+        self.vign = np.zeros(width * height)
+
+    def add(self, samples: np.ndarray, tr: Trace, material: int) -> None:
+        sel = tr.material == material
+        if not sel.any():
+            return
+        k = samples[sel]
+        row, col = divmod(k, self.width * self.ss)
+        pix = (row // self.ss) * self.width + col // self.ss
+        for axis in range(3):
+            self.sums[:, axis] += np.bincount(pix, tr.points[sel, axis], self.sums.shape[0])
+        self.count += np.bincount(pix, minlength=self.count.size)
+        # cos^4 vignetting from the ray direction (camera frame) of each sample
+        d = tr.points[sel] / tr.t[sel, None]
+        self.vign += np.bincount(pix, d[:, 2] ** 4, self.count.size)
+
+    def result(self, calib: RigCalibration, angle_deg: float):
+        """(points in the sample frame, pixel index, pixel share × vignetting)."""
+        pix = np.flatnonzero(self.count > 0)
+        pts = self.sums[pix] / self.count[pix, None]
+        weight = self.vign[pix] / self.ss ** 2
+        return calib.camera_to_sample(pts, angle_deg), pix, weight
 
 
 def _box(a: np.ndarray, ss: int) -> np.ndarray:
@@ -175,6 +225,8 @@ class Renderer:
         albedo = np.array([m.albedo for m in mats] + [0.0])
         ks = np.array([m.specular for m in mats] + [0.0])
         shin = np.array([m.shininess for m in mats] + [1.0])
+        depol = np.array([m.depolarization for m in mats] + [1.0])
+        n_index = np.array([m.scattering.n if m.scattering else 0.0 for m in mats] + [0.0])
 
         d_s = d_c @ M
         origins = np.broadcast_to(o_s, d_s.shape)
@@ -216,6 +268,8 @@ class Renderer:
         m = mat[h]
         vign = d_c[h, 2] ** 4  # natural cos^4 fall-off of the camera lens
         weight = np.zeros(n)
+        weight_pol = np.zeros(n)
+        entering = np.zeros(n)
         ambient = np.zeros(n)
         ambient[h] = self.ambient * albedo[m] * vign
         if lit.size:
@@ -224,8 +278,13 @@ class Renderer:
             cos_h = np.clip(np.einsum("ij,ij->i", N[lit], Hv), 0.0, 1.0)
             ml = m[lit]
             spec = ks[ml] * (shin[ml] + 8) / 8 * cos_h ** shin[ml]
-            weight[h[lit]] = ((albedo[ml] + spec) * cos_i[lit]
-                              * (self.projector_ref_mm / dist_p[lit]) ** 2 * vign[lit])
+            irr = cos_i[lit] * (self.projector_ref_mm / dist_p[lit]) ** 2 * vign[lit]
+            weight[h[lit]] = (albedo[ml] + spec) * irr
+            weight_pol[h[lit]] = (albedo[ml] * (1 - depol[ml]) + spec) * irr
+            turbid = n_index[ml] > 0
+            if turbid.any():
+                entering[h[lit[turbid]]] = fresnel_transmittance(
+                    cos_i[lit[turbid]], n_index[ml[turbid]]) * irr[turbid]
 
         def full(a):
             out = np.zeros(n, bool)
@@ -233,7 +292,7 @@ class Renderer:
             return out
 
         return Trace(pixels, t, points, normals, mat, proj, full(in_proj), full(shadow),
-                     weight, ambient)
+                     weight, ambient, weight_pol, entering)
 
     def _camera_rays(self) -> np.ndarray:
         if self._rays is None:
@@ -262,6 +321,10 @@ class Renderer:
         ambient = np.empty(n, np.float32)
         material = np.empty(n, np.int8)
         shadow = np.empty(n, bool)
+        weight_pol = np.empty(n, np.float32)
+        entering = np.empty(n, np.float32)
+        turbid = self._turbid_material()
+        receivers = _Receivers(cam.width, cam.height, ss) if turbid is not None else None
         for s in range(0, n, _CHUNK):
             e = min(n, s + _CHUNK)
             tr = self.trace(grid[s:e], key, dirs=rays[s:e])
@@ -272,32 +335,93 @@ class Renderer:
             ambient[s:e] = tr.ambient
             material[s:e] = tr.material
             shadow[s:e] = tr.shadow
+            weight_pol[s:e] = tr.weight_pol
+            entering[s:e] = tr.entering
+            if receivers is not None:
+                receivers.add(np.arange(s, e), tr, turbid)
         view = View(key, ss, map_x.reshape(shape), map_y.reshape(shape), weight.reshape(shape),
                     _box(ambient.reshape(shape), ss), material.reshape(shape),
-                    shadow.reshape(shape))
+                    shadow.reshape(shape), weight_pol=weight_pol.reshape(shape))
+        if turbid is not None:
+            sc = self.scene.materials[turbid].scattering
+            view.entering = entering.reshape(shape)
+            view.subsurface = self._subsurface(key, turbid, receivers)
+            mm_per_px = self.projector_ref_mm / cam.K[0, 0]
+            r_total = view.subsurface.total_reflectance
+            view.retained = (sc.retained * r_total, sc.retained_sigma_mm / mm_per_px)
         view.seconds = time.perf_counter() - t0
         self._views[key] = view
         while len(self._views) > self.cache_views:
             self._views.popitem(last=False)
         return view
 
+    def _turbid_material(self) -> int | None:
+        """Index of the scene's (single) turbid material, if any."""
+        ids = [i for i, m in enumerate(self.scene.materials) if m.scattering is not None]
+        if len(ids) > 1:
+            raise ValueError("the simulator supports one turbid material per scene")
+        return ids[0] if ids else None
+
+    def _subsurface(self, angle_deg: float, material: int, receivers: "_Receivers") -> SubsurfaceView:
+        """Projector-pixel sources on the turbid material and the camera receivers."""
+        sc = self.scene.materials[material].scattering
+        proj = self.calib.projector
+        px_mm = self.projector_ref_mm / proj.K[0, 0]
+        block = max(1, int(0.2 / px_mm))  # sources ≤ 0.2 mm apart (narrowest σ is 0.6 mm)
+        wb, hb = proj.width // block, proj.height // block
+        u = np.arange(wb) * block + (block - 1) / 2
+        v = np.arange(hb) * block + (block - 1) / 2
+        uu, vv = np.meshgrid(u, v)
+        pix = np.column_stack([uu.ravel(), vv.ravel()])
+        d_p = proj.rays(pix)
+        cos_axis = d_p[:, 2]
+        o_s, M = self._camera_to_sample_linear(angle_deg)
+        centre_s = self.calib.camera_to_sample(self.calib.projector_centre[None], angle_deg)[0]
+        d_s = (d_p @ self.calib.R) @ M
+        t, nrm, mat = self.scene.at(angle_deg).intersect(np.broadcast_to(centre_s, d_s.shape), d_s)
+        hit = np.flatnonzero(mat == material)
+        d = d_s[hit]
+        nn = nrm[hit]
+        cos_i = np.clip(-np.einsum("ij,ij->i", d, nn), 0.0, 1.0)
+        eta = 1.0 / sc.n
+        cos_t = np.sqrt(np.clip(1 - eta ** 2 * (1 - cos_i ** 2), 0.0, 1.0))
+        refr = eta * d + (eta * cos_i - cos_t)[:, None] * nn
+        tangential = refr - np.einsum("ij,ij->i", refr, nn)[:, None] * nn
+        points = centre_s + t[hit, None] * d + sc.transport_length_mm * tangential
+        flux = (self.projector_ref_mm ** 2 * cos_axis[hit] ** 3 / (proj.K[0, 0] * proj.K[1, 1])
+                * fresnel_transmittance(cos_i, sc.n))
+        rec_pts, rec_pix, rec_w = receivers.result(self.calib, angle_deg)
+        sigmas, weights, _ = gaussian_mixture(sc)
+        view = SubsurfaceView(points, flux, hit, block, rec_pts, rec_pix, rec_w,
+                              (self.calib.camera.height, self.calib.camera.width),
+                              (sigmas, weights))
+        return view
+
     # ---- per frame ---------------------------------------------------------------------------
 
-    def render(self, view: View, radiance: np.ndarray | None) -> np.ndarray:
-        """Relative image irradiance (H, W) float32 for projector radiance ``radiance``
-        (float32 (proj height, proj width), already defocused; ``None`` = projector dark)."""
+    def render(self, view: View, radiance: np.ndarray | None) -> Light:
+        """Relative image irradiance (H, W) float32, split by polarization, for projector
+        radiance ``radiance`` (float32 (proj height, proj width), already defocused;
+        ``None`` = projector dark)."""
         base = view.base
         if radiance is None:
-            return base.copy()
+            return Light(np.zeros_like(base), base.copy())
         # float maps on a float image: exact bilinear interpolation (checked in the tests)
         s = cv2.remap(radiance, view.map_x, view.map_y, cv2.INTER_LINEAR,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
-        s *= view.weight
         h, w = base.shape
-        if view.ss > 1:
-            s = cv2.resize(s, (w, h), interpolation=cv2.INTER_AREA)
-        s += base
-        return s
+
+        def box(a):
+            return cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA) if view.ss > 1 else a
+
+        pol = box(s * view.weight_pol)
+        dep = box(s * (view.weight - view.weight_pol)) + base
+        if view.subsurface is not None:
+            dep += view.subsurface.exitance(radiance)
+            share, sigma_px = view.retained
+            if share > 0:
+                pol += share * cv2.GaussianBlur(box(s * view.entering), (0, 0), sigma_px)
+        return Light(pol, dep)
 
 
 @dataclass(frozen=True)

@@ -24,6 +24,9 @@ from dotshell.compat import import_open3d
 
 from dotshell.geometry.calibration import rot_z
 
+from dotshell_sim.subsurface import Scattering
+from dotshell_sim import phantoms as _phantoms
+
 
 @dataclass(frozen=True)
 class Material:
@@ -31,22 +34,33 @@ class Material:
 
     Attributes:
         name: short name.
-        albedo: Lambertian (diffuse) albedo, 0..1.
+        albedo: Lambertian (diffuse) albedo at the surface, 0..1.
         specular: weight of the normalized Blinn–Phong lobe, ``ks·(n+8)/8·(N·H)^n``
             relative to a white Lambertian surface; 0 for a matte surface.
         shininess: Blinn–Phong exponent ``n`` (larger = sharper highlight).
+        depolarization: share of the diffuse surface reflection that loses the projector's
+            polarization (1 for paper-like surfaces; specular reflection always keeps it).
+        scattering: subsurface transport of light entering the material (None = opaque).
     """
 
     name: str
     albedo: float
     specular: float = 0.0
     shininess: float = 1.0
+    depolarization: float = 1.0
+    scattering: Scattering | None = None
 
 
 #: Built-in materials by name (the turntable's ``scene.material`` etc. choose among these).
 MATERIALS: dict[str, Material] = {
-    # turned / lightly brushed aluminium or steel: greyish diffuse part and a broad highlight
-    "metal": Material("metal", albedo=0.40, specular=0.25, shininess=60.0),
+    # turned / lightly brushed aluminium or steel: greyish diffuse part and a broad highlight;
+    # metal reflection keeps most of the polarization
+    "metal": Material("metal", albedo=0.40, specular=0.25, shininess=60.0, depolarization=0.2),
+    # 2 % agar gel at ~750 nm (docs/light-model.md): a glossy wet surface (Fresnel R0 = 2 % at
+    # n = 1.33) with weak single scattering at the surface that keeps the polarization, and
+    # strong diffuse subsurface transport (μs' = 1/mm, μa = 0.01/mm) that does not
+    "agar": Material("agar", albedo=0.03, specular=0.02, shininess=300.0, depolarization=0.0,
+                     scattering=Scattering(mus_prime_per_mm=1.0, mua_per_mm=0.01, n=1.33)),
     # anodized grey stage plate
     "plate": Material("plate", albedo=0.35, specular=0.03, shininess=10.0),
     # black flock / velvet behind the sample
@@ -56,6 +70,8 @@ MATERIALS: dict[str, Material] = {
     # mid-grey matte object
     "matte-grey": Material("matte-grey", albedo=0.45),
 }
+# gelatine gummy bear (dotshell_sim.phantoms; opaque stand-in without the subsurface model)
+MATERIALS["gummy"] = _phantoms.gummy_material(Material)
 
 _EPS = 1e-9
 
@@ -294,6 +310,10 @@ def build_scene(sample: dict, plate: dict, background: dict) -> StagedScene:
     if sample["kind"] == "cylinder":
         shapes.append(Cylinder(sample["radius_mm"], sample["height_mm"],
                                center=tuple(sample["offset_mm"]), material=mat(sample["material"])))
+    elif sample["kind"] in _phantoms.PHANTOMS:  # procedural mesh phantoms, fixed size
+        verts, tris = _phantoms.phantom_mesh(sample["kind"])
+        shift = np.array([*sample["offset_mm"], 0.0])
+        shapes.append(MeshShape(verts + shift, tris, material=mat(sample["material"])))
     if plate["radius_mm"] > 0:
         shapes.append(Disk(plate["radius_mm"], z=0.0, material=mat(plate["material"])))
     fixed: list[Shape] = []

@@ -1,0 +1,31 @@
+"""The profile every benchmark uses: the reference bench, optionally scaled down for ``--quick``."""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+from dotshell.plugins import PluginManager
+from dotshell.profile import Profile, apply_overrides, validate_profile
+
+ROOT = Path(__file__).resolve().parents[1]
+PROFILE_PATH = ROOT / "profiles" / "sim-metal-cylinder.toml"
+
+#: ``--quick``: camera and projector pixel grids × this factor (320×256 / 256×192), 2 views.
+QUICK_SCALE = 0.25
+QUICK_VIEWS = 2
+
+
+def load_bench_profile(pm: PluginManager, quick: bool) -> Profile:
+    """The simulated metal-cylinder profile at full resolution, or scaled down when ``quick``.
+
+    Scaling uses the sim plugin's :func:`dotshell_sim.bench.scale_profile` (same geometry,
+    smaller pixel grids, blur kept constant in mm).
+    """
+    raw = tomllib.loads(PROFILE_PATH.read_text(encoding="utf-8"))
+    if quick:
+        from dotshell_sim.bench import scale_profile
+
+        raw = apply_overrides(scale_profile(raw, QUICK_SCALE), [f"scan.views={QUICK_VIEWS}"],
+                              str(PROFILE_PATH))
+    return validate_profile(raw, pm, str(PROFILE_PATH), PROFILE_PATH.parent)
