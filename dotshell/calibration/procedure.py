@@ -1,0 +1,394 @@
+"""The calibration procedure: capture the target at the profile's poses into a calibration run
+directory, then solve camera, projector, camera–projector pose and turntable axis from the
+frames on disk (so a capture can be solved again, or frames made by hand can be solved).
+
+Run directory::
+
+    <out>/<time>_calibrate-<profile>/
+        profile.toml  capture.json  frames/pose_00/000_white.png ...  frames/turntable_00/...
+        calibration.json  calibration.yml  calibration-report.json  [ground_truth.json]
+
+``capture.json`` lists the board, the coding (backend and settings), the camera and projector
+sizes and, per pose, its name, kind (``free`` or ``turntable``), stage angle and frame files.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Protocol, runtime_checkable
+
+import cv2
+import numpy as np
+
+from dotshell.calibration.board import Board, detect, flipped
+from dotshell.calibration.solve import (OutlierRule, PoseData, calibrate_lens, calibrate_stereo,
+                                        projector_corners, turntable_axis)
+from dotshell.errors import CalibrationError
+from dotshell.events import EventBus, StepProgress, StepStarted
+from dotshell.geometry.calibration import RigCalibration
+
+CAPTURE_FORMAT = "dotshell-calibration-capture/1"
+#: The issue's acceptance limits for a calibration against the simulator's ground truth.
+ACCEPTANCE = {"focal_pct": 0.2, "principal_px": 1.0, "baseline_pct": 0.2,
+              "axis_direction_deg": 0.1, "axis_point_mm": 0.1}
+
+
+@runtime_checkable
+class TargetPlacement(Protocol):
+    """A stage that can put the calibration board at a pose by itself (the simulator's)."""
+
+    def place_target(self, board: dict | None, pose: dict | None) -> None:
+        ...
+
+
+@dataclass(frozen=True)
+class PoseSpec:
+    name: str
+    kind: str            # "free" or "turntable"
+    angle_deg: float
+    rotation_deg: tuple[float, float, float]
+    centre_mm: tuple[float, float, float]
+
+    def describe(self) -> str:
+        r, c = self.rotation_deg, self.centre_mm
+        where = (f"roll {r[0]:g}°, tilt {r[1]:g}°, pan {r[2]:g}°, centre ({c[0]:g}, {c[1]:g}, "
+                 f"{c[2]:g}) mm on the stage")
+        return f"{self.name}: stage at {self.angle_deg:g}°, board {where}"
+
+
+def pose_specs(settings: dict[str, Any]) -> list[PoseSpec]:
+    """The poses of a profile's ``[calibrate]`` section, free poses first."""
+    out = []
+    for k, row in enumerate(settings["poses"]):
+        if len(row) != 6:
+            raise CalibrationError(f"[calibrate] poses row {k} = {row} needs 6 numbers: roll, "
+                                   "tilt, pan (deg), centre x, y, z (mm).")
+        out.append(PoseSpec(f"pose_{k:02d}", "free", 0.0, tuple(row[:3]), tuple(row[3:])))
+    tp = settings["turntable_pose"]
+    for k, a in enumerate(settings["turntable_angles_deg"]):
+        out.append(PoseSpec(f"turntable_{k:02d}", "turntable", float(a), tuple(tp[:3]),
+                            tuple(tp[3:])))
+    return out
+
+
+def _coding_spec(profile) -> tuple[str, dict[str, Any]]:
+    c = profile.role("coding")
+    settings = dict(c["settings"])
+    if "axes" in settings:
+        settings["axes"] = "both"  # projector calibration needs columns and rows
+    return c["backend"], settings
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    from dotshell.store import atomic_write_bytes
+
+    ok, buf = cv2.imencode(".png", image)
+    if not ok:
+        raise CalibrationError(f"cannot encode frame {path}")
+    atomic_write_bytes(path, buf.tobytes())
+
+
+def capture(profile, pm, out_dir: Path | str = "runs", bus: EventBus | None = None,
+            ask: Callable[[str], None] | None = None) -> Path:
+    """Capture the target at every pose of ``[calibrate]``; returns the run directory.
+
+    A stage that satisfies :class:`TargetPlacement` places the board itself; otherwise
+    ``ask(message)`` is called before each pose (the CLI waits for Enter).
+    """
+    from dotshell.devices import ExposureControl, GroundTruth
+    from dotshell.rig import Rig
+    from dotshell.store import RunStore
+
+    bus = bus or EventBus()
+    settings = profile.data["calibrate"]
+    specs = pose_specs(settings)
+    if not specs:
+        raise CalibrationError(f"{profile.source}: [calibrate] lists no poses; add poses = "
+                               "[[roll, tilt, pan, x, y, z], ...] and turntable_angles_deg.")
+    board = Board.from_settings(settings)
+    backend, coding_settings = _coding_spec(profile)
+    coding = pm.create("coding", backend, coding_settings, None, profile.source)
+    store = RunStore.create(Path(out_dir), f"calibrate-{profile.name}")
+    store.write_profile(profile.raw())
+    poses_out = []
+    with Rig(profile, pm) as rig:
+        patterns = coding.patterns(rig.projector.resolution)
+        white = next((p for p in patterns if p.name == "white"), None)
+        if white is None:
+            raise CalibrationError(f"coding {backend!r} has no 'white' frame; calibration needs "
+                                   "a coding whose sequence starts with white and black.")
+        if isinstance(rig.camera, ExposureControl):
+            rig.camera.set_exposure(settings["exposure_ms"])
+        placer = rig.stage if isinstance(rig.stage, TargetPlacement) else None
+        total = sum(len(patterns) if s.kind == "free" else 1 for s in specs)
+        bus.emit(StepStarted(step="calibration capture", total=total))
+        done = 0
+        for spec in specs:
+            if placer is not None:
+                placer.place_target(board.sim_dict(), {"rotation_deg": list(spec.rotation_deg),
+                                                       "centre_mm": list(spec.centre_mm)})
+            elif ask is not None:
+                ask(f"Place the {board.kind} ({board.columns}x{board.rows} squares of "
+                    f"{board.square_mm:g} mm) — {spec.describe()}")
+            rig.stage.move_to(spec.angle_deg)
+            shown = patterns if spec.kind == "free" else [white]
+            files = []
+            for i, pat in enumerate(shown):
+                rig.projector.show(pat.image)
+                frame = rig.camera.capture()
+                rel = f"frames/{spec.name}/{i:03d}_{pat.name}.png"
+                _write_png(store.path(rel), frame)
+                files.append(rel)
+                done += 1
+                bus.emit(StepProgress(step="calibration capture", done=done, total=total))
+            poses_out.append({"name": spec.name, "kind": spec.kind, "angle_deg": spec.angle_deg,
+                              "rotation_deg": list(spec.rotation_deg),
+                              "centre_mm": list(spec.centre_mm), "frames": files})
+        if placer is not None:
+            placer.place_target(None, None)
+        truth = next((d.ground_truth_calibration() for d in rig.devices.values()
+                      if isinstance(d, GroundTruth)), None)
+        cam_size, proj_size = list(rig.camera.resolution), list(rig.projector.resolution)
+    if truth is not None:
+        truth.save(store.path("ground_truth.json"))
+    store.write_json("capture.json", {
+        "format": CAPTURE_FORMAT, "profile": profile.name, "board": board.as_dict(),
+        "coding": {"backend": backend, "settings": coding_settings},
+        "camera_size": cam_size, "projector_size": proj_size, "poses": poses_out})
+    store.close()
+    return store.root
+
+
+# ---- solving from disk ------------------------------------------------------------------------
+
+def _read(run: Path, rel: str) -> np.ndarray:
+    img = cv2.imread(str(run / rel), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise CalibrationError(f"{run / rel}: missing or not an image; the calibration capture "
+                               "is incomplete.")
+    return img
+
+
+def _check_sizes(run: Path, pose: dict, frames: list[np.ndarray], size: tuple[int, int]) -> None:
+    odd = [f"{rel} ({f.shape[1]}x{f.shape[0]})" for rel, f in zip(pose["frames"], frames)
+           if (f.shape[1], f.shape[0]) != tuple(size)]
+    if odd:
+        raise CalibrationError(f"{run}: images of another size than the camera's "
+                               f"{size[0]}x{size[1]} px: {', '.join(odd[:5])}. All calibration "
+                               "images must come from this camera at one resolution.")
+
+
+def _corner_spacing(px: np.ndarray) -> float:
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(px).query(px, k=2)
+    return float(np.median(d[:, 1]))
+
+
+@dataclass
+class CalibrationResult:
+    calibration: RigCalibration
+    report: dict[str, Any]
+    run_dir: Path
+
+
+def solve(run_dir: Path | str, settings: dict[str, Any], pm,
+          bus: EventBus | None = None) -> CalibrationResult:
+    """Solve a captured calibration run (see the module docstring) and write its results."""
+    run = Path(run_dir)
+    bus = bus or EventBus()
+    try:
+        cap = json.loads((run / "capture.json").read_text())
+    except FileNotFoundError:
+        raise CalibrationError(f"{run}: no capture.json; give a directory written by "
+                               "`dotshell calibrate`.") from None
+    board = Board(**cap["board"])
+    cam_size = tuple(cap["camera_size"])
+    proj_size = tuple(cap["projector_size"])
+    rule = OutlierRule(settings["min_poses"], settings["outlier_factor"], settings["max_rms_px"])
+    coding = pm.create("coding", cap["coding"]["backend"], cap["coding"]["settings"], None,
+                       str(run / "capture.json"))
+    objp = board.object_points()
+    t0 = time.perf_counter()
+    free = [p for p in cap["poses"] if p["kind"] == "free"]
+    turn = [p for p in cap["poses"] if p["kind"] == "turntable"]
+    bus.emit(StepStarted(step="detect and decode", total=len(cap["poses"])))
+    cam_poses, proj_poses, left_out, poses_report = [], [], {}, {}
+    for pose in free:
+        name = pose["name"]
+        frames = [_read(run, rel) for rel in pose["frames"]]
+        _check_sizes(run, pose, frames, cam_size)
+        det = detect(frames[0], board)
+        rep: dict[str, Any] = {"image": pose["frames"][0]}
+        poses_report[name] = rep
+        if det is None:
+            left_out[name] = f"target not found in {pose['frames'][0]}"
+            continue
+        rep["corners"] = int(len(det.ids))
+        rep["sharpness_px"] = det.sharpness_px
+        if det.sharpness_px > settings["max_blur_px"]:
+            left_out[name] = (f"blurred: edges {det.sharpness_px:.1f} px wide > max_blur_px "
+                              f"{settings['max_blur_px']:g} in {pose['frames'][0]}")
+            continue
+        cam_poses.append(PoseData(name, objp[det.ids], det.pixels))
+        corr = coding.decode(frames, proj_size)
+        if corr.row is None:
+            raise CalibrationError("projector calibration needs a coding that decodes projector "
+                                   "rows too (gray code with axes = \"both\").")
+        half = settings["window"] * _corner_spacing(det.pixels)
+        ppx, ok = projector_corners(det.pixels, corr.column, corr.row, corr.valid, half)
+        rep["projector_corners"] = int(ok.sum())
+        if ok.sum() < max(6, 0.5 * len(ok)):
+            left_out.setdefault(name + ":projector", f"only {int(ok.sum())} of {len(ok)} corners "
+                                "decoded by the projector patterns (shadow or low contrast)")
+        else:
+            proj_poses.append(PoseData(name, objp[det.ids][ok], ppx[ok]))
+        bus.emit(StepProgress(step="detect and decode", done=len(poses_report),
+                              total=len(cap["poses"])))
+    if not cam_poses:
+        names = ", ".join(p["frames"][0] for p in free) or "(no free poses)"
+        raise CalibrationError(
+            f"{run}: the {board.kind} ({board.columns}x{board.rows} squares) was not found in "
+            f"any image: {names}. Check [calibrate] target, columns and rows (squares, not inner "
+            "corners), exposure and focus.")
+    t1 = time.perf_counter()
+    cam_left = {k: v for k, v in left_out.items() if ":" not in k}
+    cam = calibrate_lens("camera", cam_poses, cam_size, settings["distortion"], rule, cam_left)
+    proj_left = {k.split(":")[0]: v for k, v in left_out.items()}
+    proj_left.update({k: "left out of the camera solve" for k in cam.left_out if k not in proj_left})
+    proj = calibrate_lens("projector", proj_poses, proj_size, settings["distortion"], rule,
+                          proj_left)
+    stereo = calibrate_stereo(cam, proj, cam_poses, proj_poses, settings["distortion"])
+    t2 = time.perf_counter()
+    axis = solve_turntable(run, turn, board, stereo.camera, cam_size, settings)
+    t3 = time.perf_counter()
+    rms = {"camera": cam.rms_px, "projector": proj.rms_px, "stereo": stereo.rms_px,
+           "turntable": axis.rms_px}
+    calib = RigCalibration(stereo.camera, stereo.projector, stereo.R, stereo.T, axis.point,
+                           axis.direction, source=f"dotshell calibrate ({run})", rms=rms)
+    for name, rep in poses_report.items():
+        rep["camera_rms_px"] = cam.per_pose_rms_px.get(name)
+        rep["projector_rms_px"] = proj.per_pose_rms_px.get(name)
+        rep["stereo_rms_px"] = stereo.per_pose_rms_px.get(name)
+    for name, e in axis.per_pose_rms_px.items():
+        poses_report.setdefault(name, {})["turntable_rms_px"] = e
+    report: dict[str, Any] = {
+        "rms_px": rms,
+        "left_out": {"camera": cam.left_out, "projector": proj.left_out,
+                     "turntable": axis.left_out},
+        "poses": poses_report,
+        "timings_s": {"detect_decode": round(t1 - t0, 3), "solve": round(t2 - t1, 3),
+                      "turntable": round(t3 - t2, 3)},
+    }
+    truth_path = run / "ground_truth.json"
+    if truth_path.is_file():
+        report["ground_truth"] = compare_to_truth(calib, RigCalibration.load(truth_path))
+    from dotshell.geometry.opencv_io import write_opencv_calibration
+    from dotshell.store import atomic_write_text, dumps
+
+    calib.save(run / "calibration.json")
+    write_opencv_calibration(calib, run / "calibration.yml")
+    atomic_write_text(run / "calibration-report.json", dumps(report))
+    return CalibrationResult(calib, report, run)
+
+
+@dataclass
+class _Axis:
+    point: np.ndarray
+    direction: np.ndarray
+    rms_px: float
+    per_pose_rms_px: dict[str, float]
+    left_out: dict[str, str]
+
+
+def solve_turntable(run: Path, poses: list[dict], board: Board, camera, cam_size,
+                    settings: dict[str, Any]) -> _Axis:
+    """Turntable axis from the ``turntable`` poses (board detections at known stage angles)."""
+    left_out: dict[str, str] = {}
+    dets = []
+    for pose in poses:
+        img = _read(run, pose["frames"][0])
+        _check_sizes(run, {"frames": pose["frames"][:1]}, [img], cam_size)
+        det = detect(img, board)
+        if det is None:
+            left_out[pose["name"]] = f"target not found in {pose['frames'][0]}"
+            continue
+        if det.sharpness_px > settings["max_blur_px"]:
+            left_out[pose["name"]] = (f"blurred: edges {det.sharpness_px:.1f} px wide in "
+                                      f"{pose['frames'][0]}")
+            continue
+        dets.append((pose, det))
+    if len(dets) < 3:
+        why = "; ".join(f"{n}: {r}" for n, r in left_out.items()) or "none listed"
+        raise CalibrationError(
+            f"turntable: {len(dets)} usable stage angles, at least 3 are needed ([calibrate] "
+            f"turntable_angles_deg). Left out: {why}.")
+    if board.kind == "checkerboard":
+        dets = _consistent_orientation(dets, board, camera)
+    objp = board.object_points()
+    height = float(poses[0]["centre_mm"][2])
+    while True:
+        rows = [(p["name"], p["angle_deg"], d.ids, d.pixels) for p, d in dets]
+        sol = turntable_axis(camera, objp, rows, board.centre, height)
+        limit = settings["max_rms_px"]
+        bad = {n: e for n, e in sol.per_pose_rms_px.items() if e > limit}
+        if not bad or len(dets) - 1 < 3:
+            break
+        worst = max(bad, key=bad.get)
+        left_out[worst] = f"reprojection RMS {bad[worst]:.3f} px > {limit:g} px"
+        dets = [(p, d) for p, d in dets if p["name"] != worst]
+    return _Axis(sol.point, sol.direction, sol.rms_px, sol.per_pose_rms_px, left_out)
+
+
+def _consistent_orientation(dets, board: Board, camera):
+    """A checkerboard's corner order is only defined up to a 180° turn: make every detection
+    agree with the one nearest stage angle 0 (board x axes within 90°)."""
+    objp = board.object_points()
+
+    def x_axis(det):
+        _, rvec, _ = cv2.solvePnP(objp[det.ids], det.pixels, camera.K, camera.dist)
+        return cv2.Rodrigues(rvec)[0][:, 0]
+
+    ref = min(dets, key=lambda pd: abs(pd[0]["angle_deg"]))
+    xr = x_axis(ref[1])
+    return [(p, d if x_axis(d) @ xr > 0 else flipped(d, board)) for p, d in dets]
+
+
+def compare_to_truth(calib: RigCalibration, truth: RigCalibration) -> dict[str, Any]:
+    """Errors of a calibration against the simulator's ground truth."""
+    def lens(m, t):
+        return {"fx_pct": 100 * (m.K[0, 0] / t.K[0, 0] - 1), "fy_pct": 100 * (m.K[1, 1] / t.K[1, 1] - 1),
+                "cx_px": m.K[0, 2] - t.K[0, 2], "cy_px": m.K[1, 2] - t.K[1, 2],
+                "k1": m.dist[0] - t.dist[0], "k2": m.dist[1] - t.dist[1]}
+
+    dR = calib.R @ truth.R.T
+    cos = np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)
+    cosd = np.clip(calib.axis_direction @ truth.axis_direction, -1.0, 1.0)
+    out = {
+        "camera": lens(calib.camera, truth.camera),
+        "projector": lens(calib.projector, truth.projector),
+        "baseline_pct": 100 * (calib.baseline_mm / truth.baseline_mm - 1),
+        "rotation_deg": float(np.degrees(np.arccos(cos))),
+        "axis_direction_deg": float(np.degrees(np.arccos(cosd))),
+        "axis_point_mm": float(np.linalg.norm(calib.axis_point - truth.axis_point)),
+    }
+    out = json.loads(json.dumps(out, default=float))
+    out["pass"] = passes(out)
+    return out
+
+
+def passes(err: dict[str, Any]) -> dict[str, bool]:
+    """Each acceptance limit (:data:`ACCEPTANCE`) met or not."""
+    a = ACCEPTANCE
+    res = {}
+    for which in ("camera", "projector"):
+        e = err[which]
+        res[f"{which}_focal"] = max(abs(e["fx_pct"]), abs(e["fy_pct"])) <= a["focal_pct"]
+        res[f"{which}_principal_point"] = max(abs(e["cx_px"]), abs(e["cy_px"])) <= a["principal_px"]
+    res["baseline"] = abs(err["baseline_pct"]) <= a["baseline_pct"]
+    res["axis_direction"] = err["axis_direction_deg"] <= a["axis_direction_deg"]
+    res["axis_point"] = err["axis_point_mm"] <= a["axis_point_mm"]
+    return res

@@ -1,0 +1,333 @@
+"""Reconstruction of capture sequences made elsewhere (another rig, another program).
+
+A *layout file* (TOML, see ``docs/layouts.md`` and ``layouts/*.toml``) says how the sequence was
+made: the file names, the frame order (white, black, column bits, row bits), bit order,
+inverse patterns, dropped low bits, whether the code is centred, the bit polarity and the
+projector resolution. :func:`reconstruct_captures` reads the frames in that order, puts them in
+the order the gray-code coding expects, decodes, triangulates with the given calibration (a
+``calibration.json`` or an OpenCV ``.xml``/``.yml`` file such as SLStudio's) and writes the
+cloud **in the camera frame** (mm) into a new output directory, with a report, previews and —
+when a reference cloud is given — the distance statistics against it.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from dotshell.errors import CalibrationError, ReconstructionError, RunError
+from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.opencv_io import load_any_calibration
+from dotshell.geometry.triangulate import camera_ray_grid, triangulate
+from dotshell.settings import Setting, validate_settings
+
+SHIPPED_LAYOUTS = Path(__file__).resolve().parents[2] / "layouts"
+BLOCKS = ("white", "black", "columns", "rows")
+
+LAYOUT_SCHEMA: dict[str, Setting] = {
+    "layout": Setting("table", schema={
+        "name": Setting("str", help="short name"),
+        "description": Setting("str", default="", help="one line for humans"),
+        "coding": Setting("str", default="graycode", help="coding backend that decodes the frames"),
+        "files": Setting("str", help="file-name pattern with {index}, e.g. frameSeq_{index:02d}.bmp"),
+        "first_index": Setting("int", default=0, min=0, help="{index} of the first frame"),
+        "projector_width": Setting("int", min=2, unit="px", help="projector width"),
+        "projector_height": Setting("int", min=2, unit="px", help="projector height"),
+        "order": Setting("list[str]", help="blocks in capture order: white, black, columns, rows"),
+        "inverse": Setting("bool", default=False, help="each bit is followed by its inverse"),
+        "msb_first": Setting("bool", default=True, help="coarsest bit first"),
+        "drop_low_bits": Setting("int", default=0, min=0, max=15,
+                                 help="finest bits not projected"),
+        "centred": Setting("bool", default=False,
+                           help="code centred on the projector (dotshell's own sequence)"),
+        "bright_is_one": Setting("bool", default=True,
+                                 help="a lit stripe in the (first) pattern image means bit 1"),
+    }),
+    "decoder": Setting("table", default={}, help="extra settings for the coding backend"),
+}
+
+
+@dataclass(frozen=True)
+class Layout:
+    """A validated layout file."""
+
+    source: str
+    name: str
+    description: str
+    coding: str
+    files: str
+    first_index: int
+    projector_size: tuple[int, int]
+    order: tuple[str, ...]
+    inverse: bool
+    msb_first: bool
+    drop_low_bits: int
+    centred: bool
+    bright_is_one: bool
+    decoder: dict[str, Any]
+
+    @property
+    def axes(self) -> str:
+        return "both" if "rows" in self.order else "columns"
+
+    def coding_settings(self) -> dict[str, Any]:
+        """Settings for the coding backend (gray code) that decode frames in its own order."""
+        return {**self.decoder, "axes": self.axes, "inverse": self.inverse,
+                "drop_low_bits": self.drop_low_bits, "centred": self.centred}
+
+    def file_name(self, position: int) -> str:
+        return self.files.format(index=self.first_index + position)
+
+
+def resolve_layout_path(name_or_path: str | Path) -> Path:
+    """A layout file path; a bare name (``slstudio-graycode``) means a shipped layout."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    shipped = SHIPPED_LAYOUTS / f"{p.name}{'' if p.suffix == '.toml' else '.toml'}"
+    if shipped.is_file():
+        return shipped
+    names = ", ".join(sorted(q.stem for q in SHIPPED_LAYOUTS.glob("*.toml")))
+    raise RunError(f"layout {name_or_path} does not exist. Give a layout TOML file or one of "
+                   f"the shipped layouts: {names}.")
+
+
+def load_layout(name_or_path: str | Path) -> Layout:
+    """Read and validate a layout file (raises :class:`ProfileError` / :class:`RunError`)."""
+    path = resolve_layout_path(name_or_path)
+    where = str(path)
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise RunError(f"{where}: not valid TOML ({exc}).") from None
+    data = validate_settings(LAYOUT_SCHEMA, raw, where)
+    lay = data["layout"]
+    order = tuple(lay["order"])
+    bad = [b for b in order if b not in BLOCKS]
+    if bad or len(set(order)) != len(order) or "columns" not in order:
+        raise RunError(f"{where}: [layout] order = {list(order)} is invalid: use each of "
+                       f"{', '.join(BLOCKS)} at most once, with 'columns' present "
+                       "(white and black are needed to find shadows).")
+    if "white" not in order or "black" not in order:
+        raise RunError(f"{where}: [layout] order must contain 'white' and 'black' frames.")
+    if "{index" not in lay["files"]:
+        raise RunError(f"{where}: [layout] files = {lay['files']!r} needs an {{index}} field, "
+                       "e.g. frameSeq_{index:02d}.bmp.")
+    return Layout(where, lay["name"], lay["description"], lay["coding"], lay["files"],
+                  lay["first_index"], (lay["projector_width"], lay["projector_height"]), order,
+                  lay["inverse"], lay["msb_first"], lay["drop_low_bits"], lay["centred"],
+                  lay["bright_is_one"], dict(data["decoder"]))
+
+
+def capture_order(layout: Layout, coding_names: list[str]) -> list[str]:
+    """Coding frame names (``white``, ``col_00``, ``col_00_inv`` ...) in capture order."""
+    prefix = {"columns": "col", "rows": "row"}
+    out: list[str] = []
+    for block in layout.order:
+        if block in ("white", "black"):
+            out.append(block)
+            continue
+        bits = sorted(n for n in coding_names
+                      if n.startswith(prefix[block] + "_") and not n.endswith("_inv"))
+        if not layout.msb_first:
+            bits = bits[::-1]
+        for b in bits:
+            out += [b, b + "_inv"] if layout.inverse else [b]
+    return out
+
+
+def _glob_pattern(files: str) -> re.Pattern:
+    parts = re.split(r"\{index[^}]*\}", files)
+    return re.compile("^" + r"\d+".join(re.escape(p) for p in parts) + "$")
+
+
+def _read_gray(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise RunError(f"{path}: cannot be read as an image (is it a PNG/BMP/TIFF?).")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    return img
+
+
+def read_captures(directory: Path, layout: Layout, coding_names: list[str]) -> dict[str, np.ndarray]:
+    """The frames of ``directory`` by coding frame name; checks count, names and sizes."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise RunError(f"captures directory {directory} does not exist.")
+    order = capture_order(layout, coding_names)
+    rx = _glob_pattern(layout.files)
+    present = sorted(p.name for p in directory.iterdir() if rx.match(p.name))
+    expected = [layout.file_name(i) for i in range(len(order))]
+    missing = [n for n in expected if n not in present]
+    extra = [n for n in present if n not in expected]
+    if missing or extra:
+        raise RunError(
+            f"{directory}: layout {layout.name!r} ({layout.source}) expects {len(order)} frames "
+            f"{expected[0]} … {expected[-1]} ({', '.join(order)}), but the directory has "
+            f"{len(present)} files matching {layout.files!r}"
+            + (f"; missing: {', '.join(missing[:6])}{' …' if len(missing) > 6 else ''}" if missing else "")
+            + (f"; not in the layout: {', '.join(extra[:6])}{' …' if len(extra) > 6 else ''}" if extra else "")
+            + ". Check the layout's order, inverse, drop_low_bits and projector size.")
+    frames = {name: _read_gray(directory / fn) for name, fn in zip(order, expected)}
+    shapes = {fn: frames[name].shape for name, fn in zip(order, expected)}
+    first = shapes[expected[0]]
+    odd = [f"{fn} ({s[1]}x{s[0]})" for fn, s in shapes.items() if s != first]
+    if odd:
+        raise RunError(f"{directory}: frames differ in size: {expected[0]} is "
+                       f"{first[1]}x{first[0]} px but {', '.join(odd[:6])}. All frames of a "
+                       "sequence must come from one camera at one resolution.")
+    return frames
+
+
+def to_coding_frames(frames: dict[str, np.ndarray], layout: Layout,
+                     coding_names: list[str]) -> list[np.ndarray]:
+    """Frames in the coding's order with bit 1 = lit (the layout's polarity undone)."""
+    if not layout.bright_is_one:
+        if layout.inverse:  # swapping pattern and inverse flips every bit
+            frames = dict(frames)
+            for n in [n for n in frames if n.startswith(("col_", "row_")) and not n.endswith("_inv")]:
+                frames[n], frames[n + "_inv"] = frames[n + "_inv"], frames[n]
+        else:  # mirror each bit frame about the pixel's (white + black) / 2
+            wb = frames["white"].astype(np.int64) + frames["black"].astype(np.int64)
+            top = np.iinfo(frames["white"].dtype).max if frames["white"].dtype.kind in "ui" else None
+            frames = {n: f if n in ("white", "black") else
+                      np.clip(wb - f, 0, top).astype(f.dtype) for n, f in frames.items()}
+    return [frames[n] for n in coding_names]
+
+
+@dataclass
+class CapturesResult:
+    out_dir: Path
+    report: dict[str, Any]
+
+
+def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_file: Path | str,
+                         pm, out_dir: Path | str = "runs", reference: Path | str | None = None,
+                         processing: dict[str, Any] | None = None, previews: bool = True,
+                         coverage_radius_mm: float = 1.0) -> CapturesResult:
+    """Decode and triangulate one foreign capture sequence; see the module docstring."""
+    from dotshell.ply import write_ply
+    from dotshell.store import RunStore
+
+    layout = load_layout(layout_file)
+    calib = load_any_calibration(calibration)
+    if tuple(calib.projector.size) != layout.projector_size:
+        raise CalibrationError(
+            f"the calibration's projector is {calib.projector.width}x{calib.projector.height} px "
+            f"but layout {layout.name!r} says {layout.projector_size[0]}x"
+            f"{layout.projector_size[1]} px; set projector_width/height in {layout.source} to "
+            "the projector the frames were made with.")
+    coding = pm.create("coding", layout.coding, layout.coding_settings(), None, layout.source)
+    names = (list(coding.frame_names(layout.projector_size)) if hasattr(coding, "frame_names")
+             else [f.name for f in coding.patterns(layout.projector_size)])
+    t0 = time.perf_counter()
+    frames = to_coding_frames(read_captures(Path(captures), layout, names), layout, names)
+    h, w = frames[0].shape
+    if (w, h) != calib.camera.size:
+        raise CalibrationError(
+            f"{captures}: frames are {w}x{h} px but the calibration's camera "
+            f"({calibration}) is {calib.camera.width}x{calib.camera.height} px; use the "
+            "calibration of the camera that took these frames.")
+    t1 = time.perf_counter()
+    corr = coding.decode(frames, layout.projector_size)
+    t2 = time.perf_counter()
+    proc = {"min_ray_angle_deg": 5.0, "row_tolerance_px": 1.5, **(processing or {})}
+    points, stats = triangulate_correspondence(corr, calib, proc)
+    t3 = time.perf_counter()
+    if len(points) == 0:
+        raise ReconstructionError(f"{captures}: no pixel decoded into a point ({corr.stats}). "
+                                  "Check the layout (order, polarity) and the decoder thresholds.")
+    store = RunStore.create(Path(out_dir), f"captures-{layout.name}")
+    write_ply(store.path("cloud.ply"), points)
+    calib.save(store.path("calibration.json"))
+    report: dict[str, Any] = {
+        "captures": str(Path(captures).resolve()), "layout": layout.source,
+        "calibration": calib.source, "frame": "camera (mm)",
+        "decode": corr.stats, **stats, "cloud": {"path": "cloud.ply", "points": int(len(points))},
+    }
+    if reference is not None:
+        from dotshell.geometry.cloud_compare import compare_clouds, load_reference_cloud
+
+        report["reference"] = {"path": str(reference), **compare_clouds(
+            points, load_reference_cloud(reference), coverage_radius_mm)}
+    t4 = time.perf_counter()
+    if previews:
+        report["previews"] = _previews(store, frames[0], corr, calib, points, layout.name, report)
+    report["timings_s"] = {"read": round(t1 - t0, 3), "decode": round(t2 - t1, 3),
+                           "triangulate": round(t3 - t2, 3), "compare": round(t4 - t3, 3)}
+    store.write_json("report.json", report)
+    return CapturesResult(store.root, report)
+
+
+def triangulate_correspondence(corr, calib: RigCalibration,
+                               processing: dict[str, Any]) -> tuple[np.ndarray, dict[str, int]]:
+    """Camera-frame points (N, 3) in mm from a decoded correspondence."""
+    ys, xs = np.nonzero(corr.valid)
+    rays = camera_ray_grid(calib.camera)[ys, xs]
+    tri = triangulate(rays, corr.column[ys, xs], calib,
+                      row=None if corr.row is None else corr.row[ys, xs],
+                      row_tolerance_px=processing["row_tolerance_px"],
+                      min_ray_angle_deg=processing["min_ray_angle_deg"])
+    stats = {"triangulated": int(tri.keep.sum()), "row_rejected": int(tri.row_rejected.sum()),
+             "grazing": int(tri.grazing.sum())}
+    return tri.points[tri.keep], stats
+
+
+def _previews(store, white: np.ndarray, corr, calib: RigCalibration, points: np.ndarray,
+              name: str, report: dict[str, Any]) -> dict[str, str]:
+    from dotshell.render import column_map_preview, frame_preview
+
+    pdir = store.path("previews")
+    pdir.mkdir(exist_ok=True)
+    out = {"frame": frame_preview(white, pdir / "frame.png"),
+           "columns": column_map_preview(corr.column, corr.valid, calib.projector.width,
+                                         pdir / "columns.png")}
+    try:
+        out["cloud"] = camera_view_preview(points, pdir / "cloud.png",
+                                           f"{name}: {len(points)} points (camera frame)")
+    except Exception as exc:  # 3-D rendering depends on the machine's OpenGL
+        report["preview_warning"] = f"cloud preview skipped ({type(exc).__name__}: {exc})"
+    return {k: str(Path(p).relative_to(store.root)) for k, p in out.items()}
+
+
+def camera_view_preview(points: np.ndarray, path: Path, title: str) -> Path:
+    """Render a camera-frame cloud (mm) as seen from a little beside the camera, coloured by
+    depth (2nd–98th percentile), off-screen with pyvista."""
+    import os
+
+    from dotshell.render import _prepare_offscreen
+
+    _prepare_offscreen()
+    import pyvista as pv
+
+    pts = np.asarray(points, np.float32)
+    lo, hi = np.percentile(pts[:, 2], [2, 98])
+    keep = (pts[:, 2] >= lo - 0.1 * (hi - lo)) & (pts[:, 2] <= hi + 0.1 * (hi - lo))
+    cloud = pv.PolyData(pts[keep])
+    cloud["depth z [mm]"] = pts[keep, 2]
+    centre = np.median(pts[keep], axis=0)
+    pl = pv.Plotter(off_screen=True, window_size=(900, 900))
+    try:
+        pl.set_background("white")
+        pl.add_mesh(cloud, scalars="depth z [mm]", point_size=2, cmap="viridis",
+                    clim=(float(lo), float(hi)), scalar_bar_args={"color": "black"})
+        pl.add_text(title, font_size=10, color="black")
+        dist = float(np.linalg.norm(centre))
+        eye = centre + np.array([0.35, -0.2, -1.0]) * dist * 0.6  # beside the camera
+        pl.camera_position = [tuple(eye), tuple(centre), (0.0, -1.0, 0.0)]
+        pl.reset_camera()  # same viewing direction, the whole cloud in the picture
+        pl.enable_eye_dome_lighting()
+        tmp = Path(path).with_suffix(".tmp.png")
+        pl.screenshot(str(tmp))
+        os.replace(tmp, path)
+    finally:
+        pl.close()
+    return Path(path)
