@@ -1,0 +1,234 @@
+"""FEM meshes: the surface and tetrahedral mesh types the meshers exchange, and their geometry
+and quality measures (pure numpy; lengths in mm, volumes in mm³, angles in degrees).
+
+Conventions:
+
+* :class:`TriangleSurface` — triangles ordered counter-clockwise seen from outside, so the
+  right-hand normals point out of the enclosed solid.
+* :class:`TetMesh` — 0-based node indices; every tetrahedron ``(a, b, c, d)`` is *positively
+  oriented*: ``det[b − a, c − a, d − a] > 0`` (``d`` lies on the side the right-hand normal
+  of ``(a, b, c)`` points to). NIRFAST and TOAST both accept this order.
+
+Roles (see :mod:`dotshell.hookspecs`): a *surface mesher* factory returns an object with
+``surface(points_mm, viewpoints_mm, node_distance_mm, bottom_z_mm) -> SurfaceResult``; a
+*volume mesher* factory returns an object with ``volume(surface, node_distance_mm) -> TetMesh``.
+Both raise :class:`MeshError` (a :class:`~dotshell.errors.DotshellError`) on bad input.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from dotshell.errors import DotshellError
+
+
+class MeshError(DotshellError):
+    """A mesh cannot be made from the given input (too sparse, not closable, bad size)."""
+
+
+@dataclass
+class TriangleSurface:
+    """Closed triangle surface: ``vertices`` (V, 3) mm, ``triangles`` (F, 3) int, outward."""
+
+    vertices: np.ndarray
+    triangles: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.vertices = np.asarray(self.vertices, np.float64).reshape(-1, 3)
+        self.triangles = np.asarray(self.triangles, np.int64).reshape(-1, 3)
+
+
+@dataclass
+class TetMesh:
+    """Tetrahedral mesh: ``nodes`` (N, 3) mm, ``tets`` (M, 4) int 0-based, positively
+    oriented. ``point_data`` holds per-node arrays (optical properties, region)."""
+
+    nodes: np.ndarray
+    tets: np.ndarray
+    point_data: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.nodes = np.asarray(self.nodes, np.float64).reshape(-1, 3)
+        self.tets = np.asarray(self.tets, np.int64).reshape(-1, 4)
+
+    @property
+    def boundary_faces(self) -> np.ndarray:
+        return boundary_faces(self.tets)
+
+    @property
+    def boundary_nodes(self) -> np.ndarray:
+        """(N,) bool: the node lies on the outer surface."""
+        flag = np.zeros(len(self.nodes), bool)
+        flag[self.boundary_faces.ravel()] = True
+        return flag
+
+
+@dataclass
+class SurfaceResult:
+    """A surface mesher's output: the closed surface and figures for the report."""
+
+    surface: TriangleSurface
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+class SurfaceMesher(Protocol):
+    def surface(self, points_mm: np.ndarray, viewpoints_mm: np.ndarray | None,
+                node_distance_mm: float, bottom_z_mm: float | None) -> SurfaceResult:
+        """Closed surface from a cloud (N, 3); ``viewpoints_mm`` (N, 3) the sensor position
+        that saw each point (orients normals outward), ``bottom_z_mm`` the plane where an open
+        bottom is closed (None = leave it to the reconstruction)."""
+        ...
+
+
+class VolumeMesher(Protocol):
+    def volume(self, surface: TriangleSurface, node_distance_mm: float) -> TetMesh:
+        """Tetrahedra filling a closed surface with about ``node_distance_mm`` between nodes."""
+        ...
+
+
+# ---- surfaces -----------------------------------------------------------------------------
+
+def triangle_areas_mm2(surface: TriangleSurface) -> np.ndarray:
+    v = surface.vertices[surface.triangles]
+    return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+
+
+def enclosed_volume_mm3(surface: TriangleSurface) -> float:
+    """Signed volume enclosed by a closed, outward-oriented surface (divergence theorem)."""
+    v = surface.vertices[surface.triangles]
+    return float(np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6.0)
+
+
+def edge_use(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Undirected edges (E, 2) and how many triangles use each."""
+    e = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    return np.unique(e, axis=0, return_counts=True)
+
+
+def closed_manifold_problems(surface: TriangleSurface) -> list[str]:
+    """Why a surface is not a closed, consistently oriented 2-manifold ([] if it is)."""
+    t = surface.triangles
+    if len(t) == 0:
+        return ["no triangles"]
+    problems = []
+    _, count = edge_use(t)
+    if (count == 1).any():
+        problems.append(f"{int((count == 1).sum())} boundary edges (holes)")
+    if (count > 2).any():
+        problems.append(f"{int((count > 2).sum())} edges shared by more than two triangles")
+    directed = t[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    _, dcount = np.unique(directed, axis=0, return_counts=True)
+    if (dcount > 1).any():
+        problems.append(f"{int((dcount > 1).sum())} edges with inconsistent orientation")
+    if not problems and enclosed_volume_mm3(surface) <= 0:
+        problems.append("normals point inwards (negative enclosed volume)")
+    return problems
+
+
+# ---- tetrahedra ---------------------------------------------------------------------------
+
+def signed_volumes_mm3(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """det[b − a, c − a, d − a] / 6 per tetrahedron (positive = positively oriented)."""
+    p = nodes[tets]
+    a = p[:, 0]
+    return np.einsum("ij,ij->i", p[:, 1] - a, np.cross(p[:, 2] - a, p[:, 3] - a)) / 6.0
+
+
+def orient_positive(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """A copy of ``tets`` with the last two nodes swapped wherever the volume is negative."""
+    out = np.array(tets, np.int64, copy=True)
+    neg = signed_volumes_mm3(nodes, out) < 0
+    out[neg, 2], out[neg, 3] = tets[neg, 3], tets[neg, 2]
+    return out
+
+
+def boundary_faces(tets: np.ndarray) -> np.ndarray:
+    """Faces used by exactly one tetrahedron, ordered so their normals point out of it
+    (tets positively oriented)."""
+    # faces opposite to node 3, 2, 1, 0, each ordered to face outward of a positive tet
+    faces = tets[:, [0, 2, 1, 0, 1, 3, 1, 2, 3, 0, 3, 2]].reshape(-1, 3)
+    key = np.sort(faces, axis=1)
+    _, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return faces[count[inv.ravel()] == 1]
+
+
+_EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
+
+
+def joe_liu_quality(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Joe–Liu quality ``12 (3|V|)^(2/3) / Σ l²`` (1 = regular tetrahedron, 0 = flat)."""
+    p = nodes[tets]
+    l2 = sum(np.sum((p[:, i] - p[:, j]) ** 2, axis=1) for i, j in _EDGES)
+    v = np.abs(signed_volumes_mm3(nodes, tets))
+    return 12.0 * np.cbrt(3.0 * v) ** 2 / np.maximum(l2, 1e-300)
+
+
+def min_dihedral_deg(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Smallest of the six interior dihedral angles of each tetrahedron, degrees."""
+    p = nodes[tets]
+    out = np.full(len(tets), 180.0)
+    for i, j in _EDGES:
+        k, m = (n for n in range(4) if n not in (i, j))
+        e = p[:, j] - p[:, i]
+        e = e / np.maximum(np.linalg.norm(e, axis=1, keepdims=True), 1e-300)
+        # the two faces along edge ij: their in-face directions perpendicular to the edge
+        u = p[:, k] - p[:, i]
+        w = p[:, m] - p[:, i]
+        u = u - e * np.einsum("ij,ij->i", u, e)[:, None]
+        w = w - e * np.einsum("ij,ij->i", w, e)[:, None]
+        cos = np.einsum("ij,ij->i", u, w) / np.maximum(
+            np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1), 1e-300)
+        out = np.minimum(out, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    return out
+
+
+def quality_report(mesh: TetMesh, surface: TriangleSurface | None = None) -> dict[str, Any]:
+    """Element count, Joe–Liu min/mean, minimum dihedral angle, inverted elements and the total
+    volume against the surface's enclosed volume."""
+    vol = signed_volumes_mm3(mesh.nodes, mesh.tets)
+    q = joe_liu_quality(mesh.nodes, mesh.tets)
+    out: dict[str, Any] = {
+        "nodes": int(len(mesh.nodes)),
+        "elements": int(len(mesh.tets)),
+        "boundary_nodes": int(mesh.boundary_nodes.sum()),
+        "boundary_faces": int(len(mesh.boundary_faces)),
+        "inverted_elements": int((vol <= 0).sum()),
+        "joe_liu_min": float(q.min()),
+        "joe_liu_mean": float(q.mean()),
+        "min_dihedral_deg": float(min_dihedral_deg(mesh.nodes, mesh.tets).min()),
+        "volume_mm3": float(vol.sum()),
+    }
+    edges = np.unique(np.sort(mesh.tets[:, [0, 1, 0, 2, 0, 3, 1, 2, 1, 3, 2, 3]].reshape(-1, 2),
+                              axis=1), axis=0)
+    lengths = np.linalg.norm(mesh.nodes[edges[:, 0]] - mesh.nodes[edges[:, 1]], axis=1)
+    out["edge_length_mm"] = {"mean": float(lengths.mean()), "median": float(np.median(lengths)),
+                             "min": float(lengths.min()), "max": float(lengths.max())}
+    if surface is not None:
+        sv = enclosed_volume_mm3(surface)
+        out["surface_volume_mm3"] = sv
+        out["volume_vs_surface_pct"] = 100.0 * (out["volume_mm3"] - sv) / sv if sv else None
+    return out
+
+
+def element_containing(mesh: TetMesh, point_mm: np.ndarray) -> tuple[int, np.ndarray]:
+    """Index of the tetrahedron containing ``point_mm`` and its barycentric weights (4,).
+
+    Raises:
+        MeshError: the point is outside the mesh.
+    """
+    p = mesh.nodes[mesh.tets]
+    T = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=2)
+    rhs = np.asarray(point_mm, float)[None, :] - p[:, 0]
+    ok = np.abs(np.linalg.det(T)) > 1e-12
+    lam = np.full((len(p), 3), -1.0)
+    lam[ok] = np.linalg.solve(T[ok], rhs[ok][..., None])[..., 0]
+    w = np.column_stack([1.0 - lam.sum(axis=1), lam])
+    inside = np.where((w >= -1e-9).all(axis=1))[0]
+    if len(inside) == 0:
+        raise MeshError(f"point {np.round(point_mm, 3).tolist()} mm is outside the mesh; give a "
+                        "source position inside the volume (sample frame, mm).")
+    k = int(inside[0])
+    return k, w[k]

@@ -1,0 +1,148 @@
+"""Continuous-wave diffusion forward model on a tetrahedral mesh (linear finite elements, as in
+NIRFAST), and the analytic solution it is verified against.
+
+The photon fluence φ (1/mm² per unit source power) solves
+
+    −∇·(κ ∇φ) + μa φ = q   in the volume,   κ = 1 / (3 (μa + μs'))   [mm]
+    φ + 2 A κ ∂φ/∂n = 0     on the boundary (Robin / extrapolated boundary)
+
+with A from Fresnel reflection at the tissue–air boundary (refractive index n inside, 1
+outside), the formula NIRFAST uses ("robin"):
+``A = (2/(1 − R0) − 1 + |cos θc|³) / (1 − |cos θc|²)``, ``R0 = ((n − 1)/(n + 1))²``,
+``θc = asin(1/n)``. The weak form gives the sparse system
+``(K + M + B) φ = q``: stiffness ``∫κ ∇vi·∇vj``, mass ``∫μa vi vj``, boundary
+``(1/2A) ∮ vi vj``, and a point source ``q = δ(x − x0)`` spread over the four nodes of its
+element by barycentric weights. Units: mm, 1/mm.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import splu
+
+from dotshell.fem import MeshError, TetMesh, element_containing, signed_volumes_mm3
+
+
+def robin_A(n: float) -> float:
+    """Boundary attenuation factor A for refractive index ``n`` against air (NIRFAST 'robin')."""
+    if n < 1.0:
+        raise MeshError(f"refractive index must be ≥ 1 (the outside is air), got {n}.")
+    r0 = ((n - 1.0) / (n + 1.0)) ** 2
+    cos_c = abs(math.cos(math.asin(1.0 / n)))
+    if cos_c == 0.0:  # n = 1: no reflection, A = 1
+        return 1.0
+    return (2.0 / (1.0 - r0) - 1.0 + cos_c ** 3) / (1.0 - cos_c ** 2)
+
+
+@dataclass
+class ForwardResult:
+    """Fluence per node (1/mm² per unit power) and what produced it."""
+
+    fluence: np.ndarray
+    source_mm: np.ndarray
+    A: float
+    element: int
+
+
+def _per_node(value, n: int, name: str) -> np.ndarray:
+    v = np.broadcast_to(np.asarray(value, float), (n,)).copy()
+    if not np.isfinite(v).all():
+        raise MeshError(f"{name} has non-finite values.")
+    return v
+
+
+def _gradients(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gradients (M, 4, 3) of the linear shape functions and element volumes (M,) mm³."""
+    p = nodes[tets]
+    J = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=1)  # rows
+    vol = signed_volumes_mm3(nodes, tets)
+    if (vol <= 0).any():
+        raise MeshError(f"{int((vol <= 0).sum())} elements are inverted or flat; the FEM needs "
+                        "positively oriented tetrahedra (re-run `dotshell mesh`).")
+    Jinv = np.linalg.inv(J)  # columns of Jinv = gradients of λ1..λ3
+    g123 = np.transpose(Jinv, (0, 2, 1))
+    g0 = -g123.sum(axis=1, keepdims=True)
+    return np.concatenate([g0, g123], axis=1), vol
+
+
+def system_matrix(mesh: TetMesh, mua: np.ndarray, kappa: np.ndarray, A: float) -> sp.csc_matrix:
+    """(K + M + B) for per-node μa (1/mm) and κ (mm), element values = node means."""
+    n = len(mesh.nodes)
+    t = mesh.tets
+    grads, vol = _gradients(mesh.nodes, t)
+    k_el = kappa[t].mean(axis=1)
+    mua_el = mua[t].mean(axis=1)
+    stiff = np.einsum("m,mik,mjk->mij", k_el * vol, grads, grads)
+    mass = (mua_el * vol / 20.0)[:, None, None] * (np.ones((4, 4)) + np.eye(4))
+    rows = np.repeat(t, 4, axis=1).ravel()
+    cols = np.tile(t, (1, 4)).ravel()
+    mat = sp.coo_matrix(((stiff + mass).ravel(), (rows, cols)), shape=(n, n))
+    f = mesh.boundary_faces
+    v = mesh.nodes[f]
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    bnd = (area / 12.0 / (2.0 * A))[:, None, None] * (np.ones((3, 3)) + np.eye(3))
+    bmat = sp.coo_matrix((bnd.ravel(), (np.repeat(f, 3, axis=1).ravel(),
+                                        np.tile(f, (1, 3)).ravel())), shape=(n, n))
+    return (mat + bmat).tocsc()
+
+
+def solve_cw(mesh: TetMesh, source_mm, mua_per_mm=None, musp_per_mm=None,
+             refractive_index: float | None = None) -> ForwardResult:
+    """Fluence for a unit point source at ``source_mm`` (must lie inside the mesh). Optical
+    properties default to the mesh's per-node ``point_data``; the boundary uses one refractive
+    index (the mean of the boundary nodes' when not given)."""
+    n = len(mesh.nodes)
+    pd = mesh.point_data
+    mua = _per_node(pd.get("mua_per_mm") if mua_per_mm is None else mua_per_mm, n, "μa")
+    musp = _per_node(pd.get("musp_per_mm") if musp_per_mm is None else musp_per_mm, n, "μs'")
+    if (mua < 0).any() or (musp <= 0).any():
+        raise MeshError("optical properties must have μa ≥ 0 and μs' > 0 (1/mm).")
+    if refractive_index is None:
+        ri = pd.get("refractive_index")
+        refractive_index = float(np.mean(ri[mesh.boundary_nodes])) if ri is not None else 1.33
+    A = robin_A(refractive_index)
+    src = np.asarray(source_mm, float).reshape(3)
+    el, w = element_containing(mesh, src)
+    q = np.zeros(n)
+    q[mesh.tets[el]] = w
+    kappa = 1.0 / (3.0 * (mua + musp))
+    phi = splu(system_matrix(mesh, mua, kappa, A), permc_spec="COLAMD").solve(q)
+    return ForwardResult(phi, src, A, el)
+
+
+def sphere_point_source_fluence(r_mm: np.ndarray, radius_mm: float, mua_per_mm: float,
+                                musp_per_mm: float, refractive_index: float) -> np.ndarray:
+    """Exact fluence at distance ``r_mm`` from a unit point source at the centre of a
+    homogeneous sphere with the same Robin boundary condition: the infinite-medium Green's
+    function ``e^(−kr)/(4πκr)`` plus the regular solution ``C sinh(kr)/r`` fixing
+    ``φ + 2Aκ φ' = 0`` at ``r = R`` (k = √(μa/κ))."""
+    kappa = 1.0 / (3.0 * (mua_per_mm + musp_per_mm))
+    k = math.sqrt(mua_per_mm / kappa)
+    A = robin_A(refractive_index)
+    R = radius_mm
+    G = math.exp(-k * R) / (4 * math.pi * kappa * R)
+    dG = -math.exp(-k * R) * (k * R + 1) / (4 * math.pi * kappa * R * R)
+    H = math.sinh(k * R) / R
+    dH = (k * R * math.cosh(k * R) - math.sinh(k * R)) / (R * R)
+    C = -(G + 2 * A * kappa * dG) / (H + 2 * A * kappa * dH)
+    r = np.asarray(r_mm, float)
+    return np.exp(-k * r) / (4 * math.pi * kappa * r) + C * np.sinh(k * r) / r
+
+
+def move_inside(mesh: TetMesh, point_mm, depth_mm: float) -> np.ndarray:
+    """The point ``depth_mm`` inside the surface below the boundary node nearest to
+    ``point_mm``, along the inward area-weighted normal there — where NIRFAST puts a
+    (non-fixed) source: one transport mean free path, 1/μs', under the skin."""
+    faces = mesh.boundary_faces
+    v = mesh.nodes[faces]
+    fn = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])  # outward, |fn| = 2 × area
+    bnodes = np.unique(faces)
+    k = bnodes[np.argmin(np.linalg.norm(mesh.nodes[bnodes] - np.asarray(point_mm, float),
+                                        axis=1))]
+    normal = fn[(faces == k).any(axis=1)].sum(axis=0)
+    normal /= np.linalg.norm(normal)
+    return mesh.nodes[k] - depth_mm * normal

@@ -1,0 +1,247 @@
+"""The mesh stage: a run's ``cloud.ply`` → closed ``surface.ply`` → tetrahedral
+``volume.vtu`` (+ ``optodes.json``, previews, a ``mesh`` section in ``report.json``), and the
+forward check on a run's volume mesh.
+
+The surface and volume meshers are the profile's ``[surface_mesher]`` / ``[volume_mesher]``
+backends (defaults ``open3d-poisson`` and ``tetgen``); ``[mesh]`` sets the node distance, the
+plane the open bottom is closed at, the optical properties written per node and the optodes.
+The primary node distance writes into the run directory itself (where the exporters look);
+each of ``[mesh] also_node_distances_mm`` into ``meshes/<d>mm/``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from dotshell.errors import RunError
+from dotshell.events import EventBus, StepStarted
+from dotshell.fem import MeshError, TetMesh, quality_report
+from dotshell.geometry.calibration import RigCalibration
+from dotshell.meshfiles import (optodes_from_settings, read_optodes, read_volume, write_optodes,
+                                write_surface, write_volume)
+from dotshell.plugins import PluginManager
+from dotshell.ply import read_ply
+from dotshell.profile import Profile
+from dotshell.store import RunStore
+
+DEFAULT_BACKENDS = {"surface_mesher": "open3d-poisson", "volume_mesher": "tetgen"}
+
+
+def _mesher(profile: Profile, pm: PluginManager, role: str):
+    section = profile.role(role) or {"backend": DEFAULT_BACKENDS[role], "settings": {}}
+    return pm.create(role, section["backend"], section["settings"], None, profile.source)
+
+
+def viewpoints_mm(store: RunStore, views: np.ndarray) -> np.ndarray | None:
+    """Camera centre (sample frame, mm) of the view each point came from, or None."""
+    try:
+        calib = RigCalibration.load(store.path("calibration.json"))
+        angles = {v["index"]: v["angle_deg"] for v in store.manifest["views"]}
+    except Exception:  # a cloud without its run's calibration: orient by the centroid
+        return None
+    centres = {i: calib.camera_to_sample(np.zeros((1, 3)), a)[0] for i, a in angles.items()}
+    ids = views.astype(int)
+    if not set(np.unique(ids)) <= set(centres):
+        return None
+    table = np.array([centres[i] for i in sorted(centres)])
+    return table[np.searchsorted(sorted(centres), ids)]
+
+
+def mesh_dir_name(node_distance_mm: float) -> str:
+    return f"{node_distance_mm:g}mm"
+
+
+def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
+               node_distance_mm: float | None = None) -> dict[str, Any]:
+    """Mesh the run's cloud at the profile's node distance(s); returns the report section."""
+    cfg = profile.data["mesh"]
+    primary = cfg["node_distance_mm"] if node_distance_mm is None else node_distance_mm
+    if not (isinstance(primary, (int, float)) and math.isfinite(primary) and primary > 0):
+        raise MeshError(f"node distance must be a positive number of mm, got {primary!r}; set "
+                        "[mesh] node_distance_mm or pass --node-distance (e.g. 1.0).")
+    points, scalars = read_ply(store.path("cloud.ply"))
+    if len(points) == 0:
+        raise MeshError(f"{store.path('cloud.ply')} has no points; nothing to mesh.")
+    views = viewpoints_mm(store, scalars["view"]) if "view" in scalars else None
+    surface_mesher = _mesher(profile, pm, "surface_mesher")
+    volume_mesher = _mesher(profile, pm, "volume_mesher")
+    optodes = optodes_from_settings(cfg["optodes"], profile.source)
+    bottom = cfg["bottom_z_mm"] if cfg["close_bottom"] else None
+    out: dict[str, Any] = {"meshes": []}
+    extras = [d for d in cfg["also_node_distances_mm"] if d != primary]
+    for d in [primary, *extras]:
+        target = store.root if d == primary else store.path("meshes", mesh_dir_name(d))
+        bus.emit(StepStarted(step=f"mesh {d:g} mm"))
+        entry = mesh_one(points, views, d, bottom, surface_mesher, volume_mesher, cfg, optodes,
+                         target)
+        entry["dir"] = "." if target == store.root else str(target.relative_to(store.root))
+        _validate_volume(entry, profile)
+        if cfg["previews"]:
+            entry["previews"] = _previews(store, target, d, bus)
+        out["meshes"].append(entry)
+    return out
+
+
+def mesh_one(points, views, node_distance_mm: float, bottom_z_mm: float | None, surface_mesher,
+             volume_mesher, cfg: dict[str, Any], optodes, target: Path) -> dict[str, Any]:
+    """Surface + volume at one node distance, written into ``target``."""
+    t0 = time.perf_counter()
+    result = surface_mesher.surface(points, views, node_distance_mm, bottom_z_mm)
+    t_surface = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    volume = volume_mesher.volume(result.surface, node_distance_mm)
+    t_volume = time.perf_counter() - t0
+    n = len(volume.nodes)
+    optics = cfg["optics"]
+    volume.point_data = {
+        "region": np.ones(n, np.int32),
+        "mua_per_mm": np.full(n, optics["mua_per_mm"]),
+        "musp_per_mm": np.full(n, optics["musp_per_mm"]),
+        "refractive_index": np.full(n, optics["refractive_index"]),
+    }
+    target.mkdir(parents=True, exist_ok=True)
+    write_surface(target / "surface.ply", result.surface)
+    write_volume(target / "volume.vtu", volume)
+    if not optodes.empty:
+        write_optodes(target / "optodes.json", optodes)
+    elif (target / "optodes.json").exists():
+        os.unlink(target / "optodes.json")
+    return {
+        "node_distance_mm": node_distance_mm,
+        "surface": {k: v for k, v in result.stats.items() if not k.startswith("seconds")},
+        "volume": quality_report(volume, result.surface),
+        "timings_s": {"surface": round(t_surface, 3), "volume": round(t_volume, 3),
+                      **{k.replace("seconds_", "surface_"): v for k, v in result.stats.items()
+                         if k.startswith("seconds")}},
+    }
+
+
+def _validate_volume(entry: dict[str, Any], profile: Profile) -> None:
+    """Against a known cylinder standing on the plate: the solid from the bottom plane to the
+    top (the region of interest dropped the lowest band; the surface closes it at the plate)."""
+    v = profile.data["validation"]
+    if v["shape"] != "cylinder" or not profile.data["mesh"]["close_bottom"]:
+        return
+    bottom = profile.data["mesh"]["bottom_z_mm"]
+    true = math.pi * v["radius_mm"] ** 2 * (v["height_mm"] - bottom)
+    got = entry["volume"]["volume_mm3"]
+    entry["validation"] = {"true_volume_mm3": true, "volume_error_pct": 100 * (got - true) / true,
+                           "section_mm": [bottom, v["height_mm"]]}
+
+
+def _previews(store: RunStore, target: Path, node_distance_mm: float, bus: EventBus) -> dict:
+    from dotshell.meshpreview import render_mesh_previews
+
+    try:
+        files = render_mesh_previews(target, store.path("previews"),
+                                     f"_{mesh_dir_name(node_distance_mm)}")
+    except Exception as exc:  # rendering depends on the machine's OpenGL; degrade
+        bus.warn(f"mesh previews skipped: 3-D rendering is not available here "
+                 f"({type(exc).__name__}: {exc}). The meshes are written.")
+        return {}
+    return {k: str(Path(p).relative_to(store.root)) for k, p in files.items()}
+
+
+@dataclass
+class MeshRunResult:
+    run_dir: Path
+    report: dict[str, Any]
+
+
+def mesh_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
+             node_distance_mm: float | None = None, export: bool = True) -> MeshRunResult:
+    """``dotshell mesh RUN``: mesh a run's cloud, run the profile's exporters, update
+    ``report.json`` (its ``mesh`` and ``exports`` sections)."""
+    from dotshell.pipeline.scan import load_run_profile, run_exporters
+
+    bus = bus or EventBus()
+    store = RunStore.open(Path(run_dir))
+    unsub = bus.subscribe(lambda ev: store.append_event(ev.to_dict()))
+    try:
+        profile = load_run_profile(store, pm)
+        t0 = time.perf_counter()
+        section = mesh_stage(store, profile, pm, bus, node_distance_mm)
+        report = store.read_json("report.json") if store.path("report.json").is_file() else {}
+        report["mesh"] = section
+        if export and profile.data["export"]:
+            report["exports"] = run_exporters(store, profile, pm, bus)
+        report.setdefault("timings_s", {})["mesh"] = round(time.perf_counter() - t0, 3)
+        store.write_json("report.json", report)
+    finally:
+        unsub()
+        store.close()
+    return MeshRunResult(store.root, report)
+
+
+def forward_run(run_dir: Path | str, source_mm: list[float] | None = None,
+                mesh_dir: str = ".") -> dict[str, Any]:
+    """``dotshell forward RUN``: CW fluence for a point source on the run's volume mesh, written
+    as ``forward.vtu`` (point data ``fluence``) next to it; returns figures for the report."""
+    from dotshell.forward import move_inside, solve_cw
+    from dotshell.meshfiles import _atomic_meshio
+
+    root = Path(run_dir)
+    if not root.is_dir():
+        raise RunError(f"{root} is not a directory; give a run directory.")
+    d = root / mesh_dir
+    mesh = read_volume(d / "volume.vtu")
+    source = _default_source(mesh, d) if source_mm is None else np.asarray(source_mm, float)
+    if not _inside(mesh, source):  # a source on the skin: one 1/μs' inside, like NIRFAST
+        musp = float(np.mean(mesh.point_data.get("musp_per_mm", np.array([1.0]))))
+        source = move_inside(mesh, source, 1.0 / musp)
+    t0 = time.perf_counter()
+    res = solve_cw(mesh, source)
+    seconds = time.perf_counter() - t0
+    import meshio
+
+    data = {**mesh.point_data, "fluence": res.fluence}
+    _atomic_meshio(d / "forward.vtu", meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)],
+                                                  point_data=data), "vtu")
+    b = mesh.boundary_nodes
+    fb = res.fluence[b]
+    out = {"mesh_dir": mesh_dir, "source_mm": res.source_mm.tolist(), "nodes": len(mesh.nodes),
+           "elements": len(mesh.tets), "robin_A": res.A, "solve_s": round(seconds, 3),
+           "boundary_fluence_per_mm2": {"min": float(fb.min()), "median": float(np.median(fb)),
+                                        "max": float(fb.max())},
+           "negative_nodes": int((res.fluence < 0).sum()), "file": str(d / "forward.vtu")}
+    optodes = read_optodes(d / "optodes.json")
+    if len(optodes.detectors_mm):
+        from scipy.spatial import cKDTree
+
+        _, idx = cKDTree(mesh.nodes[b]).query(optodes.detectors_mm)
+        out["detector_fluence_per_mm2"] = fb[idx].tolist()
+    rpt = root / "report.json"
+    if rpt.is_file():
+        report = json.loads(rpt.read_text())
+        report["forward"] = out
+        RunStore(root).write_json("report.json", report)
+    return out
+
+
+def _inside(mesh: TetMesh, point: np.ndarray) -> bool:
+    from dotshell.fem import element_containing
+
+    try:
+        element_containing(mesh, point)
+    except MeshError:
+        return False
+    return True
+
+
+def _default_source(mesh: TetMesh, d: Path) -> np.ndarray:
+    """The first optode source, else the centroid of the mesh volume."""
+    optodes = read_optodes(d / "optodes.json")
+    if len(optodes.sources_mm):
+        return optodes.sources_mm[0]
+    from dotshell.fem import signed_volumes_mm3
+
+    vol = signed_volumes_mm3(mesh.nodes, mesh.tets)
+    return (mesh.nodes[mesh.tets].mean(axis=1) * vol[:, None]).sum(axis=0) / vol.sum()

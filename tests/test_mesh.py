@@ -1,0 +1,213 @@
+"""The mesh stage on a scanned cloud: closed surface, valid volume mesh, exports read back,
+forward check, and clear errors for bad input."""
+
+import math
+import shutil
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tomli_w
+
+from dotshell.errors import DotshellError, ProfileError
+from dotshell.fem import MeshError, TriangleSurface, closed_manifold_problems, signed_volumes_mm3
+from dotshell.meshfiles import read_surface, read_volume
+from dotshell.plugins import PluginManager
+
+RUN_FILES = ("profile.toml", "manifest.json", "calibration.json", "cloud.ply", "report.json")
+
+
+def _pm() -> PluginManager:
+    pm = PluginManager()
+    pm.load_entry_points()
+    return pm
+
+
+def copy_run(src: Path, dst: Path, frames: bool = False, **profile_changes) -> Path:
+    """A private copy of a run (the session's small scan is shared, read-only)."""
+    if frames:
+        shutil.copytree(src, dst)
+    else:
+        dst.mkdir(parents=True)
+        for name in RUN_FILES:
+            shutil.copy(src / name, dst / name)
+    prof = tomllib.loads((dst / "profile.toml").read_text())
+    prof.update(profile_changes)
+    (dst / "profile.toml").write_text(tomli_w.dumps(prof))
+    return dst
+
+
+OPTODES = {"sources_mm": [[7.7, 0.0, 15.0]], "detectors_mm": [[-7.7, 0.0, 15.0],
+                                                              [0.0, 7.7, 15.0]]}
+
+
+@pytest.fixture(scope="module")
+def meshed(small_scan, tmp_path_factory):
+    from dotshell.pipeline.mesh import mesh_run
+
+    run = copy_run(small_scan[0].run_dir, tmp_path_factory.mktemp("mesh") / "run",
+                   mesh={"node_distance_mm": 1.0, "optodes": OPTODES},
+                   export={"nirfast": {}, "toast": {}, "meshio": {"formats": ["gmsh", "stl"]}})
+    return mesh_run(run, _pm())
+
+
+def test_cylinder_cloud_gives_closed_surface_and_volume_within_1pct(meshed):
+    """True section: the whole cylinder, r = 7.7 mm from the plate (z = 0, where the mesher
+    closes the bottom the region of interest left open) to the top (30 mm)."""
+    entry = meshed.report["mesh"]["meshes"][0]
+    run = meshed.run_dir
+    surf = read_surface(run / "surface.ply")
+    assert closed_manifold_problems(surf) == []
+    assert surf.vertices[:, 2].min() == pytest.approx(0.0, abs=1e-6)
+    assert np.median(surf.vertices[surf.vertices[:, 2] > 29.0, 2]) == pytest.approx(30.0, abs=0.05)
+    r = np.hypot(surf.vertices[:, 0], surf.vertices[:, 1])
+    side = (surf.vertices[:, 2] > 2) & (surf.vertices[:, 2] < 28)
+    assert abs(np.median(r[side]) - 7.7) < 0.05
+    mesh = read_volume(run / "volume.vtu")
+    vol = signed_volumes_mm3(mesh.nodes, mesh.tets)
+    true = math.pi * 7.7 ** 2 * 30.0
+    assert abs(vol.sum() - true) / true < 0.01
+    assert (vol > 0).all()
+    q = entry["volume"]
+    assert q["inverted_elements"] == 0 and q["joe_liu_min"] >= 0.1
+    assert q["nodes"] == len(mesh.nodes) and q["elements"] == len(mesh.tets)
+    assert abs(q["volume_vs_surface_pct"]) < 1e-3
+    assert entry["validation"]["volume_error_pct"] == pytest.approx(
+        100 * (vol.sum() - true) / true)
+    assert 0.8 < q["edge_length_mm"]["median"] < 1.25  # the node distance asked for
+    for name in ("surface_1mm.png", "volume_1mm.png"):
+        assert (run / "previews" / name).stat().st_size > 10_000
+
+
+def test_scanned_mesh_exports_read_back(meshed):
+    from dotshell_dotio.nirfast import read_nirfast
+    from dotshell_dotio.toast import read_msh, read_qm
+
+    run = meshed.run_dir
+    mesh = read_volume(run / "volume.vtu")
+    assert set(meshed.report["exports"]) == {"nirfast", "toast", "meshio"}
+    nf = read_nirfast(run / "nirfast", "mesh")
+    np.testing.assert_allclose(nf.nodes, mesh.nodes, atol=1e-8)
+    assert (nf.elements == mesh.tets).all()
+    assert (nf.bndvtx == mesh.boundary_nodes).all()
+    np.testing.assert_allclose(nf.mua, 0.01)
+    np.testing.assert_allclose(nf.kappa, 1 / (3 * 1.01))
+    np.testing.assert_allclose(nf.ri, 1.33)
+    np.testing.assert_allclose(nf.sources, OPTODES["sources_mm"])
+    assert nf.links.tolist() == [[0, 0], [0, 1]]
+    tm = read_msh(run / "toast" / "mesh.msh")
+    assert (tm.elements == mesh.tets).all() and (tm.boundary == mesh.boundary_nodes).all()
+    assert (signed_volumes_mm3(tm.nodes, tm.elements) > 0).all()
+    np.testing.assert_allclose(read_qm(run / "toast" / "mesh.qm").detectors_mm,
+                               OPTODES["detectors_mm"])
+    assert (run / "meshio" / "volume.msh").is_file() and (run / "meshio" / "surface.stl").is_file()
+
+
+def test_forward_on_the_scanned_mesh(meshed):
+    from dotshell.pipeline.mesh import forward_run
+
+    out = forward_run(meshed.run_dir)
+    # the optode source on the skin is moved 1/μs' = 1 mm inside, as NIRFAST does
+    assert 0.9 < 7.7 - math.hypot(*out["source_mm"][:2]) < 1.6
+    assert out["negative_nodes"] == 0
+    near, far = out["detector_fluence_per_mm2"][1], out["detector_fluence_per_mm2"][0]
+    assert near > 2 * far > 0  # 90° round the cylinder sees more light than 180°
+    assert (meshed.run_dir / "forward.vtu").is_file()
+
+
+def test_mesh_after_reprocessing_when_the_profile_asks(small_scan, tmp_path):
+    """[mesh] after_scan runs the stage inside finish() (scan and reconstruct), before the
+    exporters, which find the volume mesh."""
+    from dotshell.pipeline.scan import reconstruct_run
+
+    run = copy_run(small_scan[0].run_dir, tmp_path / "run", frames=True,
+                   mesh={"after_scan": True, "node_distance_mm": 2.0, "previews": False},
+                   export={"toast": {}})
+    result = reconstruct_run(run, _pm())
+    q = result.report["mesh"]["meshes"][0]["volume"]
+    assert q["inverted_elements"] == 0 and q["nodes"] > 200
+    assert result.report["exports"]["toast"] == ["toast/mesh.msh"]
+    assert "mesh" in result.report["timings_s"]
+
+
+# ---- bad input --------------------------------------------------------------------------
+
+def _cloud_run(tmp_path: Path, small_scan, points: np.ndarray) -> Path:
+    from dotshell.ply import write_ply
+
+    run = copy_run(small_scan[0].run_dir, tmp_path / "run", mesh={"previews": False})
+    write_ply(run / "cloud.ply", points, view=np.zeros(len(points)))
+    return run
+
+
+def test_too_sparse_cloud_is_a_clear_error(small_scan, tmp_path):
+    from dotshell.pipeline.mesh import mesh_run
+
+    pts = np.random.default_rng(0).normal(size=(150, 3)) * 5 + [0, 0, 15]
+    with pytest.raises(MeshError, match="too sparse to close a surface"):
+        mesh_run(_cloud_run(tmp_path, small_scan, pts), _pm())
+
+
+def test_one_sided_cloud_is_a_clear_error(small_scan, tmp_path):
+    from dotshell.pipeline.mesh import mesh_run
+
+    rng = np.random.default_rng(1)
+    pts = np.column_stack([rng.uniform(-8, 8, 20000), np.zeros(20000), rng.uniform(1, 20, 20000)])
+    run = _cloud_run(tmp_path, small_scan, pts)
+    prof = tomllib.loads((run / "profile.toml").read_text())
+    prof["mesh"]["close_bottom"] = False
+    (run / "profile.toml").write_text(tomli_w.dumps(prof))
+    with pytest.raises(MeshError, match="covers only one side"):
+        mesh_run(run, _pm())
+
+
+def test_open_surface_that_cannot_be_repaired_is_a_clear_error():
+    from dotshell.settings import validate_settings
+    from dotshell_meshing.surface import repair_closed
+    from dotshell_meshing.volume import SETTINGS, TetgenVolumeMesher
+
+    x, y = np.meshgrid(np.linspace(0, 10, 11), np.linspace(0, 10, 11))
+    v = np.column_stack([x.ravel(), y.ravel(), np.zeros(121)])
+    tri = [[a, a + 1, a + 12] for a in range(109) if a % 11 != 10]
+    tri += [[a, a + 12, a + 11] for a in range(109) if a % 11 != 10]
+    sheet = TriangleSurface(v, tri)
+    with pytest.raises(MeshError, match="could not be repaired to a closed manifold"):
+        repair_closed(sheet)
+    with pytest.raises(MeshError, match="needs a closed, outward-oriented surface"):
+        TetgenVolumeMesher(validate_settings(SETTINGS, {}, "t")).volume(sheet, 1.0)
+
+
+def test_node_distance_zero_is_a_clear_error(meshed, tmp_path):
+    from dotshell.cli import main
+    from dotshell.pipeline.mesh import mesh_run
+    from dotshell.profile import validate_profile
+
+    with pytest.raises(MeshError, match="node distance must be a positive number"):
+        mesh_run(meshed.run_dir, _pm(), node_distance_mm=0.0)
+    raw = tomllib.loads((meshed.run_dir / "profile.toml").read_text())
+    raw["mesh"]["node_distance_mm"] = 0.0
+    with pytest.raises(ProfileError, match=r"mesh.node_distance_mm"):
+        validate_profile(raw, _pm(), "p.toml")
+    assert main(["mesh", str(meshed.run_dir), "--node-distance", "0"]) == 2
+    assert issubclass(MeshError, DotshellError)
+
+
+@pytest.mark.slow
+def test_full_resolution_cylinder_mesh(tmp_path):
+    """`make validate`: the 1280×1024, 12-view metal cylinder meshed at 1 mm at the end of the
+    scan, with NIRFAST and TOAST files."""
+    from dotshell.pipeline.scan import scan
+    from dotshell.profile import load_profile
+
+    root = Path(__file__).resolve().parents[1]
+    pm = _pm()
+    profile = load_profile(root / "profiles" / "sim-metal-cylinder.toml", pm,
+                           ["mesh.after_scan=true", "mesh.node_distance_mm=1.0",
+                            "export.nirfast={}", "export.toast={}"])
+    result = scan(profile, pm, tmp_path)
+    entry = result.report["mesh"]["meshes"][0]
+    assert abs(entry["validation"]["volume_error_pct"]) < 1.0
+    assert entry["volume"]["inverted_elements"] == 0 and entry["volume"]["joe_liu_min"] >= 0.1
+    assert (result.run_dir / "nirfast" / "mesh.node").is_file()
+    assert (result.run_dir / "toast" / "mesh.msh").is_file()
