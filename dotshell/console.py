@@ -1,0 +1,604 @@
+"""The scripting facade: one live session of the instrument — a profile, its rig, the last run.
+
+Every front end that operates a rig interactively goes through :class:`Session`: the Textual
+TUI (``dotshell tui``), its embedded Python console and headless scripts (``dotshell script``).
+Workflow logic lives here and in :mod:`dotshell.pipeline`, never in widgets::
+
+    s = Session("profiles/sim-metal-cylinder.toml")
+    s.connect()
+    s.jog(15)                      # degrees, relative
+    snap = s.snap()                # frame array + PNG preview path
+    run = s.scan()                 # blocks; s.scan(wait=False) returns a ScanJob
+    run.report["validation"]["mean_rel_error_pct"]
+
+Device actions refuse while a scan is running (:class:`SessionBusy`); ``pause()``,
+``resume()`` and ``abort()`` steer a scan from any thread. Everything the session does is
+published on :attr:`Session.bus` (the scan's events, :class:`PreviewSaved`, log messages).
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+import threading
+import weakref
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from dotshell.errors import DeviceError, DotshellError, ProfileError, RunError
+from dotshell.events import Event, EventBus, ScanFinished, ScanStarted, ViewCaptured
+from dotshell.plugins import PluginManager
+from dotshell.profile import DEVICE_ROLES, Profile, apply_overrides, load_profile, validate_profile
+from dotshell.rig import Rig
+
+#: Session states: no scan, scanning, paused between frames, abort requested.
+STATES = ("idle", "running", "paused", "stopping")
+
+
+class SessionBusy(DotshellError):
+    """The action needs the rig, but a scan is using it."""
+
+
+@dataclass(frozen=True)
+class PreviewSaved(Event):
+    """A preview PNG was written: ``kind`` is ``snap``, ``frame`` (latest view of a scan),
+    ``columns`` (decoded projector columns) or ``cloud``; ``view`` is -1 when not a view."""
+
+    kind: str
+    path: str
+    view: int = -1
+
+
+@dataclass
+class Snapshot:
+    """One frame taken with :meth:`Session.snap`: the raw frame, its lossless PNG (``path``)
+    and the 8-bit stretched preview PNG (``preview``)."""
+
+    frame: np.ndarray
+    path: Path
+    preview: Path
+    angle_deg: float
+
+
+@dataclass
+class DecodeResult:
+    """A pattern sequence captured and decoded at the current stage angle."""
+
+    decoded_pixels: int
+    total_pixels: int
+    preview: Path
+
+
+class Run:
+    """A run directory read back: status, manifest, report, frames, cloud."""
+
+    def __init__(self, root: Path | str) -> None:
+        self.root = Path(root)
+
+    def __repr__(self) -> str:
+        return f"Run({str(self.root)!r}, status={self.status!r})"
+
+    def _json(self, name: str) -> dict[str, Any]:
+        from dotshell.store import RunStore
+
+        p = self.root / name
+        return RunStore(self.root).read_json(name) if p.is_file() else {}
+
+    @property
+    def manifest(self) -> dict[str, Any]:
+        return self._json("manifest.json")
+
+    @property
+    def report(self) -> dict[str, Any]:
+        return self._json("report.json")
+
+    @property
+    def status(self) -> str:
+        """``running``, ``completed``, ``aborted``, ``failed`` (or ``unknown``)."""
+        return self.manifest.get("status", "unknown")
+
+    def frame_count(self) -> int:
+        """Frames on disk over all views."""
+        return sum(v["frames"] for v in self.manifest.get("views", []))
+
+    def frames(self, view: int) -> list[np.ndarray]:
+        from dotshell.store import RunStore
+
+        return RunStore(self.root).read_frames(view)
+
+    def events(self) -> list[dict[str, Any]]:
+        from dotshell.store import RunStore
+
+        return RunStore(self.root).events()
+
+    def cloud(self) -> np.ndarray:
+        """The merged cloud, (N, 3) float in mm (sample/stage frame)."""
+        from dotshell.ply import read_ply
+
+        p = self.root / "cloud.ply"
+        if not p.is_file():
+            raise RunError(f"{p} does not exist (status {self.status}); only completed or "
+                           "re-processed runs have a merged cloud.")
+        return read_ply(p)[0]
+
+
+class ScanJob:
+    """A scan running on a background thread (``Session.scan(wait=False)``)."""
+
+    def __init__(self, target: Callable[[], Run]) -> None:
+        self.result: Run | None = None
+        self.error: BaseException | None = None
+        self.thread = threading.Thread(target=self._run, args=(target,), name="dotshell-scan",
+                                       daemon=True)
+        self.thread.start()
+
+    def _run(self, target: Callable[[], Run]) -> None:
+        try:
+            self.result = target()
+        except BaseException as exc:  # handed to whoever waits
+            self.error = exc
+
+    @property
+    def done(self) -> bool:
+        return not self.thread.is_alive()
+
+    def wait(self, timeout: float | None = None) -> Run:
+        """The finished run; re-raises the scan's error. TimeoutError if still running."""
+        self.thread.join(timeout)
+        if self.thread.is_alive():
+            raise TimeoutError(f"the scan is still running after {timeout} s")
+        if self.error is not None:
+            raise self.error
+        assert self.result is not None
+        return self.result
+
+
+def _next_free(directory: Path, stem: str) -> int:
+    """1 + the highest ``<stem>_NNNN`` number in ``directory`` (file names stay short and
+    predictable: snap_0001.png, snap_0002.png, ...)."""
+    pat = re.compile(rf"{re.escape(stem)}_(\d{{4}})")
+    nums = [int(m.group(1)) for p in directory.glob(f"{stem}_*") if (m := pat.match(p.name))]
+    return max(nums, default=0) + 1
+
+
+class Session:
+    """A live session: plugin manager, profile, rig (built on load, connected on demand), the
+    last run, and the scan control (pause, resume, abort).
+
+    Args:
+        profile: a profile file, a validated :class:`Profile`, or None (load one later).
+        pm: the plugin manager (default: every installed plugin).
+        out_dir: parent directory of runs and of ``snapshots/`` (snap and decode previews).
+        overrides: ``KEY=VALUE`` profile overrides, as ``--set`` on the command line.
+        bus: the event bus to publish on (default: a new one).
+    """
+
+    def __init__(self, profile: Profile | str | Path | None = None, *,
+                 pm: PluginManager | None = None, out_dir: Path | str = "runs",
+                 overrides: Sequence[str] = (), bus: EventBus | None = None) -> None:
+        if pm is None:
+            from dotshell.plugins import get_plugin_manager
+
+            pm = get_plugin_manager()
+        self.pm = pm
+        self.out_dir = Path(out_dir)
+        self.bus = bus or EventBus()
+        self.profile: Profile | None = None
+        self.profile_path: Path | None = None
+        self.rig: Rig | None = None
+        self.run: Run | None = None
+        self.projected: str | None = None
+        self.job: ScanJob | None = None
+        self._state = "idle"
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._running = threading.Event()
+        self._coding: Any = None
+        self._patterns: dict[str, np.ndarray] | None = None
+        self._live: dict[str, Any] = {}
+        self._namespaces: list[weakref.ref] = []
+        self.bus.subscribe(self._live_preview)
+        if profile is not None:
+            self.load(profile, overrides)
+
+    # ---- profile ------------------------------------------------------------------------------
+
+    def load(self, profile: Profile | str | Path, overrides: Sequence[str] = ()) -> Profile:
+        """Load a profile (file or :class:`Profile`); closes the previous rig."""
+        with self._lock:
+            self._require_idle("load another profile")
+            if isinstance(profile, Profile):
+                prof = profile
+                if overrides:
+                    prof = validate_profile(apply_overrides(profile.raw(), list(overrides),
+                                                            profile.source),
+                                            self.pm, profile.source, profile.base_dir)
+            else:
+                prof = load_profile(profile, self.pm, list(overrides))
+                self.profile_path = Path(profile)
+            rig = Rig(prof, self.pm)
+            self.disconnect()
+            self.profile, self.rig = prof, rig
+            self._coding, self._patterns, self.projected = None, None, None
+        self.bus.info(f"profile {prof.name} loaded from {prof.source}")
+        self._refresh_namespaces()
+        return prof
+
+    def set(self, *overrides: str) -> Profile:
+        """Change profile keys (``"scan.views=4"``, TOML values); rebuilds the rig and
+        reconnects it if it was connected."""
+        prof = self._require_profile()
+        was_connected = self.connected
+        self.load(prof, overrides)
+        if was_connected:
+            self.connect()
+        return self.profile  # type: ignore[return-value]
+
+    def _require_profile(self) -> Profile:
+        if self.profile is None or self.rig is None:
+            raise ProfileError("no profile is loaded: load one with session.load(PATH) (in the "
+                               "TUI: ctrl+o), e.g. profiles/sim-metal-cylinder.toml.")
+        return self.profile
+
+    # ---- state --------------------------------------------------------------------------------
+
+    @property
+    def state(self) -> str:
+        """One of :data:`STATES`."""
+        return self._state
+
+    @property
+    def scanning(self) -> bool:
+        return self._state != "idle"
+
+    def _require_idle(self, action: str) -> None:
+        if self.scanning:
+            raise SessionBusy(f"cannot {action} while a scan is {self._state}; wait for it, or "
+                              "abort it first (session.abort(), in the TUI: x).")
+
+    # ---- devices ------------------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        """True when every device of the rig is connected."""
+        rig = self.rig
+        return rig is not None and bool(rig.devices) and len(rig.connected) == len(rig.devices)
+
+    def connect(self) -> dict[str, dict[str, Any]]:
+        """Connect every device; returns their status."""
+        with self._lock:
+            self._require_idle("connect")
+            self._require_profile()
+            self.rig.connect()  # type: ignore[union-attr]
+        self.bus.info(f"rig connected: {', '.join(self.rig.connected)}")  # type: ignore[union-attr]
+        return self.status()
+
+    def disconnect(self) -> None:
+        """Close every device (safe when not connected)."""
+        with self._lock:
+            self._require_idle("disconnect")
+            if self.rig is not None and self.rig.connected:
+                self.rig.close()
+                self.projected = None
+                self.bus.info("rig disconnected")
+
+    def devices(self) -> list[dict[str, Any]]:
+        """One row per device role of the profile: role, backend, connected, status."""
+        if self.profile is None or self.rig is None:
+            return []
+        status = self.rig.status()
+        rows = []
+        for role in DEVICE_ROLES:
+            section = self.profile.role(role)
+            if section is None:
+                continue
+            rows.append({"role": role, "backend": section["backend"],
+                         "connected": role in self.rig.connected, "status": status.get(role, {})})
+        return rows
+
+    def status(self) -> dict[str, dict[str, Any]]:
+        """Live status of every device by role (empty without a profile)."""
+        return {} if self.rig is None else self.rig.status()
+
+    def _device(self, role: str, action: str) -> Any:
+        self._require_idle(action)
+        self._require_profile()
+        dev = self.rig.devices.get(role)  # type: ignore[union-attr]
+        if dev is None:
+            raise DeviceError(f"cannot {action}: profile {self.profile.name} has no [{role}] "  # type: ignore[union-attr]
+                              f"device; add a [{role}] section with a backend.")
+        if role not in self.rig.connected:  # type: ignore[union-attr]
+            raise DeviceError(f"cannot {action}: the {role} is not connected; connect the rig "
+                              "first (connect(), in the TUI: c).")
+        return dev
+
+    def move_to(self, degrees: float) -> float:
+        """Rotate the stage to an absolute angle; returns the angle reached (degrees)."""
+        with self._lock:
+            stage = self._device("stage", "move the stage")
+            stage.move_to(float(degrees))
+            return float(stage.position)
+
+    def jog(self, degrees: float) -> float:
+        """Rotate the stage by ``degrees`` (relative); returns the angle reached."""
+        with self._lock:
+            stage = self._device("stage", "jog the stage")
+            return self.move_to(float(stage.position) + float(degrees))
+
+    def set_analyzer(self, degrees: float) -> float:
+        """Set the analyzer's transmission axis (degrees)."""
+        with self._lock:
+            self._device("analyzer", "set the analyzer").set_angle(float(degrees))
+        return float(degrees)
+
+    def set_exposure(self, ms: float) -> float:
+        """Set the camera exposure (ms), for cameras with exposure control."""
+        from dotshell.devices import ExposureControl
+
+        with self._lock:
+            cam = self._device("camera", "set the exposure")
+            if not isinstance(cam, ExposureControl):
+                raise DeviceError(f"the camera ({self.profile.role('camera')['backend']}) has "  # type: ignore[union-attr]
+                                  "no exposure control.")
+            cam.set_exposure(float(ms))
+        return float(ms)
+
+    # ---- patterns, frames, decoding -------------------------------------------------------------
+
+    def _coding_patterns(self) -> dict[str, np.ndarray]:
+        if self._patterns is None:
+            from dotshell.pipeline.scan import _make_coding
+
+            self._coding = _make_coding(self._require_profile(), self.pm)
+            size = self.rig.projector.resolution  # type: ignore[union-attr]
+            self._patterns = {p.name: p.image for p in self._coding.patterns(size)}
+        return self._patterns
+
+    def patterns(self) -> list[str]:
+        """Names of the coding's patterns for this projector, in projection order."""
+        return list(self._coding_patterns())
+
+    def project(self, name: str) -> str:
+        """Show one of the coding's patterns (see :meth:`patterns`) on the projector."""
+        with self._lock:
+            proj = self._device("projector", "project a pattern")
+            pats = self._coding_patterns()
+            if name not in pats:
+                raise DeviceError(f"no pattern {name!r} in the {self.profile.role('coding')['backend']} "  # type: ignore[union-attr]
+                                  f"coding; choose one of {', '.join(pats)}.")
+            proj.show(pats[name])
+            self.projected = name
+        return name
+
+    def _snapshot_dir(self) -> Path:
+        d = self.out_dir / "snapshots"
+        d.mkdir(parents=True, exist_ok=True)
+        return d
+
+    def snap(self) -> Snapshot:
+        """Capture one frame with the current pattern; writes ``snapshots/snap_NNNN.png``
+        (lossless) and ``snap_NNNN_preview.png`` (8-bit) under the output directory."""
+        import cv2
+
+        from dotshell.render import frame_preview
+        from dotshell.store import atomic_write_bytes
+
+        with self._lock:
+            frame = self._device("camera", "snap a frame").capture()
+            angle = float(self.rig.stage.position) if "stage" in self.rig.connected else 0.0  # type: ignore[union-attr]
+        d = self._snapshot_dir()
+        n = _next_free(d, "snap")
+        raw = d / f"snap_{n:04d}.png"
+        ok, buf = cv2.imencode(".png", frame)
+        if not ok:
+            raise RunError(f"could not encode {raw}")
+        atomic_write_bytes(raw, buf.tobytes())
+        preview = frame_preview(frame, d / f"snap_{n:04d}_preview.png")
+        self.bus.emit(PreviewSaved(kind="snap", path=str(preview)))
+        return Snapshot(frame, raw, preview, angle)
+
+    def decode(self) -> DecodeResult:
+        """Project the whole coding sequence at the current stage angle, decode it and write
+        the projector-column map (``snapshots/decode_NNNN.png``) — a focus/alignment check."""
+        from dotshell.render import column_map_preview
+
+        with self._lock:
+            cam = self._device("camera", "decode")
+            proj = self._device("projector", "decode")
+            pats = self._coding_patterns()
+            frames = []
+            for name, image in pats.items():
+                proj.show(image)
+                frames.append(cam.capture())
+            self.projected = name
+        corr = self._coding.decode(frames, proj.resolution)
+        d = self._snapshot_dir()
+        path = column_map_preview(corr.column, corr.valid, proj.resolution[0],
+                                  d / f"decode_{_next_free(d, 'decode'):04d}.png")
+        self.bus.emit(PreviewSaved(kind="columns", path=str(path)))
+        return DecodeResult(int(corr.valid.sum()), int(corr.valid.size), path)
+
+    # ---- scans ----------------------------------------------------------------------------------
+
+    def scan(self, wait: bool = True, out: Path | str | None = None) -> Run | ScanJob:
+        """Scan with the current profile and rig into ``out`` (default: the session's output
+        directory). Blocks and returns the :class:`Run`, or with ``wait=False`` returns a
+        :class:`ScanJob` at once. A stopped scan returns normally with status ``aborted``."""
+        with self._lock:
+            self._require_profile()
+            self._require_idle("start a scan")
+            self._stop = threading.Event()
+            self._running = threading.Event()
+            self._running.set()
+            self._state = "running"
+        target = lambda: self._run_scan(Path(out) if out is not None else self.out_dir)  # noqa: E731
+        if wait:
+            return target()
+        self.job = ScanJob(target)
+        return self.job
+
+    def _run_scan(self, out: Path) -> Run:
+        from dotshell.pipeline.scan import scan
+
+        self._live = {}
+        try:
+            result = scan(self.profile, self.pm, out, bus=self.bus, stop=self._stop,  # type: ignore[arg-type]
+                          running=self._running, rig=self.rig)
+        finally:  # a failed run is the session's last run too
+            if self._live.get("run_dir"):
+                self.run = Run(self._live["run_dir"])
+            self._state = "idle"
+            self._refresh_namespaces()
+        run = self.run = Run(result.run_dir)
+        for kind, rel in (result.report.get("previews") or {}).items():
+            self.bus.emit(PreviewSaved(kind=kind, path=str(run.root / rel)))
+        self._refresh_namespaces()
+        return run
+
+    def pause(self) -> None:
+        """Pause the running scan before its next frame."""
+        with self._lock:
+            if self._state == "running":
+                self._running.clear()
+                self._state = "paused"
+                self.bus.info("pause requested: the scan stops before its next frame")
+
+    def resume(self) -> None:
+        """Resume a paused scan."""
+        with self._lock:
+            if self._state == "paused":
+                self._state = "running"
+                self._running.set()
+
+    def abort(self) -> None:
+        """Stop the scan cleanly: frames captured so far are kept, the run is ``aborted``."""
+        with self._lock:
+            if self._state in ("running", "paused"):
+                self._state = "stopping"
+                self._stop.set()
+                self.bus.warn("abort requested: stopping the scan, frames are kept")
+
+    def wait(self, timeout: float | None = None) -> Run:
+        """Wait for a background scan (``scan(wait=False)``) and return its run."""
+        if self.job is None:
+            raise RunError("no background scan was started; use scan(wait=False) first.")
+        return self.job.wait(timeout)
+
+    def _live_preview(self, ev: Event) -> None:
+        """During a scan, render the first frame of each captured view to
+        ``<run>/previews/latest_frame.png``."""
+        if isinstance(ev, ScanStarted):
+            self._live = {"run_dir": ev.run_dir}
+        elif isinstance(ev, ScanFinished):
+            self._live["run_dir"] = ev.run_dir
+        elif isinstance(ev, ViewCaptured) and self._live.get("run_dir"):
+            import cv2
+
+            from dotshell.render import frame_preview
+            from dotshell.store import RunStore
+
+            store = RunStore(Path(self._live["run_dir"]))
+            names = self._live.setdefault("names", store.manifest["frame_names"])
+            frame = cv2.imread(str(store.frame_path(ev.view, 0, names[0])), cv2.IMREAD_UNCHANGED)
+            if frame is None:
+                return
+            store.path("previews").mkdir(exist_ok=True)
+            path = frame_preview(frame, store.path("previews", "latest_frame.png"))
+            self.bus.emit(PreviewSaved(kind="frame", path=str(path), view=ev.view))
+
+    # ---- lifetime and scripting -----------------------------------------------------------------
+
+    def close(self) -> None:
+        """Abort a running scan (waiting for it) and close the rig."""
+        self.abort()
+        if self.job is not None:
+            self.job.thread.join()
+        if self.rig is not None and self.rig.connected and not self.scanning:
+            self.rig.close()
+
+    def __enter__(self) -> "Session":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+    def namespace(self) -> dict[str, Any]:
+        """A fresh namespace for scripts and the console, bound to this session: ``rig``,
+        ``profile`` and ``run`` follow the session as it changes."""
+        import dotshell
+
+        ns: dict[str, Any] = {
+            "session": self, "np": np, "dotshell": dotshell, "Run": Run,
+            "load": self.load, "set": self.set, "connect": self.connect,
+            "disconnect": self.disconnect, "status": self.status, "move_to": self.move_to,
+            "jog": self.jog, "set_analyzer": self.set_analyzer,
+            "set_exposure": self.set_exposure, "patterns": self.patterns,
+            "project": self.project, "snap": self.snap, "decode": self.decode,
+            "scan": self.scan, "pause": self.pause, "resume": self.resume,
+            "abort": self.abort, "wait": self.wait,
+        }
+        self._bind(ns)
+        return ns
+
+    def _bind(self, ns: dict[str, Any]) -> None:
+        holder = _Namespace(ns)
+        self._namespaces.append(weakref.ref(holder))
+        ns["__session_binding__"] = holder  # lives as long as the namespace does
+        self._refresh_namespaces()
+
+    def _refresh_namespaces(self) -> None:
+        alive = []
+        for ref in self._namespaces:
+            holder = ref()
+            if holder is None:
+                continue
+            holder.ns.update(rig=self.rig, profile=self.profile, run=self.run)
+            alive.append(ref)
+        self._namespaces = alive
+
+
+class _Namespace:
+    """Weakly referenced handle on a bound namespace dict (dicts cannot be weakly referenced)."""
+
+    def __init__(self, ns: dict[str, Any]) -> None:
+        self.ns = ns
+
+
+def split_script_args(rest: Sequence[str]) -> tuple[dict[str, Any], list[str]]:
+    """Split what follows ``dotshell script FILE.py`` into dotshell's options (``--profile``,
+    ``--set``, ``--out``) and the script's own arguments: everything after ``--``, and any
+    word before it that is not one of those options."""
+    import argparse
+
+    rest = list(rest)
+    cut = rest.index("--") if "--" in rest else len(rest)
+    parser = argparse.ArgumentParser(prog="dotshell script", add_help=False)
+    parser.add_argument("--profile")
+    parser.add_argument("--set", action="append", default=[])
+    parser.add_argument("--out")
+    ns, unknown = parser.parse_known_args(rest[:cut])
+    return vars(ns), unknown + rest[cut + 1:]
+
+
+def run_script(path: Path | str, session: Session, argv: Sequence[str] = ()) -> dict[str, Any]:
+    """Run a Python file with the session's namespace (as ``__main__``, ``sys.argv`` =
+    ``[path, *argv]``); returns the namespace it left."""
+    path = Path(path)
+    try:
+        source = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise DotshellError(f"cannot read script {path}: {exc.strerror or exc}. Give the path "
+                            "of a Python file.") from None
+    ns = session.namespace()
+    ns.update(__name__="__main__", __file__=str(path))
+    code = compile(source, str(path), "exec")
+    old_argv = sys.argv
+    sys.argv = [str(path), *argv]
+    try:
+        exec(code, ns)
+    finally:
+        sys.argv = old_argv
+    return ns

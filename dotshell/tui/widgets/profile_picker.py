@@ -1,0 +1,61 @@
+"""The profile picker: profiles found next to the current one and in ./profiles, or any path
+typed in; Enter loads it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from textual.app import ComposeResult
+from textual.binding import Binding
+from textual.containers import Vertical
+from textual.screen import ModalScreen
+from textual.widgets import Input, OptionList, Static
+
+from dotshell.console import Session
+from dotshell.tui.text import short_path
+
+
+def find_profiles(session: Session) -> list[str]:
+    """``*.toml`` next to the session's profile and in ./profiles, each once, sorted."""
+    dirs = [Path("profiles")]
+    if session.profile_path is not None:
+        dirs.insert(0, session.profile_path.parent)
+    found: dict[Path, str] = {}
+    for d in dirs:
+        if d.is_dir():
+            for p in sorted(d.glob("*.toml")):
+                found.setdefault(p.resolve(), short_path(p))
+    return sorted(found.values())
+
+
+class ProfilePicker(ModalScreen[str | None]):
+    """Dismisses with the chosen profile path, or None."""
+
+    BINDINGS = [Binding("escape", "cancel", "Cancel")]
+
+    def __init__(self, session: Session) -> None:
+        super().__init__()
+        self.paths = find_profiles(session)
+        self.current = short_path(session.profile_path) if session.profile_path else None
+
+    def compose(self) -> ComposeResult:
+        with Vertical(classes="dialog", id="picker"):
+            yield Static("[b]Load a profile[/] — choose one, or type a path and press Enter",
+                         classes="question")
+            yield OptionList(*self.paths, id="profile-list")
+            yield Input(placeholder="path/to/profile.toml", id="profile-path")
+
+    def on_mount(self) -> None:
+        options = self.query_one(OptionList)
+        if self.current in self.paths:
+            options.highlighted = self.paths.index(self.current)
+        (options if self.paths else self.query_one(Input)).focus()
+
+    def on_option_list_option_selected(self, event: OptionList.OptionSelected) -> None:
+        self.dismiss(self.paths[event.option_index])
+
+    def on_input_submitted(self, event: Input.Submitted) -> None:
+        self.dismiss(event.value.strip() or None)
+
+    def action_cancel(self) -> None:
+        self.dismiss(None)

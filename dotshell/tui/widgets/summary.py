@@ -1,0 +1,45 @@
+"""The sidebar shown from 100 columns on: the rig's devices and the scan at a glance."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from rich.markup import escape
+from textual.app import ComposeResult
+from textual.containers import Vertical
+from textual.widgets import Static
+
+from dotshell.console import Session
+from dotshell.tui.progress import ScanTracker, format_seconds
+from dotshell.tui.text import describe_status
+
+
+class Summary(Vertical):
+    """Compact device and scan status, redrawn by the app."""
+
+    def compose(self) -> ComposeResult:
+        yield Static("[b]Rig[/]", classes="summary-title")
+        yield Static(id="summary-rig")
+        yield Static("[b]Scan[/]", classes="summary-title")
+        yield Static(id="summary-scan")
+
+    def show_rows(self, rows: list[dict[str, Any]]) -> None:
+        lines = []
+        for row in rows:
+            mark = "[green]●[/]" if row["connected"] else "[dim]○[/]"
+            status = describe_status(row["role"], row["status"], compact=True)
+            lines.append(f"{mark} {row['role']}" + (f"\n   {escape(status)}" if status else ""))
+        self.query_one("#summary-rig", Static).update("\n".join(lines) or "[dim]no devices[/]")
+
+    def show_scan(self, t: ScanTracker, session: Session, now_s: float) -> None:
+        state = session.state if session.scanning else t.status
+        lines = [f"state {state}"]
+        if t.n_views:
+            lines.append(f"views {t.views_done}/{t.n_views}")
+            lines.append(f"frames {t.frames_done}/{t.frames_total}")
+        if t.active:
+            lines.append(f"step {escape(t.step)}")
+            lines.append(f"ETA {format_seconds(t.eta_s(now_s))}")
+        if t.points:
+            lines.append(f"{t.points} points")
+        self.query_one("#summary-scan", Static).update("\n".join(lines))

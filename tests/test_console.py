@@ -1,0 +1,283 @@
+"""The scripting facade (Session), the console engine, `dotshell script`, the scan pause in the
+acquisition runner and the progress tracker — headless, on the reduced simulated bench."""
+
+import json
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from conftest import small_profile_dict, write_profile
+from dotshell.cli import main
+from dotshell.console import PreviewSaved, Run, Session, SessionBusy
+from dotshell.errors import DeviceError, ProfileError
+from dotshell.events import (EventBus, FrameCaptured, ScanFinished, ScanPaused, ScanResumed,
+                             ScanStarted, ViewCaptured, ViewReconstructed)
+from dotshell.pipeline.scan import scan
+from dotshell.plugins import PluginManager
+from dotshell.profile import load_profile
+from dotshell.tui.interpreter import Interpreter, wants_more
+from dotshell.tui.progress import ScanTracker, format_seconds
+
+
+def write_test_profile(tmp_path, views=2, name="p.toml"):
+    raw = small_profile_dict(factor=0.12, views=views)
+    raw["camera"]["settings"]["supersample"] = 1
+    raw["outputs"] = {"previews": False}
+    return write_profile(tmp_path / name, raw)
+
+
+@pytest.fixture
+def pm():
+    pm = PluginManager()
+    pm.load_entry_points()
+    return pm
+
+
+@pytest.fixture
+def session(tmp_path, pm):
+    s = Session(write_test_profile(tmp_path), pm=pm, out_dir=tmp_path / "runs")
+    yield s
+    s.close()
+
+
+# ---- pause and resume in the acquisition runner ---------------------------------------------
+
+def test_scan_pauses_between_frames_and_resumes_to_completion(tmp_path, pm):
+    profile = load_profile(write_test_profile(tmp_path), pm)
+    running, bus, events = threading.Event(), EventBus(), []
+    running.set()
+    bus.subscribe(events.append)
+    bus.subscribe(lambda ev: running.clear() if isinstance(ev, FrameCaptured)
+                  and (ev.view, ev.index) == (1, 2) else None)
+    result = {}
+    worker = threading.Thread(target=lambda: result.update(
+        r=scan(profile, pm, tmp_path / "runs", bus=bus, running=running)))
+    worker.start()
+    t0 = time.monotonic()
+    while not any(isinstance(e, ScanPaused) for e in events):
+        assert time.monotonic() - t0 < 60 and worker.is_alive()
+        time.sleep(0.01)
+    frames_at_pause = sum(isinstance(e, FrameCaptured) for e in events)
+    time.sleep(0.5)
+    assert sum(isinstance(e, FrameCaptured) for e in events) == frames_at_pause  # held
+    assert worker.is_alive()
+    fpv = next(e for e in events if isinstance(e, ScanStarted)).frames_per_view
+    assert frames_at_pause == fpv + 3  # all of view 0, frames 0..2 of view 1
+    paused = next(e for e in events if isinstance(e, ScanPaused))
+    assert (paused.view, paused.index) == (1, 3)
+    run_dir = next(e for e in events if isinstance(e, ScanStarted)).run_dir
+    on_disk = sum(1 for _ in (Run(run_dir).root / "frames").rglob("*.png"))
+    assert on_disk == frames_at_pause  # everything before the pause is written
+    running.set()
+    worker.join(60)
+    r = result["r"]
+    assert r.status == "completed"
+    assert sum(isinstance(e, FrameCaptured) for e in events) == 2 * fpv
+    assert [type(e).__name__ for e in events if isinstance(e, (ScanPaused, ScanResumed))] == [
+        "ScanPaused", "ScanResumed"]
+    assert all(v["complete"] for v in Run(r.run_dir).manifest["views"])
+    wall_s = time.monotonic() - t0
+    pause = [e for e in events if isinstance(e, (ScanPaused, ScanResumed))]
+    paused_s = pause[1].time - pause[0].time
+    assert paused_s >= 0.5
+    assert r.report["timings_s"]["acquire"] <= wall_s - paused_s + 0.05  # pause not counted
+    logged = [e["event"] for e in Run(r.run_dir).events()]
+    assert "ScanPaused" in logged and "ScanResumed" in logged
+
+
+def test_abort_while_paused_stops_cleanly(tmp_path, pm):
+    profile = load_profile(write_test_profile(tmp_path), pm)
+    running, stop, bus = threading.Event(), threading.Event(), EventBus()
+    bus.subscribe(lambda ev: running.clear() if isinstance(ev, FrameCaptured)
+                  and (ev.view, ev.index) == (0, 4) else None)
+    bus.subscribe(lambda ev: stop.set() if isinstance(ev, ScanPaused) else None)
+    running.set()
+    r = scan(profile, pm, tmp_path / "runs", bus=bus, stop=stop, running=running)
+    assert r.status == "aborted"
+    assert Run(r.run_dir).frame_count() == 5
+
+
+# ---- the Session facade ----------------------------------------------------------------------
+
+def test_session_drives_the_rig(session):
+    with pytest.raises(DeviceError, match="connect the rig first"):
+        session.jog(5)
+    status = session.connect()
+    assert set(status) == {"camera", "projector", "stage"} and session.connected
+    assert session.jog(10) == pytest.approx(10.0)
+    assert session.jog(-25) == pytest.approx(-15.0)
+    assert session.move_to(90) == pytest.approx(90.0)
+    assert session.status()["stage"]["angle_deg"] == pytest.approx(90.0)
+    with pytest.raises(DeviceError, match="no \\[analyzer\\] device"):
+        session.set_analyzer(45)
+    assert session.set_exposure(10) == 10.0
+    assert session.status()["camera"]["exposure_ms"] == 10.0
+
+    names = session.patterns()
+    assert names[:2] == ["white", "black"] and len(names) > 10
+    previews = []
+    session.bus.subscribe(lambda ev: previews.append(ev) if isinstance(ev, PreviewSaved) else None)
+    session.project("white")
+    white = session.snap()
+    session.project("black")
+    black = session.snap()
+    w, h = session.rig.camera.resolution
+    assert white.frame.shape == (h, w) and white.path.name == "snap_0001.png"
+    assert black.path.name == "snap_0002.png" and black.preview.is_file()
+    assert white.frame.mean() > 5 * black.frame.mean()
+    assert [p.kind for p in previews] == ["snap", "snap"]
+    with pytest.raises(DeviceError, match="no pattern 'nope'"):
+        session.project("nope")
+
+    decoded = session.decode()
+    assert decoded.preview.is_file()
+    assert 0.05 < decoded.decoded_pixels / decoded.total_pixels < 1.0
+    session.disconnect()
+    assert not session.connected
+
+
+def test_session_background_scan_pause_resume_and_busy_guard(session):
+    session.connect()
+    gate = threading.Event()
+    session.bus.subscribe(lambda ev: gate.wait(30) if isinstance(ev, FrameCaptured)
+                          and (ev.view, ev.index) == (0, 1) else None)
+    job = session.scan(wait=False)
+    with pytest.raises(SessionBusy, match="while a scan is running"):
+        session.jog(5)
+    with pytest.raises(SessionBusy):
+        session.scan()
+    session.pause()
+    assert session.state == "paused"
+    gate.set()
+    time.sleep(0.3)
+    assert session.state == "paused" and not job.done
+    session.resume()
+    run = session.wait(60)
+    assert run.status == "completed" and session.state == "idle"
+    assert run is session.run and len(run.cloud()) > 1000
+    assert session.jog(5) == pytest.approx(185.0)  # free again, still at the last view
+
+
+def test_session_abort_keeps_frames_and_marks_the_run_aborted(session):
+    session.bus.subscribe(lambda ev: session.abort() if isinstance(ev, ViewCaptured) else None)
+    run = session.scan()
+    assert run.status == "aborted"
+    fpv = len(run.manifest["frame_names"])
+    assert run.frame_count() == fpv  # view 0 complete, stopped before view 1
+    assert [v["view"] for v in run.report["views"]] == [0]  # the complete view is processed
+    assert len(run.cloud()) == run.report["cloud"]["points"] > 0
+
+
+def test_session_set_changes_the_profile(session):
+    session.connect()
+    session.set("scan.views=3")
+    assert len(session.profile.angles_deg()) == 3 and session.connected
+    with pytest.raises(ProfileError):
+        Session(pm=session.pm).connect()
+
+
+def test_namespace_follows_the_session(session):
+    ns = session.namespace()
+    assert ns["profile"] is session.profile and ns["run"] is None
+    ns["connect"]()
+    run = ns["scan"]()
+    assert ns["run"] is run and ns["rig"] is session.rig
+    assert isinstance(ns["np"].zeros(1), np.ndarray)
+
+
+# ---- the console engine ----------------------------------------------------------------------
+
+def test_interpreter_results_output_and_errors():
+    out = []
+    interp = Interpreter({}, lambda kind, text: out.append((kind, text)))
+    assert interp.run("x = 6\nprint('x is', x)\nx * 7")
+    assert "".join(t for k, t in out if k == "out") == "x is 6\n"
+    assert out[-1] == ("result", "42")
+    assert not interp.run("undefined_name + 1")
+    assert out[-1][0] == "error" and "NameError" in out[-1][1] and "<console#2>" in out[-1][1]
+    assert not interp.run("if True print(1)")
+    assert out[-1][0] == "error" and out[-1][1].startswith('  File "<console#3>"')
+    assert "SyntaxError" in out[-1][1]
+    assert interp.run("x")  # the namespace survived the errors
+    assert out[-1] == ("result", "6")
+
+
+def test_interpreter_interrupts_a_running_loop():
+    out = []
+    interp = Interpreter({}, lambda kind, text: out.append((kind, text)))
+    done = []
+    worker = threading.Thread(target=lambda: done.append(interp.run("n = 0\nwhile True:\n n += 1")))
+    worker.start()
+    while interp.namespace.get("n", 0) < 1000:
+        time.sleep(0.01)
+    assert interp.busy and interp.interrupt()
+    worker.join(10)
+    assert done == [False] and "KeyboardInterrupt" in out[-1][1]
+    assert not interp.busy and not interp.interrupt()
+
+
+def test_wants_more_follows_the_repl_rules():
+    assert not wants_more("1 + 1")
+    assert wants_more("for i in range(3):")
+    assert wants_more("for i in range(3):\n    print(i)")  # still in the block
+    assert not wants_more("for i in range(3):\n    print(i)\n")  # blank line ends it
+    assert wants_more("x = (1,")
+    assert not wants_more("x = 1\ny = 2")
+    assert not wants_more("def f(:")  # run it, to show the error
+
+
+# ---- dotshell script ----------------------------------------------------------------------------
+
+def test_script_command_runs_against_the_facade(tmp_path, capsys):
+    prof = write_test_profile(tmp_path)
+    script = tmp_path / "measure.py"
+    script.write_text(
+        "import json, sys\n"
+        "connect()\n"
+        "angles = [jog(float(sys.argv[1])) for _ in range(3)]\n"
+        "frame = snap().frame\n"
+        "run = scan()\n"
+        "json.dump({'angles': angles, 'shape': list(frame.shape), 'status': run.status,\n"
+        "           'points': len(run.cloud()), 'profile': profile.name},\n"
+        "          open(sys.argv[2], 'w'))\n")
+    out = tmp_path / "result.json"
+    code = main(["script", str(script), "--profile", str(prof), "--out", str(tmp_path / "runs"),
+                 "--set", "scan.views=2", "--", "12.5", str(out)])
+    assert code == 0
+    res = json.loads(out.read_text())
+    assert res["angles"] == [12.5, 25.0, 37.5]
+    assert res["status"] == "completed" and res["points"] > 1000
+    assert res["profile"] == "sim-metal-cylinder"
+    runs = [p for p in (tmp_path / "runs").iterdir() if p.name != "snapshots"]
+    assert len(runs) == 1 and (runs[0] / "cloud.ply").is_file()
+
+
+def test_script_errors_are_user_errors(tmp_path, capsys):
+    script = tmp_path / "bad.py"
+    script.write_text("connect()\n")
+    assert main(["script", str(script)]) == 2  # no profile loaded
+    assert "no profile is loaded" in capsys.readouterr().err
+    assert main(["script", str(tmp_path / "missing.py")]) == 2
+    assert "cannot read script" in capsys.readouterr().err
+
+
+# ---- progress tracking ------------------------------------------------------------------------
+
+def test_tracker_counts_and_eta_exclude_pauses():
+    t = ScanTracker()
+    t.update(ScanStarted(run_dir="r", profile="p", n_views=2, frames_per_view=5), 100.0)
+    for i in range(5):
+        t.update(FrameCaptured(view=0, index=i, name=f"f{i}"), 100.0 + i + 1)
+    t.update(ViewCaptured(view=0, angle_deg=0.0, n_frames=5), 105.0)
+    t.update(ViewReconstructed(view=0, n_points=1000, decoded_pixels=2000), 105.0)
+    assert t.eta_s(105.0) == pytest.approx(5.0)  # 1 s a frame, 5 frames left
+    t.update(ScanPaused(view=1, index=0), 105.0)
+    assert t.eta_s(125.0) == pytest.approx(5.0)  # the pause does not count
+    t.update(ScanResumed(view=1, index=0), 125.0)
+    assert t.active_seconds(126.0) == pytest.approx(6.0)
+    t.update(ScanFinished(status="aborted", run_dir="r", summary={"points": 1000}), 126.0)
+    assert (t.status, t.frames_done, t.views_done, t.points) == ("aborted", 5, 1, 1000)
+    assert t.eta_s(130.0) is None
+    assert format_seconds(3725) == "1:02:05" and format_seconds(None) == "--:--"

@@ -1,0 +1,182 @@
+"""Snapshot tests of the main screens at 80×24 and 120×40: the SVG Textual exports is compared
+with the reference under tests/snapshots/tui/, with the volatile parts (run-directory time
+stamps, clocks, Textual's per-render id) masked.
+
+A difference fails the test and leaves the new SVG next to the test's tmp dir. When a change
+is intended, regenerate the references with ``DOTSHELL_UPDATE_SNAPSHOTS=1 pytest
+tests/test_tui_snapshots.py`` and review them (open the SVGs in a browser) before committing.
+"""
+
+import difflib
+import html
+import os
+import re
+import threading
+from pathlib import Path
+
+import pytest
+
+from conftest import small_profile_dict, write_profile
+from dotshell import hookimpl
+from dotshell.backends import Backend
+from dotshell.console import Session
+from dotshell.events import FrameCaptured
+from dotshell.plugins import PluginLoadError, PluginManager
+from dotshell.tui.app import DotshellApp
+from dotshell.tui.widgets.console_input import ConsoleInput
+from dotshell.tui.widgets.plugins_screen import PluginsScreen
+
+pytestmark = pytest.mark.asyncio
+
+REFERENCES = Path(__file__).parent / "snapshots" / "tui"
+UPDATE = os.environ.get("DOTSHELL_UPDATE_SNAPSHOTS") == "1"
+SIZES = ((80, 24), (120, 40))
+
+
+def masked(svg: str) -> str:
+    svg = re.sub(r"terminal-\d+", "terminal-X", svg)
+    svg = re.sub(r"\d{8}-\d{6}", "YYYYmmdd-HHMMSS", svg)
+    return re.sub(r"\d+:\d\d:\d\d", "H:MM:SS", svg)
+
+
+def svg_text(svg: str) -> list[str]:
+    """The text runs of an exported screen, in order (for a readable diff)."""
+    return [html.unescape(t).replace("\xa0", " ")
+            for t in re.findall(r"<text[^>]*>([^<]*)</text>", svg)]
+
+
+def check(app, name: str, tmp_path: Path) -> None:
+    width, height = app.size
+    got = masked(app.export_screenshot(title=f"dotshell tui — {name}"))
+    ref = REFERENCES / f"{name}-{width}x{height}.svg"
+    if UPDATE:
+        ref.parent.mkdir(parents=True, exist_ok=True)
+        ref.write_text(got)
+        return
+    assert ref.is_file(), (f"no reference {ref}; create it with DOTSHELL_UPDATE_SNAPSHOTS=1 "
+                           "and review it")
+    want = ref.read_text()
+    if got != want:
+        out = tmp_path / ref.name
+        out.write_text(got)
+        diff = "\n".join(list(difflib.unified_diff(svg_text(want), svg_text(got), "reference",
+                                                   "now", lineterm="", n=1))[:40])
+        pytest.fail(f"{name} at {width}×{height} differs from {ref} (new screen: {out}); "
+                    f"text diff:\n{diff or '(same text: colours or layout changed)'}\nIf "
+                    "intended, re-run with DOTSHELL_UPDATE_SNAPSHOTS=1 and review the SVGs.")
+
+
+async def check_sizes(pilot, name, tmp_path):
+    for width, height in SIZES:
+        await pilot.resize_terminal(width, height)
+        await settle(pilot)
+        check(pilot.app, name, tmp_path)
+
+
+async def settle(pilot):
+    for _ in range(400):
+        if all(w.is_finished or w.group == "scan" for w in pilot.app.workers):
+            break
+        await pilot.pause(0.02)
+    await pilot.pause()
+    await pilot.pause()
+
+
+@pytest.fixture
+def session(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # paths on screen are relative: runs/..., p.toml
+    raw = small_profile_dict(factor=0.12, views=2)
+    raw["camera"]["settings"]["supersample"] = 1
+    raw["outputs"] = {"previews": False}
+    pm = PluginManager()
+    pm.load_entry_points()
+    s = Session(write_profile(tmp_path / "p.toml", raw), pm=pm, out_dir="runs")
+    yield s
+    s.close()
+
+
+def quiet_app(session):
+    """The app with status polling slowed down, so nothing changes between resize and shot."""
+    return DotshellApp(session, status_interval_s=3600)
+
+
+async def test_rig_screen(session, tmp_path):
+    app = quiet_app(session)
+    async with app.run_test(size=SIZES[0]) as pilot:
+        await pilot.press("c")
+        await settle(pilot)
+        await pilot.press("right", "right")
+        await settle(pilot)
+        app.refresh_status()
+        await check_sizes(pilot, "rig", tmp_path)
+
+
+async def test_scan_screen_paused_midway(session, tmp_path):
+    reached, opened = threading.Event(), threading.Event()
+
+    def hold(ev):
+        if isinstance(ev, FrameCaptured) and (ev.view, ev.index) == (0, 2):
+            reached.set()
+            opened.wait(60)
+
+    session.bus.subscribe(hold)
+    app = quiet_app(session)
+    async with app.run_test(size=SIZES[0]) as pilot:
+        await pilot.pause()
+        app.action_show_tab("scan")
+        await pilot.pause()
+        await pilot.press("s")
+        while not reached.is_set():
+            await pilot.pause(0.02)
+        await pilot.press("p")
+        opened.set()
+        while app.tracker.status != "paused":
+            await pilot.pause(0.02)
+        app.refresh_status()
+        await check_sizes(pilot, "scan-paused", tmp_path)
+        session.abort()
+        while session.scanning:
+            await pilot.pause(0.02)
+
+
+async def test_console_screen(session, tmp_path):
+    app = quiet_app(session)
+    async with app.run_test(size=SIZES[0]) as pilot:
+        await pilot.pause()
+        app.action_show_tab("console")
+        await pilot.pause()
+        box = app.panel(ConsoleInput)
+        box.cursor_blink = False
+        for source in ("connect(); jog(12.5)", "rig.stage.position * 2",
+                       "for name in patterns()[:3]:\n    print(name)\n", "1 / 0"):
+            box.text = source
+            box.move_cursor(box.document.end)
+            await pilot.press("enter")
+            await settle(pilot)
+        await check_sizes(pilot, "console", tmp_path)
+
+
+class FixedPlugin:
+    """Two made-up backends, so the plugins screen does not change with the installed ones."""
+
+    @hookimpl
+    def dotshell_cameras(self):
+        return [Backend("lab-cam", lambda settings, context: None, {}, "a made-up camera")]
+
+    @hookimpl
+    def dotshell_stages(self):
+        return [Backend("lab-stage", lambda settings, context: None, {}, "a made-up stage")]
+
+
+async def test_plugins_screen(session, tmp_path):
+    pm = PluginManager()
+    pm.register(FixedPlugin(), name="lab", distribution="dotshell-lab 1.2")
+    pm.load_errors.append(PluginLoadError("broken", "dotshell-broken 0.1",
+                                          "ImportError: needs libfoo.so"))
+    session.pm = pm
+    app = quiet_app(session)
+    async with app.run_test(size=SIZES[0]) as pilot:
+        await pilot.press("ctrl+g")
+        await pilot.pause()
+        assert isinstance(app.screen, PluginsScreen)
+        await check_sizes(pilot, "plugins", tmp_path)
