@@ -24,9 +24,10 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/run.py
 
-## validate: full-resolution accuracy checks (the figures quoted in docs/)
+## validate: full-resolution accuracy checks, then the codings x PDI table (docs/light-model.md)
 validate: $(STAMP)
-	$(PY) -m pytest -q -m slow tests
+	$(PY) -m pytest -q -s -m slow tests
+	$(PY) benchmarks/validate_matrix.py
 
 clean:
 	rm -rf $(VENV) .venv-bench-contrib runs .pytest_cache

@@ -100,10 +100,33 @@ def cmd_scan(args: argparse.Namespace) -> int:
     return 0 if result.status == "completed" else 1
 
 
+def cmd_validate(args: argparse.Namespace) -> int:
+    from dotshell.pipeline.compare import COLUMNS, compare_runs
+
+    rows, csv_path, png_path = compare_runs(args.runs, args.out)
+    t = Table(title="Validation across runs (paper's Table 1 layout)")
+    heads = {"mean_rel_error_pct": "mean rel. err %", "std_rel_error_pct": "std %",
+             "rms_radius_error_mm": "RMS µm", "coverage_pct": "coverage %",
+             "decoded_pct": "decoded %", "rejected_pct": "rejected %"}
+    cols = [c for c in COLUMNS if c != "run"]
+    for c in cols:
+        t.add_column(heads.get(c, c))
+    for r in rows:
+        t.add_row(*(f"{r[c] * 1000:.1f}" if c == "rms_radius_error_mm" else
+                    f"{r[c]:.3f}" if isinstance(r[c], float) else escape(str(r[c])) for c in cols))
+    out.print(t)
+    out.print(f"table: {csv_path}\nplot: {png_path}")
+    return 0
+
+
 def cmd_reconstruct(args: argparse.Namespace) -> int:
     from dotshell.pipeline.scan import reconstruct_run
 
     pm = _pm(args)
+    if args.captures or args.run is None:
+        from dotshell.cli_calibration import reconstruct_captures_command
+
+        return reconstruct_captures_command(args, pm, out)
     bus = EventBus()
     view = ScanProgress(err)
     bus.subscribe(view)
@@ -165,6 +188,27 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_tui(args: argparse.Namespace) -> int:
+    from dotshell.console import Session
+    from dotshell.tui.app import run_tui  # imported before the app starts: it probes the terminal
+
+    session = Session(args.profile, pm=_pm(args), out_dir=args.out, overrides=args.set)
+    return run_tui(session)
+
+
+def cmd_script(args: argparse.Namespace) -> int:
+    from dotshell.console import Session, run_script, split_script_args
+
+    opts, script_argv = split_script_args(args.args)  # options may also follow FILE
+    session = Session(opts["profile"] or args.profile, pm=_pm(args),
+                      out_dir=opts["out"] or args.out, overrides=args.set + opts["set"])
+    view = ScanProgress(err)
+    session.bus.subscribe(view)
+    with session, view.progress:
+        run_script(args.file, session, script_argv)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dotshell", description=(
         "Instrument shell for structured-light surface scans on DOT rigs. "
@@ -186,10 +230,21 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", default="runs", help="parent directory of the run (default: runs)")
     sp.set_defaults(func=cmd_scan)
 
-    sp = sub.add_parser("reconstruct", help="re-process a run from its frames on disk")
-    sp.add_argument("run", help="run directory")
+    sp = sub.add_parser("reconstruct", help="re-process a run from its frames on disk, or "
+                        "reconstruct captures from another rig (--captures)")
+    sp.add_argument("run", nargs="?", help="run directory")
     sp.add_argument("--calibration", metavar="FILE", help="use this calibration instead")
+    from dotshell.cli_calibration import add_captures_args, add_calibrate_parser
+
+    add_captures_args(sp)
     sp.set_defaults(func=cmd_reconstruct)
+
+    add_calibrate_parser(sub, profile_args)
+
+    sp = sub.add_parser("validate", help="compare the accuracy of runs (Table 1, CSV, PNG plot)")
+    sp.add_argument("runs", nargs="+", help="run directories")
+    sp.add_argument("--out", default=".", help="where validation.csv and validation.png go")
+    sp.set_defaults(func=cmd_validate)
 
     sp = sub.add_parser("check", help="validate a profile (and open every device with --connect)")
     profile_args(sp)
@@ -199,6 +254,29 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("plugins", help="list backends by role and plugin load errors")
     sp.add_argument("--settings", action="store_true", help="also list each backend's settings")
     sp.set_defaults(func=cmd_plugins)
+
+    from dotshell.cli_mesh import add_mesh_parsers
+
+    add_mesh_parsers(sub, _pm)
+
+    def session_args(sp):
+        sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a profile key (TOML value), e.g. --set scan.views=24")
+        sp.add_argument("--out", default="runs", help="parent directory of runs (default: runs)")
+
+    sp = sub.add_parser("tui", help="terminal UI: rig, scan, previews, log, Python console")
+    sp.add_argument("profile", nargs="?", help="profile TOML file (omit to pick one in the UI)")
+    session_args(sp)
+    sp.set_defaults(func=cmd_tui)
+
+    sp = sub.add_parser("script", help="run a Python script against a live session, headless")
+    sp.add_argument("file", help="the Python script (rig, profile, run, scan(), np, ... are "
+                    "defined; see docs/tui.md)")
+    sp.add_argument("--profile", help="profile TOML file to load before the script runs")
+    session_args(sp)
+    sp.add_argument("args", nargs=argparse.REMAINDER,
+                    help="arguments for the script (sys.argv[1:]); put them after --")
+    sp.set_defaults(func=cmd_script)
     return p
 
 

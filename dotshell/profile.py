@@ -15,7 +15,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from dotshell.calibration.schema import CALIBRATE_SCHEMA
 from dotshell.errors import ProfileError
+from dotshell.mesh_schema import MESH_SCHEMA
 from dotshell.plugins import PluginManager
 from dotshell.settings import REQUIRED, Setting, validate_settings
 
@@ -41,11 +43,15 @@ SCHEMA: dict[str, Setting] = {
     "analyzer": _role(False),
     "light_source": _role(False),
     "coding": _role(True),
+    "surface_mesher": _role(False),
+    "volume_mesher": _role(False),
     "calibration": Setting("table", schema={
         "source": Setting("str", default="file", choices=("file", "ground-truth"),
                           help="'file' reads `file`; 'ground-truth' asks a simulated rig"),
         "file": Setting("str", default="", help="calibration.json, relative to the profile"),
     }),
+    "calibrate": Setting("table", schema=CALIBRATE_SCHEMA, default={},
+                         help="target and poses for `dotshell calibrate` (docs/calibration.md)"),
     "scan": Setting("table", schema={
         "views": Setting("int", default=12, min=1, max=3600,
                          help="views equally spaced over 360 degrees (ignored if angles_deg set)"),
@@ -57,6 +63,12 @@ SCHEMA: dict[str, Setting] = {
                              help="wait after each projector change before capturing"),
         "retries": Setting("int", default=2, min=0, max=20,
                            help="re-tries of a frame capture that raised DeviceError"),
+        "pdi": Setting("bool", default=False,
+                       help="polarization difference imaging: capture every pattern with the "
+                            "analyzer parallel and perpendicular, reconstruct from |I∥ − I⊥|"),
+        "pdi_angles_deg": Setting("list[float]", default=[0.0, 90.0], length=2, unit="deg",
+                                  help="analyzer angles (parallel, perpendicular) relative to "
+                                       "the polarizer"),
     }, default={}),
     "processing": Setting("table", schema={
         "roi": Setting("table", schema={
@@ -69,6 +81,10 @@ SCHEMA: dict[str, Setting] = {
         "row_tolerance_px": Setting("float", default=1.5, min=0.1, unit="px",
                                     help="max |decoded − predicted| projector row "
                                          "(column+row codings)"),
+        "max_depth_jump_mm": Setting("float", default=0.5, min=0.0, unit="mm",
+                                     help="speckle filter: drop points whose depth differs from "
+                                          "the median of their 5x5 camera neighbourhood by more "
+                                          "(0 = off)"),
         "min_ray_angle_deg": Setting("float", default=5.0, min=0.0, max=89.0, unit="deg",
                                      help="drop points whose camera ray meets the column plane "
                                           "more grazing than this"),
@@ -84,6 +100,8 @@ SCHEMA: dict[str, Setting] = {
                             help="coverage cell width around the axis"),
         "cell_mm": Setting("float", default=1.0, min=0.05, unit="mm", help="coverage cell height"),
     }, default={}),
+    "mesh": Setting("table", schema=MESH_SCHEMA, default={},
+                    help="surface and volume meshing of the cloud (docs/meshing.md)"),
     "export": Setting("table", default={}, help="one sub-table per exporter backend to run "
                       "after processing, holding that exporter's settings: [export.NAME]"),
     "outputs": Setting("table", schema={
@@ -166,7 +184,7 @@ def validate_profile(raw: dict[str, Any], pm: PluginManager, where: str,
                      base_dir: Path | str = ".") -> Profile:
     """Validate a parsed profile dict; see :func:`load_profile`."""
     data = validate_settings(SCHEMA, raw, where)
-    for role in (*DEVICE_ROLES, "coding"):
+    for role in (*DEVICE_ROLES, "coding", "surface_mesher", "volume_mesher"):
         section = data.get(role)
         if section is None:
             continue

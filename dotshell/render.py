@@ -17,6 +17,10 @@ import numpy as np
 from dotshell.store import atomic_write_bytes
 
 
+#: points drawn in a cloud preview (a fixed-seed random subset of larger clouds)
+PREVIEW_POINTS = 1_000_000
+
+
 def _write_png(path: Path, image: np.ndarray) -> Path:
     ok, buf = cv2.imencode(".png", image)
     if not ok:
@@ -54,6 +58,10 @@ def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
     _prepare_offscreen()
     import pyvista as pv
 
+    if len(points) > PREVIEW_POINTS:  # a 900 px image shows no more; VTK copies are large
+        pick = np.random.default_rng(0).choice(len(points), PREVIEW_POINTS, replace=False)
+        points = points[pick]
+        scalars = None if scalars is None else np.asarray(scalars)[pick]
     cloud = pv.PolyData(np.asarray(points, np.float32))
     pl = pv.Plotter(off_screen=True, window_size=(900, 900))
     try:

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -19,6 +20,7 @@ from dotshell.events import (EventBus, ScanFinished, ScanStarted, StepProgress, 
                              ViewCaptured, ViewReconstructed)
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.acquire import Acquisition
+from dotshell.pipeline.pdi import combine, plan_shots, shots_from_manifest
 from dotshell.pipeline.reconstruct import ViewCloud, reconstruct_view
 from dotshell.pipeline.validate import cylinder_report
 from dotshell.plugins import PluginManager
@@ -85,13 +87,24 @@ def _store_view(store: RunStore, vc: ViewCloud, bus: EventBus) -> None:
                                decoded_pixels=int(vc.stats.get("decoded", 0))))
 
 
+@contextmanager
+def _kept_open(rig: Rig) -> Iterator[Rig]:
+    """A caller's rig: connected for the scan and left open for the caller."""
+    rig.connect()
+    yield rig
+
+
 def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
          bus: EventBus | None = None, stop: threading.Event | None = None,
-         calibration_file: str | None = None) -> ScanResult:
+         calibration_file: str | None = None, running: threading.Event | None = None,
+         rig: Rig | None = None) -> ScanResult:
     """Run a full scan; returns when done, stopped (``status="aborted"``) or failed (raises).
 
     Frames are on disk as they arrive; on any failure the run is marked ``failed`` (or
-    ``aborted`` on Ctrl-C) and everything captured so far is kept.
+    ``aborted`` on Ctrl-C) and everything captured so far is kept. Clearing ``running``
+    pauses the acquisition before its next frame, setting it again resumes. ``rig``: use this
+    rig (connected if needed, left open afterwards, e.g. a front end's live session) instead
+    of opening the profile's devices for the scan alone.
     """
     bus = bus or EventBus()
     coding = _make_coding(profile, pm)
@@ -103,15 +116,19 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
         store.write_profile(profile.raw())
         angles = profile.angles_deg()
         store.init_manifest(profile.name, angles, [])
-        with Rig(profile, pm) as rig:
+        with (Rig(profile, pm) if rig is None else _kept_open(rig)) as rig:
             calib = rig.calibration(calibration_file)
             calib.save(store.path("calibration.json"))
             patterns = coding.patterns(rig.projector.resolution)
-            store.update_manifest(frame_names=[p.name for p in patterns])
+            shots = plan_shots(patterns, profile.data["scan"])
+            store.update_manifest(frame_names=[s.name for s in shots],
+                                  shots=[s.to_dict() for s in shots],
+                                  pattern_names=[p.name for p in patterns])
             bus.emit(ScanStarted(run_dir=str(store.root), profile=profile.name,
-                                 n_views=len(angles), frames_per_view=len(patterns)))
-            bus.emit(StepStarted(step="acquire", total=len(angles) * len(patterns)))
-            acq = Acquisition(rig, patterns, store, profile.data["scan"], bus, stop)
+                                 n_views=len(angles), frames_per_view=len(shots)))
+            bus.emit(StepStarted(step="acquire", total=len(angles) * len(shots)))
+            acq = Acquisition(rig, patterns, store, profile.data["scan"], bus, stop, running,
+                              shots=shots)
             clouds = []
             try:
                 for view, angle in enumerate(angles):
@@ -120,7 +137,7 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
                         status = "aborted"
                         bus.warn(f"scan stopped during view {view}; frames kept in {store.root}")
                         break
-                    vc = reconstruct_view(view, angle, frames, coding, calib,
+                    vc = reconstruct_view(view, angle, combine(frames, shots), coding, calib,
                                           profile.data["processing"])
                     _store_view(store, vc, bus)
                     clouds.append(_slim(vc, profile))
@@ -171,6 +188,7 @@ def reconstruct_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None
             calib.save(store.path("calibration.json"))
         coding = _make_coding(profile, pm)
         manifest = store.manifest
+        shots = shots_from_manifest(manifest)
         views = manifest["views"]
         bus.emit(StepStarted(step="reconstruct", total=len(views)))
         clouds = []
@@ -179,7 +197,7 @@ def reconstruct_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None
                 bus.warn(f"view {v['index']} has {v['frames']} of "
                          f"{len(manifest['frame_names'])} frames; skipped")
                 continue
-            frames = store.read_frames(v["index"])
+            frames = combine(store.read_frames(v["index"]), shots)
             vc = reconstruct_view(v["index"], v["angle_deg"], frames, coding, calib,
                                   profile.data["processing"])
             _store_view(store, vc, bus)
@@ -230,6 +248,12 @@ def finish(store: RunStore, profile: Profile, pm: PluginManager, calib: RigCalib
         t0 = time.perf_counter()
         report["previews"] = render_previews(store, clouds, points, profile, calib, bus)
         timings["previews"] = time.perf_counter() - t0
+    if profile.data["mesh"]["after_scan"]:  # surface + volume before the exporters use them
+        from dotshell.pipeline.mesh import mesh_stage
+
+        t0 = time.perf_counter()
+        report["mesh"] = mesh_stage(store, profile, pm, bus)
+        timings["mesh"] = time.perf_counter() - t0
     if profile.data["export"]:
         t0 = time.perf_counter()
         report["exports"] = run_exporters(store, profile, pm, bus)
