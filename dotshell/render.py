@@ -53,8 +53,12 @@ def _prepare_offscreen() -> None:
 
 def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
                   title: str = "", scalar_name: str = "z [mm]",
-                  clim: tuple[float, float] | None = None, cmap: str = "viridis") -> Path:
-    """Render a point cloud (mm) to PNG off-screen with pyvista; ``clim`` clips the colours."""
+                  clim: tuple[float, float] | None = None, cmap: str = "viridis",
+                  camera: list[tuple[float, float, float]] | None = None) -> Path:
+    """Render a point cloud (mm) to PNG off-screen with pyvista; ``clim`` clips the colours.
+
+    ``camera``: (eye, focal point, view-up) to look along, zoomed to fit the cloud, with
+    eye-dome lighting (for single-view clouds); default an isometric view with axes."""
     _prepare_offscreen()
     import pyvista as pv
 
@@ -71,9 +75,14 @@ def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
                     cmap=cmap, clim=clim, scalar_bar_args={"color": "black"})
         if title:
             pl.add_text(title, font_size=10, color="black")
-        pl.camera_position = "iso"
-        pl.camera.azimuth = 30
-        pl.show_axes()
+        if camera is None:
+            pl.camera_position = "iso"
+            pl.camera.azimuth = 30
+            pl.show_axes()
+        else:
+            pl.camera_position = camera
+            pl.reset_camera()  # same viewing direction, the whole cloud in the picture
+            pl.enable_eye_dome_lighting()
         tmp = Path(path).with_suffix(".tmp.png")
         pl.screenshot(str(tmp))
         os.replace(tmp, path)

@@ -301,33 +301,13 @@ def _previews(store, white: np.ndarray, corr, calib: RigCalibration, points: np.
 def camera_view_preview(points: np.ndarray, path: Path, title: str) -> Path:
     """Render a camera-frame cloud (mm) as seen from a little beside the camera, coloured by
     depth (2nd–98th percentile), off-screen with pyvista."""
-    import os
-
-    from dotshell.render import _prepare_offscreen
-
-    _prepare_offscreen()
-    import pyvista as pv
+    from dotshell.render import cloud_preview
 
     pts = np.asarray(points, np.float32)
     lo, hi = np.percentile(pts[:, 2], [2, 98])
     keep = (pts[:, 2] >= lo - 0.1 * (hi - lo)) & (pts[:, 2] <= hi + 0.1 * (hi - lo))
-    cloud = pv.PolyData(pts[keep])
-    cloud["depth z [mm]"] = pts[keep, 2]
     centre = np.median(pts[keep], axis=0)
-    pl = pv.Plotter(off_screen=True, window_size=(900, 900))
-    try:
-        pl.set_background("white")
-        pl.add_mesh(cloud, scalars="depth z [mm]", point_size=2, cmap="viridis",
-                    clim=(float(lo), float(hi)), scalar_bar_args={"color": "black"})
-        pl.add_text(title, font_size=10, color="black")
-        dist = float(np.linalg.norm(centre))
-        eye = centre + np.array([0.35, -0.2, -1.0]) * dist * 0.6  # beside the camera
-        pl.camera_position = [tuple(eye), tuple(centre), (0.0, -1.0, 0.0)]
-        pl.reset_camera()  # same viewing direction, the whole cloud in the picture
-        pl.enable_eye_dome_lighting()
-        tmp = Path(path).with_suffix(".tmp.png")
-        pl.screenshot(str(tmp))
-        os.replace(tmp, path)
-    finally:
-        pl.close()
-    return Path(path)
+    eye = centre + np.array([0.35, -0.2, -1.0]) * float(np.linalg.norm(centre)) * 0.6
+    return cloud_preview(pts[keep], pts[keep, 2], path, title, "depth z [mm]",
+                         clim=(float(lo), float(hi)),
+                         camera=[tuple(eye), tuple(centre), (0.0, -1.0, 0.0)])
