@@ -71,3 +71,10 @@ def small_scan(tmp_path_factory):
     bus.subscribe(events.append)
     result = scan(load_profile(prof_path, pm), pm, tmp / "runs", bus=bus)
     return result, events
+
+
+def pytest_collection_modifyitems(config, items):
+    """Full-resolution (slow) checks may run for many minutes: no per-test timeout there."""
+    for item in items:
+        if item.get_closest_marker("slow") is not None:
+            item.add_marker(pytest.mark.timeout(0))
