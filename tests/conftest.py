@@ -54,6 +54,23 @@ def write_profile(path: Path, raw: dict) -> Path:
     return path
 
 
+def write_test_profile(tmp_path: Path, views: int = 2, name: str = "p.toml",
+                       settle_ms: float = 0.0, **outputs) -> Path:
+    """The tiny sim bench for front-end tests: 0.12 scale, 1 ray per pixel, previews off
+    unless asked."""
+    raw = small_profile_dict(factor=0.12, views=views)
+    raw["camera"]["settings"]["supersample"] = 1
+    raw["scan"]["settle_ms"] = settle_ms
+    raw["outputs"] = {"previews": False, **outputs}
+    return write_profile(tmp_path / name, raw)
+
+
+@pytest.fixture
+def pm(dotshell_pm):
+    """All installed plugins (the dotshell pytest plugin's ``dotshell_pm``)."""
+    return dotshell_pm
+
+
 @pytest.fixture(scope="session")
 def small_scan(tmp_path_factory):
     """One reduced-resolution 6-view scan of the metal cylinder, shared by read-only tests."""

@@ -8,31 +8,16 @@ import time
 import numpy as np
 import pytest
 
-from conftest import small_profile_dict, write_profile
+from conftest import write_test_profile
 from dotshell.cli import main
 from dotshell.console import PreviewSaved, Run, Session, SessionBusy
 from dotshell.errors import DeviceError, ProfileError
 from dotshell.events import (EventBus, FrameCaptured, ScanFinished, ScanPaused, ScanResumed,
                              ScanStarted, ViewCaptured, ViewReconstructed)
 from dotshell.pipeline.scan import scan
-from dotshell.plugins import PluginManager
 from dotshell.profile import load_profile
 from dotshell.tui.interpreter import Interpreter, wants_more
 from dotshell.tui.progress import ScanTracker, format_seconds
-
-
-def write_test_profile(tmp_path, views=2, name="p.toml"):
-    raw = small_profile_dict(factor=0.12, views=views)
-    raw["camera"]["settings"]["supersample"] = 1
-    raw["outputs"] = {"previews": False}
-    return write_profile(tmp_path / name, raw)
-
-
-@pytest.fixture
-def pm():
-    pm = PluginManager()
-    pm.load_entry_points()
-    return pm
 
 
 @pytest.fixture

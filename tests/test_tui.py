@@ -11,10 +11,9 @@ from PIL import Image
 from rich.console import Console
 from textual.content import Content
 
-from conftest import small_profile_dict, write_profile
+from conftest import write_test_profile
 from dotshell.console import Session
 from dotshell.events import FrameCaptured
-from dotshell.plugins import PluginManager
 from dotshell.tui.app import DotshellApp
 from dotshell.tui.widgets.choice import ChoiceScreen
 from dotshell.tui.widgets.confirm import ConfirmScreen
@@ -27,22 +26,6 @@ from dotshell.tui.widgets.profile_picker import ProfilePicker
 from dotshell.tui.widgets.scan_panel import ScanPanel
 
 pytestmark = pytest.mark.asyncio
-
-
-def write_test_profile(tmp_path, views=2, name="p.toml", settle_ms=0.0, **outputs):
-    """The reduced sim bench: 0.12 scale, 1 ray per pixel, previews off unless asked."""
-    raw = small_profile_dict(factor=0.12, views=views)
-    raw["camera"]["settings"]["supersample"] = 1
-    raw["scan"]["settle_ms"] = settle_ms
-    raw["outputs"] = {"previews": False, **outputs}
-    return write_profile(tmp_path / name, raw)
-
-
-@pytest.fixture
-def pm():
-    pm = PluginManager()
-    pm.load_entry_points()
-    return pm
 
 
 @pytest.fixture

@@ -25,7 +25,7 @@ import numpy as np
 from dotshell.errors import CalibrationError, ReconstructionError, RunError
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.opencv_io import load_any_calibration
-from dotshell.geometry.triangulate import camera_ray_grid, triangulate
+from dotshell.pipeline.reconstruct import triangulate_correspondence
 from dotshell.settings import Setting, validate_settings
 
 SHIPPED_LAYOUTS = Path(__file__).resolve().parents[2] / "layouts"
@@ -240,7 +240,7 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
     corr = coding.decode(frames, layout.projector_size)
     t2 = time.perf_counter()
     proc = {"min_ray_angle_deg": 5.0, "row_tolerance_px": 1.5, **(processing or {})}
-    points, stats = triangulate_correspondence(corr, calib, proc)
+    _, points, stats = triangulate_correspondence(corr, calib, proc)
     t3 = time.perf_counter()
     if len(points) == 0:
         raise ReconstructionError(f"{captures}: no pixel decoded into a point ({corr.stats}). "
@@ -265,20 +265,6 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
                            "triangulate": round(t3 - t2, 3), "compare": round(t4 - t3, 3)}
     store.write_json("report.json", report)
     return CapturesResult(store.root, report)
-
-
-def triangulate_correspondence(corr, calib: RigCalibration,
-                               processing: dict[str, Any]) -> tuple[np.ndarray, dict[str, int]]:
-    """Camera-frame points (N, 3) in mm from a decoded correspondence."""
-    ys, xs = np.nonzero(corr.valid)
-    rays = camera_ray_grid(calib.camera)[ys, xs]
-    tri = triangulate(rays, corr.column[ys, xs], calib,
-                      row=None if corr.row is None else corr.row[ys, xs],
-                      row_tolerance_px=processing["row_tolerance_px"],
-                      min_ray_angle_deg=processing["min_ray_angle_deg"])
-    stats = {"triangulated": int(tri.keep.sum()), "row_rejected": int(tri.row_rejected.sum()),
-             "grazing": int(tri.grazing.sum())}
-    return tri.points[tri.keep], stats
 
 
 def _previews(store, white: np.ndarray, corr, calib: RigCalibration, points: np.ndarray,

@@ -56,6 +56,24 @@ def check_frames(frames: Sequence[np.ndarray], calib: RigCalibration, view: int)
             "at this resolution.")
 
 
+def triangulate_correspondence(corr: Correspondence, calib: RigCalibration,
+                               processing: dict[str, Any]
+                               ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    """Triangulate every valid pixel of a correspondence.
+
+    Returns the camera pixels (N, 2) (x, y) kept, their camera-frame points (N, 3) in mm, and
+    the counts ``triangulated``, ``row_rejected``, ``grazing``."""
+    ys, xs = np.nonzero(corr.valid)
+    rays = camera_ray_grid(calib.camera)[ys, xs]
+    tri = triangulate(rays, corr.column[ys, xs], calib,
+                      row=None if corr.row is None else corr.row[ys, xs],
+                      row_tolerance_px=processing["row_tolerance_px"],
+                      min_ray_angle_deg=processing["min_ray_angle_deg"])
+    stats = {"triangulated": int(tri.keep.sum()), "row_rejected": int(tri.row_rejected.sum()),
+             "grazing": int(tri.grazing.sum())}
+    return np.column_stack([xs, ys])[tri.keep], tri.points[tri.keep], stats
+
+
 def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
                      coding: PatternCoding, calib: RigCalibration,
                      processing: dict[str, Any]) -> ViewCloud:
@@ -64,14 +82,7 @@ def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
     t0 = time.perf_counter()
     corr = coding.decode(frames, calib.projector.size)
     t1 = time.perf_counter()
-    ys, xs = np.nonzero(corr.valid)
-    rays = camera_ray_grid(calib.camera)[ys, xs]
-    tri = triangulate(rays, corr.column[ys, xs], calib,
-                      row=None if corr.row is None else corr.row[ys, xs],
-                      row_tolerance_px=processing["row_tolerance_px"],
-                      min_ray_angle_deg=processing["min_ray_angle_deg"])
-    pixels = np.column_stack([xs, ys])[tri.keep]
-    cam_pts = tri.points[tri.keep]
+    pixels, cam_pts, tri_stats = triangulate_correspondence(corr, calib, processing)
     smooth = np.ones(len(cam_pts), bool)
     if processing["max_depth_jump_mm"] > 0:
         smooth = speckle_mask(pixels, cam_pts[:, 2], frames[0].shape[:2],
@@ -80,9 +91,7 @@ def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
     pixels = pixels[smooth]
     inside = in_roi(pts, processing["roi"])
     t2 = time.perf_counter()
-    stats = {**corr.stats, "triangulated": int(tri.keep.sum()),
-             "row_rejected": int(tri.row_rejected.sum()), "grazing": int(tri.grazing.sum()),
-             "speckle": int((~smooth).sum()),
+    stats = {**corr.stats, **tri_stats, "speckle": int((~smooth).sum()),
              "outside_roi": int((~inside).sum()), "points": int(inside.sum())}
     return ViewCloud(view, angle_deg, pts[inside], pixels[inside], corr, stats,
                      {"decode": t1 - t0, "triangulate": t2 - t1})
