@@ -72,6 +72,7 @@ class PoissonSurfaceMesher:
         stats["filtered_points"] = len(pcd.points)
         self._require_points(len(pcd.points), len(points_mm), voxel)
         pts = np.asarray(pcd.points)
+        _require_not_flat(pts, max(node_distance_mm / 2, 2 * voxel))
         views = np.asarray(pcd.normals).copy() if views is not None else None
         normals = _oriented_normals(o3d, pts, views, voxel)
         if bottom_z_mm is not None:
@@ -117,6 +118,19 @@ class PoissonSurfaceMesher:
         stats["poisson_depth"] = depth
         stats["poisson_vertices"] = len(mesh.vertices)
         return TriangleSurface(np.asarray(mesh.vertices), np.asarray(mesh.triangles))
+
+
+def _require_not_flat(pts: np.ndarray, min_thickness_mm: float) -> None:
+    """Refuse a cloud that is a sheet (2nd–98th percentile spread along its thinnest principal
+    axis below ``min_thickness_mm``): it cannot enclose a volume, whatever Poisson makes of it."""
+    centred = pts - pts.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred[:: max(1, len(pts) // 50_000)], full_matrices=False)
+    lo, hi = np.percentile(centred @ axes[2], [2, 98])
+    if hi - lo < min_thickness_mm:
+        raise MeshError(
+            f"the cloud is a sheet {hi - lo:.3f} mm thick (at least {min_thickness_mm:.2f} mm "
+            "needed to enclose a volume): it covers only one side of the sample. Scan all around "
+            "it (more views) or check [processing.roi].")
 
 
 def _require_solid(stats: dict[str, Any], node_distance_mm: float) -> None:
