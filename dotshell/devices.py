@@ -104,3 +104,39 @@ class GroundTruth(Protocol):
 
     def ground_truth_calibration(self):  # -> dotshell.geometry.calibration.RigCalibration
         ...
+
+
+@runtime_checkable
+class Targetable(Protocol):
+    """A light source whose beam can be pointed (galvo mirrors, a translation stage)."""
+
+    def aim(self, target_mm: tuple[float, float]) -> None:
+        """Point the beam at ``target_mm`` = (lateral, height) in mm in the source's own target
+        plane (for the simulator: the stage frame's y and z, the beam running along −x towards
+        the camera). Return when the beam has settled."""
+        ...
+
+
+@runtime_checkable
+class FlatFieldReference(Protocol):
+    """A rig that can show the camera a uniform radiance field (a diffuser or integrating
+    sphere port in front of the lens) for flat-field / vignetting correction."""
+
+    def flat_field(self, on: bool) -> None:
+        """Put the uniform reference in front of the camera (True) or take it away (False)."""
+        ...
+
+
+@runtime_checkable
+class TransilluminationTruth(Protocol):
+    """A simulated light source that knows the true light leaving the sample."""
+
+    def true_normal_radiance(self, angle_deg: float, target_mm: tuple[float, float],
+                             points_mm: np.ndarray) -> np.ndarray:
+        """True radiance leaving the sample along the surface normal (the paper's I0) at the
+        sample-frame points ``points_mm`` (N, 3), snapped to the true surface, for the stage at
+        ``angle_deg`` and the beam at ``target_mm``. Units: camera DN per ms of exposure that a
+        dark-subtracted, flat-fielded pixel at the principal point would record from a surface
+        element facing the camera squarely. NaN where a point is farther than 1 mm from the
+        true surface."""
+        ...

@@ -20,6 +20,7 @@ from dotshell.errors import ProfileError
 from dotshell.mesh_schema import MESH_SCHEMA
 from dotshell.plugins import PluginManager
 from dotshell.settings import REQUIRED, Setting, validate_settings
+from dotshell.transillum_schema import NORMALIZE_SCHEMA, TRANSILLUMINATION_SCHEMA
 
 DEVICE_ROLES = ("camera", "projector", "stage", "analyzer", "light_source")
 REQUIRED_ROLES = ("camera", "projector", "stage", "coding")
@@ -45,6 +46,7 @@ SCHEMA: dict[str, Setting] = {
     "coding": _role(True),
     "surface_mesher": _role(False),
     "volume_mesher": _role(False),
+    "normalizer": _role(False),
     "calibration": Setting("table", schema={
         "source": Setting("str", default="file", choices=("file", "ground-truth"),
                           help="'file' reads `file`; 'ground-truth' asks a simulated rig"),
@@ -102,6 +104,11 @@ SCHEMA: dict[str, Setting] = {
     }, default={}),
     "mesh": Setting("table", schema=MESH_SCHEMA, default={},
                     help="surface and volume meshing of the cloud (docs/meshing.md)"),
+    "transillumination": Setting("table", schema=TRANSILLUMINATION_SCHEMA, default={},
+                                 help="trans-illumination capture (docs/transillumination.md)"),
+    "normalize": Setting("table", schema=NORMALIZE_SCHEMA, default={},
+                         help="intensity normalization on the surface "
+                              "(docs/transillumination.md)"),
     "export": Setting("table", default={}, help="one sub-table per exporter backend to run "
                       "after processing, holding that exporter's settings: [export.NAME]"),
     "outputs": Setting("table", schema={
@@ -184,7 +191,7 @@ def validate_profile(raw: dict[str, Any], pm: PluginManager, where: str,
                      base_dir: Path | str = ".") -> Profile:
     """Validate a parsed profile dict; see :func:`load_profile`."""
     data = validate_settings(SCHEMA, raw, where)
-    for role in (*DEVICE_ROLES, "coding", "surface_mesher", "volume_mesher"):
+    for role in (*DEVICE_ROLES, "coding", "surface_mesher", "volume_mesher", "normalizer"):
         section = data.get(role)
         if section is None:
             continue
@@ -203,7 +210,24 @@ def validate_profile(raw: dict[str, Any], pm: PluginManager, where: str,
         raise ProfileError(f"{where}: [calibration] needs file = \"calibration.json\" (a "
                            "calibration written by dotshell), or source = \"ground-truth\" on a "
                            "simulated rig.")
+    _check_transillumination(data, where)
     return Profile(data, where, Path(base_dir))
+
+
+def _check_transillumination(data: dict[str, Any], where: str) -> None:
+    t = data["transillumination"]
+    for i, target in enumerate(t["targets_mm"]):
+        if len(target) != 2:
+            raise ProfileError(f"{where}: [transillumination] targets_mm[{i}] = {target!r} is not "
+                               "a [lateral, height] pair of numbers in mm, e.g. [0.0, 10.0].")
+    if t["enabled"] and data.get("light_source") is None:
+        raise ProfileError(f"{where}: [transillumination] enabled = true needs a [light_source] "
+                           "(the trans-illumination laser), e.g. backend = \"sim-laser\".")
+    n_views = len(data["scan"]["angles_deg"]) or data["scan"]["views"]
+    bad = [v for v in t["views"] if not 0 <= v < n_views]
+    if bad:
+        raise ProfileError(f"{where}: [transillumination] views {bad} are not views of this "
+                           f"scan (0 .. {n_views - 1}).")
 
 
 def load_profile(path: str | Path, pm: PluginManager, overrides: list[str] | None = None) -> Profile:

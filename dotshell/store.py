@@ -175,28 +175,41 @@ class RunStore:
 
     def write_frame(self, view: int, index: int, name: str, image: np.ndarray) -> Path:
         """Write one captured frame losslessly (PNG; uint8 or uint16)."""
+        return self.write_image(self.frame_path(view, index, name), image,
+                                f"frame {name} of view {view}")
+
+    def write_image(self, path: Path, image: np.ndarray, label: str) -> Path:
+        """Write a captured image losslessly (PNG; 2-D uint8 or uint16) at ``path`` inside the
+        run; ``label`` names it in errors."""
         if image.dtype not in (np.uint8, np.uint16) or image.ndim != 2:
-            raise RunError(f"frame {name} of view {view} is {image.dtype} {image.shape}; cameras "
-                           "must return 2-D uint8 or uint16 images.")
+            raise RunError(f"{label} is {image.dtype} {image.shape}; cameras must return 2-D "
+                           "uint8 or uint16 images.")
         ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
         if not ok:
-            raise RunError(f"could not encode frame {name} of view {view} as PNG.")
-        p = self.frame_path(view, index, name)
-        atomic_write_bytes(p, buf.tobytes())
-        return p
+            raise RunError(f"could not encode {label} as PNG.")
+        atomic_write_bytes(path, buf.tobytes())
+        return path
+
+    def read_image(self, path: Path, why: str) -> np.ndarray:
+        """A stored image as written; ``why`` says what cannot be done without it."""
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise RunError(f"{path} is missing or unreadable; {why}.")
+        return img
+
+    def trans_path(self, name: str, view: int | None = None) -> Path:
+        """Path of a trans-illumination image: ``transillumination/view_VVV/NAME.png`` for a
+        view's frames, ``transillumination/NAME.png`` for the flat field."""
+        if view is None:
+            return self.path("transillumination", f"{name}.png")
+        return self.path("transillumination", f"view_{view:03d}", f"{name}.png")
 
     def read_frames(self, view: int) -> list[np.ndarray]:
         """All frames of a view in capture order, as written."""
         names = self.manifest["frame_names"]
-        frames = []
-        for i, name in enumerate(names):
-            p = self.frame_path(view, i, name)
-            img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-            if img is None:
-                raise RunError(f"frame {p} is missing or unreadable; view {view} cannot be "
-                               "reconstructed.")
-            frames.append(img)
-        return frames
+        return [self.read_image(self.frame_path(view, i, name),
+                                f"view {view} cannot be reconstructed")
+                for i, name in enumerate(names)]
 
     # ---- events -----------------------------------------------------------------------------
 

@@ -153,16 +153,16 @@ def test_disk_write_failure_stops_scan_with_clear_error(tmp_path, monkeypatch):
     from dotshell.errors import RunError
     from dotshell.store import RunStore
 
-    real = RunStore.write_frame
+    real = RunStore.write_image
     count = {"n": 0}
 
-    def failing(self, view, index, name, image):
+    def failing(self, path, image, label):
         count["n"] += 1
         if count["n"] > 20:
             raise OSError(28, "No space left on device")
-        return real(self, view, index, name, image)
+        return real(self, path, image, label)
 
-    monkeypatch.setattr(RunStore, "write_frame", failing)
+    monkeypatch.setattr(RunStore, "write_image", failing)
     pm = _pm()
     with pytest.raises(RunError, match="could not write frame .* No space left on device"):
         scan(_profile(tmp_path, pm), pm, tmp_path / "runs")

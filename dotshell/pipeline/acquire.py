@@ -13,6 +13,7 @@ from __future__ import annotations
 import queue
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -43,19 +44,25 @@ class FrameWriter:
                 if item is None:
                     return
                 if self.error is None:
-                    self.store.write_frame(*item)
+                    self.store.write_image(*item)
             except OSError as exc:  # disk full, permissions, unplugged drive
-                self.error = RunError(f"could not write frame {item[2]!r} of view {item[0]} to "
-                                      f"{self.store.root}: {exc}. Free disk space or scan with "
-                                      "--out on another drive; frames already written are kept.")
+                self.error = RunError(f"could not write {item[2]} to {self.store.root}: {exc}. "
+                                      "Free disk space or scan with --out on another drive; "
+                                      "frames already written are kept.")
             except BaseException as exc:  # reported to the runner on its next call
                 self.error = exc
             finally:
                 self.queue.task_done()
 
     def put(self, view: int, index: int, name: str, image: np.ndarray) -> None:
+        """Queue a fringe frame of a view."""
+        self.put_path(self.store.frame_path(view, index, name), image,
+                      f"frame {name!r} of view {view}")
+
+    def put_path(self, path: Path, image: np.ndarray, label: str) -> None:
+        """Queue any captured image for ``path`` in the run; ``label`` names it in errors."""
         self.check()
-        self.queue.put((view, index, name, image))
+        self.queue.put((path, image, label))
 
     def check(self) -> None:
         if self.error is not None:
