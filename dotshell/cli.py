@@ -81,6 +81,10 @@ def _print_report(report: dict[str, Any], run_dir: Path) -> None:
     out.print(f"cloud: {cloud.get('points', 0)} points → {run_dir / 'cloud.ply'}")
     for name, rel in (report.get("previews") or {}).items():
         out.print(f"preview {name}: {run_dir / rel}")
+    if "normalize" in report:
+        from dotshell.cli_normalize import print_section
+
+        print_section(report["normalize"], run_dir)
     out.print(f"run: {run_dir}  (status: {report.get('status', '?')})")
 
 
@@ -258,6 +262,9 @@ def build_parser() -> argparse.ArgumentParser:
     from dotshell.cli_mesh import add_mesh_parsers
 
     add_mesh_parsers(sub, _pm)
+    from dotshell.cli_normalize import add_normalize_parser
+
+    add_normalize_parser(sub, _pm)
 
     def session_args(sp):
         sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -22,6 +22,7 @@ from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.acquire import Acquisition
 from dotshell.pipeline.pdi import combine, plan_shots, shots_from_manifest
 from dotshell.pipeline.reconstruct import ViewCloud, reconstruct_view
+from dotshell.pipeline.transillum import TransilluminationCapture
 from dotshell.pipeline.validate import cylinder_report
 from dotshell.plugins import PluginManager
 from dotshell.ply import write_ply
@@ -131,12 +132,15 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
                               shots=shots)
             clouds = []
             try:
+                trans = _transillumination(rig, store, profile, acq, bus)
                 for view, angle in enumerate(angles):
                     frames = acq.run_view(view, angle)
                     if frames is None:
                         status = "aborted"
                         bus.warn(f"scan stopped during view {view}; frames kept in {store.root}")
                         break
+                    if trans is not None and _trans_view(profile, view):
+                        trans.run_view(view)
                     vc = reconstruct_view(view, angle, combine(frames, shots), coding, calib,
                                           profile.data["processing"])
                     _store_view(store, vc, bus)
@@ -160,6 +164,24 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
             u()
         store.close()
     return ScanResult(store.root, status, report)
+
+
+def _transillumination(rig: Rig, store: RunStore, profile: Profile, acq: Acquisition,
+                       bus: EventBus) -> TransilluminationCapture | None:
+    """The scan's trans-illumination step (flat field captured now), or None if disabled."""
+    t = profile.data["transillumination"]
+    if not t["enabled"]:
+        return None
+    trans = TransilluminationCapture(rig, store, t, profile.data["scan"], acq.writer, bus,
+                                     profile.base_dir)
+    store.update_manifest(transillumination=trans.manifest_entry())
+    trans.capture_flat_field()
+    return trans
+
+
+def _trans_view(profile: Profile, view: int) -> bool:
+    views = profile.data["transillumination"]["views"]
+    return not views or view in views
 
 
 def load_run_profile(store: RunStore, pm: PluginManager) -> Profile:
@@ -254,12 +276,26 @@ def finish(store: RunStore, profile: Profile, pm: PluginManager, calib: RigCalib
         t0 = time.perf_counter()
         report["mesh"] = mesh_stage(store, profile, pm, bus)
         timings["mesh"] = time.perf_counter() - t0
+    if _normalize_after(store, profile):
+        from dotshell.pipeline.normalize import normalize_stage
+
+        t0 = time.perf_counter()
+        report["normalize"] = normalize_stage(store, profile, pm, bus)
+        timings["normalize"] = time.perf_counter() - t0
     if profile.data["export"]:
         t0 = time.perf_counter()
         report["exports"] = run_exporters(store, profile, pm, bus)
         timings["export"] = time.perf_counter() - t0
     report["timings_s"] = {k: round(s, 3) for k, s in timings.items()}
     return report
+
+
+def _normalize_after(store: RunStore, profile: Profile) -> bool:
+    """Normalize at the end of processing: trans-illumination frames exist, a surface was
+    meshed now, and the profile asks for it."""
+    entry = store.manifest.get("transillumination") or {}
+    return bool(entry.get("views")) and profile.data["mesh"]["after_scan"] \
+        and profile.data["normalize"]["after_scan"]
 
 
 def run_exporters(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus) -> dict[str, list[str]]:

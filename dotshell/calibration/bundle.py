@@ -1,0 +1,222 @@
+"""Joint bundle adjustment of a camera–projector pair on a planar target (pure; mm, pixels).
+
+One least-squares problem holds everything the free poses measure: both lenses (focal lengths,
+principal points, the distortion terms solved for), the camera → projector pose and the board
+pose of every view. Each board corner contributes its camera residual and, where the gray code
+decoded it, its projector residual. Because the projector sees the *same* board poses from
+another direction, the principal points are constrained by both views at once (a principal
+point shift of one device is no longer absorbed by turning the poses alone).
+
+The parameter covariance ``s² (JᵀJ)⁻¹`` (``s²`` the residual variance) gives each intrinsic
+its one-sigma uncertainty, reported with the result.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import lil_matrix
+
+from dotshell.calibration.solve import PoseData
+from dotshell.errors import CalibrationError
+from dotshell.geometry.lens import Lens
+
+#: Distortion coefficients (OpenCV order k1, k2, p1, p2, k3) solved for, per ``distortion``.
+FREE_DISTORTION = {"k1": (0,), "k1k2": (0, 1), "k1k2k3": (0, 1, 4), "full": (0, 1, 2, 3, 4)}
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
+
+
+def project(K: np.ndarray, dist: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """OpenCV's pinhole + radial/tangential model: camera-frame points (N, 3) mm → pixels."""
+    x, y = X[:, 0] / X[:, 2], X[:, 1] / X[:, 2]
+    k1, k2, p1, p2, k3 = dist
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return np.column_stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]])
+
+
+@dataclass
+class _Layout:
+    """Where each group of parameters sits in the parameter vector."""
+
+    n_dist: int
+    n_poses: int
+
+    @property
+    def lens_len(self) -> int:
+        return 4 + self.n_dist
+
+    @property
+    def cam(self) -> slice:
+        return slice(0, self.lens_len)
+
+    @property
+    def proj(self) -> slice:
+        return slice(self.lens_len, 2 * self.lens_len)
+
+    @property
+    def stereo(self) -> slice:
+        return slice(2 * self.lens_len, 2 * self.lens_len + 6)
+
+    def pose(self, i: int) -> slice:
+        s = 2 * self.lens_len + 6 + 6 * i
+        return slice(s, s + 6)
+
+    @property
+    def size(self) -> int:
+        return 2 * self.lens_len + 6 + 6 * self.n_poses
+
+
+@dataclass
+class BundleSolve:
+    """Result of :func:`bundle_adjust`.
+
+    ``sigma`` holds the one-sigma uncertainties from the covariance: ``camera`` and
+    ``projector`` → {fx, fy, cx, cy (px)}, ``baseline_mm``.
+    """
+
+    camera: Lens
+    projector: Lens
+    R: np.ndarray
+    T: np.ndarray
+    rvecs: dict[str, np.ndarray]
+    tvecs: dict[str, np.ndarray]
+    rms_px: float
+    camera_rms_px: float
+    projector_rms_px: float
+    per_pose_rms_px: dict[str, float]
+    sigma: dict
+
+
+def _lens_vector(lens: Lens, free: tuple[int, ...]) -> np.ndarray:
+    K = lens.K
+    return np.concatenate([[K[0, 0], K[1, 1], K[0, 2], K[1, 2]], np.asarray(lens.dist)[list(free)]])
+
+
+def _lens_from(v: np.ndarray, free: tuple[int, ...], fixed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    K = np.array([[v[0], 0.0, v[2]], [0.0, v[1], v[3]], [0.0, 0.0, 1.0]])
+    dist = np.array(fixed, float)
+    dist[list(free)] = v[4:]
+    return K, dist
+
+
+def bundle_adjust(cam_poses: list[PoseData], proj_poses: list[PoseData], camera: Lens,
+                  projector: Lens, R: np.ndarray, T: np.ndarray, rvecs: dict[str, np.ndarray],
+                  tvecs: dict[str, np.ndarray], distortion: str) -> BundleSolve:
+    """Refine both lenses, ``X_p = R X_c + T`` and every board pose together.
+
+    Args:
+        cam_poses, proj_poses: camera and projector corners per pose (projector poses may be
+            missing or carry a subset of the corners; matched by pose name and object point).
+        camera, projector, R, T: the initial solve (e.g. OpenCV's stereo calibration).
+        rvecs, tvecs: initial board → camera poses by pose name (Rodrigues vector, mm).
+        distortion: ``k1`` | ``k1k2`` | ``k1k2k3`` | ``full`` (terms not solved stay as given).
+    """
+    free = FREE_DISTORTION[distortion]
+    names = [p.name for p in cam_poses if p.name in rvecs]
+    if len(names) < 3:
+        raise CalibrationError(f"bundle adjustment: {len(names)} poses with a board pose, at "
+                               "least 3 are needed.")
+    cam_by = {p.name: p for p in cam_poses}
+    proj_by = {p.name: p for p in proj_poses}
+    lay = _Layout(len(free), len(names))
+    x0 = np.zeros(lay.size)
+    x0[lay.cam] = _lens_vector(camera, free)
+    x0[lay.proj] = _lens_vector(projector, free)
+    x0[lay.stereo] = np.concatenate([cv2.Rodrigues(np.asarray(R, float))[0].ravel(),
+                                     np.asarray(T, float).ravel()])
+    for i, n in enumerate(names):
+        x0[lay.pose(i)] = np.concatenate([np.ravel(rvecs[n]), np.ravel(tvecs[n])])
+    obj_c = [cam_by[n].object_points for n in names]
+    img_c = [cam_by[n].image_points for n in names]
+    obj_p = [proj_by[n].object_points if n in proj_by else np.zeros((0, 3)) for n in names]
+    img_p = [proj_by[n].image_points if n in proj_by else np.zeros((0, 2)) for n in names]
+    dist_c0, dist_p0 = np.asarray(camera.dist, float), np.asarray(projector.dist, float)
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        Kc, dc = _lens_from(x[lay.cam], free, dist_c0)
+        Kp, dp = _lens_from(x[lay.proj], free, dist_p0)
+        Rs = cv2.Rodrigues(x[lay.stereo][:3])[0]
+        Ts = x[lay.stereo][3:]
+        out = []
+        for i in range(len(names)):
+            pv = x[lay.pose(i)]
+            Rb = cv2.Rodrigues(pv[:3])[0]
+            out.append((project(Kc, dc, obj_c[i] @ Rb.T + pv[3:]) - img_c[i]).ravel())
+            if len(obj_p[i]):
+                Xc = obj_p[i] @ Rb.T + pv[3:]
+                out.append((project(Kp, dp, Xc @ Rs.T + Ts) - img_p[i]).ravel())
+        return np.concatenate(out)
+
+    sparsity = _sparsity(lay, [len(o) for o in obj_c], [len(o) for o in obj_p])
+    sol = least_squares(residuals, x0, jac_sparsity=sparsity, method="trf", x_scale="jac",
+                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
+    return _result(sol, lay, names, free, dist_c0, dist_p0, camera, projector,
+                   [len(o) for o in obj_c], [len(o) for o in obj_p])
+
+
+def _sparsity(lay: _Layout, n_cam: list[int], n_proj: list[int]) -> lil_matrix:
+    rows = 2 * (sum(n_cam) + sum(n_proj))
+    S = lil_matrix((rows, lay.size), dtype=int)
+    r = 0
+    for i, (nc, np_) in enumerate(zip(n_cam, n_proj)):
+        S[r:r + 2 * nc, lay.cam] = 1
+        S[r:r + 2 * nc, lay.pose(i)] = 1
+        r += 2 * nc
+        if np_:
+            S[r:r + 2 * np_, lay.proj] = 1
+            S[r:r + 2 * np_, lay.stereo] = 1
+            S[r:r + 2 * np_, lay.pose(i)] = 1
+            r += 2 * np_
+    return S
+
+
+def _result(sol, lay: _Layout, names: list[str], free, dist_c0, dist_p0, camera: Lens,
+            projector: Lens, n_cam: list[int], n_proj: list[int]) -> BundleSolve:
+    x = sol.x
+    Kc, dc = _lens_from(x[lay.cam], free, dist_c0)
+    Kp, dp = _lens_from(x[lay.proj], free, dist_p0)
+    res = sol.fun
+    per, cam_sq, proj_sq, r = {}, [], [], 0
+    for n, nc, np_ in zip(names, n_cam, n_proj):
+        c = res[r:r + 2 * nc]
+        p = res[r + 2 * nc:r + 2 * nc + 2 * np_]
+        r += 2 * (nc + np_)
+        cam_sq.append(c ** 2)
+        proj_sq.append(p ** 2)
+        both = np.concatenate([c, p])
+        per[n] = float(np.sqrt(2 * np.mean(both ** 2)))
+    cam_sq, proj_sq = np.concatenate(cam_sq), np.concatenate(proj_sq)
+    sigma = _sigmas(sol, lay)
+    Rs = cv2.Rodrigues(x[lay.stereo][:3])[0]
+    return BundleSolve(
+        Lens(Kc, dc, *camera.size), Lens(Kp, dp, *projector.size), Rs, x[lay.stereo][3:].copy(),
+        {n: x[lay.pose(i)][:3].copy() for i, n in enumerate(names)},
+        {n: x[lay.pose(i)][3:].copy() for i, n in enumerate(names)},
+        float(np.sqrt(2 * np.mean(res ** 2))), float(np.sqrt(2 * np.mean(cam_sq))),
+        float(np.sqrt(2 * np.mean(proj_sq))) if len(proj_sq) else float("nan"), per, sigma)
+
+
+def covariance(jac, residuals: np.ndarray) -> np.ndarray:
+    """``s² (JᵀJ)⁻¹`` with ``s²`` the residual variance per degree of freedom."""
+    J = jac.toarray() if hasattr(jac, "toarray") else np.asarray(jac)
+    dof = max(1, len(residuals) - J.shape[1])
+    s2 = float(residuals @ residuals) / dof
+    return s2 * np.linalg.pinv(J.T @ J)
+
+
+def _sigmas(sol, lay: _Layout) -> dict:
+    cov = covariance(sol.jac, sol.fun)
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    out = {"camera": dict(zip(INTRINSIC_NAMES, sd[lay.cam][:4].tolist())),
+           "projector": dict(zip(INTRINSIC_NAMES, sd[lay.proj][:4].tolist()))}
+    T = sol.x[lay.stereo][3:]
+    g = T / np.linalg.norm(T)  # d|T|/dT
+    cT = cov[lay.stereo, lay.stereo][3:, 3:]
+    out["baseline_mm"] = float(np.sqrt(g @ cT @ g))
+    return out

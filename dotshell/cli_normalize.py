@@ -1,0 +1,79 @@
+"""``dotshell normalize RUN`` (thin: calls :mod:`dotshell.pipeline.normalize` and prints its
+figures)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+out = Console(highlight=False)
+err = Console(stderr=True, highlight=False)
+
+
+def masks_table(section: dict[str, Any]) -> Table:
+    """Nodes used and masked (by reason) per view and source."""
+    reasons = section["mask_reasons"][1:]
+    t = Table(title=f"Surface nodes per image (sin β ≥ {section['min_sin_beta']:g} used)")
+    for col in ("view", "angle [°]", "source", "used", *reasons):
+        t.add_column(col.replace("_", " "))
+    for e in section["sources"]:
+        t.add_row(str(e["view"]), f"{e['angle_deg']:g}", e["source"], str(e["used"]),
+                  *(str(e["masked"][r]) for r in reasons))
+    return t
+
+
+def truth_table(section: dict[str, Any]) -> Table:
+    """Normalized I0 against the simulator's truth, every normalizer side by side."""
+    t = Table(title="Normalized I0 vs true I0 (all images pooled)")
+    for col in ("normalizer", "nodes", "median |error| [%]", "p95 |error| [%]",
+                "median signed [%]"):
+        t.add_column(col)
+    for name, s in section["vs_truth"].items():
+        label = name + (" (primary)" if name == section["normalizer"] else "")
+        if not s.get("nodes"):
+            t.add_row(label, "0", "", "", "")
+            continue
+        t.add_row(label, str(s["nodes"]), f"{s['median_abs_pct']:.2f}",
+                  f"{s['p95_abs_pct']:.2f}", f"{s['median_signed_pct']:+.2f}")
+    return t
+
+
+def print_section(section: dict[str, Any], run_dir) -> None:
+    out.print(masks_table(section))
+    if "vs_truth" in section:
+        out.print(truth_table(section))
+    if not section["flat_field"]:
+        out.print("[yellow]no flat field: camera vignetting is not corrected[/yellow]")
+    out.print(f"normalized with {section['normalizer']}; files in "
+              f"{escape(str(run_dir))}/normalize/ (CSV, {escape(section['vtu'])}, flattened TIFF, "
+              "PNG previews)")
+
+
+def cmd_normalize(args: argparse.Namespace, pm) -> int:
+    from dotshell.cli import ScanProgress
+    from dotshell.events import EventBus
+    from dotshell.pipeline.normalize import normalize_run
+
+    bus = EventBus()
+    bus.subscribe(ScanProgress(err))
+    section = normalize_run(args.run, pm, bus, normalizer=args.normalizer,
+                            min_sin_beta=args.min_sin_beta)
+    print_section(section, args.run)
+    return 0
+
+
+def add_normalize_parser(sub, pm_factory) -> None:
+    sp = sub.add_parser("normalize", help="map a run's trans-illumination frames onto its "
+                        "surface and normalize them for surface orientation")
+    sp.add_argument("run", help="run directory (with trans-illumination frames and surface.ply)")
+    sp.add_argument("--normalizer", metavar="NAME",
+                    help="normalizer backend (default: the profile's [normalizer], else "
+                         "diffuse-fresnel); see `dotshell plugins`")
+    sp.add_argument("--min-sin-beta", type=float, metavar="S",
+                    help="grazing limit: mask nodes with sin β below S (default: the profile's "
+                         "[normalize] min_sin_beta, 0.3)")
+    sp.set_defaults(func=lambda a: cmd_normalize(a, pm_factory(a)))

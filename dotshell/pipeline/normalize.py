@@ -1,0 +1,299 @@
+"""Intensity normalization of trans-illumination frames on the scanned surface
+(``dotshell normalize RUN`` and the end of a scan that captured them).
+
+For every view and source position: dark-subtract and flat-field the frame (DN per ms of
+exposure, relative to the principal point), map it onto the run's ``surface.ply`` nodes
+(:mod:`dotshell.geometry.surface_map`: occlusion by ray casting, sin β per node, masks), and
+divide the node intensities by the orientation factor of the profile's ``[normalizer]`` backend
+(default ``diffuse-fresnel``) and of each ``[normalize] compare`` backend. When the rig knows
+the true light (the simulator), every backend is scored against it. Outputs are written by
+:mod:`dotshell.pipeline.normalize_outputs`; the figures go to ``normalize/report.json`` and the
+``normalize`` section of ``report.json``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import cv2
+import numpy as np
+
+from dotshell.devices import TransilluminationTruth
+from dotshell.errors import CalibrationError, DotshellError, RunError
+from dotshell.events import EventBus, StepProgress, StepStarted
+from dotshell.fem import TriangleSurface
+from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.surface_map import (OK, NodeLight, SurfaceView, mask_counts,
+                                           node_intensities, view_surface)
+from dotshell.normalizer import Normalizer
+from dotshell.plugins import PluginManager
+from dotshell.profile import Profile
+from dotshell.store import RunStore
+
+DEFAULT_NORMALIZER = "diffuse-fresnel"
+ViewCallback = Callable[[SurfaceView, list[tuple["SourceResult", np.ndarray]]], None]
+FLAT_SIGMA_PX = 2.0      # smoothing of the flat field (its shot noise must not enter the data)
+FLAT_MIN = 0.05          # flat-field values below this share of the centre are unusable
+
+
+@dataclass
+class SourceResult:
+    """Normalization of one (view, source) image."""
+
+    view: int
+    angle_deg: float
+    source: str
+    target_mm: list[float] | None
+    light: NodeLight
+    sin_beta: np.ndarray                 # (N,) per node, this view
+    normalized: dict[str, np.ndarray]    # backend name → I0 estimate per node (NaN masked)
+    truth: np.ndarray | None             # true I0 per node, if the rig knows it
+    stats: dict[str, Any]
+
+
+def normalizers(profile: Profile, pm: PluginManager, override: str | None) -> dict[str, Normalizer]:
+    """The primary normalizer first, then the ``compare`` ones (each once)."""
+    section = profile.role("normalizer")
+    primary = override or (section["backend"] if section else DEFAULT_NORMALIZER)
+    names = [primary] + [n for n in profile.data["normalize"]["compare"] if n != primary]
+    out = {}
+    for name in dict.fromkeys(names):
+        settings = dict(section["settings"]) if section and section["backend"] == name else {}
+        info = pm.backend("normalizer", name, profile.source)
+        from dotshell.settings import validate_settings
+
+        settings = validate_settings(info.backend.settings_schema, settings, profile.source,
+                                     "normalizer.settings")
+        if settings.get("refractive_index") == 0.0:  # documented: 0 = the sample's [mesh.optics]
+            settings["refractive_index"] = profile.data["mesh"]["optics"]["refractive_index"]
+        out[name] = info.backend.factory(settings, None)
+    return out
+
+
+def _load_surface(store: RunStore) -> TriangleSurface:
+    from dotshell.meshfiles import read_surface
+
+    path = store.path("surface.ply")
+    if not path.is_file():
+        raise RunError(f"{store.root} has no surface (surface.ply): normalization maps the "
+                       "images onto the scanned surface. Run `dotshell mesh "
+                       f"{store.root}` first, or scan with [mesh] after_scan = true.")
+    return read_surface(path)
+
+
+def _load_calibration(store: RunStore) -> RigCalibration:
+    path = store.path("calibration.json")
+    if not path.is_file():
+        raise CalibrationError(f"{store.root} has no calibration.json, so its views cannot be "
+                               "mapped onto the surface. Give one with `dotshell reconstruct "
+                               f"{store.root} --calibration FILE`.")
+    return RigCalibration.load(path)
+
+
+def flat_field(store: RunStore, entry: dict[str, Any], calib: RigCalibration,
+               bus: EventBus) -> np.ndarray | None:
+    """Relative flat field (1 at the principal point), or None without one."""
+    if not entry.get("flat_field"):
+        bus.warn(f"{store.root}: no flat field; camera vignetting stays in the intensities.")
+        return None
+    flat = _float(store.read_image(store.path(entry["flat_field"]), "cannot flat-field"))
+    dark_path = store.trans_path("flat_dark")
+    if dark_path.is_file():
+        flat = flat - _float(store.read_image(dark_path, "cannot flat-field"))
+    _check_size(flat, calib, store.path(entry["flat_field"]))
+    flat = cv2.GaussianBlur(flat, (0, 0), FLAT_SIGMA_PX)
+    cx, cy = (int(round(c)) for c in calib.camera.K[[0, 1], [2, 2]])
+    centre = float(np.median(flat[max(cy - 7, 0):cy + 8, max(cx - 7, 0):cx + 8]))
+    if not centre > 0:
+        raise RunError(f"{store.path(entry['flat_field'])}: the flat field is dark at the "
+                       "principal point; capture it again with the uniform field in front of the "
+                       "lens.")
+    rel = flat / centre
+    rel[rel < FLAT_MIN] = np.nan
+    return rel
+
+
+def _float(img: np.ndarray) -> np.ndarray:
+    return img.astype(np.float32)
+
+
+def _check_size(img: np.ndarray, calib: RigCalibration, path: Path) -> None:
+    if (img.shape[1], img.shape[0]) != calib.camera.size:
+        raise RunError(f"{path} is {img.shape[1]}x{img.shape[0]} px but the calibration's camera "
+                       f"is {calib.camera.size[0]}x{calib.camera.size[1]}; the image does not "
+                       "belong to this calibration.")
+
+
+def _truth_source(profile: Profile, pm: PluginManager) -> TransilluminationTruth | None:
+    """The rig's light source if it knows the true light (the simulator); devices are built but
+    not connected."""
+    if profile.role("light_source") is None:
+        return None
+    from dotshell.rig import Rig
+
+    try:
+        rig = Rig(profile, pm)
+    except DotshellError:
+        return None
+    light = rig.light_source
+    return light if isinstance(light, TransilluminationTruth) else None
+
+
+def error_stats(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:
+    """Relative error of ``estimate`` against ``truth`` over nodes where both are finite:
+    median and 95th percentile of |error|, signed median (all in %)."""
+    ok = np.isfinite(estimate) & np.isfinite(truth) & (truth > 0)
+    if not ok.any():
+        return {"nodes": 0}
+    rel = estimate[ok] / truth[ok] - 1.0
+    return {"nodes": int(ok.sum()),
+            "median_abs_pct": round(float(np.median(np.abs(rel))) * 100, 3),
+            "p95_abs_pct": round(float(np.percentile(np.abs(rel), 95)) * 100, 3),
+            "median_signed_pct": round(float(np.median(rel)) * 100, 3)}
+
+
+class Normalization:
+    """Normalizes one run's trans-illumination frames (see the module docstring)."""
+
+    def __init__(self, store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
+                 normalizer: str | None = None, min_sin_beta: float | None = None) -> None:
+        self.store, self.profile, self.bus = store, profile, bus
+        self.entry = store.manifest.get("transillumination")
+        if not self.entry or not self.entry.get("views"):
+            raise RunError(f"{store.root} has no trans-illumination frames. Scan with "
+                           "[transillumination] enabled = true (and a [light_source]).")
+        self.cfg = dict(profile.data["normalize"])
+        if min_sin_beta is not None:
+            self.cfg["min_sin_beta"] = min_sin_beta
+        self.surface = _load_surface(store)
+        self.calib = _load_calibration(store)
+        self.models = normalizers(profile, pm, normalizer)
+        self.primary = next(iter(self.models))
+        self.flat = flat_field(store, self.entry, self.calib, bus)
+        self.truth = _truth_source(profile, pm)
+        self.full_scale = (1 << int(self.entry.get("camera_bit_depth", 16))) - 1
+        self.angles = {v["index"]: v["angle_deg"] for v in store.manifest["views"]}
+
+    def run(self, each_view: ViewCallback | None = None) -> list[SourceResult]:
+        """Normalize every stored view; ``each_view(geometry, [(result, image), ...])`` is called
+        per view (to write its files) before the next view's images are read."""
+        views = sorted(int(v) for v in self.entry["views"])
+        self.bus.emit(StepStarted(step="normalize", total=len(views)))
+        results = []
+        for done, view in enumerate(views, 1):
+            if view not in self.angles:
+                raise RunError(f"{self.store.root}: trans-illumination view {view} is not a view "
+                               "of this run's manifest; the run is damaged.")
+            geometry = view_surface(self.surface, self.calib, self.angles[view],
+                                    self.cfg["min_sin_beta"])
+            pairs = [self._source(geometry, view, name)
+                     for name in self.entry["views"][str(view)] if name != "dark"]
+            if each_view is not None:
+                each_view(geometry, pairs)
+            results += [r for r, _ in pairs]
+            self.bus.emit(StepProgress(step="normalize", done=done, total=len(views)))
+        return results
+
+    def _image(self, view: int, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(DN per ms, flat-fielded; saturated-pixel mask) of one stored frame."""
+        path = self.store.trans_path(name, view)
+        raw = self.store.read_image(path, f"view {view} cannot be normalized")
+        _check_size(raw, self.calib, path)
+        saturated = raw >= self.cfg["saturation_fraction"] * self.full_scale
+        img = _float(raw)
+        if "dark" in self.entry["views"][str(view)]:
+            img = img - _float(self.store.read_image(self.store.trans_path("dark", view),
+                                                     f"view {view} cannot be dark-subtracted"))
+        img = img / float(self.entry["exposure_ms"])
+        if self.flat is not None:
+            img = img / self.flat
+            saturated |= ~np.isfinite(self.flat)
+        return img, saturated
+
+    def _source(self, geometry: SurfaceView, view: int,
+                name: str) -> tuple[SourceResult, np.ndarray]:
+        img, saturated = self._image(view, name)
+        light = node_intensities(geometry, img, saturated, self.cfg["min_pixels"])
+        self._warn_saturation(view, name, saturated, geometry)
+        estimates = {}
+        good = light.mask == OK
+        for backend, model in self.models.items():
+            factor = model.orientation_factor(np.clip(geometry.sin_beta, 1e-6, 1.0))
+            estimates[backend] = np.where(good, light.intensity / factor, np.nan)
+        targets = self.entry["targets_mm"]
+        target = targets[int(name.split("_")[1])] if name.startswith("src_") else None
+        truth = None
+        if self.truth is not None:
+            truth = np.asarray(self.truth.true_normal_radiance(
+                geometry.angle_deg, tuple(target) if target else None, self.surface.vertices),
+                float)
+            truth = np.where(good, truth, np.nan)
+        stats = self._stats(light, geometry, estimates, truth)
+        return SourceResult(view, geometry.angle_deg, name, target, light, geometry.sin_beta,
+                            estimates, truth, stats), img
+
+    def _warn_saturation(self, view: int, name: str, saturated: np.ndarray,
+                         geometry: SurfaceView) -> None:
+        n = int(saturated.ravel()[geometry.pixel_index].sum())
+        if n:
+            self.bus.warn(f"{self.store.trans_path(name, view)}: {n} saturated pixels on the "
+                          "sample; their nodes are masked as 'saturated'. Lower "
+                          "[transillumination] exposure_ms or the source power.")
+
+    def _stats(self, light: NodeLight, geometry: SurfaceView, estimates: dict[str, np.ndarray],
+               truth: np.ndarray | None) -> dict[str, Any]:
+        good = light.mask == OK
+        stats: dict[str, Any] = {
+            "nodes": int(len(light.mask)), "used": int(good.sum()),
+            "masked": mask_counts(light.mask),
+            "sin_beta_used": {"min": _r(np.min(geometry.sin_beta[good])) if good.any() else None,
+                              "median": _r(np.median(geometry.sin_beta[good])) if good.any() else None},
+        }
+        if truth is not None:
+            stats["vs_truth"] = {b: error_stats(e, truth) for b, e in estimates.items()}
+        return stats
+
+
+def _r(x: float) -> float:
+    return round(float(x), 4)
+
+
+def normalize_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
+                    normalizer: str | None = None,
+                    min_sin_beta: float | None = None) -> dict[str, Any]:
+    """Normalize a run and write its outputs; returns the report section."""
+    from dotshell.pipeline.normalize_outputs import OutputWriter
+
+    t0 = time.perf_counter()
+    job = Normalization(store, profile, pm, bus, normalizer, min_sin_beta)
+    writer = OutputWriter(store, profile, job)
+    results = job.run(writer.view)
+    section = writer.summary(results)
+    section["seconds"] = round(time.perf_counter() - t0, 3)
+    store.write_json("normalize/report.json", section)
+    return section
+
+
+def normalize_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
+                  normalizer: str | None = None,
+                  min_sin_beta: float | None = None) -> dict[str, Any]:
+    """``dotshell normalize RUN``: re-run the normalization from the stored frames and update
+    the ``normalize`` section of ``report.json``."""
+    from dotshell.pipeline.scan import load_run_profile
+
+    bus = bus or EventBus()
+    store = RunStore.open(Path(run_dir))
+    unsub = bus.subscribe(lambda ev: store.append_event(ev.to_dict()))
+    try:
+        profile = load_run_profile(store, pm)
+        section = normalize_stage(store, profile, pm, bus, normalizer, min_sin_beta)
+        report = store.read_json("report.json") if store.path("report.json").is_file() else {}
+        report["normalize"] = section
+        store.write_json("report.json", report)
+    finally:
+        unsub()
+        store.close()
+    return section

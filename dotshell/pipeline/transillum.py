@@ -1,0 +1,159 @@
+"""Trans-illumination capture: at each view of a scan, with the stage where the fringe frames
+were taken and the projector dark, capture one frame per source position with the light source
+on, and (``dark = true``) one with it off; once per scan a flat-field frame of a uniform field.
+
+Frames go through the scan's :class:`~dotshell.pipeline.acquire.FrameWriter` into
+``transillumination/`` (docs/run-directory.md) and are listed in the manifest's
+``transillumination`` section. A :class:`~dotshell.errors.DeviceError` is retried like a fringe
+frame; a source that cannot be aimed at the profile's targets is a profile error before anything
+is captured.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from dotshell.devices import ExposureControl, FlatFieldReference, Targetable
+from dotshell.errors import DeviceError, ProfileError
+from dotshell.events import EventBus, StepStarted
+from dotshell.pipeline.acquire import FrameWriter
+from dotshell.rig import Rig
+from dotshell.store import RunStore
+
+
+def source_names(n_targets: int) -> list[str]:
+    """Frame names of the source positions of one view (``src_00`` ...)."""
+    return [f"src_{j:02d}" for j in range(max(1, n_targets))]
+
+
+class TransilluminationCapture:
+    """Captures the trans-illumination frames of one scan."""
+
+    def __init__(self, rig: Rig, store: RunStore, settings: dict[str, Any], scan: dict[str, Any],
+                 writer: FrameWriter, bus: EventBus, base_dir: Path) -> None:
+        self.rig, self.store, self.s, self.scan = rig, store, settings, scan
+        self.writer, self.bus = writer, bus
+        self.light = rig.light_source
+        where = rig.profile.source
+        if self.light is None:
+            raise ProfileError(f"{where}: [transillumination] enabled = true needs a "
+                               "[light_source].")
+        self.targets = [tuple(t) for t in settings["targets_mm"]]
+        if self.targets and not isinstance(self.light, Targetable):
+            raise ProfileError(
+                f"{where}: [transillumination] targets_mm lists {len(self.targets)} source "
+                f"position(s) but the light source ({rig.profile.role('light_source')['backend']}) "
+                "cannot be aimed; remove targets_mm or use a targetable source (galvo).")
+        self.flat_device = next((d for d in rig.devices.values()
+                                 if isinstance(d, FlatFieldReference)), None)
+        self.flat_file = self._flat_file(settings["flat_field"], base_dir, where)
+        self.names = source_names(len(self.targets))
+
+    @staticmethod
+    def _flat_file(value: str, base_dir: Path, where: str) -> Path | None:
+        if value in ("capture", "none"):
+            return None
+        path = (base_dir / value).resolve()
+        if not path.is_file():
+            raise ProfileError(f"{where}: [transillumination] flat_field = {value!r}: {path} does "
+                               "not exist. Give an image of a uniform field taken with this "
+                               "camera, or 'capture' / 'none'.")
+        return path
+
+    def manifest_entry(self) -> dict[str, Any]:
+        return {"exposure_ms": self.s["exposure_ms"],
+                "camera_bit_depth": int(self.rig.camera.bit_depth),
+                "targets_mm": [list(t) for t in self.targets] or [None],
+                "frame_names": self.names + (["dark"] if self.s["dark"] else []),
+                "flat_field": None, "views": {}}
+
+    def _retry(self, action: Callable[[], np.ndarray], what: str) -> np.ndarray:
+        attempts = self.scan["retries"] + 1
+        for attempt in range(1, attempts + 1):
+            try:
+                return action()
+            except DeviceError as exc:
+                if attempt == attempts:
+                    raise DeviceError(f"{what}: failed {attempts} times; last error: {exc}") from None
+                self.bus.warn(f"{what}: {exc} — retrying ({attempt}/{attempts - 1})")
+        raise AssertionError("unreachable")
+
+    def _dark_projector(self) -> None:
+        w, h = self.rig.projector.resolution
+        self.rig.projector.show(np.zeros((h, w), np.uint8))
+
+    def _exposure(self, ms: float) -> None:
+        if isinstance(self.rig.camera, ExposureControl):
+            self.rig.camera.set_exposure(ms)
+
+    def capture_flat_field(self) -> str | None:
+        """The flat-field reference (and its dark frame) into the run; returns its path in the
+        run, or None (with a warning) when there is none."""
+        entry = self.store.manifest["transillumination"]
+        if self.flat_file is not None:
+            target = self.store.trans_path("flat")
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(self.flat_file, target)
+        elif self.s["flat_field"] == "capture" and self.flat_device is not None:
+            self.bus.emit(StepStarted(step="flat field"))
+            self._exposure(self.s["exposure_ms"])
+            self._dark_projector()
+            try:
+                self.flat_device.flat_field(True)
+                flat = self._retry(self.rig.camera.capture, "flat-field frame")
+            finally:
+                self.flat_device.flat_field(False)
+            self.writer.put_path(self.store.trans_path("flat"), flat, "flat-field frame")
+            dark = self._retry(self.rig.camera.capture, "flat-field dark frame")
+            self.writer.put_path(self.store.trans_path("flat_dark"), dark,
+                                 "flat-field dark frame")
+            self.writer.queue.join()
+            self.writer.check()
+            self._exposure(self.scan["exposure_ms"])
+        else:
+            why = ("flat_field = 'none'" if self.s["flat_field"] == "none" else
+                   "no device of this rig can show the camera a uniform field")
+            self.bus.warn(f"trans-illumination without a flat field ({why}): camera vignetting "
+                          "stays in the normalized intensities. Set [transillumination] "
+                          "flat_field to an image of a uniform field.")
+            return None
+        entry["flat_field"] = str(Path("transillumination") / "flat.png")
+        self.store.update_manifest(transillumination=entry)
+        return entry["flat_field"]
+
+    def run_view(self, view: int) -> list[str]:
+        """Capture this view's trans-illumination frames (stage already in place); returns the
+        names written. The light source is off again afterwards, whatever happens."""
+        self._exposure(self.s["exposure_ms"])
+        self._dark_projector()
+        written: list[str] = []
+        try:
+            try:
+                self.light.set(True)
+                for name, target in zip(self.names, self.targets or [None]):
+                    if target is not None:
+                        self.light.aim(target)
+                    self._take(view, name)
+                    written.append(name)
+            finally:
+                self.light.set(False)
+            if self.s["dark"]:
+                self._take(view, "dark")
+                written.append("dark")
+        finally:
+            self.writer.queue.join()  # every frame taken is on disk and listed
+            entry = self.store.manifest["transillumination"]
+            entry["views"][str(view)] = written
+            self.store.update_manifest(transillumination=entry)
+        self.writer.check()
+        self._exposure(self.scan["exposure_ms"])
+        return written
+
+    def _take(self, view: int, name: str) -> None:
+        frame = self._retry(self.rig.camera.capture, f"view {view}, trans-illumination {name}")
+        self.writer.put_path(self.store.trans_path(name, view), frame,
+                             f"trans-illumination frame {name!r} of view {view}")
