@@ -458,6 +458,19 @@ class Session:
         self._refresh_namespaces()
         return run
 
+    def normalize(self, run: "Run | str | Path | None" = None,
+                  normalizer: str | None = None) -> dict[str, Any]:
+        """Normalize a run's trans-illumination frames on its surface (default: the session's
+        last run) and return the report section (docs/transillumination.md)."""
+        from dotshell.pipeline.normalize import normalize_run
+
+        target = run if run is not None else self.run
+        if target is None:
+            raise RunError("no run to normalize: scan first or give a run directory.")
+        root = target.root if isinstance(target, Run) else Path(target)
+        self._require_idle("normalize")
+        return normalize_run(root, self.pm, self.bus, normalizer=normalizer)
+
     def pause(self) -> None:
         """Pause the running scan before its next frame."""
         with self._lock:
@@ -538,7 +551,7 @@ class Session:
             "set_exposure": self.set_exposure, "patterns": self.patterns,
             "project": self.project, "snap": self.snap, "decode": self.decode,
             "scan": self.scan, "pause": self.pause, "resume": self.resume,
-            "abort": self.abort, "wait": self.wait,
+            "abort": self.abort, "wait": self.wait, "normalize": self.normalize,
         }
         self._bind(ns)
         return ns

@@ -112,8 +112,8 @@ class Targetable(Protocol):
 
     def aim(self, target_mm: tuple[float, float]) -> None:
         """Point the beam at ``target_mm`` = (lateral, height) in mm in the source's own target
-        plane (for the simulator: the stage frame's y and z, the beam running along −x towards
-        the camera). Return when the beam has settled."""
+        plane (for the simulator: the stage frame's y and z, the beam entering the far side and
+        running along +x, towards the camera). Return when the beam has settled."""
         ...
 
 

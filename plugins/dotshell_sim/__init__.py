@@ -49,4 +49,5 @@ def dotshell_analyzers() -> list[Backend]:
 @hookimpl
 def dotshell_light_sources() -> list[Backend]:
     return [Backend("sim-laser", make_laser, LASER_SCHEMA,
-                    "simulated trans-illumination laser (on/off state only)")]
+                    "simulated trans-illumination laser: diffusion FEM through the true sample, "
+                    "aimable beam, flat-field diffuser, true exit radiance")]

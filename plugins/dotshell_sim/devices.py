@@ -33,7 +33,10 @@ from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens, lens_from_fov
 from dotshell.settings import Setting, validate_settings
 
-from dotshell_sim.render import Renderer, SensorModel, sensor
+from dotshell.optics import exit_radiance_per_fluence
+
+from dotshell_sim import transillum
+from dotshell_sim.render import Light, Renderer, SensorModel, sensor
 from dotshell_sim.scene import MATERIALS, build_scene
 
 WORLD_KEY = "dotshell_sim"
@@ -73,6 +76,10 @@ CAMERA_SCHEMA: dict[str, Setting] = {
     "supersample": Setting("int", 2, "sub-pixel rays per pixel along each axis (pixel-area "
                            "integration)", min=1, max=4),
     "seed": Setting("int", 0, "noise seed; frame k uses default_rng([seed, k])", min=0),
+    "vignetting": Setting("float", 0.0, "extra lens vignetting: relative light loss at the image "
+                          "corner, falling off as 1 − v·(r/r_corner)² from the principal point "
+                          "(on top of the natural cos⁴); applies to all light, flat fields "
+                          "included; 0 = none", min=0.0, max=0.99),
 }
 
 PROJECTOR_SCHEMA: dict[str, Setting] = {
@@ -108,6 +115,17 @@ _SCENE_SCHEMA = {
     "offset_mm": Setting("list[float]", [0.0, 0.0], "cylinder axis offset from the turntable "
                          "axis (sample-frame x, y)", "mm", length=2),
     "material": Setting("str", "metal", "sample material", choices=tuple(MATERIALS)),
+    # trans-illumination (sim-laser) of an opaque-looking sample; turbid materials (agar,
+    # gummy) bring their own optics and must not set these
+    "mua_per_mm": Setting("float", None, "absorption coefficient μa of the sample for "
+                          "trans-illumination (sim-laser), when its material is opaque; "
+                          "omit for turbid materials", "1/mm", min=0.0),
+    "musp_per_mm": Setting("float", None, "reduced scattering coefficient μs' of the sample for "
+                           "trans-illumination (sim-laser), when its material is opaque", "1/mm",
+                           min=1e-3),
+    "refractive_index": Setting("float", None, "refractive index of the sample for "
+                                "trans-illumination with mua_per_mm / musp_per_mm; omit for "
+                                "1.37 (soft tissue)", min=1.0, max=3.0),
 }
 _PLATE_SCHEMA = {
     "radius_mm": Setting("float", 30.0, "stage plate radius; 0 = no plate", "mm", min=0.0),
@@ -144,8 +162,23 @@ ANALYZER_SCHEMA: dict[str, Setting] = {
 }
 
 LASER_SCHEMA: dict[str, Setting] = {
-    "wavelength_nm": Setting("float", 780.0, "for the record only (not rendered yet)", "nm",
-                             min=0.0),
+    "wavelength_nm": Setting("float", 780.0, "for the record only (the sample's optics are "
+                             "given for the laser's wavelength)", "nm", min=0.0),
+    "power": Setting("float", 4.0e4, "beam power in the renderer's relative units: light leaves "
+                     "the sample with radiance power · φ · L(θo)/φ (φ per unit power, 1/mm²; "
+                     "1 = a white Lambertian surface under full projector light); 4e4 peaks at "
+                     "~60 % of full scale through the middle of the agar cylinder (r 12.9 mm) at "
+                     "20 ms, or at 50 ms through its analyzer; thin samples need less",
+                     min=0.0),
+    "target_mm": Setting("list[float]", [0.0, 5.0], "beam target (lateral y, height z above "
+                         "the plate), stage frame, until aim() is called; the beam comes from "
+                         "the far side and travels towards the camera (+x)", "mm", length=2),
+    "node_spacing_mm": Setting("float", 1.0, "node spacing of the tetrahedral mesh of the true "
+                               "sample on which the light inside it is computed", "mm",
+                               min=0.2),
+    "flat_field_radiance": Setting("float", 0.12, "radiance of the flat-field diffuser shown "
+                                   "by flat_field(True), relative units (0.12 ≈ half full "
+                                   "well at 50 ms without an analyzer)", min=0.0),
 }
 
 
@@ -289,6 +322,8 @@ class SimCamera(_Device):
         renderer = self.world.renderer()
         view = renderer.view(stage.position)
         light = renderer.render(view, projector.radiance())
+        if self.world.laser is not None:  # trans-illumination laser, flat-field diffuser
+            light = self.world.laser.light(light, renderer, view)
         analyzer = self.world.analyzer
         if analyzer is not None and analyzer.connected:
             t_pol, t_dep = analyzer.transmission()
@@ -296,6 +331,8 @@ class SimCamera(_Device):
         else:  # no analyzer in the light path
             irr = light.total
         irr *= np.float32(self.settings["sensitivity_e_per_ms"] * self.exposure_ms)
+        if self.settings["vignetting"] > 0:  # extra lens fall-off (the flat field sees it too)
+            irr *= transillum.lens_vignetting(self.lens, self.settings["vignetting"])
         sigma = self.settings["defocus_sigma_px"]
         if sigma > 0:
             irr = cv2.GaussianBlur(irr, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
@@ -471,25 +508,113 @@ class SimAnalyzer(_Device):
 
 
 class SimLaser(_Device):
-    """Trans-illumination laser: on/off state only (not rendered yet)."""
+    """Trans-illumination laser and flat-field diffuser (:mod:`dotshell_sim.transillum`);
+    satisfies LightSource, Targetable, FlatFieldReference and TransilluminationTruth.
+
+    The beam is fixed in the stage frame, travelling along +x (towards the camera) at
+    ``target`` = (y, z) mm; the light leaving the true sample is computed by the diffusion FEM
+    and rendered by the camera. ``flat_field(True)`` puts a uniform diffuser in front of the
+    camera instead of the scene."""
 
     name = "sim-laser"
 
     def __init__(self, settings: dict, world: SimWorld):
         super().__init__(settings, world)
         self.on = False
+        self.flat = False
+        self.target: tuple[float, float] = tuple(float(v) for v in settings["target_mm"])
+        self._falloff: tuple[Any, np.ndarray] | None = None
         world.laser = self
 
     def set(self, on: bool) -> None:
         self._check("switch the laser")
-        self.on = bool(on)
+        self.on = bool(on)  # what it shines through is checked by aim() and at capture
+
+    def aim(self, target_mm: tuple[float, float]) -> None:
+        self._check("aim the laser")
+        t = list(target_mm) if isinstance(target_mm, (list, tuple, np.ndarray)) else []
+        if len(t) != 2 or not all(isinstance(v, (int, float, np.number)) and math.isfinite(v)
+                                  for v in t):
+            raise DeviceError(f"{self.name}: target must be (lateral y, height z) in mm, got "
+                              f"{target_mm!r}.")
+        shape, material = self._sample()
+        transillum.sample_optics(self._stage().settings["scene"], material, self.name)
+        transillum.require_entry(shape, self._stage().position, t, self.name)
+        self.target = (float(t[0]), float(t[1]))
+
+    def flat_field(self, on: bool) -> None:
+        self._check("move the flat-field diffuser")
+        self.flat = bool(on)
 
     def close(self) -> None:
         self.on = False
+        self.flat = False
         super().close()
 
     def status(self) -> dict[str, Any]:
-        return {**super().status(), "on": self.on}
+        return {**super().status(), "on": self.on, "target_mm": list(self.target),
+                "flat_field": self.flat}
+
+    # ---- for the camera and the truth --------------------------------------------------------
+
+    def _stage(self) -> "SimTurntable":
+        if self.world.stage is None:
+            raise DeviceError(f"{self.name}: no sim-turntable in this rig, so there is no sample "
+                              "to trans-illuminate; add [stage] backend = \"sim-turntable\".")
+        return self.world.stage
+
+    def _sample(self):
+        """(true sample shape, its material)."""
+        stage = self._stage()
+        if stage.settings["scene"]["kind"] == "none" or stage.target_key is not None:
+            raise DeviceError(f"{self.name}: there is no sample on the stage (scene kind "
+                              f"{stage.settings['scene']['kind']!r} or a calibration target); "
+                              "put a sample on the stage to trans-illuminate it.")
+        shape = stage.scene.sample[0]
+        return shape, stage.scene.materials[shape.material]
+
+    def _model(self) -> transillum.FluenceModel:
+        shape, material = self._sample()
+        optics = transillum.sample_optics(self._stage().settings["scene"], material, self.name)
+        return transillum.fluence_model(shape, optics, self.settings["node_spacing_mm"])
+
+    def light(self, base: Light, renderer: Renderer, view) -> Light:
+        """The camera's light with the diffuser (replaces the scene) or the laser (adds)."""
+        if self.connected and self.flat:
+            lens = renderer.calib.camera
+            if self._falloff is None or self._falloff[0] is not lens:
+                self._falloff = (lens, transillum.natural_falloff(lens))
+            flat = self._falloff[1] * np.float32(self.settings["flat_field_radiance"])
+            return Light(np.zeros_like(flat), flat)
+        if not (self.connected and self.on) or self.settings["power"] == 0:
+            return base
+        shape, _ = self._sample()
+        img = transillum.laser_irradiance(renderer, view, shape, self._model(), self.target)
+        return Light(base.polarized, base.depolarized + img * np.float32(self.settings["power"]))
+
+    def true_normal_radiance(self, angle_deg: float, target_mm: tuple[float, float] | None,
+                             points_mm: np.ndarray) -> np.ndarray:
+        """See :class:`dotshell.devices.TransilluminationTruth`: P · φ · L(0°)/φ in camera DN
+        per ms at the principal point (× the analyzer's transmission of unpolarized light
+        when the rig has one: it sits in the light path while scanning); NaN farther than
+        1 mm from the true surface. ``target_mm`` None = the current target (an un-aimed
+        source). Works on devices that are built but not connected."""
+        if target_mm is None:
+            target_mm = self.target
+        cam = self.world.camera
+        if cam is None:
+            raise DeviceError(f"{self.name}: the truth is in camera units; add [camera] "
+                              "backend = \"sim-camera\" to the rig.")
+        shape, _ = self._sample()
+        model = self._model()
+        entry, direction = transillum.require_entry(shape, angle_deg, target_mm, self.name)
+        phi = model.fluence(model.source_inside(entry, direction))
+        value, dist = model.surface_fluence(phi, np.asarray(points_mm, float).reshape(-1, 3))
+        analyzer = self.world.analyzer
+        through = analyzer.transmission()[1] if analyzer is not None else 1.0
+        scale = (self.settings["power"] * float(exit_radiance_per_fluence(1.0, model.optics.n))
+                 * cam.settings["sensitivity_e_per_ms"] * cam.sensor.gain_dn_per_e * through)
+        return np.where(dist <= transillum.MAX_SNAP_MM, value * scale, np.nan)
 
 
 # ---- factories ------------------------------------------------------------------------------
