@@ -113,8 +113,14 @@ def print_calibration(report: dict[str, Any], calib, out: Console) -> None:
         t.add_row(name, f"{K[0, 0]:.2f}", f"{K[1, 1]:.2f}", f"{K[0, 2]:.2f}", f"{K[1, 2]:.2f}",
                   f"{lens.dist[0]:.4f}", f"{lens.dist[1]:.4f}", f"{rms[name]:.3f}")
     out.print(t)
-    out.print(f"camera–projector: baseline {calib.baseline_mm:.3f} mm, stereo RMS "
+    out.print(f"camera–projector: baseline {calib.baseline_mm:.3f} mm, joint RMS "
               f"{rms['stereo']:.3f} px")
+    sig = report.get("sigma")
+    if sig:
+        c, p = sig["camera"], sig["projector"]
+        out.print(f"one-sigma (joint solve covariance): camera cx ±{c['cx']:.2f}, cy "
+                  f"±{c['cy']:.2f} px, fx ±{c['fx']:.2f} px; projector cx ±{p['cx']:.2f}, cy "
+                  f"±{p['cy']:.2f} px, fx ±{p['fx']:.2f} px; baseline ±{sig['baseline_mm']:.3f} mm")
     d, p = calib.axis_direction, calib.axis_point
     out.print(f"turntable axis: direction ({d[0]:.5f}, {d[1]:.5f}, {d[2]:.5f}), plate point "
               f"({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) mm, RMS {rms['turntable']:.3f} px")
@@ -139,5 +145,9 @@ def print_calibration(report: dict[str, Any], calib, out: Console) -> None:
         row("baseline", f"{g['baseline_pct']:+.4f} %", "0.2 %", g["pass"]["baseline"])
         gt.add_row("rotation", f"{g['rotation_deg']:.4f}°", "", "")
         row("axis direction", f"{g['axis_direction_deg']:.4f}°", "0.1°", g["pass"]["axis_direction"])
-        row("axis point", f"{g['axis_point_mm']:.4f} mm", "0.1 mm", g["pass"]["axis_point"])
+        row("axis position (⊥ distance)", f"{g['axis_point_mm']:.4f} mm", "0.1 mm",
+            g["pass"]["axis_point"])
+        if "axis_plate_offset" in g["pass"]:
+            row("plate point along the axis", f"{g['axis_plate_offset_mm']:+.4f} mm", "0.1 mm",
+                g["pass"]["axis_plate_offset"])
         out.print(gt)

@@ -2,9 +2,9 @@
 at the profile's poses, the solve is compared with the simulator's ground truth, and bad input
 (wrong board, blurred pose, images of another size, too few poses) is named.
 
-The fast tests run at 0.2× resolution with 6 free poses and 3 stage angles; the full-resolution
-acceptance check (the issue's limits) and the metal-cylinder scan with the measured calibration
-are marked slow (`make validate`).
+The fast tests run at 0.2× resolution with 6 free poses, 3 stage angles and a 3 mm board; the
+full-resolution acceptance check (the issue's limits) and the metal-cylinder scan with the
+measured calibration are marked slow (`make validate`).
 """
 
 from __future__ import annotations
@@ -39,6 +39,9 @@ def small_capture(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("calib")
     raw = small_profile_dict(0.2, 6)
     cal = raw["calibrate"]
+    # at 0.2x the profile's 2 mm squares are 13 px, below what the sharpness estimate
+    # measures: the reduced bench uses a coarser print of the same size (3 mm, 26 px squares)
+    cal.update(columns=10, rows=7, square_mm=3.0)
     cal["poses"] = [cal["poses"][i] for i in (1, 2, 3, 4, 5, 6)]
     cal["turntable_angles_deg"] = [-30.0, 0.0, 30.0]
     cal["min_poses"] = 5
@@ -60,14 +63,20 @@ def test_small_calibration_against_ground_truth(small_capture):
     g = r["ground_truth"]
     print(json.dumps({k: r[k] for k in ("rms_px", "left_out", "ground_truth")}, indent=1))
     assert set(r["rms_px"]) == {"camera", "projector", "stereo", "turntable"}
-    assert max(r["rms_px"].values()) < 0.5
-    # 256x205 camera, 3 mm squares at 26 px: loose limits (full resolution: the slow test)
-    assert abs(g["camera"]["fx_pct"]) < 2.0 and abs(g["projector"]["fx_pct"]) < 2.0
-    assert abs(g["baseline_pct"]) < 2.0
-    # at this scale the principal points are uncertain by ~20 px (a narrow field of view:
-    # cx/cy trade against the poses), which turns the whole rig by ~0.5° about the camera
-    # centre and moves the axis point by ~3 mm at 200 mm; the scan below is what it costs
-    assert g["axis_direction_deg"] < 0.5 and g["axis_point_mm"] < 5.0
+    assert max(r["rms_px"].values()) < 0.2  # measured 0.04-0.08 px (edge-model corners)
+    # 256x205 camera, 6 poses, 3 stage angles (measured: focal 0.02 % camera, 0.15 %
+    # projector; principal points 0.8-1.8 px of these 5x coarser pixels; baseline 0.16 %;
+    # axis 0.06° and 0.14 mm, 0.22 mm along); the issue's limits are held at full resolution
+    # (slow test)
+    for w in ("camera", "projector"):
+        assert max(abs(g[w]["fx_pct"]), abs(g[w]["fy_pct"])) < 0.5
+        assert max(abs(g[w]["cx_px"]), abs(g[w]["cy_px"])) < 4.0
+    assert abs(g["baseline_pct"]) < 0.5
+    assert g["axis_direction_deg"] < 0.2 and g["axis_point_mm"] < 0.4
+    assert abs(g["axis_plate_offset_mm"]) < 0.6
+    sig = r["sigma"]  # the joint solve's own one-sigma: the errors are within a few of it
+    for w in ("camera", "projector"):
+        assert abs(g[w]["cx_px"]) < 5 * sig[w]["cx"] and abs(g[w]["cy_px"]) < 5 * sig[w]["cy"]
     cal = RigCalibration.load(run / "calibration.json")
     assert cal.camera.size == (256, 205) and cal.rms["camera"] == r["rms_px"]["camera"]
     assert (run / "calibration.yml").is_file()
@@ -83,9 +92,9 @@ def test_small_cylinder_scan_with_measured_calibration(small_capture, tmp_path):
     pm = _pm()
     measured = scan(prof, pm, tmp_path, calibration_file=str(run / "calibration.json"))
     vm = measured.report["validation"]
-    print("measured calibration:", vm)  # ground truth at this scale: 0.12 % mean error
+    print("measured calibration:", vm)  # measured 0.16 %; ground truth at this scale 0.12 %
     assert measured.report["calibration"].startswith("dotshell calibrate")
-    assert vm["mean_rel_error_pct"] <= 1.0 and vm["coverage_pct"] >= 80.0
+    assert vm["mean_rel_error_pct"] <= 0.4 and vm["coverage_pct"] >= 80.0
 
 
 def test_wrong_board_size_names_the_images(small_capture, tmp_path):
@@ -175,14 +184,16 @@ def test_full_resolution_calibration_and_cylinder_scan(tmp_path):
     run = capture(prof, pm, tmp_path)
     res = solve(run, prof.data["calibrate"], pm)
     g = res.report["ground_truth"]
-    print(json.dumps(g, indent=1))
+    print(json.dumps({"ground_truth": g, "sigma": res.report["sigma"],
+                      "rms_px": res.report["rms_px"]}, indent=1))
+    assert not any(res.report["left_out"].values())  # every pose and stage angle used
+    assert max(abs(g[w][k]) for w in ("camera", "projector") for k in ("fx_pct", "fy_pct")) <= 0.2
+    assert max(abs(g[w][k]) for w in ("camera", "projector") for k in ("cx_px", "cy_px")) <= 1.0
     assert abs(g["baseline_pct"]) <= 0.2
     assert g["axis_direction_deg"] <= 0.1
-    assert max(abs(g[w][k]) for w in ("camera", "projector") for k in ("fx_pct", "fy_pct")) <= 0.2
-    # principal points (measured 4-7 px off) and the axis point (0.28 mm) miss the issue's
-    # 1 px / 0.1 mm: see docs/calibration.md; bounded here so a regression still shows
-    assert max(abs(g[w][k]) for w in ("camera", "projector") for k in ("cx_px", "cy_px")) <= 15
-    assert g["axis_point_mm"] <= 0.6
+    assert g["axis_point_mm"] <= 0.1  # perpendicular distance from the true axis, 0-40 mm
+    assert abs(g["axis_plate_offset_mm"]) <= 0.1  # and the plate point along it
+    assert all(g["pass"].values())
     result = scan(prof, pm, tmp_path, calibration_file=str(run / "calibration.json"))
     v = result.report["validation"]
     print(json.dumps(v, indent=1))

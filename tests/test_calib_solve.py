@@ -114,3 +114,83 @@ def test_turntable_axis_from_board_at_stage_angles():
     assert sol.rms_px < 0.1
     with pytest.raises(CalibrationError, match="span less than 20"):
         turntable_axis(CAM, obj, [r for r in rows if abs(r[1]) < 1] * 3, BOARD.centre, height)
+
+
+def test_bundle_adjustment_refines_both_lenses_with_covariance():
+    """The joint solve (camera + projector + poses + stereo pose) lands on the truth within a
+    few of its own one-sigma uncertainties, and those uncertainties are of the right size."""
+    from dotshell.calibration.bundle import bundle_adjust
+
+    cam_poses, proj_poses = _views(8, 0.05, seed=3)
+    rule = OutlierRule(min_poses=6, factor=3.0, max_rms_px=1.0)
+    cam = calibrate_lens("camera", cam_poses, CAM.size, "k1k2", rule)
+    proj = calibrate_lens("projector", proj_poses, PROJ.size, "k1k2", rule)
+    st = calibrate_stereo(cam, proj, cam_poses, proj_poses, "k1k2")
+    b = bundle_adjust(cam_poses, proj_poses[:6], st.camera, st.projector, st.R, st.T, cam.rvecs,
+                      cam.tvecs, "k1k2")  # two poses seen by the camera only
+    assert set(b.per_pose_rms_px) == {p.name for p in cam_poses}
+    assert 0.04 < b.camera_rms_px < 0.09 and 0.04 < b.projector_rms_px < 0.09
+    for lens, truth, name in ((b.camera, CAM, "camera"), (b.projector, PROJ, "projector")):
+        sig = b.sigma[name]
+        assert 0.05 < sig["cx"] < 8.0 and 0.05 < sig["fx"] < 8.0  # 8 poses, k1 k2 free
+        for k, (i, j) in {"fx": (0, 0), "cx": (0, 2), "cy": (1, 2)}.items():
+            assert abs(lens.K[i, j] - truth.K[i, j]) < 4 * sig[k], (name, k)
+    assert abs(np.linalg.norm(b.T) - np.linalg.norm(T_CP)) < 4 * b.sigma["baseline_mm"] + 1e-3
+
+
+def _checker_image(H: np.ndarray, squares: tuple[int, int], square_px: float,
+                   size: tuple[int, int], ss: int = 8) -> np.ndarray:
+    """A checkerboard (white margin of one square) mapped by the homography H (board px →
+    image), integrated over each pixel with ss × ss samples and blurred by 0.5 px."""
+    w, h = size
+    Hi = np.linalg.inv(H)
+    acc = np.zeros((h, w))
+    for sy in range(ss):
+        for sx in range(ss):
+            ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+            q = np.stack([xs + (sx + 0.5) / ss - 0.5, ys + (sy + 0.5) / ss - 0.5,
+                          np.ones_like(xs)], -1) @ Hi.T
+            i = np.floor(q[..., 0] / q[..., 2] / square_px).astype(int)
+            j = np.floor(q[..., 1] / q[..., 2] / square_px).astype(int)
+            inside = (i >= 0) & (j >= 0) & (i < squares[0]) & (j < squares[1])
+            acc += np.where(inside & ((i + j) % 2 == 0), 0.05, 0.8)
+    return cv2.GaussianBlur((acc / ss ** 2 * 3000).astype(np.float32), (0, 0), 0.5)
+
+
+def test_corner_refinement_reaches_hundredths_of_a_pixel():
+    from dotshell.calibration.board import detect
+
+    board = Board("checkerboard", 8, 6, 1.0)
+    s = 30.0  # px per square on the print
+    a = np.deg2rad(20.0)  # rolled: no edge along the pixel grid
+    H = np.array([[np.cos(a), -np.sin(a), 130.0], [np.sin(a), np.cos(a), 40.0],
+                  [1.2e-4, -0.8e-4, 1.0]])  # and a perspective tilt
+    img = _checker_image(H, (8, 6), s, (400, 340))
+    noisy = np.random.default_rng(0).normal(img, np.sqrt(img)).clip(0, 4095).astype(np.uint16)
+    det = detect(noisy, board)
+    assert det is not None and len(det.ids) == 35
+    q = np.column_stack([board.object_points()[:, :2] * s, np.ones(35)]) @ H.T
+    truth = q[:, :2] / q[:, 2:]
+    err = det.pixels - truth
+    if np.abs(err).mean() > 5:  # the checkerboard's 180° ambiguity
+        err = det.pixels[::-1] - truth
+    rms = float(np.sqrt(np.mean(np.sum(err ** 2, axis=1))))
+    assert rms < 0.05, rms
+
+
+def test_axis_position_is_the_perpendicular_distance():
+    from dotshell.calibration.procedure import axis_position_errors
+    from dotshell.geometry.calibration import RigCalibration
+
+    d = np.array([0.0, -0.965926, -0.258819])
+    truth = RigCalibration(CAM, PROJ, R_CP, T_CP, np.array([0.0, 15.455, 204.141]), d)
+    slid = RigCalibration(CAM, PROJ, R_CP, T_CP, truth.axis_point + 0.3 * d, d)
+    e = axis_position_errors(slid, truth)
+    assert e["axis_point_mm"] < 1e-9 and e["axis_plate_offset_mm"] == pytest.approx(0.3)
+    assert e["axis_plate_point_mm"] == pytest.approx(0.3)
+    side = RigCalibration(CAM, PROJ, R_CP, T_CP, truth.axis_point + [0.05, 0, 0], d)
+    assert axis_position_errors(side, truth)["axis_point_mm"] == pytest.approx(0.05)
+    tilted_d = d + [np.deg2rad(0.1), 0, 0]  # 0.1° off: 0.07 mm apart 40 mm up
+    tilted = RigCalibration(CAM, PROJ, R_CP, T_CP, truth.axis_point, tilted_d)
+    assert axis_position_errors(tilted, truth)["axis_point_mm"] == pytest.approx(
+        40 * np.deg2rad(0.1), rel=0.02)

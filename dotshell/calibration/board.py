@@ -106,7 +106,7 @@ def detect(image: np.ndarray, board: Board) -> Detection | None:
         found, corners = cv2.findChessboardCornersSB(img, board.inner, flags=flags)
         if not found or corners is None or len(corners) != board.n_corners:
             return None
-        px = corners.reshape(-1, 2).astype(np.float64)
+        px = refine_corners(image, corners.reshape(-1, 2).astype(np.float64), board.inner)
         sharp = cv2.estimateChessboardSharpness(img, board.inner, corners)
         return Detection(px, np.arange(board.n_corners), float(sharp[0][0]))
     detector = cv2.aruco.CharucoDetector(board.charuco())
@@ -114,6 +114,90 @@ def detect(image: np.ndarray, board: Board) -> Detection | None:
     if ids is None or len(ids) < max(6, board.n_corners // 4):
         return None
     return Detection(corners.reshape(-1, 2).astype(np.float64), ids.ravel().astype(np.int64))
+
+
+#: Corner-refinement window half-size as a fraction of the nearest-corner spacing in the image.
+REFINE_WINDOW = 0.3
+_REFINE_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 100, 1e-5)
+
+
+def refine_corners(image: np.ndarray, pixels: np.ndarray,
+                   grid: tuple[int, int] | None = None) -> np.ndarray:
+    """Corners (N, 2) px refined on the full-depth image.
+
+    ``findChessboardCornersSB`` places corners to ~0.1–0.3 px (it works on an 8-bit copy).
+    First ``cv2.cornerSubPix`` (every gradient in the window orthogonal to the vector from the
+    corner) brings them to ~0.04 px; then, for a full ``grid`` (inner corners across, down, in
+    row order), :func:`fit_corner` fits the blurred two-edge model to each window, which
+    measured ~0.01 px on the simulated bench. Windows are ±0.3 × the corner spacing.
+    """
+    if len(pixels) < 2:
+        return pixels
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(pixels).query(pixels, k=2)
+    half = max(3, int(REFINE_WINDOW * float(np.min(d[:, 1]))))
+    gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    gray = gray.astype(np.float32)
+    refined = cv2.cornerSubPix(gray, pixels.astype(np.float32).reshape(-1, 1, 2),
+                               (half, half), (-1, -1), _REFINE_CRITERIA)
+    out = refined.reshape(-1, 2).astype(np.float64)
+    lost = np.linalg.norm(out - pixels, axis=1) > half / 2  # lost the corner: keep SB's
+    out[lost] = pixels[lost]
+    if grid is None or grid[0] * grid[1] != len(out) or min(grid) < 2:
+        return out
+    angles = _edge_angles(out, grid)
+    for k in range(len(out)):
+        fitted = fit_corner(gray, out[k], half, angles[k])
+        if fitted is not None:
+            out[k] = fitted
+    return out
+
+
+def _edge_angles(pixels: np.ndarray, grid: tuple[int, int]) -> np.ndarray:
+    """(N, 2) image directions (rad) of the board's x and y lines at each grid corner."""
+    w, h = grid
+    P = pixels.reshape(h, w, 2)
+    gx, gy = np.gradient(P, axis=1), np.gradient(P, axis=0)
+    return np.column_stack([np.arctan2(gx[..., 1], gx[..., 0]).ravel(),
+                            np.arctan2(gy[..., 1], gy[..., 0]).ravel()])
+
+
+def fit_corner(gray: np.ndarray, start: np.ndarray, half: int,
+               angles: np.ndarray) -> np.ndarray | None:
+    """A corner (px) by fitting ``m + a·erf(d1/√2s)·erf(d2/√2s)`` to the window around
+    ``start``: d1, d2 the signed distances (px) to the two edge lines through the corner (free
+    directions, starting at ``angles``), s the edge blur (px), m and a the mean level and
+    contrast. None when the window leaves the image or the fit does not settle near ``start``.
+    """
+    from scipy.optimize import least_squares
+    from scipy.special import erf
+
+    x0, y0 = int(round(start[0])), int(round(start[1]))
+    h, w = gray.shape
+    if x0 - half < 0 or y0 - half < 0 or x0 + half >= w or y0 + half >= h:
+        return None
+    win = gray[y0 - half:y0 + half + 1, x0 - half:x0 + half + 1].astype(np.float64).ravel()
+    ys, xs = np.mgrid[-half:half + 1, -half:half + 1].astype(np.float64)
+    xs, ys = (xs + x0 - start[0]).ravel(), (ys + y0 - start[1]).ravel()
+    lo, hi = np.percentile(win, [5, 95])
+
+    def residuals(q: np.ndarray) -> np.ndarray:
+        dx, dy, t1, t2, m, a, s = q
+        X, Y = xs - dx, ys - dy
+        k = 1.0 / (np.sqrt(2.0) * max(abs(s), 0.05))
+        d1 = (np.cos(t1) * Y - np.sin(t1) * X) * k
+        d2 = (np.cos(t2) * Y - np.sin(t2) * X) * k
+        return m + a * erf(d1) * erf(d2) - win
+
+    starts = [np.array([0.0, 0.0, angles[0], angles[1], (lo + hi) / 2, sign * (hi - lo) / 2, 0.8])
+              for sign in (1.0, -1.0)]
+    q0 = min(starts, key=lambda q: float(np.sum(residuals(q) ** 2)))  # which squares are white
+    sol = least_squares(residuals, q0, method="lm", xtol=1e-10, ftol=1e-10)
+    shift = sol.x[:2]
+    if not (sol.success and np.all(np.isfinite(shift)) and np.hypot(*shift) < 1.0):
+        return None
+    return start + shift
 
 
 def flipped(det: Detection, board: Board) -> Detection:

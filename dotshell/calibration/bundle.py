@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import lil_matrix
 
 from dotshell.calibration.solve import PoseData
 from dotshell.errors import CalibrationError
@@ -117,63 +116,71 @@ def bundle_adjust(cam_poses: list[PoseData], proj_poses: list[PoseData], camera:
         rvecs, tvecs: initial board → camera poses by pose name (Rodrigues vector, mm).
         distortion: ``k1`` | ``k1k2`` | ``k1k2k3`` | ``full`` (terms not solved stay as given).
     """
-    free = FREE_DISTORTION[distortion]
-    names = [p.name for p in cam_poses if p.name in rvecs]
-    if len(names) < 3:
-        raise CalibrationError(f"bundle adjustment: {len(names)} poses with a board pose, at "
-                               "least 3 are needed.")
-    cam_by = {p.name: p for p in cam_poses}
-    proj_by = {p.name: p for p in proj_poses}
-    lay = _Layout(len(free), len(names))
-    x0 = np.zeros(lay.size)
-    x0[lay.cam] = _lens_vector(camera, free)
-    x0[lay.proj] = _lens_vector(projector, free)
-    x0[lay.stereo] = np.concatenate([cv2.Rodrigues(np.asarray(R, float))[0].ravel(),
-                                     np.asarray(T, float).ravel()])
-    for i, n in enumerate(names):
-        x0[lay.pose(i)] = np.concatenate([np.ravel(rvecs[n]), np.ravel(tvecs[n])])
-    obj_c = [cam_by[n].object_points for n in names]
-    img_c = [cam_by[n].image_points for n in names]
-    obj_p = [proj_by[n].object_points if n in proj_by else np.zeros((0, 3)) for n in names]
-    img_p = [proj_by[n].image_points if n in proj_by else np.zeros((0, 2)) for n in names]
-    dist_c0, dist_p0 = np.asarray(camera.dist, float), np.asarray(projector.dist, float)
+    problem = _Problem(cam_poses, proj_poses, camera, projector, R, T, rvecs, tvecs, distortion)
+    # Levenberg–Marquardt from the stereo solve converges in a few steps (a dense Jacobian of
+    # ~150 parameters is cheap); the sparse trust-region variant crawled for hundreds
+    sol = least_squares(problem.residuals, problem.x0, method="lm", x_scale="jac",
+                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100 * len(problem.x0))
+    return problem.result(sol)
 
-    def residuals(x: np.ndarray) -> np.ndarray:
-        Kc, dc = _lens_from(x[lay.cam], free, dist_c0)
-        Kp, dp = _lens_from(x[lay.proj], free, dist_p0)
+
+class _Problem:
+    """The bundle-adjustment problem: parameter layout, start vector and residuals."""
+
+    def __init__(self, cam_poses: list[PoseData], proj_poses: list[PoseData], camera: Lens,
+                 projector: Lens, R: np.ndarray, T: np.ndarray, rvecs: dict[str, np.ndarray],
+                 tvecs: dict[str, np.ndarray], distortion: str) -> None:
+        self.free = FREE_DISTORTION[distortion]
+        self.names = [p.name for p in cam_poses if p.name in rvecs]
+        if len(self.names) < 3:
+            raise CalibrationError(f"bundle adjustment: {len(self.names)} poses with a board "
+                                   "pose, at least 3 are needed.")
+        cam_by = {p.name: p for p in cam_poses}
+        proj_by = {p.name: p for p in proj_poses}
+        self.camera, self.projector = camera, projector
+        self.lay = lay = _Layout(len(self.free), len(self.names))
+        x0 = np.zeros(lay.size)
+        x0[lay.cam] = _lens_vector(camera, self.free)
+        x0[lay.proj] = _lens_vector(projector, self.free)
+        x0[lay.stereo] = np.concatenate([cv2.Rodrigues(np.asarray(R, float))[0].ravel(),
+                                         np.asarray(T, float).ravel()])
+        for i, n in enumerate(self.names):
+            x0[lay.pose(i)] = np.concatenate([np.ravel(rvecs[n]), np.ravel(tvecs[n])])
+        self.x0 = x0
+        none3, none2 = np.zeros((0, 3)), np.zeros((0, 2))
+        self.obj_c = [cam_by[n].object_points for n in self.names]
+        self.img_c = [cam_by[n].image_points for n in self.names]
+        self.obj_p = [proj_by[n].object_points if n in proj_by else none3 for n in self.names]
+        self.img_p = [proj_by[n].image_points if n in proj_by else none2 for n in self.names]
+        self.dist_c0 = np.asarray(camera.dist, float)
+        self.dist_p0 = np.asarray(projector.dist, float)
+        self.n_cam = [len(o) for o in self.obj_c]
+        self.n_proj = [len(o) for o in self.obj_p]
+
+    def lenses(self, x: np.ndarray):
+        Kc, dc = _lens_from(x[self.lay.cam], self.free, self.dist_c0)
+        Kp, dp = _lens_from(x[self.lay.proj], self.free, self.dist_p0)
+        return Kc, dc, Kp, dp
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """Camera then projector residuals (px) of each pose in turn."""
+        lay = self.lay
+        Kc, dc, Kp, dp = self.lenses(x)
         Rs = cv2.Rodrigues(x[lay.stereo][:3])[0]
         Ts = x[lay.stereo][3:]
         out = []
-        for i in range(len(names)):
+        for i in range(len(self.names)):
             pv = x[lay.pose(i)]
             Rb = cv2.Rodrigues(pv[:3])[0]
-            out.append((project(Kc, dc, obj_c[i] @ Rb.T + pv[3:]) - img_c[i]).ravel())
-            if len(obj_p[i]):
-                Xc = obj_p[i] @ Rb.T + pv[3:]
-                out.append((project(Kp, dp, Xc @ Rs.T + Ts) - img_p[i]).ravel())
+            out.append((project(Kc, dc, self.obj_c[i] @ Rb.T + pv[3:]) - self.img_c[i]).ravel())
+            if self.n_proj[i]:
+                Xc = self.obj_p[i] @ Rb.T + pv[3:]
+                out.append((project(Kp, dp, Xc @ Rs.T + Ts) - self.img_p[i]).ravel())
         return np.concatenate(out)
 
-    sparsity = _sparsity(lay, [len(o) for o in obj_c], [len(o) for o in obj_p])
-    sol = least_squares(residuals, x0, jac_sparsity=sparsity, method="trf", x_scale="jac",
-                        xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200)
-    return _result(sol, lay, names, free, dist_c0, dist_p0, camera, projector,
-                   [len(o) for o in obj_c], [len(o) for o in obj_p])
-
-
-def _sparsity(lay: _Layout, n_cam: list[int], n_proj: list[int]) -> lil_matrix:
-    rows = 2 * (sum(n_cam) + sum(n_proj))
-    S = lil_matrix((rows, lay.size), dtype=int)
-    r = 0
-    for i, (nc, np_) in enumerate(zip(n_cam, n_proj)):
-        S[r:r + 2 * nc, lay.cam] = 1
-        S[r:r + 2 * nc, lay.pose(i)] = 1
-        r += 2 * nc
-        if np_:
-            S[r:r + 2 * np_, lay.proj] = 1
-            S[r:r + 2 * np_, lay.stereo] = 1
-            S[r:r + 2 * np_, lay.pose(i)] = 1
-            r += 2 * np_
-    return S
+    def result(self, sol) -> BundleSolve:
+        return _result(sol, self.lay, self.names, self.free, self.dist_c0, self.dist_p0,
+                       self.camera, self.projector, self.n_cam, self.n_proj)
 
 
 def _result(sol, lay: _Layout, names: list[str], free, dist_c0, dist_p0, camera: Lens,
@@ -203,11 +210,17 @@ def _result(sol, lay: _Layout, names: list[str], free, dist_c0, dist_p0, camera:
 
 
 def covariance(jac, residuals: np.ndarray) -> np.ndarray:
-    """``s² (JᵀJ)⁻¹`` with ``s²`` the residual variance per degree of freedom."""
-    J = jac.toarray() if hasattr(jac, "toarray") else np.asarray(jac)
+    """``s² (JᵀJ)⁻¹`` with ``s²`` the residual variance per degree of freedom. The columns are
+    equilibrated first (focal lengths in thousands of pixels next to rotations in radians), so
+    the weak directions are inverted, not truncated."""
+    J = jac.toarray() if hasattr(jac, "toarray") else np.asarray(jac, float)
     dof = max(1, len(residuals) - J.shape[1])
     s2 = float(residuals @ residuals) / dof
-    return s2 * np.linalg.pinv(J.T @ J)
+    scale = np.linalg.norm(J, axis=0)
+    scale[scale == 0] = 1.0
+    Js = J / scale
+    inv = np.linalg.inv(Js.T @ Js)
+    return s2 * inv / np.outer(scale, scale)
 
 
 def _sigmas(sol, lay: _Layout) -> dict:
