@@ -61,7 +61,8 @@ def cmd_normalize(args: argparse.Namespace, pm) -> int:
     bus = EventBus()
     bus.subscribe(ScanProgress(err))
     section = normalize_run(args.run, pm, bus, normalizer=args.normalizer,
-                            min_sin_beta=args.min_sin_beta)
+                            min_sin_beta=args.min_sin_beta,
+                            max_normal_spread_deg=args.max_normal_spread)
     print_section(section, args.run)
     return 0
 
@@ -76,4 +77,8 @@ def add_normalize_parser(sub, pm_factory) -> None:
     sp.add_argument("--min-sin-beta", type=float, metavar="S",
                     help="grazing limit: mask nodes with sin β below S (default: the profile's "
                          "[normalize] min_sin_beta, 0.3)")
+    sp.add_argument("--max-normal-spread", type=float, metavar="DEG",
+                    help="mask nodes whose surface turns more than DEG degrees within their "
+                         "star (default: the profile's [normalize] max_normal_spread_deg, 25; "
+                         "180 = never)")
     sp.set_defaults(func=lambda a: cmd_normalize(a, pm_factory(a)))

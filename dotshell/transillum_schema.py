@@ -40,6 +40,14 @@ NORMALIZE_SCHEMA: dict[str, Setting] = {
     "saturation_fraction": Setting("float", default=0.98, min=0.5, max=1.0,
                                    help="pixels at or above this fraction of the camera's full "
                                         "scale count as saturated"),
+    "max_normal_spread_deg": Setting("float", default=25.0, min=0.0, max=180.0, unit="deg",
+                                     help="nodes whose surface turns more than this within "
+                                          "their star (sharp edges, features smaller than the "
+                                          "node spacing) are masked as crease"),
+    "max_cloud_distance_mm": Setting("float", default=0.5, min=0.01, unit="mm",
+                                     help="nodes farther than this from every scanned point "
+                                          "(the closed bottom, filled holes) are masked as "
+                                          "unscanned"),
     "min_pixels": Setting("float", default=2.0, min=0.0,
                           help="nodes covered by fewer camera pixels (hat-weighted) are masked "
                                "as unsampled"),

@@ -11,7 +11,11 @@ Geometry (:func:`view_surface`), per view, in the camera frame (mm):
   distance and the cosine between the ray and the face normal;
 * node masks, first reason wins: ``outside_image`` (projects outside the frame or behind the
   camera), ``facing_away`` (sin β ≤ 0), ``occluded`` (the ray from the camera centre to the node
-  hits the surface first), ``grazing`` (sin β below the limit).
+  hits the surface first), ``grazing`` (sin β below the limit), ``crease`` (the surface turns
+  more than the limit within the node's star, :func:`normal_spread_deg`: a sharp edge or a
+  feature smaller than the node spacing, so the node has no single orientation),
+  ``unscanned`` (the caller's flag for nodes the scan did not measure, e.g. where the mesher
+  closed the bottom: their orientation is a guess).
 
 Light (:func:`node_intensities`), per image: the **node intensity** is the power the node's
 surface element sends towards the camera per unit of its area, from the pixels it covers::
@@ -37,9 +41,10 @@ from dotshell.fem import TriangleSurface, enclosed_volume_mm3
 from dotshell.geometry.calibration import RigCalibration
 
 #: node mask reasons, in the order they are decided (code = index)
-MASK_REASONS = ("ok", "outside_image", "facing_away", "occluded", "grazing", "unsampled",
-                "saturated")
-OK, OUTSIDE, FACING_AWAY, OCCLUDED, GRAZING, UNSAMPLED, SATURATED = range(len(MASK_REASONS))
+MASK_REASONS = ("ok", "outside_image", "facing_away", "occluded", "grazing", "crease",
+                "unscanned", "unsampled", "saturated")
+OK, OUTSIDE, FACING_AWAY, OCCLUDED, GRAZING, CREASE, UNSCANNED, UNSAMPLED, SATURATED = \
+    range(len(MASK_REASONS))
 
 
 @dataclass
@@ -73,6 +78,23 @@ def vertex_normals(surface: TriangleSurface) -> np.ndarray:
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
+def normal_spread_deg(surface: TriangleSurface) -> np.ndarray:
+    """Per node, the largest angle (degrees) between its vertex normal and the normal of any
+    triangle around it: how much the surface turns within the node's star. Large at sharp
+    edges and on features smaller than the node spacing, where the node's orientation is
+    uncertain."""
+    v, t = surface.vertices, surface.triangles
+    face = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    face /= np.maximum(np.linalg.norm(face, axis=1, keepdims=True), 1e-12)
+    normals = vertex_normals(surface)
+    if enclosed_volume_mm3(surface) < 0:
+        face = -face
+    worst = np.ones(len(v))
+    for k in range(3):
+        np.minimum.at(worst, t[:, k], np.einsum("ij,ij->i", face, normals[t[:, k]]))
+    return np.degrees(np.arccos(np.clip(worst, -1.0, 1.0)))
+
+
 def _scene(vertices: np.ndarray, triangles: np.ndarray):
     o3d = import_open3d()
     scene = o3d.t.geometry.RaycastingScene()
@@ -90,8 +112,11 @@ def _cast(scene, o3d, dirs: np.ndarray) -> dict[str, np.ndarray]:
 
 
 def view_surface(surface: TriangleSurface, calib: RigCalibration, angle_deg: float,
-                 min_sin_beta: float) -> SurfaceView:
-    """Project a sample-frame surface into the camera with the stage at ``angle_deg``."""
+                 min_sin_beta: float, unscanned: np.ndarray | None = None,
+                 crease: np.ndarray | None = None) -> SurfaceView:
+    """Project a sample-frame surface into the camera with the stage at ``angle_deg``;
+    ``unscanned`` and ``crease`` (bool per node, view-independent) mark nodes not backed by
+    measured points and nodes without a single orientation."""
     lens = calib.camera
     width, height = lens.size
     nodes = calib.sample_to_camera(surface.vertices, angle_deg)
@@ -109,6 +134,9 @@ def view_surface(surface: TriangleSurface, calib: RigCalibration, angle_deg: flo
     tol = np.maximum(0.02, 1e-4 * dist)
     occluded = hit["t_hit"] < dist - tol
     mask = np.full(len(nodes), OK, np.int8)
+    for code, flag in ((UNSCANNED, unscanned), (CREASE, crease)):
+        if flag is not None:
+            mask[flag] = code
     for code, bad in ((GRAZING, sin_beta < min_sin_beta), (OCCLUDED, occluded),
                       (FACING_AWAY, sin_beta <= 0), (OUTSIDE, ~inside)):
         mask[bad] = code  # later assignments win: outside > facing away > occluded > grazing

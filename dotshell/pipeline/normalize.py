@@ -27,7 +27,7 @@ from dotshell.events import EventBus, StepProgress, StepStarted
 from dotshell.fem import TriangleSurface
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.surface_map import (OK, NodeLight, SurfaceView, mask_counts,
-                                           node_intensities, view_surface)
+                                           node_intensities, normal_spread_deg, view_surface)
 from dotshell.normalizer import Normalizer
 from dotshell.plugins import PluginManager
 from dotshell.profile import Profile
@@ -84,6 +84,23 @@ def _load_surface(store: RunStore) -> TriangleSurface:
     return read_surface(path)
 
 
+def unscanned_nodes(store: RunStore, surface: TriangleSurface,
+                    max_distance_mm: float) -> np.ndarray:
+    """Nodes farther than ``max_distance_mm`` from every point of the run's cloud: surface the
+    mesher made up (the closed bottom, filled holes), whose orientation is a guess."""
+    from scipy.spatial import cKDTree
+
+    from dotshell.ply import read_ply
+
+    path = store.path("cloud.ply")
+    if not path.is_file():
+        raise RunError(f"{path} is missing; the surface's nodes cannot be checked against the "
+                       f"scanned points. Re-run `dotshell reconstruct {store.root}`.")
+    points, _ = read_ply(path)
+    dist, _ = cKDTree(points).query(surface.vertices, distance_upper_bound=max_distance_mm)
+    return ~np.isfinite(dist)
+
+
 def _load_calibration(store: RunStore) -> RigCalibration:
     path = store.path("calibration.json")
     if not path.is_file():
@@ -100,9 +117,9 @@ def flat_field(store: RunStore, entry: dict[str, Any], calib: RigCalibration,
         bus.warn(f"{store.root}: no flat field; camera vignetting stays in the intensities.")
         return None
     flat = _float(store.read_image(store.path(entry["flat_field"]), "cannot flat-field"))
-    dark_path = store.trans_path("flat_dark")
-    if dark_path.is_file():
-        flat = flat - _float(store.read_image(dark_path, "cannot flat-field"))
+    half_path = store.trans_path("flat_half")
+    if half_path.is_file():  # full − half exposure: no black level, no stray light
+        flat = flat - _float(store.read_image(half_path, "cannot flat-field"))
     _check_size(flat, calib, store.path(entry["flat_field"]))
     flat = cv2.GaussianBlur(flat, (0, 0), FLAT_SIGMA_PX)
     cx, cy = (int(round(c)) for c in calib.camera.K[[0, 1], [2, 2]])
@@ -159,7 +176,8 @@ class Normalization:
     """Normalizes one run's trans-illumination frames (see the module docstring)."""
 
     def __init__(self, store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
-                 normalizer: str | None = None, min_sin_beta: float | None = None) -> None:
+                 normalizer: str | None = None, min_sin_beta: float | None = None,
+                 max_normal_spread_deg: float | None = None) -> None:
         self.store, self.profile, self.bus = store, profile, bus
         self.entry = store.manifest.get("transillumination")
         if not self.entry or not self.entry.get("views"):
@@ -168,7 +186,11 @@ class Normalization:
         self.cfg = dict(profile.data["normalize"])
         if min_sin_beta is not None:
             self.cfg["min_sin_beta"] = min_sin_beta
+        if max_normal_spread_deg is not None:
+            self.cfg["max_normal_spread_deg"] = max_normal_spread_deg
         self.surface = _load_surface(store)
+        self.unscanned = unscanned_nodes(store, self.surface, self.cfg["max_cloud_distance_mm"])
+        self.crease = normal_spread_deg(self.surface) > self.cfg["max_normal_spread_deg"]
         self.calib = _load_calibration(store)
         self.models = normalizers(profile, pm, normalizer)
         self.primary = next(iter(self.models))
@@ -188,7 +210,7 @@ class Normalization:
                 raise RunError(f"{self.store.root}: trans-illumination view {view} is not a view "
                                "of this run's manifest; the run is damaged.")
             geometry = view_surface(self.surface, self.calib, self.angles[view],
-                                    self.cfg["min_sin_beta"])
+                                    self.cfg["min_sin_beta"], self.unscanned, self.crease)
             pairs = [self._source(geometry, view, name)
                      for name in self.entry["views"][str(view)] if name != "dark"]
             if each_view is not None:
@@ -262,13 +284,13 @@ def _r(x: float) -> float:
 
 
 def normalize_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
-                    normalizer: str | None = None,
-                    min_sin_beta: float | None = None) -> dict[str, Any]:
+                    normalizer: str | None = None, min_sin_beta: float | None = None,
+                    max_normal_spread_deg: float | None = None) -> dict[str, Any]:
     """Normalize a run and write its outputs; returns the report section."""
     from dotshell.pipeline.normalize_outputs import OutputWriter
 
     t0 = time.perf_counter()
-    job = Normalization(store, profile, pm, bus, normalizer, min_sin_beta)
+    job = Normalization(store, profile, pm, bus, normalizer, min_sin_beta, max_normal_spread_deg)
     writer = OutputWriter(store, profile, job)
     results = job.run(writer.view)
     section = writer.summary(results)
@@ -278,8 +300,8 @@ def normalize_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: E
 
 
 def normalize_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
-                  normalizer: str | None = None,
-                  min_sin_beta: float | None = None) -> dict[str, Any]:
+                  normalizer: str | None = None, min_sin_beta: float | None = None,
+                  max_normal_spread_deg: float | None = None) -> dict[str, Any]:
     """``dotshell normalize RUN``: re-run the normalization from the stored frames and update
     the ``normalize`` section of ``report.json``."""
     from dotshell.pipeline.scan import load_run_profile
@@ -289,7 +311,8 @@ def normalize_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None =
     unsub = bus.subscribe(lambda ev: store.append_event(ev.to_dict()))
     try:
         profile = load_run_profile(store, pm)
-        section = normalize_stage(store, profile, pm, bus, normalizer, min_sin_beta)
+        section = normalize_stage(store, profile, pm, bus, normalizer, min_sin_beta,
+                                  max_normal_spread_deg)
         report = store.read_json("report.json") if store.path("report.json").is_file() else {}
         report["normalize"] = section
         store.write_json("report.json", report)

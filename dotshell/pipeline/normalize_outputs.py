@@ -190,7 +190,9 @@ class OutputWriter:
         job = self.job
         section = {"normalizer": job.primary,
                    "compare": [b for b in job.models if b != job.primary],
-                   "min_sin_beta": job.cfg["min_sin_beta"], "flat_field": job.flat is not None,
+                   "min_sin_beta": job.cfg["min_sin_beta"],
+                   "max_normal_spread_deg": job.cfg["max_normal_spread_deg"],
+                   "flat_field": job.flat is not None,
                    "mask_reasons": list(MASK_REASONS), "sources": self.entries,
                    "masked_total": _sum_masks(self.entries),
                    "vtu": write_vtu(self.store, job, results)}

@@ -1,6 +1,6 @@
 """Trans-illumination capture: at each view of a scan, with the stage where the fringe frames
 were taken and the projector dark, capture one frame per source position with the light source
-on, and (``dark = true``) one with it off; once per scan a flat-field frame of a uniform field.
+on, and (``dark = true``) one with it off; once per scan a uniform field at the trans exposure and at half of it (the flat field).
 
 Frames go through the scan's :class:`~dotshell.pipeline.acquire.FrameWriter` into
 ``transillumination/`` (docs/run-directory.md) and are listed in the manifest's
@@ -91,29 +91,15 @@ class TransilluminationCapture:
             self.rig.camera.set_exposure(ms)
 
     def capture_flat_field(self) -> str | None:
-        """The flat-field reference (and its dark frame) into the run; returns its path in the
-        run, or None (with a warning) when there is none."""
+        """The flat-field reference into the run; returns its path in the run, or None (with a
+        warning) when there is none."""
         entry = self.store.manifest["transillumination"]
         if self.flat_file is not None:
             target = self.store.trans_path("flat")
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(self.flat_file, target)
         elif self.s["flat_field"] == "capture" and self.flat_device is not None:
-            self.bus.emit(StepStarted(step="flat field"))
-            self._exposure(self.s["exposure_ms"])
-            self._dark_projector()
-            try:
-                self.flat_device.flat_field(True)
-                flat = self._retry(self.rig.camera.capture, "flat-field frame")
-            finally:
-                self.flat_device.flat_field(False)
-            self.writer.put_path(self.store.trans_path("flat"), flat, "flat-field frame")
-            dark = self._retry(self.rig.camera.capture, "flat-field dark frame")
-            self.writer.put_path(self.store.trans_path("flat_dark"), dark,
-                                 "flat-field dark frame")
-            self.writer.queue.join()
-            self.writer.check()
-            self._exposure(self.scan["exposure_ms"])
+            self._capture_flat_pair()
         else:
             why = ("flat_field = 'none'" if self.s["flat_field"] == "none" else
                    "no device of this rig can show the camera a uniform field")
@@ -124,6 +110,32 @@ class TransilluminationCapture:
         entry["flat_field"] = str(Path("transillumination") / "flat.png")
         self.store.update_manifest(transillumination=entry)
         return entry["flat_field"]
+
+    def _capture_flat_pair(self) -> None:
+        """The uniform field at the trans exposure and at half of it. Their difference is the
+        flat field without the black level or any light that does not scale with exposure (a
+        dark frame with the diffuser taken away would also subtract the scene's ambient light,
+        which the diffuser hides). A camera without exposure control gives one frame."""
+        self.bus.emit(StepStarted(step="flat field"))
+        self._dark_projector()
+        exposures = [("flat", self.s["exposure_ms"])]
+        if isinstance(self.rig.camera, ExposureControl):
+            exposures.append(("flat_half", self.s["exposure_ms"] / 2))
+        else:
+            self.bus.warn("the camera has no exposure control: the flat field keeps the black "
+                          "level (one frame, no half-exposure frame to subtract).")
+        try:
+            self.flat_device.flat_field(True)
+            for name, ms in exposures:
+                self._exposure(ms)
+                frame = self._retry(self.rig.camera.capture, f"flat-field frame {name!r}")
+                self.writer.put_path(self.store.trans_path(name), frame,
+                                     f"flat-field frame {name!r}")
+        finally:
+            self.flat_device.flat_field(False)
+            self._exposure(self.scan["exposure_ms"])
+        self.writer.queue.join()
+        self.writer.check()
 
     def run_view(self, view: int) -> list[str]:
         """Capture this view's trans-illumination frames (stage already in place); returns the
