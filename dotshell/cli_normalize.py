@@ -79,6 +79,6 @@ def add_normalize_parser(sub, pm_factory) -> None:
                          "[normalize] min_sin_beta, 0.3)")
     sp.add_argument("--max-normal-spread", type=float, metavar="DEG",
                     help="mask nodes whose surface turns more than DEG degrees within their "
-                         "star (default: the profile's [normalize] max_normal_spread_deg, 25; "
+                         "star (default: the profile's [normalize] max_normal_spread_deg, 20; "
                          "180 = never)")
     sp.set_defaults(func=lambda a: cmd_normalize(a, pm_factory(a)))

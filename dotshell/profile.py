@@ -225,7 +225,7 @@ def _check_transillumination(data: dict[str, Any], where: str) -> None:
                            "(the trans-illumination laser), e.g. backend = \"sim-laser\".")
     n_views = len(data["scan"]["angles_deg"]) or data["scan"]["views"]
     bad = [v for v in t["views"] if not 0 <= v < n_views]
-    if bad:
+    if bad and t["enabled"]:
         raise ProfileError(f"{where}: [transillumination] views {bad} are not views of this "
                            f"scan (0 .. {n_views - 1}).")
 

@@ -40,7 +40,7 @@ NORMALIZE_SCHEMA: dict[str, Setting] = {
     "saturation_fraction": Setting("float", default=0.98, min=0.5, max=1.0,
                                    help="pixels at or above this fraction of the camera's full "
                                         "scale count as saturated"),
-    "max_normal_spread_deg": Setting("float", default=25.0, min=0.0, max=180.0, unit="deg",
+    "max_normal_spread_deg": Setting("float", default=20.0, min=0.0, max=180.0, unit="deg",
                                      help="nodes whose surface turns more than this within "
                                           "their star (sharp edges, features smaller than the "
                                           "node spacing) are masked as crease"),

@@ -1,6 +1,7 @@
 """Procedural mouse and gummy-bear phantoms: closed meshes in the simulator's scene, and (slow,
 `make validate`) full-resolution scans meshed at two node distances with previews."""
 
+import json
 import tomllib
 from pathlib import Path
 
@@ -82,3 +83,11 @@ def test_phantom_scanned_and_meshed_at_two_node_distances(name, kind, tmp_path):
             assert (result.run_dir / rel).stat().st_size > 10_000
     assert (result.run_dir / "nirfast" / "mesh.elem").is_file()
     assert (result.run_dir / "toast" / "mesh.msh").is_file()
+    if kind == "mouse":  # trans-illuminated at two views (issue 6): the issue's bounds
+        n = result.report["normalize"]
+        print(json.dumps({k: n[k] for k in ("vs_truth", "masked_total")}, indent=1))
+        fres, raw = n["vs_truth"]["diffuse-fresnel"], n["vs_truth"]["none"]
+        assert fres["nodes"] > 300
+        assert fres["median_abs_pct"] <= 3.0 and fres["p95_abs_pct"] <= 10.0
+        assert raw["median_abs_pct"] > 15.0
+        assert n["masked_total"]["crease"] > 0 and n["masked_total"]["saturated"] == 0

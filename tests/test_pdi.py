@@ -21,6 +21,8 @@ def _raw(name: str, factor: float, views: int) -> dict:
     raw = scale_profile(raw, factor)
     raw["scan"]["views"] = views
     raw["outputs"] = {"previews": False}
+    raw.get("transillumination", {})["enabled"] = False  # covered by test_normalize.py
+    raw.get("mesh", {})["after_scan"] = False
     return raw
 
 

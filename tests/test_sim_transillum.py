@@ -251,6 +251,8 @@ def test_a_beam_that_misses_is_a_clear_error(agar):
 
 def test_opaque_mouse_needs_optics_then_renders():
     raw = _profile("sim-mouse-phantom.toml", factor=0.2, spacing=1.5)
+    for key in ("mua_per_mm", "musp_per_mm", "refractive_index"):  # the profile gives them
+        raw["stage"]["settings"]["scene"].pop(key, None)
     rig = _connected(raw)
     laser, cam = rig["light_source"], rig["camera"]
     laser.set(True)

@@ -57,3 +57,14 @@ def test_agar_without_pdi_is_at_least_5x_worse(agar_full):
     print(json.dumps(plain["validation"], indent=1))
     assert plain["validation"]["mean_rel_error_pct"] >= 5 * pdi["mean_rel_error_pct"]
     assert plain["validation"]["mean_signed_rel_error_pct"] < -0.2  # biased inwards
+
+
+def test_agar_cylinder_trans_illumination_normalized_within_bounds(agar_full):
+    """Issue 6 on the full-resolution agar scan: four views, two beam heights each."""
+    n = agar_full["sim-agar-cylinder"].report["normalize"]
+    print(json.dumps({k: n[k] for k in ("vs_truth", "masked_total")}, indent=1))
+    fres, lamb, raw = (n["vs_truth"][b] for b in ("diffuse-fresnel", "lambertian", "none"))
+    assert fres["nodes"] > 2000
+    assert fres["median_abs_pct"] <= 3.0 and fres["p95_abs_pct"] <= 10.0
+    assert lamb["p95_abs_pct"] > fres["p95_abs_pct"] and raw["median_abs_pct"] > 15.0
+    assert n["flat_field"] and n["masked_total"]["saturated"] == 0
