@@ -36,6 +36,7 @@ from dotshell.settings import Setting, validate_settings
 from dotshell.optics import exit_radiance_per_fluence
 
 from dotshell_sim import transillum
+from dotshell_sim.lru import cached
 from dotshell_sim.render import Light, Renderer, SensorModel, sensor
 from dotshell_sim.scene import MATERIALS, build_scene
 
@@ -228,16 +229,9 @@ class SimWorld:
         key = json.dumps([calib.to_dict(), stage.settings["scene"], stage.settings["plate"],
                           stage.settings["background"], s["supersample"], s["ambient"],
                           projector.ref_mm, stage.target_key], sort_keys=True)
-        renderer = _RENDERERS.get(key)
-        if renderer is None:
-            renderer = Renderer(calib, stage.scene, supersample=s["supersample"],
-                                ambient=s["ambient"], projector_ref_mm=projector.ref_mm)
-            _RENDERERS[key] = renderer
-            while len(_RENDERERS) > _MAX_RENDERERS:
-                _RENDERERS.popitem(last=False)
-        else:
-            _RENDERERS.move_to_end(key)
-        return renderer
+        return cached(_RENDERERS, key, lambda: Renderer(
+            calib, stage.scene, supersample=s["supersample"], ambient=s["ambient"],
+            projector_ref_mm=projector.ref_mm), _MAX_RENDERERS)
 
 
 #: Renderers shared across worlds, by geometry (a full-resolution renderer with two cached

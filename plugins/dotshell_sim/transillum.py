@@ -47,6 +47,7 @@ from dotshell.geometry.calibration import rot_z
 from dotshell.geometry.lens import Lens
 from dotshell.optics import exit_radiance_per_fluence
 
+from dotshell_sim.lru import cached
 from dotshell_sim.render import Renderer, View, subpixel_grid
 from dotshell_sim.scene import Cylinder, Material, MeshShape
 
@@ -353,15 +354,8 @@ def shape_key(shape) -> str:
 def fluence_model(shape, optics: Optics, spacing_mm: float) -> FluenceModel:
     """The (in-process cached) FEM of a sample shape with these optics and node spacing."""
     key = f"{shape_key(shape)} {optics} {spacing_mm}"
-    model = _MODELS.get(key)
-    if model is None:
-        model = FluenceModel.build(true_surface(shape, spacing_mm), optics, spacing_mm, key)
-        _MODELS[key] = model
-        while len(_MODELS) > _MAX_MODELS:
-            _MODELS.popitem(last=False)
-    else:
-        _MODELS.move_to_end(key)
-    return model
+    return cached(_MODELS, key, lambda: FluenceModel.build(true_surface(shape, spacing_mm),
+                                                           optics, spacing_mm, key), _MAX_MODELS)
 
 
 # ---- the beam ----------------------------------------------------------------------------
