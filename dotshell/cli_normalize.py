@@ -15,14 +15,14 @@ err = Console(stderr=True, highlight=False)
 
 
 def masks_table(section: dict[str, Any]) -> Table:
-    """Nodes used and masked (by reason) per view and source."""
-    reasons = section["mask_reasons"][1:]
+    """Nodes used and masked (non-zero reasons) per view and source."""
     t = Table(title=f"Surface nodes per image (sin β ≥ {section['min_sin_beta']:g} used)")
-    for col in ("view", "angle [°]", "source", "used", *reasons):
-        t.add_column(col.replace("_", " "))
+    for col in ("view", "source", "used", "masked by reason"):
+        t.add_column(col)
     for e in section["sources"]:
-        t.add_row(str(e["view"]), f"{e['angle_deg']:g}", e["source"], str(e["used"]),
-                  *(str(e["masked"][r]) for r in reasons))
+        masked = ", ".join(f"{r.replace('_', ' ')} {n}" for r, n in e["masked"].items()
+                           if r != "ok" and n)
+        t.add_row(f"{e['view']} ({e['angle_deg']:g}°)", e["source"], str(e["used"]), masked)
     return t
 
 
