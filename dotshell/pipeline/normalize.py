@@ -31,6 +31,7 @@ from dotshell.geometry.surface_map import (OK, NodeLight, SurfaceView, mask_coun
 from dotshell.normalizer import Normalizer
 from dotshell.plugins import PluginManager
 from dotshell.profile import Profile
+from dotshell.settings import validate_settings
 from dotshell.store import RunStore
 
 DEFAULT_NORMALIZER = "diffuse-fresnel"
@@ -63,8 +64,6 @@ def normalizers(profile: Profile, pm: PluginManager, override: str | None) -> di
     for name in dict.fromkeys(names):
         settings = dict(section["settings"]) if section and section["backend"] == name else {}
         info = pm.backend("normalizer", name, profile.source)
-        from dotshell.settings import validate_settings
-
         settings = validate_settings(info.backend.settings_schema, settings, profile.source,
                                      "normalizer.settings")
         if settings.get("refractive_index") == 0.0:  # documented: 0 = the sample's [mesh.optics]
@@ -73,15 +72,20 @@ def normalizers(profile: Profile, pm: PluginManager, override: str | None) -> di
     return out
 
 
+def _required(store: RunStore, name: str, error: type[DotshellError], why: str) -> Path:
+    """The run's file ``name``, or ``error`` saying ``why`` it is needed and how to make it."""
+    path = store.path(name)
+    if not path.is_file():
+        raise error(f"{store.root} has no {name}: {why}")
+    return path
+
+
 def _load_surface(store: RunStore) -> TriangleSurface:
     from dotshell.meshfiles import read_surface
 
-    path = store.path("surface.ply")
-    if not path.is_file():
-        raise RunError(f"{store.root} has no surface (surface.ply): normalization maps the "
-                       "images onto the scanned surface. Run `dotshell mesh "
-                       f"{store.root}` first, or scan with [mesh] after_scan = true.")
-    return read_surface(path)
+    return read_surface(_required(
+        store, "surface.ply", RunError, "normalization maps the images onto the scanned "
+        f"surface. Run `dotshell mesh {store.root}` first, or scan with [mesh] after_scan = true."))
 
 
 def unscanned_nodes(store: RunStore, surface: TriangleSurface,
@@ -92,22 +96,17 @@ def unscanned_nodes(store: RunStore, surface: TriangleSurface,
 
     from dotshell.ply import read_ply
 
-    path = store.path("cloud.ply")
-    if not path.is_file():
-        raise RunError(f"{path} is missing; the surface's nodes cannot be checked against the "
-                       f"scanned points. Re-run `dotshell reconstruct {store.root}`.")
-    points, _ = read_ply(path)
+    points, _ = read_ply(_required(
+        store, "cloud.ply", RunError, "the surface's nodes cannot be checked against the "
+        f"scanned points. Re-run `dotshell reconstruct {store.root}`."))
     dist, _ = cKDTree(points).query(surface.vertices, distance_upper_bound=max_distance_mm)
     return ~np.isfinite(dist)
 
 
 def _load_calibration(store: RunStore) -> RigCalibration:
-    path = store.path("calibration.json")
-    if not path.is_file():
-        raise CalibrationError(f"{store.root} has no calibration.json, so its views cannot be "
-                               "mapped onto the surface. Give one with `dotshell reconstruct "
-                               f"{store.root} --calibration FILE`.")
-    return RigCalibration.load(path)
+    return RigCalibration.load(_required(
+        store, "calibration.json", CalibrationError, "its views cannot be mapped onto the "
+        f"surface. Give one with `dotshell reconstruct {store.root} --calibration FILE`."))
 
 
 def flat_field(store: RunStore, entry: dict[str, Any], calib: RigCalibration,
