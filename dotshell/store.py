@@ -163,6 +163,17 @@ class RunStore:
         m.update(changes)
         self.write_json("manifest.json", m)
 
+    def update_report(self, timings_s: dict[str, float] | None = None,
+                      **sections: Any) -> dict[str, Any]:
+        """Set ``sections`` of ``report.json`` (made if missing) and merge ``timings_s`` (s) into
+        its timings, for a stage re-run on an existing run; returns the report."""
+        report = self.read_json("report.json") if self.path("report.json").is_file() else {}
+        report.update(sections)
+        if timings_s:
+            report.setdefault("timings_s", {}).update(timings_s)
+        self.write_json("report.json", report)
+        return report
+
     def mark_view(self, view: int, frames: int, complete: bool) -> None:
         m = self.manifest
         m["views"][view].update(frames=frames, complete=complete)

@@ -18,7 +18,7 @@ import pytest
 from dotshell.fem import TriangleSurface
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import lens_from_fov
-from dotshell.geometry.surface_map import (FACING_AWAY, GRAZING, OCCLUDED, OK, SATURATED,
+from dotshell.geometry.surface_map import (OCCLUDED, OK, SATURATED,
                                            mask_counts, node_intensities, resample_to_image,
                                            view_surface)
 from dotshell.optics import exit_radiance_factor

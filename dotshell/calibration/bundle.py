@@ -21,22 +21,11 @@ from scipy.optimize import least_squares
 
 from dotshell.calibration.solve import PoseData
 from dotshell.errors import CalibrationError
-from dotshell.geometry.lens import Lens
+from dotshell.geometry.lens import Lens, project_points
 
 #: Distortion coefficients (OpenCV order k1, k2, p1, p2, k3) solved for, per ``distortion``.
 FREE_DISTORTION = {"k1": (0,), "k1k2": (0, 1), "k1k2k3": (0, 1, 4), "full": (0, 1, 2, 3, 4)}
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
-
-
-def project(K: np.ndarray, dist: np.ndarray, X: np.ndarray) -> np.ndarray:
-    """OpenCV's pinhole + radial/tangential model: camera-frame points (N, 3) mm → pixels."""
-    x, y = X[:, 0] / X[:, 2], X[:, 1] / X[:, 2]
-    k1, k2, p1, p2, k3 = dist
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return np.column_stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]])
 
 
 @dataclass
@@ -172,41 +161,36 @@ class _Problem:
         for i in range(len(self.names)):
             pv = x[lay.pose(i)]
             Rb = cv2.Rodrigues(pv[:3])[0]
-            out.append((project(Kc, dc, self.obj_c[i] @ Rb.T + pv[3:]) - self.img_c[i]).ravel())
+            out.append((project_points(Kc, dc, self.obj_c[i] @ Rb.T + pv[3:]) - self.img_c[i]).ravel())
             if self.n_proj[i]:
                 Xc = self.obj_p[i] @ Rb.T + pv[3:]
-                out.append((project(Kp, dp, Xc @ Rs.T + Ts) - self.img_p[i]).ravel())
+                out.append((project_points(Kp, dp, Xc @ Rs.T + Ts) - self.img_p[i]).ravel())
         return np.concatenate(out)
 
     def result(self, sol) -> BundleSolve:
-        return _result(sol, self.lay, self.names, self.free, self.dist_c0, self.dist_p0,
-                       self.camera, self.projector, self.n_cam, self.n_proj)
-
-
-def _result(sol, lay: _Layout, names: list[str], free, dist_c0, dist_p0, camera: Lens,
-            projector: Lens, n_cam: list[int], n_proj: list[int]) -> BundleSolve:
-    x = sol.x
-    Kc, dc = _lens_from(x[lay.cam], free, dist_c0)
-    Kp, dp = _lens_from(x[lay.proj], free, dist_p0)
-    res = sol.fun
-    per, cam_sq, proj_sq, r = {}, [], [], 0
-    for n, nc, np_ in zip(names, n_cam, n_proj):
-        c = res[r:r + 2 * nc]
-        p = res[r + 2 * nc:r + 2 * nc + 2 * np_]
-        r += 2 * (nc + np_)
-        cam_sq.append(c ** 2)
-        proj_sq.append(p ** 2)
-        both = np.concatenate([c, p])
-        per[n] = float(np.sqrt(2 * np.mean(both ** 2)))
-    cam_sq, proj_sq = np.concatenate(cam_sq), np.concatenate(proj_sq)
-    sigma = _sigmas(sol, lay)
-    Rs = cv2.Rodrigues(x[lay.stereo][:3])[0]
-    return BundleSolve(
-        Lens(Kc, dc, *camera.size), Lens(Kp, dp, *projector.size), Rs, x[lay.stereo][3:].copy(),
-        {n: x[lay.pose(i)][:3].copy() for i, n in enumerate(names)},
-        {n: x[lay.pose(i)][3:].copy() for i, n in enumerate(names)},
-        float(np.sqrt(2 * np.mean(res ** 2))), float(np.sqrt(2 * np.mean(cam_sq))),
-        float(np.sqrt(2 * np.mean(proj_sq))) if len(proj_sq) else float("nan"), per, sigma)
+        """The solved lenses, poses and RMS errors (px) of ``sol``, with one-sigma values."""
+        x, lay, names = sol.x, self.lay, self.names
+        Kc, dc, Kp, dp = self.lenses(x)
+        res = sol.fun
+        per, cam_sq, proj_sq, r = {}, [], [], 0
+        for n, nc, np_ in zip(names, self.n_cam, self.n_proj):
+            c = res[r:r + 2 * nc]
+            p = res[r + 2 * nc:r + 2 * nc + 2 * np_]
+            r += 2 * (nc + np_)
+            cam_sq.append(c ** 2)
+            proj_sq.append(p ** 2)
+            both = np.concatenate([c, p])
+            per[n] = float(np.sqrt(2 * np.mean(both ** 2)))
+        cam_sq, proj_sq = np.concatenate(cam_sq), np.concatenate(proj_sq)
+        Rs = cv2.Rodrigues(x[lay.stereo][:3])[0]
+        return BundleSolve(
+            Lens(Kc, dc, *self.camera.size), Lens(Kp, dp, *self.projector.size), Rs,
+            x[lay.stereo][3:].copy(),
+            {n: x[lay.pose(i)][:3].copy() for i, n in enumerate(names)},
+            {n: x[lay.pose(i)][3:].copy() for i, n in enumerate(names)},
+            float(np.sqrt(2 * np.mean(res ** 2))), float(np.sqrt(2 * np.mean(cam_sq))),
+            float(np.sqrt(2 * np.mean(proj_sq))) if len(proj_sq) else float("nan"), per,
+            _sigmas(sol, lay))
 
 
 def covariance(jac, residuals: np.ndarray) -> np.ndarray:

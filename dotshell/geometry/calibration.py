@@ -81,6 +81,11 @@ class RigCalibration:
         y = np.cross(z, x)
         return np.vstack([x, y, z])
 
+    def sample_rotation(self, angle_deg: float) -> np.ndarray:
+        """3x3 rotation taking sample-frame directions to the camera frame with the stage at θ
+        degrees (``d_camera = R @ d_sample``; row vectors: ``d_sample = d_camera @ R``)."""
+        return self.stage_basis().T @ rot_z(angle_deg)
+
     def camera_to_sample(self, points: np.ndarray, angle_deg: float) -> np.ndarray:
         """Camera-frame points (N, 3) seen at stage angle θ → sample (stage at 0°) frame (mm)."""
         aligned = (np.asarray(points, float) - self.axis_point) @ self.stage_basis().T

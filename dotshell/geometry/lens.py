@@ -58,16 +58,7 @@ class Lens:
 
     def project(self, points: np.ndarray) -> np.ndarray:
         """Points (N, 3) in the lens frame (mm) → distorted pixel coordinates (N, 2)."""
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        x = pts[:, 0] / pts[:, 2]
-        y = pts[:, 1] / pts[:, 2]
-        k1, k2, p1, p2, k3 = self.dist
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-        K = self.K
-        return np.column_stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]])
+        return project_points(self.K, self.dist, points)
 
     def scaled(self, factor: float) -> "Lens":
         """The same lens seen at ``factor`` times the resolution (for reduced-size tests)."""
@@ -100,3 +91,18 @@ def lens_from_fov(width: int, height: int, fx: float, dist=(0, 0, 0, 0, 0),
     cy = (height - 1) / 2 if cy is None else cy
     K = np.array([[fx, 0, cx], [0, fx, cy], [0, 0, 1.0]])
     return Lens(K, np.asarray(dist, float), width, height)
+
+
+def project_points(K: np.ndarray, dist, points: np.ndarray) -> np.ndarray:
+    """OpenCV's pinhole + radial/tangential model (``dist`` = k1, k2, p1, p2, k3): points
+    (N, 3) in the lens frame (mm) → distorted pixel coordinates (N, 2). For solvers that vary
+    ``K`` and ``dist``; otherwise use :meth:`Lens.project`."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    x = pts[:, 0] / pts[:, 2]
+    y = pts[:, 1] / pts[:, 2]
+    k1, k2, p1, p2, k3 = dist
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return np.column_stack([K[0, 0] * xd + K[0, 1] * yd + K[0, 2], K[1, 1] * yd + K[1, 2]])

@@ -36,9 +36,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dotshell.compat import import_open3d
 from dotshell.fem import TriangleSurface, enclosed_volume_mm3
 from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.raycast import TriangleScene, barycentric_weights
 
 #: node mask reasons, in the order they are decided (code = index)
 MASK_REASONS = ("ok", "outside_image", "facing_away", "occluded", "grazing", "crease",
@@ -66,16 +66,25 @@ class SurfaceView:
     pixel_cos: np.ndarray             # (M,) cos between ray and face normal (> 0)
 
 
-def vertex_normals(surface: TriangleSurface) -> np.ndarray:
-    """Area-weighted unit vertex normals, pointing out of the enclosed volume."""
+def _outward_face_vectors(surface: TriangleSurface) -> np.ndarray:
+    """Per triangle, its normal scaled by twice its area, pointing out of the enclosed volume."""
     v, t = surface.vertices, surface.triangles
-    face = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])  # |face| = 2 · area
-    if enclosed_volume_mm3(surface) < 0:
-        face = -face
-    n = np.zeros_like(v)
+    face = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
+    return -face if enclosed_volume_mm3(surface) < 0 else face
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-12)
+
+
+def vertex_normals(surface: TriangleSurface, faces: np.ndarray | None = None) -> np.ndarray:
+    """Area-weighted unit vertex normals, pointing out of the enclosed volume (``faces``: the
+    surface's :func:`_outward_face_vectors`, if already computed)."""
+    face = _outward_face_vectors(surface) if faces is None else faces
+    n = np.zeros_like(surface.vertices)
     for k in range(3):
-        np.add.at(n, t[:, k], face)
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        np.add.at(n, surface.triangles[:, k], face)
+    return _unit(n)
 
 
 def normal_spread_deg(surface: TriangleSurface) -> np.ndarray:
@@ -83,32 +92,14 @@ def normal_spread_deg(surface: TriangleSurface) -> np.ndarray:
     triangle around it: how much the surface turns within the node's star. Large at sharp
     edges and on features smaller than the node spacing, where the node's orientation is
     uncertain."""
-    v, t = surface.vertices, surface.triangles
-    face = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])
-    face /= np.maximum(np.linalg.norm(face, axis=1, keepdims=True), 1e-12)
-    normals = vertex_normals(surface)
-    if enclosed_volume_mm3(surface) < 0:
-        face = -face
-    worst = np.ones(len(v))
+    t = surface.triangles
+    faces = _outward_face_vectors(surface)
+    normals = vertex_normals(surface, faces)
+    face = _unit(faces)
+    worst = np.ones(len(surface.vertices))
     for k in range(3):
         np.minimum.at(worst, t[:, k], np.einsum("ij,ij->i", face, normals[t[:, k]]))
     return np.degrees(np.arccos(np.clip(worst, -1.0, 1.0)))
-
-
-def _scene(vertices: np.ndarray, triangles: np.ndarray):
-    o3d = import_open3d()
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(vertices.astype(np.float32)),
-                        o3d.core.Tensor(triangles.astype(np.uint32)))
-    return scene, o3d
-
-
-def _cast(scene, o3d, dirs: np.ndarray) -> dict[str, np.ndarray]:
-    rays = np.zeros((len(dirs), 6), np.float32)
-    rays[:, 3:] = dirs
-    hit = scene.cast_rays(o3d.core.Tensor(rays))
-    return {k: hit[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_uvs",
-                                        "primitive_normals")}
 
 
 def view_surface(surface: TriangleSurface, calib: RigCalibration, angle_deg: float,
@@ -120,7 +111,7 @@ def view_surface(surface: TriangleSurface, calib: RigCalibration, angle_deg: flo
     lens = calib.camera
     width, height = lens.size
     nodes = calib.sample_to_camera(surface.vertices, angle_deg)
-    normals = vertex_normals(surface) @ _rotation(calib, angle_deg).T
+    normals = vertex_normals(surface) @ calib.sample_rotation(angle_deg).T
     dist = np.linalg.norm(nodes, axis=1)
     to_cam = -nodes / np.maximum(dist, 1e-12)[:, None]
     sin_beta = np.einsum("ij,ij->i", normals, to_cam)
@@ -129,8 +120,8 @@ def view_surface(surface: TriangleSurface, calib: RigCalibration, angle_deg: flo
     px[in_front] = lens.project(nodes[in_front])
     inside = in_front & (px[:, 0] >= -0.5) & (px[:, 0] <= width - 0.5) \
         & (px[:, 1] >= -0.5) & (px[:, 1] <= height - 0.5)
-    scene, o3d = _scene(nodes, surface.triangles)
-    hit = _cast(scene, o3d, -to_cam)
+    scene = TriangleScene(nodes, surface.triangles)
+    hit = scene.cast(np.zeros_like(nodes), -to_cam)
     tol = np.maximum(0.02, 1e-4 * dist)
     occluded = hit["t_hit"] < dist - tol
     mask = np.full(len(nodes), OK, np.int8)
@@ -140,17 +131,11 @@ def view_surface(surface: TriangleSurface, calib: RigCalibration, angle_deg: flo
     for code, bad in ((GRAZING, sin_beta < min_sin_beta), (OCCLUDED, occluded),
                       (FACING_AWAY, sin_beta <= 0), (OUTSIDE, ~inside)):
         mask[bad] = code  # later assignments win: outside > facing away > occluded > grazing
-    pixels = _pixel_hits(scene, o3d, surface.triangles, lens, px[inside])
+    pixels = _pixel_hits(scene, lens, px[inside])
     return SurfaceView(angle_deg, (width, height), nodes, normals, sin_beta, px, mask, *pixels)
 
 
-def _rotation(calib: RigCalibration, angle_deg: float) -> np.ndarray:
-    """Linear part of :meth:`RigCalibration.sample_to_camera` (for directions)."""
-    o = calib.sample_to_camera(np.zeros((1, 3)), angle_deg)[0]
-    return (calib.sample_to_camera(np.eye(3), angle_deg) - o).T
-
-
-def _pixel_hits(scene, o3d, triangles: np.ndarray, lens, node_px: np.ndarray):
+def _pixel_hits(scene: TriangleScene, lens, node_px: np.ndarray):
     width, height = lens.size
     if len(node_px) == 0:
         e = np.zeros(0)
@@ -160,17 +145,16 @@ def _pixel_hits(scene, o3d, triangles: np.ndarray, lens, node_px: np.ndarray):
     cols, rows = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1))
     pix = np.column_stack([cols.ravel(), rows.ravel()]).astype(float)
     dirs = lens.rays(pix)
-    hit = _cast(scene, o3d, dirs)
+    hit = scene.cast(np.zeros_like(dirs), dirs)
     cos = -np.einsum("ij,ij->i", hit["primitive_normals"].astype(float), dirs)
     ok = np.isfinite(hit["t_hit"]) & (cos > 1e-3)  # front faces only
     K = lens.K
     t = hit["t_hit"][ok].astype(float)
     solid_angle = dirs[ok, 2] ** 3 / (K[0, 0] * K[1, 1])  # pinhole pixel solid angle, sr
-    uv = hit["primitive_uvs"][ok].astype(float)
-    weights = np.column_stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]])
+    weights = barycentric_weights(hit["primitive_uvs"][ok])
     index = (rows.ravel()[ok] * width + cols.ravel()[ok]).astype(np.int64)
-    tri = triangles[hit["primitive_ids"][ok].astype(np.int64)]
-    return index, tri, np.clip(weights, 0.0, 1.0), t * t * solid_angle, cos[ok]
+    tri = scene.triangles[hit["primitive_ids"][ok].astype(np.int64)]
+    return index, tri, weights, t * t * solid_angle, cos[ok]
 
 
 @dataclass

@@ -14,7 +14,7 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, TypeVar
 
 import numpy as np
 
@@ -25,6 +25,23 @@ from dotshell.events import EventBus, FrameCaptured, ScanPaused, ScanResumed, Vi
 from dotshell.pipeline.pdi import Shot, plan_shots
 from dotshell.rig import Rig
 from dotshell.store import RunStore
+
+T = TypeVar("T")
+
+
+def with_retries(action: Callable[[], T], retries: int, what: str, bus: EventBus) -> T:
+    """``action()``, tried again up to ``retries`` times when it raises DeviceError (a warning
+    naming ``what`` per retry); the last failure is a DeviceError naming ``what``."""
+    attempts = retries + 1
+    for attempt in range(1, attempts + 1):
+        try:
+            return action()
+        except DeviceError as exc:
+            if attempt == attempts:
+                raise DeviceError(f"{what}: capture failed {attempts} times; last error: "
+                                  f"{exc}") from None
+            bus.warn(f"{what}: {exc} — retrying ({attempt}/{attempts - 1})")
+    raise AssertionError("unreachable")
 
 
 class FrameWriter:
@@ -99,8 +116,8 @@ class Acquisition:
 
     def _capture(self, shot: Shot, view: int) -> np.ndarray:
         pattern = self.patterns[shot.pattern]
-        attempts = self.scan["retries"] + 1
-        for attempt in range(1, attempts + 1):
+
+        def attempt() -> np.ndarray:
             try:
                 if shot.analyzer_deg is not None and shot.analyzer_deg != self._analyzer_deg:
                     self.rig.analyzer.set_angle(shot.analyzer_deg)
@@ -109,14 +126,12 @@ class Acquisition:
                 if self.scan["settle_ms"] > 0:
                     time.sleep(self.scan["settle_ms"] / 1000.0)
                 return self.rig.camera.capture()
-            except DeviceError as exc:
+            except DeviceError:
                 self._analyzer_deg = None  # unknown after a failure: set it again
-                if attempt == attempts:
-                    raise DeviceError(f"view {view}, frame {shot.name!r}: capture failed "
-                                      f"{attempts} times; last error: {exc}") from None
-                self.bus.warn(f"view {view}, frame {shot.name!r}: {exc} — retrying "
-                              f"({attempt}/{attempts - 1})")
-        raise AssertionError("unreachable")
+                raise
+
+        return with_retries(attempt, self.scan["retries"], f"view {view}, frame {shot.name!r}",
+                            self.bus)
 
     def _wait_if_paused(self, view: int, index: int) -> bool:
         """Block while ``running`` is cleared (a pause between frames); False if stopped

@@ -160,24 +160,16 @@ def mesh_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None
              node_distance_mm: float | None = None, export: bool = True) -> MeshRunResult:
     """``dotshell mesh RUN``: mesh a run's cloud, run the profile's exporters, update
     ``report.json`` (its ``mesh`` and ``exports`` sections)."""
-    from dotshell.pipeline.scan import load_run_profile, run_exporters
+    from dotshell.pipeline.scan import reopened_run, run_exporters
 
     bus = bus or EventBus()
-    store = RunStore.open(Path(run_dir))
-    unsub = bus.subscribe(lambda ev: store.append_event(ev.to_dict()))
-    try:
-        profile = load_run_profile(store, pm)
+    with reopened_run(run_dir, pm, bus) as (store, profile):
         t0 = time.perf_counter()
-        section = mesh_stage(store, profile, pm, bus, node_distance_mm)
-        report = store.read_json("report.json") if store.path("report.json").is_file() else {}
-        report["mesh"] = section
+        sections = {"mesh": mesh_stage(store, profile, pm, bus, node_distance_mm)}
         if export and profile.data["export"]:
-            report["exports"] = run_exporters(store, profile, pm, bus)
-        report.setdefault("timings_s", {})["mesh"] = round(time.perf_counter() - t0, 3)
-        store.write_json("report.json", report)
-    finally:
-        unsub()
-        store.close()
+            sections["exports"] = run_exporters(store, profile, pm, bus)
+        report = store.update_report(timings_s={"mesh": round(time.perf_counter() - t0, 3)},
+                                     **sections)
     return MeshRunResult(store.root, report)
 
 

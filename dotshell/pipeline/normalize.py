@@ -30,6 +30,7 @@ from dotshell.geometry.surface_map import (OK, NodeLight, SurfaceView, mask_coun
                                            node_intensities, normal_spread_deg, view_surface)
 from dotshell.normalizer import Normalizer
 from dotshell.plugins import PluginManager
+from dotshell.pipeline.transillum import source_names
 from dotshell.profile import Profile
 from dotshell.settings import validate_settings
 from dotshell.store import RunStore
@@ -197,6 +198,8 @@ class Normalization:
         self.truth = _truth_source(profile, pm)
         self.full_scale = (1 << int(self.entry.get("camera_bit_depth", 16))) - 1
         self.angles = {v["index"]: v["angle_deg"] for v in store.manifest["views"]}
+        targets = self.entry["targets_mm"]  # [None] for a source that was not aimed
+        self.targets = dict(zip(source_names(len(targets)), targets))
 
     def run(self, each_view: ViewCallback | None = None) -> list[SourceResult]:
         """Normalize every stored view; ``each_view(geometry, [(result, image), ...])`` is called
@@ -244,8 +247,7 @@ class Normalization:
         for backend, model in self.models.items():
             factor = model.orientation_factor(np.clip(geometry.sin_beta, 1e-6, 1.0))
             estimates[backend] = np.where(good, light.intensity / factor, np.nan)
-        targets = self.entry["targets_mm"]
-        target = targets[int(name.split("_")[1])] if name.startswith("src_") else None
+        target = self.targets.get(name)
         truth = None
         if self.truth is not None:
             truth = np.asarray(self.truth.true_normal_radiance(
@@ -303,19 +305,11 @@ def normalize_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None =
                   max_normal_spread_deg: float | None = None) -> dict[str, Any]:
     """``dotshell normalize RUN``: re-run the normalization from the stored frames and update
     the ``normalize`` section of ``report.json``."""
-    from dotshell.pipeline.scan import load_run_profile
+    from dotshell.pipeline.scan import reopened_run
 
     bus = bus or EventBus()
-    store = RunStore.open(Path(run_dir))
-    unsub = bus.subscribe(lambda ev: store.append_event(ev.to_dict()))
-    try:
-        profile = load_run_profile(store, pm)
+    with reopened_run(run_dir, pm, bus) as (store, profile):
         section = normalize_stage(store, profile, pm, bus, normalizer, min_sin_beta,
                                   max_normal_spread_deg)
-        report = store.read_json("report.json") if store.path("report.json").is_file() else {}
-        report["normalize"] = section
-        store.write_json("report.json", report)
-    finally:
-        unsub()
-        store.close()
+        store.update_report(normalize=section)
     return section

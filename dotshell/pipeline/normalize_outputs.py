@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
+from dotshell.geometry.raycast import TriangleScene
 from dotshell.geometry.surface_map import MASK_REASONS, SurfaceView, resample_to_image
 from dotshell.profile import Profile
 from dotshell.store import RunStore, atomic_write_bytes, atomic_write_text
@@ -119,23 +120,6 @@ def write_preview(store: RunStore, r: "SourceResult", frame: np.ndarray, raw_img
     return name
 
 
-def detector_values(job: "Normalization", values: np.ndarray,
-                    detectors_mm: np.ndarray) -> np.ndarray:
-    """Per-node values interpolated at the surface point nearest to each detector (sample
-    frame, mm); NaN where a corner node of that triangle has no value."""
-    from dotshell.compat import import_open3d
-
-    o3d = import_open3d()
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(job.surface.vertices.astype(np.float32)),
-                        o3d.core.Tensor(job.surface.triangles.astype(np.uint32)))
-    q = scene.compute_closest_points(o3d.core.Tensor(detectors_mm.astype(np.float32)))
-    tri = job.surface.triangles[q["primitive_ids"].numpy().astype(np.int64)]
-    uv = q["primitive_uvs"].numpy().astype(float)
-    w = np.column_stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]])
-    return np.einsum("ij,ij->i", values[tri], w)
-
-
 def write_paa(store: RunStore, r: "SourceResult", amplitudes: np.ndarray) -> str:
     """NIRFAST standard data: header ``source det active amplitude phase``, one row per
     detector (1-based indices; this image is source 1; inactive where no value; phase 0 for
@@ -165,8 +149,11 @@ class OutputWriter:
 
     def __init__(self, store: RunStore, profile: Profile, job: "Normalization") -> None:
         self.store, self.profile, self.job = store, profile, job
-        self.detectors = np.asarray(profile.data["mesh"]["optodes"]["detectors_mm"],
-                                    float).reshape(-1, 3)
+        detectors = np.asarray(profile.data["mesh"]["optodes"]["detectors_mm"],
+                               float).reshape(-1, 3)
+        # the surface point nearest to each detector (sample frame), found once for all images
+        self.at_detectors = TriangleScene(job.surface.vertices, job.surface.triangles).closest(
+            detectors) if len(detectors) else None
         self.entries: list[dict[str, Any]] = []
         store.path("normalize").mkdir(exist_ok=True)
 
@@ -180,9 +167,8 @@ class OutputWriter:
             if self.profile.data["outputs"]["previews"]:
                 raw_img = resample_to_image(geometry, r.light.intensity)
                 files["preview"] = write_preview(store, r, frame, raw_img, flat_img, job.primary)
-            if len(self.detectors):
-                files["nirfast"] = write_paa(store, r,
-                                             detector_values(job, primary, self.detectors))
+            if self.at_detectors is not None:
+                files["nirfast"] = write_paa(store, r, self.at_detectors.interpolate(primary))
             self.entries.append({"view": r.view, "angle_deg": r.angle_deg, "source": r.source,
                                  "target_mm": r.target_mm, **r.stats, "files": files})
 

@@ -139,7 +139,7 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
                         status = "aborted"
                         bus.warn(f"scan stopped during view {view}; frames kept in {store.root}")
                         break
-                    if trans is not None and _trans_view(profile, view):
+                    if trans is not None and trans.covers(view):
                         trans.run_view(view)
                     vc = reconstruct_view(view, angle, combine(frames, shots), coding, calib,
                                           profile.data["processing"])
@@ -179,11 +179,6 @@ def _transillumination(rig: Rig, store: RunStore, profile: Profile, acq: Acquisi
     return trans
 
 
-def _trans_view(profile: Profile, view: int) -> bool:
-    views = profile.data["transillumination"]["views"]
-    return not views or view in views
-
-
 def load_run_profile(store: RunStore, pm: PluginManager) -> Profile:
     """The exact profile a run was made with."""
     import tomllib
@@ -196,15 +191,26 @@ def load_run_profile(store: RunStore, pm: PluginManager) -> Profile:
     return validate_profile(raw, pm, str(p), store.root)
 
 
+@contextmanager
+def reopened_run(run_dir: Path | str, pm: PluginManager,
+                 bus: EventBus) -> Iterator[tuple[RunStore, Profile]]:
+    """An existing run opened for re-processing, with the exact profile it was made with; the
+    bus's events go to its ``events.jsonl`` until the block ends."""
+    store = RunStore.open(Path(run_dir))
+    unsub = bus.subscribe(lambda ev: store.append_event(ev.to_dict()))
+    try:
+        yield store, load_run_profile(store, pm)
+    finally:
+        unsub()
+        store.close()
+
+
 def reconstruct_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
                     calibration_file: str | None = None) -> ScanResult:
     """Re-run processing of a run from its frames on disk (views not fully captured are
     skipped with a warning). Overwrites the run's views, cloud, report and previews."""
     bus = bus or EventBus()
-    store = RunStore.open(Path(run_dir))
-    unsub = bus.subscribe(lambda ev: store.append_event(ev.to_dict()))
-    try:
-        profile = load_run_profile(store, pm)
+    with reopened_run(run_dir, pm, bus) as (store, profile):
         calib = RigCalibration.load(calibration_file or store.path("calibration.json"))
         if calibration_file:
             calib.save(store.path("calibration.json"))
@@ -229,9 +235,6 @@ def reconstruct_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None
         report["status"] = manifest.get("status", "unknown")
         report["reprocessed"] = True
         store.write_json("report.json", report)
-    finally:
-        unsub()
-        store.close()
     return ScanResult(store.root, report["status"], report)
 
 

@@ -13,14 +13,14 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
 from dotshell.devices import ExposureControl, FlatFieldReference, Targetable
-from dotshell.errors import DeviceError, ProfileError
+from dotshell.errors import ProfileError
 from dotshell.events import EventBus, StepStarted
-from dotshell.pipeline.acquire import FrameWriter
+from dotshell.pipeline.acquire import FrameWriter, with_retries
 from dotshell.rig import Rig
 from dotshell.store import RunStore
 
@@ -71,16 +71,8 @@ class TransilluminationCapture:
                 "frame_names": self.names + (["dark"] if self.s["dark"] else []),
                 "flat_field": None, "views": {}}
 
-    def _retry(self, action: Callable[[], np.ndarray], what: str) -> np.ndarray:
-        attempts = self.scan["retries"] + 1
-        for attempt in range(1, attempts + 1):
-            try:
-                return action()
-            except DeviceError as exc:
-                if attempt == attempts:
-                    raise DeviceError(f"{what}: failed {attempts} times; last error: {exc}") from None
-                self.bus.warn(f"{what}: {exc} — retrying ({attempt}/{attempts - 1})")
-        raise AssertionError("unreachable")
+    def _capture(self, what: str) -> np.ndarray:
+        return with_retries(self.rig.camera.capture, self.scan["retries"], what, self.bus)
 
     def _dark_projector(self) -> None:
         w, h = self.rig.projector.resolution
@@ -128,7 +120,7 @@ class TransilluminationCapture:
             self.flat_device.flat_field(True)
             for name, ms in exposures:
                 self._exposure(ms)
-                frame = self._retry(self.rig.camera.capture, f"flat-field frame {name!r}")
+                frame = self._capture(f"flat-field frame {name!r}")
                 self.writer.put_path(self.store.trans_path(name), frame,
                                      f"flat-field frame {name!r}")
         finally:
@@ -136,6 +128,10 @@ class TransilluminationCapture:
             self._exposure(self.scan["exposure_ms"])
         self.writer.queue.join()
         self.writer.check()
+
+    def covers(self, view: int) -> bool:
+        """Whether this view is trans-illuminated ([transillumination] views; empty = all)."""
+        return not self.s["views"] or view in self.s["views"]
 
     def run_view(self, view: int) -> list[str]:
         """Capture this view's trans-illumination frames (stage already in place); returns the
@@ -166,6 +162,6 @@ class TransilluminationCapture:
         return written
 
     def _take(self, view: int, name: str) -> None:
-        frame = self._retry(self.rig.camera.capture, f"view {view}, trans-illumination {name}")
+        frame = self._capture(f"view {view}, trans-illumination {name}")
         self.writer.put_path(self.store.trans_path(name, view), frame,
                              f"trans-illumination frame {name!r} of view {view}")

@@ -332,9 +332,6 @@ class SimCamera(_Device):
             irr = cv2.GaussianBlur(irr, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
         return irr
 
-    def status(self) -> dict[str, Any]:
-        return {**super().status(), "exposure_ms": self.exposure_ms, "frames": self.frames}
-
     def capture(self) -> np.ndarray:
         electrons = self.expected_electrons()
         rng = np.random.default_rng([self.settings["seed"], self.frames])

@@ -210,8 +210,7 @@ class Renderer:
     def _camera_to_sample_linear(self, angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
         """(origin of the camera in the sample frame, M) with d_sample = d_camera @ M."""
         o = self.calib.camera_to_sample(np.zeros((1, 3)), angle_deg)[0]
-        M = self.calib.camera_to_sample(np.eye(3), angle_deg) - o
-        return o, M
+        return o, self.calib.sample_rotation(angle_deg)
 
     def trace(self, pixels: np.ndarray, angle_deg: float, dirs: np.ndarray | None = None) -> Trace:
         """Trace camera pixels (N, 2) (distorted pixel coordinates) at stage angle θ."""

@@ -20,7 +20,7 @@ from typing import Protocol, Sequence
 
 import numpy as np
 
-from dotshell.compat import import_open3d
+from dotshell.geometry.raycast import TriangleScene
 
 from dotshell.geometry.calibration import rot_z
 
@@ -215,23 +215,16 @@ class MeshShape:
     material: int = 0
     _scene: object = field(default=None, repr=False)
 
-    def _raycaster(self):
-        if self._scene is None:
-            o3d = import_open3d()  # lazy: only mesh scenes need open3d
-
-            scene = o3d.t.geometry.RaycastingScene()
-            scene.add_triangles(np.asarray(self.vertices, np.float32),
-                                np.asarray(self.triangles, np.uint32))
-            self._scene = scene
+    def _raycaster(self) -> TriangleScene:
+        if self._scene is None:  # lazy: only mesh scenes need open3d
+            self._scene = TriangleScene(self.vertices, self.triangles)
         return self._scene
 
     def intersect(self, origins, dirs):
-        o3d = import_open3d()
-        rays = np.hstack([origins, dirs]).astype(np.float32)
-        ans = self._raycaster().cast_rays(o3d.core.Tensor(rays))
-        t = ans["t_hit"].numpy().astype(np.float64)
+        ans = self._raycaster().cast(origins, dirs)
+        t = ans["t_hit"].astype(np.float64)
         t[~np.isfinite(t) | (t <= _EPS)] = np.inf
-        normals = ans["primitive_normals"].numpy().astype(np.float64)
+        normals = ans["primitive_normals"].astype(np.float64)
         nn = np.linalg.norm(normals, axis=1, keepdims=True)
         normals = normals / np.where(nn > 0, nn, 1.0)
         return t, _facing(normals, dirs)

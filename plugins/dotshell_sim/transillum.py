@@ -12,8 +12,9 @@ Model (docs/light-model.md, "Trans-illumination"; lengths mm, coefficients 1/mm)
    gradients with a Jacobi preconditioner (to a relative residual of 1e-10), which gives the
    same φ as :func:`dotshell.forward.solve_cw` (sparse LU) more than 100× faster on 30 000
    nodes.
-2. **Surface**: φ at a surface point is read by snapping the point to the FEM boundary (open3d
-   closest point) and interpolating the boundary triangle's node values barycentrically.
+2. **Surface**: φ at a surface point is read by snapping the point to the FEM boundary
+   (:class:`dotshell.geometry.raycast.TriangleScene`, closest point) and interpolating the
+   boundary triangle's node values barycentrically.
 3. **Exit**: the radiance leaving the surface towards the camera is
    ``P · φ · L(θo)/φ`` with :func:`dotshell.optics.exit_radiance_per_fluence` (Fresnel
    transmission and the Robin flux term), θo the angle between the outward normal and the
@@ -38,13 +39,13 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import Delaunay
 
-from dotshell.compat import import_open3d
 from dotshell.errors import DeviceError
 from dotshell.fem import (MeshError, TetMesh, TriangleSurface, closed_manifold_problems,
                           element_containing, orient_positive)
 from dotshell.forward import move_inside, robin_A, system_matrix
 from dotshell.geometry.calibration import rot_z
 from dotshell.geometry.lens import Lens
+from dotshell.geometry.raycast import TriangleScene
 from dotshell.optics import exit_radiance_per_fluence
 
 from dotshell_sim.lru import cached
@@ -209,47 +210,6 @@ def tetrahedralize(surface: TriangleSurface, spacing_mm: float) -> TetMesh:
     return TetMesh(nodes[used], remap[tets])
 
 
-# ---- reading φ on the surface ------------------------------------------------------------
-
-class SurfaceLookup:
-    """Closest points on a tetrahedral mesh's boundary and their barycentric node weights."""
-
-    def __init__(self, mesh: TetMesh):
-        o3d = import_open3d()
-        self.faces = mesh.boundary_faces
-        self.nodes = mesh.nodes
-        self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(self.nodes.astype(np.float32), self.faces.astype(np.uint32))
-        self._o3d = o3d
-
-    def locate(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For points (N, 3): the boundary nodes (N, 3) of the closest triangle, barycentric
-        weights (N, 3) of the closest point, and its distance (N,) mm."""
-        p = np.asarray(points_mm, float).reshape(-1, 3)
-        ans = self._scene.compute_closest_points(
-            self._o3d.core.Tensor(p.astype(np.float32)))
-        tri = self.faces[ans["primitive_ids"].numpy().astype(np.int64)]
-        closest = ans["points"].numpy().astype(float)
-        w = _barycentric(self.nodes[tri], closest)
-        return tri, w, np.linalg.norm(p - closest, axis=1)
-
-
-def _barycentric(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Barycentric weights (N, 3) of points in triangles (N, 3, 3), clipped to the triangle."""
-    a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
-    v0, v1, v2 = b - a, c - a, points - a
-    d00 = np.einsum("ij,ij->i", v0, v0)
-    d01 = np.einsum("ij,ij->i", v0, v1)
-    d11 = np.einsum("ij,ij->i", v1, v1)
-    d20 = np.einsum("ij,ij->i", v2, v0)
-    d21 = np.einsum("ij,ij->i", v2, v1)
-    den = np.maximum(d00 * d11 - d01 * d01, 1e-300)
-    v = (d11 * d20 - d01 * d21) / den
-    w = (d00 * d21 - d01 * d20) / den
-    out = np.clip(np.column_stack([1.0 - v - w, v, w]), 0.0, None)
-    return out / np.maximum(out.sum(axis=1, keepdims=True), 1e-300)
-
-
 # ---- the FEM of one sample ---------------------------------------------------------------
 
 @dataclass
@@ -259,7 +219,7 @@ class FluenceModel:
     mesh: TetMesh
     optics: Optics
     matrix: sp.csr_matrix
-    lookup: SurfaceLookup
+    boundary: TriangleScene    # the FEM boundary, for reading φ at surface points
     key: str
     _solved: OrderedDict = field(default_factory=OrderedDict)
 
@@ -271,7 +231,7 @@ class FluenceModel:
         mua = np.full(n, optics.mua_per_mm)
         kappa = np.full(n, 1.0 / (3.0 * (optics.mua_per_mm + optics.musp_per_mm)))
         matrix = system_matrix(mesh, mua, kappa, robin_A(optics.n)).tocsr()
-        return cls(mesh, optics, matrix, SurfaceLookup(mesh), key)
+        return cls(mesh, optics, matrix, TriangleScene(mesh.nodes, mesh.boundary_faces), key)
 
     def source_inside(self, entry_mm: np.ndarray, direction: np.ndarray) -> np.ndarray:
         """The source point: one transport length inside the entry point along the beam, or
@@ -286,24 +246,20 @@ class FluenceModel:
 
     def fluence(self, source_mm: np.ndarray) -> np.ndarray:
         """φ per node (1/mm² per unit power) for a unit point source at ``source_mm``."""
-        key = tuple(np.round(source_mm, 6))
-        if key in self._solved:
-            self._solved.move_to_end(key)
-            return self._solved[key]
+        return cached(self._solved, tuple(np.round(source_mm, 6)),
+                      lambda: self._solve(source_mm), 64)
+
+    def _solve(self, source_mm: np.ndarray) -> np.ndarray:
         el, w = element_containing(self.mesh, source_mm)
         q = np.zeros(len(self.mesh.nodes))
         q[self.mesh.tets[el]] = w
-        phi = jacobi_cg(self.matrix, q)
-        self._solved[key] = phi
-        while len(self._solved) > 64:
-            self._solved.popitem(last=False)
-        return phi
+        return jacobi_cg(self.matrix, q)
 
     def surface_fluence(self, phi: np.ndarray, points_mm: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:
         """φ at surface points (snapped to the FEM boundary) and their distance to it (mm)."""
-        tri, w, dist = self.lookup.locate(points_mm)
-        return np.einsum("ij,ij->i", phi[tri], w), dist
+        at = self.boundary.closest(points_mm)
+        return at.interpolate(phi), at.distance_mm
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
@@ -430,18 +386,17 @@ def laser_view(renderer: Renderer, view: View, shape, model: FluenceModel) -> La
     grid = subpixel_grid(cam.width, cam.height, ss)[k]
     d_c = cam.rays(grid)
     o_s = renderer.calib.camera_to_sample(np.zeros((1, 3)), view.angle_deg)[0]
-    M = renderer.calib.camera_to_sample(np.eye(3), view.angle_deg) - o_s
-    d_s = d_c @ M
+    d_s = d_c @ renderer.calib.sample_rotation(view.angle_deg)
     t, normals = shape.intersect(np.broadcast_to(o_s, d_s.shape), d_s)
     ok = np.isfinite(t)
     k, d_c, d_s, t, normals = k[ok], d_c[ok], d_s[ok], t[ok], normals[ok]
     points = o_s + t[:, None] * d_s
     cos_out = np.clip(-np.einsum("ij,ij->i", normals, d_s), 0.0, 1.0)  # towards the camera
-    tri, w, _ = model.lookup.locate(points)
+    at = model.boundary.closest(points)
     base = exit_radiance_per_fluence(cos_out, model.optics.n) * d_c[:, 2] ** 4 / ss ** 2
     row, col = divmod(k, cam.width * ss)
     pixel = (row // ss) * cam.width + col // ss
-    return LaserView(pixel, tri.astype(np.int32), w.astype(np.float32),
+    return LaserView(pixel, at.nodes.astype(np.int32), at.weights.astype(np.float32),
                      base.astype(np.float32), (cam.height, cam.width))
 
 
@@ -460,22 +415,14 @@ def laser_irradiance(renderer: Renderer, view: View, shape, model: FluenceModel,
                      target_mm) -> np.ndarray:
     """Relative image irradiance (H, W) float32 from a unit-power beam at ``target_mm``
     with the stage at ``view.angle_deg`` (cached per renderer, angle and target)."""
-    views = _VIEWS.setdefault(renderer, OrderedDict())
-    key = (model.key, view.angle_deg)
-    lv = views.get(key)
-    if lv is None:
-        lv = views[key] = laser_view(renderer, view, shape, model)
-        while len(views) > 2:
-            views.popitem(last=False)
-    tkey = tuple(round(float(v), 9) for v in target_mm)
-    img = lv.images.get(tkey)
-    if img is None:
+    lv = cached(_VIEWS.setdefault(renderer, OrderedDict()), (model.key, view.angle_deg),
+                lambda: laser_view(renderer, view, shape, model), 2)
+
+    def image() -> np.ndarray:
         entry, direction = require_entry(shape, view.angle_deg, target_mm)
-        phi = model.fluence(model.source_inside(entry, direction))
-        img = lv.images[tkey] = emission_image(lv, phi)
-        while len(lv.images) > 8:
-            lv.images.popitem(last=False)
-    return img
+        return emission_image(lv, model.fluence(model.source_inside(entry, direction)))
+
+    return cached(lv.images, tuple(round(float(v), 9) for v in target_mm), image, 8)
 
 
 # ---- lens fall-off -----------------------------------------------------------------------
