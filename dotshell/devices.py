@@ -1,13 +1,34 @@
 """Device roles as small protocols (structural typing: a backend needs no base class).
 
-Every device has ``connect()``, ``close()`` and ``status()``. Optional abilities are separate
-protocols that a backend may also satisfy; the core checks them with ``isinstance``.
-Units: angles in degrees, times in milliseconds, images as numpy arrays (rows, columns).
+Contract v2 (documented for driver authors in ``docs/devices.md``):
+
+* Every device has ``connect()``, ``close()`` and ``status()``. Optional abilities are separate
+  protocols a backend may also satisfy (:class:`Stoppable`, :class:`Homing`,
+  :class:`ExposureControl`, :class:`FrameInfoSource`, :class:`AngleReadback`,
+  :class:`Identified`, :class:`SequencedProjector`, :class:`TriggeredCamera`, ...).
+* Roles and capabilities are checked **from the class**, never by calling a property:
+  :func:`implements` / :func:`missing_members`. (``isinstance`` with a runtime-checkable
+  protocol calls every property on Python 3.11, which would touch hardware before ``connect()``.)
+* Properties (``resolution``, ``bit_depth``, ``position``) are **cheap and hardware-free**: they
+  return what the driver knows (settings, the last reply). Anything that talks to the device is
+  a method.
+* Failures: raise :class:`dotshell.errors.DeviceError` for a recoverable per-step failure (it
+  is retried), :class:`dotshell.errors.DeviceLostError` when the device is gone (the rig
+  reconnects it once before the scan fails), :class:`dotshell.errors.DeviceTimeout` when it did
+  not answer in time. Any other exception from a driver is wrapped by the rig as a plugin fault
+  naming the plugin, role and backend.
+* Drivers need not lock: the :class:`~dotshell.rig.Rig` serialises calls per device, so a
+  front end may poll ``status()`` while a scan runs.
+
+Units: angles in degrees, times in milliseconds (``*_ms``) or seconds (``*_s``), images as numpy
+arrays (rows, columns).
 """
 
 from __future__ import annotations
 
-from typing import Any, Protocol, runtime_checkable
+import inspect
+from dataclasses import dataclass, field
+from typing import Any, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
@@ -15,7 +36,8 @@ import numpy as np
 @runtime_checkable
 class Device(Protocol):
     def connect(self) -> None:
-        """Open the device. Raise :class:`dotshell.errors.DeviceError` with a fix on failure."""
+        """Open the device. Raise :class:`dotshell.errors.DeviceError` with a fix on failure.
+        May be called again after :meth:`close` or after a lost device (reconnect)."""
         ...
 
     def close(self) -> None:
@@ -23,7 +45,8 @@ class Device(Protocol):
         ...
 
     def status(self) -> dict[str, Any]:
-        """Live state for front ends, e.g. ``{"connected": True, "angle_deg": 30.0}``."""
+        """Live state for front ends, e.g. ``{"connected": True, "angle_deg": 30.0}``. Cheap:
+        front ends poll it about once a second."""
         ...
 
 
@@ -31,16 +54,17 @@ class Device(Protocol):
 class Camera(Device, Protocol):
     @property
     def resolution(self) -> tuple[int, int]:
-        """(width, height) in pixels."""
+        """(width, height) in pixels. Hardware-free (from settings or the last connect)."""
         ...
 
     @property
     def bit_depth(self) -> int:
-        """Bits per pixel of captured frames (8 → uint8, more → uint16)."""
+        """Bits per pixel of captured frames (8 → uint8, 9..16 → uint16, values below
+        ``2**bit_depth``). Hardware-free."""
         ...
 
     def capture(self) -> np.ndarray:
-        """Expose and read one frame (2-D, uint8 or uint16)."""
+        """Expose and read one frame: 2-D, shape (height, width), uint8 or uint16."""
         ...
 
 
@@ -48,11 +72,15 @@ class Camera(Device, Protocol):
 class Projector(Device, Protocol):
     @property
     def resolution(self) -> tuple[int, int]:
-        """(width, height) in pixels."""
+        """(width, height) in pixels. Hardware-free."""
         ...
 
-    def show(self, pattern: np.ndarray) -> None:
-        """Display a uint8 (height, width) image until the next call."""
+    def show(self, pattern: np.ndarray, name: str = "", index: int = -1) -> None:
+        """Display a uint8 (height, width) image until the next call. ``name`` and ``index``
+        identify the pattern in the coding's sequence (``""``/``-1`` for ad-hoc images); a
+        driver with the patterns stored on the device may show the stored one. Drivers written
+        for contract v1 (``show(self, pattern)``) still work: the rig passes only what the
+        method accepts."""
         ...
 
 
@@ -64,14 +92,15 @@ class Stage(Device, Protocol):
 
     @property
     def position(self) -> float:
-        """Current angle in degrees."""
+        """Last known angle in degrees (commanded or last read back). Hardware-free."""
         ...
 
 
 @runtime_checkable
 class Analyzer(Device, Protocol):
     def set_angle(self, degrees: float) -> None:
-        """Set the analyzer's transmission axis relative to the polarizer (degrees)."""
+        """Set the analyzer's transmission axis relative to the polarizer (degrees); return
+        when settled."""
         ...
 
 
@@ -82,7 +111,34 @@ class LightSource(Device, Protocol):
         ...
 
 
+#: The protocol of each device role.
+ROLE_PROTOCOLS: dict[str, type] = {
+    "camera": Camera,
+    "projector": Projector,
+    "stage": Stage,
+    "analyzer": Analyzer,
+    "light_source": LightSource,
+}
+
+
 # ---- optional capabilities -------------------------------------------------------------------
+
+@runtime_checkable
+class Stoppable(Protocol):
+    def stop(self) -> None:
+        """Stop any motion now (feed hold, halt, stop command) and return within ~0.1 s. Called
+        from another thread than the one waiting in ``move_to``/``set_angle``, which should
+        then raise :class:`dotshell.errors.DeviceError` ("stopped"). Idempotent; must not raise
+        when nothing moves or the device is closed."""
+        ...
+
+
+@runtime_checkable
+class Homing(Protocol):
+    def home(self) -> None:
+        """Find the stage's reference position (0°); return when done."""
+        ...
+
 
 @runtime_checkable
 class ExposureControl(Protocol):
@@ -91,10 +147,107 @@ class ExposureControl(Protocol):
         ...
 
 
+@dataclass(frozen=True)
+class FrameInfo:
+    """What a camera knows about the frame it returned last.
+
+    Attributes:
+        timestamp_s: when the exposure started (camera clock or host ``time.time()``), seconds.
+        frame_id: the camera's frame counter (-1 if unknown).
+        exposure_ms: the exposure actually used (NaN if unknown).
+        extra: any other driver-specific values (gain, temperature, trigger source, ...);
+            JSON-serialisable.
+    """
+
+    timestamp_s: float
+    frame_id: int = -1
+    exposure_ms: float = float("nan")
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"timestamp_s": self.timestamp_s, "frame_id": self.frame_id,
+                "exposure_ms": self.exposure_ms, **self.extra}
+
+
 @runtime_checkable
-class Homing(Protocol):
-    def home(self) -> None:
-        """Find the stage's reference position (0°)."""
+class FrameInfoSource(Protocol):
+    def last_frame_info(self) -> FrameInfo:
+        """Metadata of the frame the last ``capture()`` returned (hardware-free)."""
+        ...
+
+
+@runtime_checkable
+class AngleReadback(Protocol):
+    def read_angle(self) -> float:
+        """Ask the device where it is now (degrees). The runner records it per view as the
+        angle actually reached."""
+        ...
+
+
+@dataclass(frozen=True)
+class DeviceIdentity:
+    """Who a device is, recorded in the run's manifest at connect."""
+
+    model: str = ""
+    serial_number: str = ""
+    firmware: str = ""
+    vendor: str = ""
+
+    def to_dict(self) -> dict[str, str]:
+        return {k: v for k, v in vars(self).items() if v}
+
+
+@runtime_checkable
+class Identified(Protocol):
+    def identity(self) -> DeviceIdentity:
+        """Model, serial number, firmware as read from the device at connect."""
+        ...
+
+
+@dataclass(frozen=True)
+class SequencePattern:
+    """One pattern of a hardware sequence: its image, name and index in the coding."""
+
+    image: np.ndarray
+    name: str
+    index: int
+
+
+@runtime_checkable
+class SequencedProjector(Protocol):
+    """A projector that stores a pattern sequence and steps through it on its own, with a
+    trigger output per pattern (DLP LightCrafter pattern mode)."""
+
+    def load_sequence(self, patterns: Sequence[SequencePattern], exposure_ms: float,
+                      period_ms: float) -> None:
+        """Store ``patterns`` on the device, each shown for ``period_ms`` with the trigger out
+        asserted for ``exposure_ms``."""
+        ...
+
+    def start_sequence(self) -> None:
+        """Run the loaded sequence once from its first pattern."""
+        ...
+
+    def stop_sequence(self) -> None:
+        """Stop a running sequence (idempotent)."""
+        ...
+
+
+@runtime_checkable
+class TriggeredCamera(Protocol):
+    """A camera that can be armed for N externally triggered frames."""
+
+    def arm(self, n_frames: int, exposure_ms: float) -> None:
+        """Prepare to take ``n_frames`` frames, one per trigger edge."""
+        ...
+
+    def read_armed(self, timeout_s: float) -> list[tuple[np.ndarray, FrameInfo]]:
+        """Wait for the armed frames; :class:`dotshell.errors.DeviceTimeout` after
+        ``timeout_s`` seconds naming how many arrived."""
+        ...
+
+    def disarm(self) -> None:
+        """Leave triggered mode (idempotent)."""
         ...
 
 
@@ -140,3 +293,39 @@ class TransilluminationTruth(Protocol):
         element facing the camera squarely. NaN where a point is farther than 1 mm from the
         true surface."""
         ...
+
+
+# ---- checks from the class -------------------------------------------------------------------
+
+def _members(protocol: type) -> list[str]:
+    names: set[str] = set()
+    for klass in protocol.__mro__:
+        if klass in (object, Protocol) or klass.__name__ in ("Protocol", "Generic"):
+            continue
+        names.update(n for n in vars(klass) if not n.startswith("_"))
+    return sorted(names)
+
+
+def missing_members(obj: Any, protocol: type) -> list[str]:
+    """The members of ``protocol`` that ``obj`` lacks, found on its class (or set on the
+    instance), without calling any property."""
+    cls = type(obj)
+    inst = getattr(obj, "__dict__", {})
+    return [n for n in _members(protocol)
+            if not (any(n in vars(k) for k in cls.__mro__) or n in inst)]
+
+
+def implements(obj: Any, protocol: type) -> bool:
+    """True if ``obj`` has every member of ``protocol`` (checked on the class, hardware-free)."""
+    return not missing_members(obj, protocol)
+
+
+def accepted_kwargs(method: Any, names: Sequence[str]) -> tuple[str, ...]:
+    """Which of ``names`` a bound ``method`` accepts as keywords (for contract-v1 drivers)."""
+    try:
+        params = inspect.signature(method).parameters
+    except (TypeError, ValueError):
+        return ()
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return tuple(names)
+    return tuple(n for n in names if n in params)

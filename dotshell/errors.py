@@ -34,3 +34,17 @@ class RunError(DotshellError):
 
 class ReconstructionError(DotshellError):
     """Processing produced nothing usable (no decoded pixels, empty cloud, ...)."""
+
+
+class DeviceLostError(DeviceError):
+    """The device is gone (unplugged, port vanished, powered off). The rig reconnects it once
+    (``reconnect = true``, the default) before the step fails."""
+
+
+class DeviceTimeout(DeviceError):
+    """A device did not answer within its timeout; recoverable like any DeviceError."""
+
+
+class PluginFault(DotshellError):
+    """Plugin code raised something other than a :class:`DotshellError`; the message names the
+    plugin, role, backend and what was being done."""

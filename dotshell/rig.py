@@ -11,13 +11,7 @@ from dotshell.geometry.calibration import RigCalibration
 from dotshell.plugins import PluginManager
 from dotshell.profile import DEVICE_ROLES, Profile
 
-PROTOCOLS = {
-    "camera": devices.Camera,
-    "projector": devices.Projector,
-    "stage": devices.Stage,
-    "analyzer": devices.Analyzer,
-    "light_source": devices.LightSource,
-}
+PROTOCOLS = devices.ROLE_PROTOCOLS
 
 
 class Rig:
@@ -38,10 +32,11 @@ class Rig:
                 continue
             dev = pm.create(role, section["backend"], section["settings"], self.context,
                             profile.source)
-            if not isinstance(dev, PROTOCOLS[role]):
+            missing = devices.missing_members(dev, PROTOCOLS[role])
+            if missing:
                 raise PluginError(f"backend {section['backend']!r} for role {role} returned a "
-                                  f"{type(dev).__name__}, which does not satisfy the {role} "
-                                  "protocol (see dotshell.devices); fix the plugin.")
+                                  f"{type(dev).__name__}, which lacks {', '.join(missing)} of "
+                                  f"the {role} protocol (see docs/devices.md); fix the plugin.")
             self.devices[role] = dev
 
     @property
@@ -86,6 +81,16 @@ class Rig:
                 pass
         self.connected.clear()
 
+    def stop(self) -> None:
+        """Stop every device that can move (:class:`~dotshell.devices.Stoppable`) now; called
+        on abort, Ctrl-C, SIGTERM and SIGHUP, possibly from another thread. Never raises."""
+        for dev in self.devices.values():
+            if devices.implements(dev, devices.Stoppable):
+                try:
+                    dev.stop()
+                except Exception:  # stopping must reach every device
+                    pass
+
     def __enter__(self) -> "Rig":
         self.connect()
         return self
@@ -111,7 +116,7 @@ class Rig:
         if path is not None:
             return RigCalibration.load(path)
         for dev in self.devices.values():
-            if isinstance(dev, devices.GroundTruth):
+            if devices.implements(dev, devices.GroundTruth):
                 return dev.ground_truth_calibration()
         raise CalibrationError(
             f"{self.profile.source}: [calibration] source = \"ground-truth\" needs a simulated "

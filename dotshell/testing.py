@@ -38,7 +38,10 @@ def assert_backend_conforms(pm: PluginManager, role: str, name: str,
         assert isinstance(obj, PatternCoding), f"{name} is not a PatternCoding"
     elif role in PROTOCOLS:
         obj = pm.create(role, name, settings, RigContext(), "test")
-        assert isinstance(obj, PROTOCOLS[role]), f"{name} does not satisfy the {role} protocol"
+        from dotshell.devices import missing_members
+
+        missing = missing_members(obj, PROTOCOLS[role])
+        assert not missing, f"{name} lacks {missing} of the {role} protocol"
     else:
         obj = pm.create(role, name, settings, None, "test")
         if role == "exporter":
