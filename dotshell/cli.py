@@ -265,6 +265,9 @@ def build_parser() -> argparse.ArgumentParser:
     from dotshell.cli_normalize import add_normalize_parser
 
     add_normalize_parser(sub, _pm)
+    from dotshell.cli_frames import add_frames_parser
+
+    add_frames_parser(sub)
 
     def session_args(sp):
         sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -102,8 +102,7 @@ def render_previews(store, clouds, points: np.ndarray, profile, calib, bus) -> d
         bus.warn(f"frame previews skipped: view {want} ([outputs] preview_view) was not "
                  "reconstructed")
     else:
-        first = store.frame_path(vc.view, 0, store.manifest["frame_names"][0])
-        out["frame"] = frame_preview(cv2.imread(str(first), cv2.IMREAD_UNCHANGED),
+        out["frame"] = frame_preview(store.frames(vc.view).read_one(0),
                                      pdir / f"frame_view{vc.view:03d}.png")
         out["columns"] = column_map_preview(vc.correspondence.column, vc.correspondence.valid,
                                             calib.projector.width,

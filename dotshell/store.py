@@ -1,11 +1,12 @@
 """RunStore: one scan's run directory. Every file is written to a temporary name and renamed
-(atomic on POSIX), frames are written losslessly (PNG, 8 or 16 bit) as they arrive, and
-``events.jsonl`` is appended and flushed per event — a crash loses nothing already written.
+(atomic on POSIX), frames are written losslessly (:mod:`dotshell.frames`, 8 or 16 bit) as they
+arrive, and ``events.jsonl`` is appended and flushed per event — a crash loses nothing already
+written.
 
 Layout (see ``docs/run-directory.md``)::
 
     <run>/profile.toml  calibration.json  manifest.json  events.jsonl  report.json
-    <run>/frames/view_000/000_white.png ...
+    <run>/frames/view_000.tif ...   (runs before frame_format "tiff-stack/1": view_000/*.png)
     <run>/views/view_000.ply   <run>/cloud.ply   <run>/previews/*.png
 """
 
@@ -26,6 +27,7 @@ import numpy as np
 import tomli_w
 
 from dotshell.errors import RunError
+from dotshell.frames import CURRENT_FORMAT, FrameStore, check_image, open_frames
 
 RUN_FORMAT = "dotshell-run/1"
 
@@ -149,6 +151,7 @@ class RunStore:
             "created": datetime.now().isoformat(timespec="seconds"),
             "status": "running",
             "versions": versions(),
+            "frame_format": CURRENT_FORMAT,
             "frame_names": frame_names,
             "views": [{"index": i, "angle_deg": a, "frames": 0, "complete": False}
                       for i, a in enumerate(angles_deg)],
@@ -181,20 +184,14 @@ class RunStore:
 
     # ---- frames -----------------------------------------------------------------------------
 
-    def frame_path(self, view: int, index: int, name: str) -> Path:
-        return self.path("frames", f"view_{view:03d}", f"{index:03d}_{name}.png")
-
-    def write_frame(self, view: int, index: int, name: str, image: np.ndarray) -> Path:
-        """Write one captured frame losslessly (PNG; uint8 or uint16)."""
-        return self.write_image(self.frame_path(view, index, name), image,
-                                f"frame {name} of view {view}")
+    def frames(self, view: int) -> FrameStore:
+        """The stored frames of a view (to read, or to append to as they arrive)."""
+        return open_frames(self.root, view, self.manifest)
 
     def write_image(self, path: Path, image: np.ndarray, label: str) -> Path:
         """Write a captured image losslessly (PNG; 2-D uint8 or uint16) at ``path`` inside the
         run; ``label`` names it in errors."""
-        if image.dtype not in (np.uint8, np.uint16) or image.ndim != 2:
-            raise RunError(f"{label} is {image.dtype} {image.shape}; cameras must return 2-D "
-                           "uint8 or uint16 images.")
+        check_image(image, label)
         ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
         if not ok:
             raise RunError(f"could not encode {label} as PNG.")
@@ -215,12 +212,9 @@ class RunStore:
             return self.path("transillumination", f"{name}.png")
         return self.path("transillumination", f"view_{view:03d}", f"{name}.png")
 
-    def read_frames(self, view: int) -> list[np.ndarray]:
-        """All frames of a view in capture order, as written."""
-        names = self.manifest["frame_names"]
-        return [self.read_image(self.frame_path(view, i, name),
-                                f"view {view} cannot be reconstructed")
-                for i, name in enumerate(names)]
+    def read_frames(self, view: int) -> np.ndarray:
+        """All frames of a view in capture order, as written: (frames, height, width)."""
+        return self.frames(view).read_all()
 
     # ---- events -----------------------------------------------------------------------------
 
