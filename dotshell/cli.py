@@ -291,7 +291,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from dotshell.blas import limit_blas_threads
+
     args = build_parser().parse_args(argv)
+    limit_blas_threads(1)  # small 3×3 products: threads cost more than they save
     try:
         return args.func(args)
     except DotshellError as exc:

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 import tifffile
 
+from dotshell import tiffpages
 from dotshell.errors import RunError
 
 TIFF_STACK = "tiff-stack/1"
@@ -134,40 +135,53 @@ class TiffFrameStore(FrameStore):
     def count(self) -> int:
         if not self.path.is_file():
             return 0
-        with self._open_read() as tif:
-            return len(tif.pages)
+        with self._open_read() as f:
+            return len(self._pages(f))
 
     def read_one(self, index: int) -> np.ndarray:
         name = self._check_index(index)
-        with self._open_read() as tif:
-            if index >= len(tif.pages):
+        with self._open_read() as f:
+            pages = self._pages(f, index + 1)
+            if index >= len(pages):
                 raise self._missing(f"frame {index} ({name!r})")
-            return self._check_page(tif, index).asarray()
+            out = np.empty(pages[index].shape, pages[index].dtype.newbyteorder("="))
+            tiffpages.read_into(f, pages[index], out)
+            return out
 
     def read_all(self) -> np.ndarray:
-        with self._open_read() as tif:
-            if len(tif.pages) < len(self.names):
-                raise self._missing(f"frame {len(tif.pages)} ({self.names[len(tif.pages)]!r})")
+        with self._open_read() as f:
+            pages = self._pages(f)
+            if len(pages) < len(self.names):
+                raise self._missing(f"frame {len(pages)} ({self.names[len(pages)]!r})")
+            first = pages[0]
+            if any(p.shape != first.shape or p.dtype != first.dtype for p in pages):
+                raise RunError(f"{self.path}: the frames of view {self.view} differ in size or "
+                               "bit depth; a view is captured by one camera setting.")
+            out = np.empty((len(self.names), *first.shape), first.dtype.newbyteorder("="))
             for i in range(len(self.names)):
-                self._check_page(tif, i)
-            return tif.asarray(key=range(len(self.names)))
+                tiffpages.read_into(f, pages[i], out[i])
+            return out
 
-    def _open_read(self) -> tifffile.TiffFile:
+    def _open_read(self) -> BinaryIO:
         try:
-            return tifffile.TiffFile(self.path)
+            return open(self.path, "rb", buffering=0)
         except FileNotFoundError:
             raise self._missing("the frame stack") from None
-        except (tifffile.TiffFileError, ValueError) as exc:
-            raise RunError(f"{self.path} is not a readable TIFF stack ({exc}); view "
-                           f"{self.view} cannot be reconstructed from it.") from None
 
-    def _check_page(self, tif: tifffile.TiffFile, index: int) -> tifffile.TiffPage:
-        page = tif.pages[index]
-        if page.description != self.names[index]:
-            raise RunError(f"{self.path}: page {index} holds frame {page.description!r} where "
-                           f"the run's sequence has {self.names[index]!r}; the file does not "
-                           "belong to this run's manifest.")
-        return page
+    def _pages(self, f: BinaryIO, stop_after: int | None = None) -> list[tiffpages.Page]:
+        """The file's complete pages (the first ``stop_after``), each checked to be the frame
+        the run's sequence has there."""
+        try:
+            pages = tiffpages.read_pages(f, os.fstat(f.fileno()).st_size, stop_after)
+        except tiffpages.TiffPageError as exc:
+            raise RunError(f"{self.path} is not a readable frame stack ({exc}); view "
+                           f"{self.view} cannot be reconstructed from it.") from None
+        for i, page in enumerate(pages[:len(self.names)]):
+            if page.description != self.names[i]:
+                raise RunError(f"{self.path}: page {i} holds frame {page.description!r} where "
+                               f"the run's sequence has {self.names[i]!r}; the file does not "
+                               "belong to this run's manifest.")
+        return pages
 
     def append(self, index: int, image: np.ndarray) -> None:
         name = self._check_index(index)

@@ -6,6 +6,7 @@ import shutil
 import cv2
 import numpy as np
 import pytest
+import tifffile
 
 from dotshell.cli import main
 from dotshell.errors import RunError
@@ -52,6 +53,31 @@ def test_frames_of_a_view_cut_short_stay_readable(tmp_path):
     writing.close()
 
 
+@pytest.mark.parametrize("byteorder,bigtiff", [("<", False), (">", False), (">", True)])
+def test_page_reader_reads_any_uncompressed_stack_and_stops_where_a_file_is_cut(
+        tmp_path, byteorder, bigtiff):
+    """dotshell.tiffpages against tifffile as the independent writer: either byte order,
+    classic or BigTIFF, several strips per page; a file cut inside a page keeps the pages
+    before it; compressed pages are refused."""
+    frames = _frames()
+    path = tmp_path / "frames" / "view_000.tif"
+    path.parent.mkdir()
+    with tifffile.TiffWriter(path, byteorder=byteorder, bigtiff=bigtiff) as tw:
+        for name, f in zip(NAMES, frames):
+            tw.write(f, metadata=None, description=name, rowsperstrip=4)
+    store = TiffFrameStore(tmp_path, 0, NAMES)
+    back = store.read_all()
+    assert back.dtype == np.uint16 and back.dtype.isnative and np.array_equal(back, frames)
+    data = path.read_bytes()
+    last_page = data.rfind(frames[3].astype(np.dtype(np.uint16).newbyteorder(byteorder))
+                           .tobytes()[:64])
+    path.write_bytes(data[:last_page + 100])
+    assert store.count() == 3 and np.array_equal(store.read_one(2), frames[2])
+    tifffile.imwrite(path, frames[0], compression="zlib", metadata=None, description="white")
+    with pytest.raises(RunError, match="page 0 is not an uncompressed 8/16-bit"):
+        store.read_one(0)
+
+
 def test_frame_store_refuses_bad_input_with_clear_errors(tmp_path):
     store = TiffFrameStore(tmp_path, 0, NAMES)
     with pytest.raises(RunError, match="frame 1 .'black'. arrived after 0 frames"):
@@ -64,7 +90,7 @@ def test_frame_store_refuses_bad_input_with_clear_errors(tmp_path):
                                        "'dark'"):
         TiffFrameStore(tmp_path, 0, ["dark"]).read_one(0)
     (tmp_path / "frames" / "view_001.tif").write_bytes(b"not a tiff")
-    with pytest.raises(RunError, match="view_001.tif is not a readable TIFF stack"):
+    with pytest.raises(RunError, match="view_001.tif is not a readable frame stack"):
         TiffFrameStore(tmp_path, 1, NAMES).read_all()
     with pytest.raises(RunError, match="'zarr/9', which this dotshell cannot read"):
         open_frames(tmp_path, 0, {"frame_format": "zarr/9", "frame_names": NAMES})
@@ -102,3 +128,39 @@ def test_old_png_runs_reconstruct_and_frames_export_as_png(small_scan, tmp_path,
     assert len(after) == len(before) and np.allclose(after, before, atol=1e-6)
     assert main(["frames", str(run), "--view", "9"]) == 2
     assert "there is no view 9" in capsys.readouterr().err
+
+
+def test_a_view_is_synced_once_before_it_is_reported_captured(tmp_path, monkeypatch):
+    """The frame writer fsyncs each view's stack once (file and directory), after its last
+    frame and before ViewCaptured; not once per frame."""
+    import os
+
+    from conftest import write_test_profile
+    from dotshell.events import EventBus, FrameCaptured, ViewCaptured
+    from dotshell.pipeline.scan import scan
+    from dotshell.profile import load_profile
+
+    log = []
+    real_fsync = os.fsync
+
+    def fsync(fd):
+        log.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
+        return real_fsync(fd)
+
+    monkeypatch.setattr("dotshell.frames.os.fsync", fsync)
+    bus = EventBus()
+    bus.subscribe(lambda ev: log.append(("frame", ev.view)) if isinstance(ev, FrameCaptured)
+                  else log.append(("captured", ev.view)) if isinstance(ev, ViewCaptured)
+                  else None)
+    pm = PluginManager()
+    pm.load_entry_points()
+    result = scan(load_profile(write_test_profile(tmp_path), pm), pm, tmp_path / "runs", bus=bus)
+    frames_dir = str(result.run_dir / "frames")
+    per_view = len(RunStore.open(result.run_dir).manifest["frame_names"])
+    for view in (0, 1):
+        syncs = [i for i, e in enumerate(log) if e == ("fsync", f"{frames_dir}/view_{view:03d}.tif")]
+        frames = [i for i, e in enumerate(log) if e == ("frame", view)]
+        captured = log.index(("captured", view))
+        assert len(frames) == per_view and len(syncs) == 1  # once per view, not per frame
+        assert log[syncs[0] + 1] == ("fsync", frames_dir)  # and its directory entry
+        assert frames[-1] < syncs[0] < syncs[0] + 1 < captured

@@ -143,6 +143,7 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
                         trans.run_view(view)
                     vc = reconstruct_view(view, angle, combine(frames, shots), coding, calib,
                                           profile.data["processing"])
+                    del frames  # not held while the next view is captured (110 MB at 1280×1024)
                     _store_view(store, vc, bus)
                     clouds.append(_slim(vc, profile))
                 else:
@@ -228,6 +229,7 @@ def reconstruct_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None
             frames = combine(store.read_frames(v["index"]), shots)
             vc = reconstruct_view(v["index"], v["angle_deg"], frames, coding, calib,
                                   profile.data["processing"])
+            del frames  # not held while the next view is read
             _store_view(store, vc, bus)
             clouds.append(_slim(vc, profile))
             bus.emit(StepProgress(step="reconstruct", done=v["index"] + 1, total=len(views)))
