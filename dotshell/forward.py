@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from dotshell.fem import MeshError, TetMesh, element_containing, signed_volumes_mm3
+from dotshell.fem import MeshError, TetMesh, element_containing
 
 
 def robin_A(n: float) -> float:
@@ -61,19 +61,21 @@ def _per_node(value, n: int, name: str) -> np.ndarray:
 
 def _gradients(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Gradients (M, 4, 3) of the linear shape functions and element volumes (M,) mm³."""
-    p = nodes[tets]
-    J = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=1)  # rows
-    vol = signed_volumes_mm3(nodes, tets)
+    p0 = nodes[tets[:, 0]]
+    e1, e2, e3 = (nodes[tets[:, k]] - p0 for k in (1, 2, 3))  # the rows of the Jacobian J
+    c23, c31, c12 = np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)
+    det = np.einsum("ij,ij->i", e1, c23)
+    vol = det / 6.0
     if (vol <= 0).any():
         raise MeshError(f"{int((vol <= 0).sum())} elements are inverted or flat; the FEM needs "
                         "positively oriented tetrahedra (re-run `dotshell mesh`).")
-    Jinv = np.linalg.inv(J)  # columns of Jinv = gradients of λ1..λ3
-    g123 = np.transpose(Jinv, (0, 2, 1))
+    # ∇λ1..λ3 are the columns of J⁻¹: (e2×e3, e3×e1, e1×e2) / det (no batched LAPACK inverse)
+    g123 = np.stack([c23, c31, c12], axis=1) / det[:, None, None]
     g0 = -g123.sum(axis=1, keepdims=True)
     return np.concatenate([g0, g123], axis=1), vol
 
 
-def system_matrix(mesh: TetMesh, mua: np.ndarray, kappa: np.ndarray, A: float) -> sp.csc_matrix:
+def system_matrix(mesh: TetMesh, mua: np.ndarray, kappa: np.ndarray, A: float) -> sp.csr_matrix:
     """(K + M + B) for per-node μa (1/mm) and κ (mm), element values = node means."""
     n = len(mesh.nodes)
     t = mesh.tets
@@ -82,16 +84,14 @@ def system_matrix(mesh: TetMesh, mua: np.ndarray, kappa: np.ndarray, A: float) -
     mua_el = mua[t].mean(axis=1)
     stiff = np.einsum("m,mik,mjk->mij", k_el * vol, grads, grads)
     mass = (mua_el * vol / 20.0)[:, None, None] * (np.ones((4, 4)) + np.eye(4))
-    rows = np.repeat(t, 4, axis=1).ravel()
-    cols = np.tile(t, (1, 4)).ravel()
-    mat = sp.coo_matrix(((stiff + mass).ravel(), (rows, cols)), shape=(n, n))
     f = mesh.boundary_faces
     v = mesh.nodes[f]
     area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
     bnd = (area / 12.0 / (2.0 * A))[:, None, None] * (np.ones((3, 3)) + np.eye(3))
-    bmat = sp.coo_matrix((bnd.ravel(), (np.repeat(f, 3, axis=1).ravel(),
-                                        np.tile(f, (1, 3)).ravel())), shape=(n, n))
-    return (mat + bmat).tocsc()
+    rows = np.concatenate([np.repeat(t, 4, axis=1).ravel(), np.repeat(f, 3, axis=1).ravel()])
+    cols = np.concatenate([np.tile(t, (1, 4)).ravel(), np.tile(f, (1, 3)).ravel()])
+    data = np.concatenate([(stiff + mass).ravel(), bnd.ravel()])
+    return sp.coo_matrix((data, (rows, cols)), shape=(n, n)).tocsr()  # duplicates summed
 
 
 def solve_cw(mesh: TetMesh, source_mm, mua_per_mm=None, musp_per_mm=None,
@@ -114,7 +114,7 @@ def solve_cw(mesh: TetMesh, source_mm, mua_per_mm=None, musp_per_mm=None,
     q = np.zeros(n)
     q[mesh.tets[el]] = w
     kappa = 1.0 / (3.0 * (mua + musp))
-    phi = jacobi_cg(system_matrix(mesh, mua, kappa, A).tocsr(), q)
+    phi = jacobi_cg(system_matrix(mesh, mua, kappa, A), q)
     return ForwardResult(phi, src, A, el)
 
 

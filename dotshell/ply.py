@@ -12,17 +12,22 @@ from dotshell.store import atomic_write_bytes
 
 
 def write_ply(path: Path, points: np.ndarray, **scalars: np.ndarray) -> Path:
-    """Write points (N, 3) and named per-point scalars (N,) atomically."""
-    pts = np.asarray(points, np.float32).reshape(-1, 3)
+    """Write points (N, 3) and named per-point scalars (N,) atomically. The file's bytes are
+    built once, in place (a 5 M-point cloud is 80 MB; no copies of it)."""
+    points = np.asarray(points).reshape(-1, 3)
     names = ["x", "y", "z", *scalars]
-    cols = [pts[:, 0], pts[:, 1], pts[:, 2], *(np.asarray(v, np.float32).ravel()
-                                                for v in scalars.values())]
-    rec = np.empty(len(pts), dtype=[(n, "<f4") for n in names])
-    for n, c in zip(names, cols):
-        rec[n] = c
-    header = ["ply", "format binary_little_endian 1.0", "comment dotshell, units mm",
-              f"element vertex {len(pts)}", *(f"property float {n}" for n in names), "end_header"]
-    atomic_write_bytes(Path(path), ("\n".join(header) + "\n").encode("ascii") + rec.tobytes())
+    header = "\n".join(["ply", "format binary_little_endian 1.0", "comment dotshell, units mm",
+                        f"element vertex {len(points)}", *(f"property float {n}" for n in names),
+                        "end_header"]).encode("ascii") + b"\n"
+    dtype = np.dtype([(n, "<f4") for n in names])
+    data = np.empty(len(header) + len(points) * dtype.itemsize, np.uint8)
+    data[:len(header)] = np.frombuffer(header, np.uint8)
+    rec = data[len(header):].view(dtype)
+    for i, n in enumerate("xyz"):
+        rec[n] = points[:, i]
+    for n, v in scalars.items():
+        rec[n] = np.asarray(v).ravel()
+    atomic_write_bytes(Path(path), data)
     return Path(path)
 
 

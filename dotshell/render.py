@@ -18,7 +18,7 @@ from dotshell.store import atomic_write_bytes
 
 
 #: points drawn in a cloud preview (a fixed-seed random subset of larger clouds)
-PREVIEW_POINTS = 1_000_000
+PREVIEW_POINTS = 300_000  # fills a 900 px image; VTK holds ~250 bytes a point (1 M: +180 MB)
 
 
 def _write_png(path: Path, image: np.ndarray) -> Path:

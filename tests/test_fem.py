@@ -102,7 +102,7 @@ def test_conjugate_gradient_agrees_with_sparse_lu(sphere_mesh):
     kappa = 1.0 / (3.0 * (mua + 1.0))
     q = np.zeros(len(mesh.nodes))
     q[mesh.tets[res.element]] = element_containing(mesh, res.source_mm)[1]
-    lu = splu(system_matrix(mesh, mua, kappa, res.A), permc_spec="COLAMD").solve(q)
+    lu = splu(system_matrix(mesh, mua, kappa, res.A).tocsc(), permc_spec="COLAMD").solve(q)
     assert np.abs(res.fluence - lu).max() < 1e-9 * lu.max()
     boundary = mesh.boundary_nodes
     assert np.median(np.abs(res.fluence[boundary] / lu[boundary] - 1.0)) < 1e-8

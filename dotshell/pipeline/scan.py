@@ -253,7 +253,7 @@ def finish(store: RunStore, profile: Profile, pm: PluginManager, calib: RigCalib
             f"{store.root}: no view produced points inside the region of interest. Check the "
             "previews (is the sample lit and in focus?), the calibration and [processing.roi].")
     points = np.concatenate([c.points for c in clouds])
-    view_ids = np.concatenate([np.full(len(c.points), c.view) for c in clouds])
+    view_ids = np.concatenate([np.full(len(c.points), c.view, np.float32) for c in clouds])
     write_ply(store.path("cloud.ply"), points, view=view_ids)
     timings["merge"] = time.perf_counter() - t0
     report: dict[str, Any] = {

@@ -362,6 +362,11 @@ class Renderer:
             self._views.popitem(last=False)
         return view
 
+    def drop_views(self) -> None:
+        """Forget the cached views (~100 MB each at 1280×1024, 2× supersampled); the camera
+        rays, costly to compute, stay."""
+        self._views.clear()
+
     def _turbid_material(self) -> int | None:
         """Index of the scene's (single) turbid material, if any."""
         ids = [i for i, m in enumerate(self.scene.materials) if m.scattering is not None]
