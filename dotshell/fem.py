@@ -18,6 +18,7 @@ Both raise :class:`MeshError` (a :class:`~dotshell.errors.DotshellError`) on bad
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any, Protocol
 
 import numpy as np
@@ -54,8 +55,9 @@ class TetMesh:
         self.nodes = np.asarray(self.nodes, np.float64).reshape(-1, 3)
         self.tets = np.asarray(self.tets, np.int64).reshape(-1, 4)
 
-    @property
+    @cached_property
     def boundary_faces(self) -> np.ndarray:
+        """Outward faces used by one tetrahedron (computed once: ``tets`` is not changed)."""
         return boundary_faces(self.tets)
 
     @property
