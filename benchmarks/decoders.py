@@ -2,7 +2,8 @@
 contrib's ``getProjPixel`` on the lit pixels in raster order (its own venv, a server process so
 its runs alternate with ours), and the plain numpy integer decoder (:mod:`numpy_gray`).
 
-Each repeat runs all three, in a rotating order; min and median per side. Agreement: the numpy
+Each repeat runs all of them (and dotshell's decoder with ``subpixel = false``, so that the
+refinement's share shows), in a rotating order; min and median per side. Agreement: the numpy
 decoder and OpenCV against dotshell's integer codes (the same decoder with ``subpixel = false``,
 so the compared values are integers on both sides).
 """
@@ -86,11 +87,12 @@ def compare(view, integer_coding, peer: OpenCVPeer, repeats: int) -> dict[str, A
         "dotshell": lambda: view.coding.decode(frames, size),
         "opencv_lit_raster": peer.time_once,
         "numpy_integer": lambda: numpy_gray.decode(frames, names, size, shadow_dn),
+        "dotshell_no_refine": lambda: integer_coding.decode(frames, size),
     }
     runs: dict[str, list[float]] = {k: [] for k in sides}
     keys = list(sides)
     for r in range(repeats):
-        for k in keys[r % 3:] + keys[:r % 3]:
+        for k in keys[r % len(keys):] + keys[:r % len(keys)]:
             if k == "opencv_lit_raster":
                 runs[k].append(sides[k]())
             else:
@@ -108,6 +110,7 @@ def compare(view, integer_coding, peer: OpenCVPeer, repeats: int) -> dict[str, A
     out["opencv_over_dotshell"] = {s: out["opencv_lit_raster"][s] / out["dotshell"][s]
                                    for s in stats}
     out["dotshell_over_numpy"] = {s: out["dotshell"][s] / out["numpy_integer"][s] for s in stats}
+    out["refine_s"] = out["dotshell"]["median"] - out["dotshell_no_refine"]["median"]
     return out
 
 
@@ -138,10 +141,14 @@ def print_decoders(d: dict[str, Any], baseline: dict[str, Any]) -> None:
     rows = (("dotshell decode (robust, sub-pixel)", "dotshell"),
             (f"OpenCV {d['opencv_version']} getProjPixel, {d['lit_px']} lit px, raster order",
              "opencv_lit_raster"),
-            ("plain numpy integer gray decode", "numpy_integer"))
+            ("plain numpy integer gray decode", "numpy_integer"),
+            ("dotshell decode with subpixel = false", "dotshell_no_refine"))
     for label, key in rows:
         m = d[key]
         print(f"  {label:62s} {m['min'] * 1e3:9.1f} / {m['median'] * 1e3:9.1f}")
+    before = baseline.get("refine_ms")
+    print(f"  sub-pixel refinement (difference of the medians) {d['refine_s'] * 1e3:9.1f}"
+          + (f"   (baseline {before:.0f})" if before else ""))
     for key, what in (("opencv_over_dotshell", "OpenCV time / dotshell time"),
                       ("dotshell_over_numpy", "dotshell time / numpy time")):
         r, before = d[key], baseline.get(key, {}).get("median")
