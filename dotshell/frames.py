@@ -10,14 +10,15 @@ A run records its frame format in ``manifest.json`` (``frame_format``); each for
   own directory entry as the frame arrives, so a file cut short by a crash still reads up to its
   last complete page; the file is synced to the disk once per view (:meth:`FrameStore.close`).
   ImageJ/Fiji, tifffile and libtiff open it as an image stack; a Dask worker reads one view
-  without touching the rest of the run.
+  without touching the rest of the run. tifffile writes it; :mod:`dotshell.tiffpages` reads it
+  (straight into the output array, without a general TIFF parser's per-page cost).
 * ``png/1`` (:class:`PngFrameStore`, runs written before the TIFF stacks; read-only):
   ``frames/view_NNN/III_NAME.png``, one lossless PNG per frame. A run without ``frame_format``
   is of this format.
 
 Why uncompressed TIFF (measured on a view of the simulated metal cylinder, 42 frames of
-1280×1024 uint16, 110 MB; docs/performance.md has the table): it writes in ~50 ms and reads in
-~50-70 ms per view, against 2.8-3.8 s and 1.1 s for PNG level 1; blosc/zstd or lz4 chunks in
+1280×1024 uint16, 110 MB, 2 cores at load 3-5; docs/performance.md has the table): it writes in
+~50 ms and reads in ~50-70 ms per view, against 2.8-3.8 s and 1.1 s for PNG level 1; blosc/zstd or lz4 chunks in
 zarr halve the size (42-55 %) but take 0.3-0.6 s to read and 1-2 s to write on 2 cores.
 :func:`export_png` writes the PNG layout for people who want to look at single frames.
 """
