@@ -26,7 +26,7 @@ import numpy as np
 import tifffile
 
 from bench_profile import ROOT, load_bench_profile
-from dotshell.blas import limit_blas_threads
+from dotshell.runtime import configure_process
 from dotshell.plugins import get_plugin_manager
 from run import render_view
 
@@ -157,7 +157,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--out", type=Path, default=None, help="scratch directory (its disk)")
     args = ap.parse_args()
-    limit_blas_threads(1)
+    configure_process()
     pm = get_plugin_manager()
     stack = render_view(load_bench_profile(pm, False), pm).frames
     parent = args.out or ROOT / "bench-results"

@@ -40,7 +40,7 @@ from threadpoolctl import threadpool_limits
 import decoders
 import frame_io
 from bench_profile import ROOT, load_bench_profile
-from dotshell.blas import limit_blas_threads
+from dotshell.runtime import configure_process
 from dotshell.coding import PatternCoding
 from dotshell.devices import ExposureControl
 from dotshell.geometry.calibration import RigCalibration
@@ -225,7 +225,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5, help="repeats of each timing (min, median)")
     ap.add_argument("--skip-scan", action="store_true", help="sections 1 to 3 only")
     args = ap.parse_args()
-    limit_blas_threads(1)  # as the dotshell command runs
+    configure_process()  # as the dotshell command runs
     pm = get_plugin_manager()
     profile = load_bench_profile(pm, args.quick)
     baseline = load_baseline(args.quick)

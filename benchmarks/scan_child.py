@@ -6,7 +6,8 @@ Usage (run by ``run.py``)::
     python benchmarks/scan_child.py scan OUT_DIR RESULT_JSON [--quick]
     python benchmarks/scan_child.py reconstruct RUN_DIR RESULT_JSON
 
-BLAS runs on one thread, as in the ``dotshell`` command.
+BLAS runs on one thread and the heap is set up as in the ``dotshell`` command
+(:func:`dotshell.runtime.configure_process`).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import time
 from pathlib import Path
 
 from bench_profile import load_bench_profile
-from dotshell.blas import limit_blas_threads
+from dotshell.runtime import configure_process
 from dotshell.plugins import get_plugin_manager
 from dotshell.pipeline.scan import reconstruct_run, scan
 
@@ -31,7 +32,7 @@ def peak_rss_mib() -> float:
 
 
 def main(mode: str, path: str, result_path: str, quick: bool) -> None:
-    limit_blas_threads(1)
+    configure_process()
     pm = get_plugin_manager()
     profile = load_bench_profile(pm, quick)
     t0 = time.perf_counter()

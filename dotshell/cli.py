@@ -291,10 +291,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from dotshell.blas import limit_blas_threads
+    from dotshell.runtime import configure_process
 
     args = build_parser().parse_args(argv)
-    limit_blas_threads(1)  # small 3×3 products: threads cost more than they save
+    configure_process()  # BLAS on one thread, large blocks unmapped when freed
     try:
         return args.func(args)
     except DotshellError as exc:

@@ -236,19 +236,20 @@ class SimWorld:
                            s["supersample"], s["ambient"], projector.ref_mm, stage.target_key],
                           sort_keys=True)
 
-    def release_views(self) -> None:
-        """Drop the shared renderer's cached views (its rays stay): a closed rig's views are
-        rarely asked for again, and at full resolution they hold ~0.2 GB."""
+    def release_renderer(self) -> None:
+        """Free the shared renderer's cached views and rays: a closed rig's views are rarely
+        asked for again, and at full resolution they hold ~0.2 GB (a scan's merge, validation
+        and previews run after the rig is closed)."""
         try:
             renderer = _RENDERERS.get(self._renderer_key())
         except DeviceError:  # not a complete rig: no renderer was made
             return
         if renderer is not None:
-            renderer.drop_views()
+            renderer.release()
 
 
-#: Renderers shared across worlds, by geometry (a full-resolution renderer with two cached
-#: views holds ~0.3 GB).
+#: Renderers shared across worlds, by geometry (a full-resolution renderer with its cached
+#: view and rays holds ~0.2 GB; a closed camera releases them).
 _RENDERERS: OrderedDict[str, Renderer] = OrderedDict()
 _MAX_RENDERERS = 2
 
@@ -324,7 +325,7 @@ class SimCamera(_Device):
 
     def close(self) -> None:
         super().close()
-        self.world.release_views()
+        self.world.release_renderer()
 
     def expected_electrons(self) -> np.ndarray:
         """Noise-free signal (H, W) float32 in electrons for the current world state."""

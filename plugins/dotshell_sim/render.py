@@ -191,12 +191,14 @@ class Renderer:
         supersample: sub-pixel rays per camera pixel along each axis (1..4).
         ambient: ambient light level relative to full projector light (unitless).
         projector_ref_mm: distance at which projector irradiance is 1 (inverse-square falloff).
-        cache_views: how many views (stage angles) to keep.
+        cache_views: how many views (stage angles) to keep (~100 MB each at 1280×1024, 2×
+            supersampled); a scan visits each angle once, its PDI, trans-illumination and
+            laser frames reuse the current one.
     """
 
     def __init__(self, calib: RigCalibration, scene: StagedScene, supersample: int = 2,
                  ambient: float = 0.01, projector_ref_mm: float = 200.0,
-                 cache_views: int = 2):
+                 cache_views: int = 1):
         self.calib = calib
         self.scene = scene
         self.ss = int(supersample)
@@ -362,10 +364,11 @@ class Renderer:
             self._views.popitem(last=False)
         return view
 
-    def drop_views(self) -> None:
-        """Forget the cached views (~100 MB each at 1280×1024, 2× supersampled); the camera
-        rays, costly to compute, stay."""
+    def release(self) -> None:
+        """Forget the cached views and camera rays (~0.2 GB at 1280×1024, 2× supersampled);
+        they are made again on the next use."""
         self._views.clear()
+        self._rays = None
 
     def _turbid_material(self) -> int | None:
         """Index of the scene's (single) turbid material, if any."""
