@@ -308,7 +308,10 @@ def _members(protocol: type) -> list[str]:
 
 def missing_members(obj: Any, protocol: type) -> list[str]:
     """The members of ``protocol`` that ``obj`` lacks, found on its class (or set on the
-    instance), without calling any property."""
+    instance), without calling any property. A rig's device handle is looked through to the
+    driver behind it."""
+    if getattr(type(obj), "_wraps_device", False):
+        obj = vars(obj)["_device"]
     cls = type(obj)
     inst = getattr(obj, "__dict__", {})
     return [n for n in _members(protocol)
