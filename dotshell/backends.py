@@ -125,9 +125,12 @@ class Backend:
             ``settings`` has been validated against ``settings_schema`` with defaults filled in.
         settings_schema: the keys of the profile's ``[ROLE.settings]`` table.
         summary: one line for ``dotshell plugins``.
+        usb_ids: ``"vid:pid"`` (lower-case hex) of the USB devices this backend drives, so
+            ``dotshell ports`` can say which backend fits a plugged-in device.
     """
 
     name: str
     factory: Callable[..., Any]
     settings_schema: Mapping[str, Setting] = field(default_factory=dict)
     summary: str = ""
+    usb_ids: tuple[str, ...] = ()
