@@ -25,6 +25,8 @@ ROLES: dict[str, str] = {
     "exporter": "dotshell_exporters",
 }
 
+logging.getLogger("dotshell.devices").addHandler(logging.NullHandler())  # front ends show them
+
 #: ``listener(level, text, unix_time)`` receives a device's log lines.
 LogListener = Callable[[str, str, float], None]
 
