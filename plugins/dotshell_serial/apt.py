@@ -47,6 +47,20 @@ APT_SCHEMA: dict[str, Setting] = {
 }
 
 
+class _Overdue(DeviceTimeout):
+    """The awaited message did not come before the deadline (the device kept answering)."""
+
+
+class _Unpacker(apt.Unpacker):
+    """The library's unpacker, counting the bytes it had to skip (line noise)."""
+
+    skipped = 0
+
+    def _decoding_error(self, message: str = "") -> None:
+        self.skipped += 1
+        super()._decoding_error(message)
+
+
 class AptRotationStage(SerialDevice):
     """A Thorlabs APT rotation mount; Stage, Stoppable, Homing, AngleReadback, Identified."""
 
@@ -55,7 +69,7 @@ class AptRotationStage(SerialDevice):
 
     def __init__(self, settings: dict[str, Any], context=None) -> None:
         super().__init__(settings, context)
-        self._unpacker: apt.Unpacker | None = None
+        self._unpacker: _Unpacker | None = None
         self.status_bits: dict[str, Any] = {}
 
     @property
@@ -76,10 +90,10 @@ class AptRotationStage(SerialDevice):
         """The next message named in ``wanted`` (thorlabs_apt_protocol names); errors from the
         controller raise; with ``poll`` a status request goes out every poll interval."""
         if self._unpacker is None:
-            self._unpacker = apt.Unpacker(self.link._port(f"wait for {what}"),
-                                          on_error="continue")
+            self._unpacker = _Unpacker(self.link._port(f"wait for {what}"), on_error="continue")
         t = self.link.reply_timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + t
+        heard = time.monotonic()
         next_poll = 0.0
         while True:
             if self.stopping.is_set() and "mot_move_stopped" not in wanted:
@@ -95,14 +109,23 @@ class AptRotationStage(SerialDevice):
                 msg = next(self._unpacker, None)
             except Exception as exc:  # the unpacker reads the port: a vanished port fails here
                 raise self.link._lost(f"waiting for {what}", exc) from None
+            if self._unpacker.skipped:
+                self._noise(f"{self._unpacker.skipped} bytes that are no APT message")
+                self._unpacker.skipped = 0
             if msg is not None:
+                heard = time.monotonic()
                 self._note(msg)
                 if msg.msg in ("hw_richresponse", "hw_response"):
                     raise DeviceError(self._controller_error(msg, what))
                 if msg.msg in wanted:
                     return msg
+            elif poll and time.monotonic() - heard > self.link.reply_timeout_s:
+                raise DeviceTimeout(f"{self.link.name}: no reply to the status requests "
+                                    f"(MOT_REQ_STATUSUPDATE) during {what} within "
+                                    f"{self.link.reply_timeout_s:g} s. Check that the controller "
+                                    "is powered and connected.")
             elif time.monotonic() > deadline:
-                raise DeviceTimeout(f"{self.link.name}: no reply to {what} within {t:g} s. Check "
+                raise _Overdue(f"{self.link.name}: no reply to {what} within {t:g} s. Check "
                                     "that the controller is powered and connected (and not "
                                     "held by the Kinesis software).")
 
@@ -174,7 +197,7 @@ class AptRotationStage(SerialDevice):
         budget = 120.0 if left == float("inf") else max(left - 0.5, 0.1)
         try:
             msg = self._await(done | {"mot_move_stopped"}, what, budget, poll=True)
-        except DeviceTimeout:
+        except _Overdue:
             self.stop()
             raise DeviceTimeout(f"{self.link.name}: {what} did not finish in time (at "
                                 f"{self._position:.3f}°); sent MOT_MOVE_STOP. Check the mount; "

@@ -88,13 +88,13 @@ class AptEmulator(PtyEmulator):
             self.send(long(0x0481, self._status()))
         elif msg_id == 0x0453:
             _, counts = struct.unpack_from("<Hl", frame, 6)
-            if self.faults.error:
+            if self.refuse():
                 self._error(0x0453, 10, "move rejected: motor not enabled")
             else:
                 self.limit = 0
                 self.begin_move(counts / self.scale)
         elif msg_id == 0x0443:
-            if self.faults.error:
+            if self.refuse():
                 self._error(0x0443, 10, "homing rejected")
             else:
                 self._homing_until = time.monotonic() + self.home_time_s

@@ -64,7 +64,7 @@ class ElliptecEmulator(PtyEmulator):
                 self._reply_when_done = False
                 self._say(f"PO{self._pos()}")
         elif cmd in ("ma", "ho"):
-            if self.faults.error:
+            if self.refuse():
                 self._say("GS02")
                 return
             target = 0.0 if cmd == "ho" else int(arg, 16) * 360.0 / self.pulses

@@ -145,7 +145,7 @@ class GrblEmulator(LineEmulator):
             self.reply("error:20")
 
     def _home(self) -> None:
-        if self.faults.error:
+        if self.refuse():
             self.reply(f"error:{self.error_code}")
         elif not self.homing_enabled:
             self.reply("error:5")
@@ -156,7 +156,7 @@ class GrblEmulator(LineEmulator):
             self._home_done_at = time.monotonic() + self.home_time_s
 
     def _move_to(self, target: float) -> None:
-        if self.faults.error or self.state == "Alarm":
+        if self.refuse() or self.state == "Alarm":
             self.reply(f"error:{9 if self.state == 'Alarm' else self.error_code}")
             return
         self.reply("ok")

@@ -26,7 +26,8 @@ class Faults:
     """Fault switches (all off by default).
 
     Attributes:
-        error: answer motion commands (and homing) with the device's error reply.
+        error: answer motion commands (and homing) with the device's error reply: True for
+            every one, a number N for the next N only.
         silence: answer nothing at all (the driver's reply timeout fires).
         garbage: put noise bytes before every reply.
         stuck: moves start but never finish.
@@ -35,7 +36,7 @@ class Faults:
         return_after_s: ...and comes back this long after vanishing (None = stays gone).
     """
 
-    error: bool = False
+    error: bool | int = False
     silence: bool = False
     garbage: bool = False
     stuck: bool = False
@@ -200,6 +201,16 @@ class PtyEmulator:
     def first_byte_time(self, byte: bytes, after: float = 0.0) -> float | None:
         """Monotonic time the driver first wrote ``byte`` after ``after``."""
         return next((t for t, chunk in self.received if t >= after and byte in chunk), None)
+
+    def refuse(self) -> bool:
+        """True if this motion command gets the error reply (``faults.error``)."""
+        e = self.faults.error
+        if e is True:
+            return True
+        if isinstance(e, int) and e > 0:
+            self.faults.error = e - 1
+            return True
+        return False
 
     # ---- motion ---------------------------------------------------------------------------------
 

@@ -20,7 +20,7 @@ class SwitchEmulator(LineEmulator):
         super().__init__(*args, **kwargs)
 
     def line(self, text: str) -> None:
-        if self.faults.error and text in (self.on_command, self.off_command):
+        if text in (self.on_command, self.off_command) and self.refuse():
             self.reply("ERR 3 interlock open")
         elif text == self.on_command:
             self.on = True

@@ -70,7 +70,7 @@ class ZaberEmulator(LineEmulator):
         elif words[:2] == ["move", "abs"] and len(words) == 3:
             self._move_abs(axis, msg_id, words[2])
         elif cmd == "home":
-            if self.faults.error:
+            if self.refuse():
                 self._answer(axis, msg_id, False, "BADDATA")
                 return
             self.warnings.discard("WR")
@@ -86,7 +86,7 @@ class ZaberEmulator(LineEmulator):
         except ValueError:
             self._answer(axis, msg_id, False, "BADDATA")
             return
-        if self.faults.error or "FS" in self.warnings:
+        if self.refuse() or "FS" in self.warnings:
             self._answer(axis, msg_id, False, "BADDATA")
             return
         self.warnings.discard("NI")
