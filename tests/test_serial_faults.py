@@ -48,7 +48,7 @@ BACKENDS = {
                                r"check its interlock"),
     }),
 }
-SILENT = (DeviceTimeout, r"no reply to .* within 0.3 s.*Check that the device is powered and "
+SILENT = (DeviceTimeout, r"no reply to .* within 0.3 s.*Check that the .* is powered and "
                          r"connected")
 LOST = (DeviceLostError, r"the port failed while .*unplugged, powered off or reset.*reconnect = "
                          r"false")
