@@ -18,8 +18,16 @@ import time
 
 import serial
 
+try:
+    from termios import error as TermiosError  # tcdrain on a vanished port (POSIX)
+except ImportError:  # pragma: no cover - Windows
+    TermiosError = OSError
+
 from dotshell.errors import DeviceError, DeviceLostError, DeviceTimeout
 from dotshell.ports import resolve_port
+
+#: What pyserial raises when the port fails under us (unplugged, closed from another thread).
+PORT_FAILURES = (serial.SerialException, OSError, TermiosError, TypeError, AttributeError)
 
 
 class SerialLink:
@@ -88,7 +96,7 @@ class SerialLink:
             time.sleep(0.05)
             s.rts = False
             return True
-        except OSError:
+        except (OSError, TermiosError):
             s.reset_input_buffer()
             return False
 
@@ -117,7 +125,7 @@ class SerialLink:
         except serial.SerialTimeoutException:
             raise DeviceTimeout(f"{self.name}: could not send {what} within "
                                 f"{self.reply_timeout_s:g} s (flow control stuck?)") from None
-        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+        except PORT_FAILURES as exc:
             raise self._lost(f"sending {what}", exc) from None
 
     def read_line(self, what: str, timeout_s: float | None = None,
@@ -133,7 +141,7 @@ class SerialLink:
         try:
             s.timeout = max(t, 0.0)
             raw = s.read_until(end)
-        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+        except PORT_FAILURES as exc:
             raise self._lost(f"waiting for the reply to {what}", exc) from None
         if not raw.endswith(end):
             raise self._silent(what, t, raw)
@@ -145,7 +153,7 @@ class SerialLink:
         try:
             s.timeout = max(t, 0.0)
             raw = s.read(n)
-        except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
+        except PORT_FAILURES as exc:
             raise self._lost(f"waiting for the reply to {what}", exc) from None
         if len(raw) < n:
             raise self._silent(what, t, raw)
@@ -163,5 +171,5 @@ class SerialLink:
         try:
             waiting = s.in_waiting
             return s.read(waiting) if waiting else b""
-        except (serial.SerialException, OSError) as exc:
+        except PORT_FAILURES as exc:
             raise self._lost("clearing the input", exc) from None
