@@ -322,6 +322,12 @@ class Session:
             stage.move_to(float(degrees))
             return float(stage.position)
 
+    def home(self, role: str = "stage") -> float | None:
+        """Home the stage (or ``role``): find its reference position; the angle afterwards."""
+        with self._lock:
+            self._device(role, f"home the {role}")
+            return self.rig.home(role)  # type: ignore[union-attr]
+
     def jog(self, degrees: float) -> float:
         """Rotate the stage by ``degrees`` (relative); returns the angle reached."""
         with self._lock:

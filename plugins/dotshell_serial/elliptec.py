@@ -62,7 +62,7 @@ class ElliptecAnalyzer(SerialDevice):
         super().__init__(settings, context)
         self.addr = settings["address"]
         self.scale = settings["pulses_per_degree"] or 143360 / 360.0
-        self._reply = re.compile(rf"{self.addr}(IN|GS|PO|BO|BS|HO|GV|GJ)([0-9A-Fa-f]*)")
+        self._reply = re.compile(rf"{self.addr}(IN|GS|PO|BO|BS|HO|GV|GJ)([0-9A-Fa-f]*)$")
 
     # ---- protocol -------------------------------------------------------------------------------
 

@@ -76,7 +76,8 @@ GRBL_SCHEMA: dict[str, Setting] = {
                          max=30.0),
 }
 
-_TOKEN = re.compile(r"ok|error:|ALARM:|<|\[|Grbl ")
+#: a complete GRBL reply ending the line (noise may come before it)
+_TOKEN = re.compile(r"(?:ok|error:\d+|ALARM:\d+|<[^<>]*>|\[[^\[\]]*\]|Grbl \S+.*)$")
 _STATUS = re.compile(r"<([A-Za-z]+)(?::(\d))?\|(?:.*?)MPos:([-\d.]+(?:,[-\d.]+)*)")
 _AXES = "XYZABC"
 

@@ -53,7 +53,7 @@ class SerialSwitch(SerialDevice):
         line = self.link.read_line(what)
         err = self.settings["error_prefix"]
         for token in (err, *expected) if err else expected:
-            i = line.find(token)
+            i = line.rfind(token)  # the reply ends the line; noise may come before it
             if i >= 0:
                 if i > 0:
                     self._noise(line[:i])

@@ -62,7 +62,7 @@ ZABER_SCHEMA: dict[str, Setting] = {
                                min=0.005, max=1.0),
 }
 
-_REPLY = re.compile(r"^@(\d+) (\d+) (?:(\d+) )?(OK|RJ) (IDLE|BUSY) (\S\S) ?(.*)$")
+_REPLY = re.compile(r"@(\d+) (\d+) (?:(\d+) )?(OK|RJ) (IDLE|BUSY) (\S\S) ?(.*)$")
 
 
 class ZaberStage(SerialDevice):
@@ -87,19 +87,16 @@ class ZaberStage(SerialDevice):
             self.link.write(f"/{self.settings['device']} {ax} {msg_id} {command}\n".encode(),
                             what)
             for _ in range(20):  # replies to other messages (a stop's) are skipped
-                line = self.link.read_line(what, timeout_s)
-                start = line.find("@")
-                if start < 0:
-                    if not line.startswith(("!", "#")):  # alerts and info lines are fine
-                        self._noise(line)
-                    continue
-                if start > 0:
-                    self._noise(line[:start])
-                m = _REPLY.match(line[start:].strip())
+                line = self.link.read_line(what, timeout_s).strip()
+                m = _REPLY.search(line)  # the reply ends the line; noise may come before it
                 if m is None:
+                    if line.startswith(("!", "#")):  # alerts and info lines
+                        continue
                     raise DeviceError(f"{self.link.name}: unreadable reply {line!r} to {what}; "
                                       "check the baud rate (115200) and that the controller "
                                       "speaks the ASCII protocol (not Binary).")
+                if m.start() > 0:
+                    self._noise(line[:m.start()])
                 if m.group(3) is None or int(m.group(3)) != msg_id:
                     continue
                 self.flag = m.group(6)
