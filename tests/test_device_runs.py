@@ -107,25 +107,43 @@ def test_abort_during_a_move_stops_the_stage_within_half_a_second(tmp_path, dots
     session.close()
 
 
-def test_ctrl_c_during_a_move_stops_the_stage_and_marks_the_run_aborted(tmp_path, serial_emulator):
-    emu = serial_emulator("grbl", speed_deg_s=30.0)
+def signal_during_a_move(tmp_path, emu, signum):
+    """Run `dotshell scan` on the emulator, send ``signum`` mid-move; (latency until the
+    emulator got the feed hold or None, exit code, stderr, the run's manifest)."""
     prof = emu_profile(tmp_path, "grbl", emu.port, views=4)
     proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", "scan", str(prof), "--out",
                              str(tmp_path / "runs")], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
         wait_for(lambda: emu.state == "Run" and emu.angle > 5.0, 120.0)
-        t_int = time.monotonic()
-        proc.send_signal(signal.SIGINT)
-        wait_for(lambda: emu.first_byte_time(b"!", t_int) is not None, 2.0)
-        latency = emu.first_byte_time(b"!", t_int) - t_int
+        t_sig = time.monotonic()
+        proc.send_signal(signum)
         _, err = proc.communicate(timeout=60)
     finally:
         proc.kill()
-    assert latency < 0.5, latency
-    assert proc.returncode == 130, err
+    hold = emu.first_byte_time(b"!", t_sig)
     [run] = list((tmp_path / "runs").iterdir())
-    assert manifest(run)["status"] == "aborted"
+    return None if hold is None else hold - t_sig, proc.returncode, err, manifest(run)
+
+
+def test_ctrl_c_during_a_move_stops_the_stage_and_marks_the_run_aborted(tmp_path, serial_emulator):
+    emu = serial_emulator("grbl", speed_deg_s=30.0)
+    latency, code, err, m = signal_during_a_move(tmp_path, emu, signal.SIGINT)
+    assert latency is not None and latency < 0.5, latency
+    assert code == 130, err
+    assert m["status"] == "aborted"
+
+
+def test_sigterm_during_a_move_stops_the_stage_and_marks_the_run_aborted(tmp_path,
+                                                                        serial_emulator):
+    emu = serial_emulator("grbl", speed_deg_s=30.0)
+    latency, code, err, m = signal_during_a_move(tmp_path, emu, signal.SIGTERM)
+    if code == -signal.SIGTERM:
+        pytest.skip("the CLI installs no SIGTERM handler yet (the workflow engine of the "
+                    "'runs that never lie' issue adds SIGTERM/SIGHUP handling that calls "
+                    "Rig.stop()); this test runs once it does")
+    assert latency is not None and latency < 0.5, latency
+    assert m["status"] in ("aborted", "interrupted") and m["status"] != "running"
 
 
 def test_unplugged_stage_is_reconnected_and_the_scan_goes_on(tmp_path, dotshell_pm,
