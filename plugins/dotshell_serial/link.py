@@ -147,18 +147,6 @@ class SerialLink:
             raise self._silent(what, t, raw)
         return raw
 
-    def read_exact(self, n: int, what: str, timeout_s: float | None = None) -> bytes:
-        s = self._port(what)
-        t = self.reply_timeout_s if timeout_s is None else timeout_s
-        try:
-            s.timeout = max(t, 0.0)
-            raw = s.read(n)
-        except PORT_FAILURES as exc:
-            raise self._lost(f"waiting for the reply to {what}", exc) from None
-        if len(raw) < n:
-            raise self._silent(what, t, raw)
-        return raw
-
     def _silent(self, what: str, timeout_s: float, partial: bytes) -> DeviceTimeout:
         got = f" (got only {partial[:40]!r})" if partial else ""
         return DeviceTimeout(
