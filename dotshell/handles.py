@@ -128,6 +128,12 @@ class _Worker:
         job = self.current
         return job if job is not None and job.overdue() else None
 
+    def release(self) -> None:
+        """End the worker thread without closing the device (it was never connected)."""
+        worker, self._worker = self._worker, None
+        if worker is not None:
+            worker.shutdown()
+
     def shutdown(self) -> None:
         self.jobs.put(None)
 
@@ -359,6 +365,12 @@ class DeviceHandle:
         finally:
             self._lock.release()
 
+    def release(self) -> None:
+        """End the worker thread without closing the device (it was never connected)."""
+        worker, self._worker = self._worker, None
+        if worker is not None:
+            worker.shutdown()
+
     def shutdown(self) -> None:
         """Close the device (directly if a call is stuck) and end its worker thread."""
         worker = self._worker
@@ -373,9 +385,7 @@ class DeviceHandle:
                     self._run("close", (), {})
                 except Exception:  # closing must not mask the original error
                     pass
-        if self._worker is not None:
-            self._worker.shutdown()
-            self._worker = None
+        self.release()
         self._lost = None
 
 

@@ -154,20 +154,26 @@ class Rig:
                 continue
             self._guarded(role, dev.connect)
             self.connected.append(role)
-            self._record(role)
+            self._guarded(role, lambda: self._record(role))
         for role, policy in self.policies.items():
             if policy.home == "on_connect":
                 self._guarded(role, lambda: self.home(role))
 
     def _guarded(self, role: str, action: Callable[[], Any]) -> None:
+        """``action()``; on failure close every device (this one included) and re-raise."""
         try:
             action()
         except PluginFault:
-            self.close()
+            self._close_after_failure(role)
             raise
         except DeviceError as exc:
-            self.close()
+            self._close_after_failure(role)
             raise type(exc)(f"{role} ({self.backend(role)}) failed to connect: {exc}") from None
+
+    def _close_after_failure(self, role: str) -> None:
+        if role not in self.connected:
+            self.devices[role].shutdown()  # close() is safe after a failed connect()
+        self.close()
 
     def _record(self, role: str) -> None:
         dev = self.devices[role]
@@ -205,10 +211,13 @@ class Rig:
         return float(pos) if isinstance(pos, (int, float)) else None
 
     def close(self) -> None:
-        """Close every connected device (in reverse order) and end their worker threads; never
+        """Close every connected device (in reverse order) and end every worker thread; never
         raises for a device."""
         for role in reversed(self.connected):
             self.devices[role].shutdown()
+        for role, dev in self.devices.items():
+            if role not in self.connected:
+                dev.release()  # e.g. polled for status, never connected
         self.connected.clear()
 
     def stop(self) -> None:

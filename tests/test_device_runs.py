@@ -295,3 +295,43 @@ def test_session_connect_reopens_a_lost_stage_and_homes_on_request(tmp_path, dot
     assert session.move_to(20) == pytest.approx(20.0)
     assert session.home() == pytest.approx(0.0) and emu.angle == 0.0
     session.close()
+
+
+def fault_profile(tmp_path, name, port):
+    """A tiny scan in which the serial backend for ``name`` fills its role."""
+    if name in BACKEND:
+        raw = tomllib.loads(emu_profile(tmp_path, name, port, views=2).read_text())
+        raw["stage"]["home"] = "never"
+    else:
+        raw = small_profile_dict(0.12, 2)
+        raw["camera"]["settings"]["supersample"] = 1
+        raw["outputs"] = {"previews": False}
+        if name == "elliptec":
+            raw["analyzer"] = {"backend": "elliptec", "settings": {"port": str(port)}}
+            raw["scan"]["pdi"] = True
+        else:
+            raw["light_source"] = {"backend": "serial-switch", "settings": {"port": str(port)}}
+            raw["transillumination"] = {"enabled": True, "flat_field": "none", "views": [0]}
+    return write_profile(tmp_path / f"fault-{name}.toml", raw)
+
+
+@pytest.mark.parametrize("name,device", [("grbl", "grbl"), ("zaber", "zaber"),
+                                         ("apt", "thorlabs-apt"), ("elliptec", "elliptec"),
+                                         ("switch", "serial-switch")])
+def test_a_device_fault_mid_scan_fails_the_run_with_exit_2_and_the_reason_kept(
+        tmp_path, capsys, serial_emulator, name, device):
+    emu = serial_emulator(name, speed_deg_s=720.0)
+    prof = fault_profile(tmp_path, name, emu.port)
+    emu.faults.error = True  # every motion (or switching) command is refused
+    code = main(["scan", str(prof), "--out", str(tmp_path / "runs")])
+    err = " ".join(capsys.readouterr().err.split())
+    assert code == 2 and "Traceback" not in err
+    assert f"{device} on {emu.port}" in err
+    [run] = list((tmp_path / "runs").iterdir())
+    m = manifest(run)
+    assert m["status"] == "failed"
+    if "reason" in m:
+        assert f"{device} on {emu.port}" in m["reason"]
+    if name != "switch":  # the acquisition logs the error that ended the run
+        assert any(e.get("level") == "error" and f"{device} on {emu.port}" in e["text"]
+                   for e in events(run))
