@@ -26,8 +26,8 @@ import numpy as np
 
 from dotshell.coding import PatternFrame
 from dotshell.devices import AngleReadback, ExposureControl, FrameInfoSource, implements
-from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, DotshellError,
-                             ProfileError, RunError)
+from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, ProfileError,
+                             RunError)
 from dotshell.events import (EventBus, FrameCaptured, Message, ScanPaused, ScanResumed,
                              ViewCaptured)
 from dotshell.pipeline.pdi import Shot, plan_shots
@@ -226,9 +226,6 @@ class Acquisition:
             return None
         except KeyboardInterrupt:
             self.rig.stop()
-            raise
-        except DotshellError as exc:  # the reason, in events.jsonl too
-            self.bus.emit(Message(level="error", text=str(exc)))
             raise
         finally:
             self.writer.queue.join()  # every frame taken is on disk before we go on
