@@ -553,7 +553,7 @@ class Session:
             "session": self, "np": np, "dotshell": dotshell, "Run": Run,
             "load": self.load, "set": self.set, "connect": self.connect,
             "disconnect": self.disconnect, "status": self.status, "move_to": self.move_to,
-            "jog": self.jog, "set_analyzer": self.set_analyzer,
+            "jog": self.jog, "home": self.home, "set_analyzer": self.set_analyzer,
             "set_exposure": self.set_exposure, "patterns": self.patterns,
             "project": self.project, "snap": self.snap, "decode": self.decode,
             "scan": self.scan, "pause": self.pause, "resume": self.resume,
