@@ -190,6 +190,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
     store, bus = job.store, job.bus
     resuming = job.command == "resume"
     gen = Generation.start(store)
+    job.generation = gen.number
     products = ProductStore(store, gen.dir)
     with (Rig(profile, pm) if rig is None else _kept_open(rig)) as rig, on_interrupt(rig.stop):
         if resuming:
