@@ -323,6 +323,12 @@ class Session:
             stage.move_to(float(degrees))
             return float(stage.position)
 
+    def home(self, role: str = "stage") -> float | None:
+        """Home the stage (or ``role``): find its reference position; the angle afterwards."""
+        with self._lock:
+            self._device(role, f"home the {role}")
+            return self.rig.home(role)  # type: ignore[union-attr]
+
     def jog(self, degrees: float) -> float:
         """Rotate the stage by ``degrees`` (relative); returns the angle reached."""
         with self._lock:
@@ -351,9 +357,9 @@ class Session:
 
     def _coding_patterns(self) -> dict[str, np.ndarray]:
         if self._patterns is None:
-            from dotshell.pipeline.scan import _make_coding
+            from dotshell.pipeline.steps import make_coding
 
-            self._coding = _make_coding(self._require_profile(), self.pm)
+            self._coding = make_coding(self._require_profile(), self.pm)
             size = self.rig.projector.resolution  # type: ignore[union-attr]
             self._patterns = {p.name: p.image for p in self._coding.patterns(size)}
         return self._patterns
@@ -463,7 +469,7 @@ class Session:
                   normalizer: str | None = None) -> dict[str, Any]:
         """Normalize a run's trans-illumination frames on its surface (default: the session's
         last run) and return the report section (docs/transillumination.md)."""
-        from dotshell.pipeline.normalize import normalize_run
+        from dotshell.pipeline.commands import normalize_run
 
         target = run if run is not None else self.run
         if target is None:
@@ -546,7 +552,7 @@ class Session:
             "session": self, "np": np, "dotshell": dotshell, "Run": Run,
             "load": self.load, "set": self.set, "connect": self.connect,
             "disconnect": self.disconnect, "status": self.status, "move_to": self.move_to,
-            "jog": self.jog, "set_analyzer": self.set_analyzer,
+            "jog": self.jog, "home": self.home, "set_analyzer": self.set_analyzer,
             "set_exposure": self.set_exposure, "patterns": self.patterns,
             "project": self.project, "snap": self.snap, "decode": self.decode,
             "scan": self.scan, "pause": self.pause, "resume": self.resume,

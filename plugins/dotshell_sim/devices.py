@@ -76,7 +76,8 @@ CAMERA_SCHEMA: dict[str, Setting] = {
                                 "px", min=0.0),
     "supersample": Setting("int", 2, "sub-pixel rays per pixel along each axis (pixel-area "
                            "integration)", min=1, max=4),
-    "seed": Setting("int", 0, "noise seed; frame k uses default_rng([seed, k])", min=0),
+    "seed": Setting("int", 0, "noise seed; each frame's noise is drawn from this seed and the "
+                   "rig's state when it is taken (pattern, angles, exposure)", min=0),
     "vignetting": Setting("float", 0.0, "extra lens vignetting: relative light loss at the image "
                           "corner, falling off as 1 − v·(r/r_corner)² from the principal point "
                           "(on top of the natural cos⁴); applies to all light, flat fields "
@@ -152,6 +153,11 @@ TURNTABLE_SCHEMA: dict[str, Setting] = {
                           schema=_BACKGROUND_SCHEMA),
 }
 
+CAMERA_SCHEMA["turntable"] = Setting(
+    "table", None, "mixed rigs: the sample, plate and rotation axis the camera sees when the "
+    "rig's [stage] is a real stage (e.g. on its emulator) instead of sim-turntable; the sample "
+    "turns to the angle that stage reports (read back)", schema=TURNTABLE_SCHEMA)
+
 ANALYZER_SCHEMA: dict[str, Setting] = {
     "initial_deg": Setting("float", 0.0, "analyzer angle after connect, relative to the "
                            "projector's polarizer (0 = parallel)", "deg"),
@@ -218,6 +224,25 @@ class SimWorld:
                               axis_point=stage.axis_point, axis_direction=stage.axis_direction,
                               source="ground-truth")
 
+    def state_digest(self, exposure_ms: float) -> bytes:
+        """A digest of everything a frame depends on (pattern shown, stage and analyzer
+        angles, laser and flat field, exposure): the camera seeds its noise with it, so a frame
+        depends on the state it was taken in, not on how many frames came before — a resumed
+        scan captures the same frames as an uninterrupted one."""
+        import hashlib
+
+        h = hashlib.blake2b(digest_size=16)
+        if self.projector is not None:
+            h.update(self.projector.pattern_digest)
+        if self.stage is not None:
+            h.update(repr((round(self.stage.position, 6), self.stage.target_key)).encode())
+        if self.analyzer is not None and self.analyzer.connected:
+            h.update(repr(round(self.analyzer.angle_deg, 6)).encode())
+        if self.laser is not None:
+            h.update(repr((self.laser.on, self.laser.flat, self.laser.target)).encode())
+        h.update(repr(round(exposure_ms, 9)).encode())
+        return h.digest()
+
     def renderer(self) -> Renderer:
         """The renderer for this world's geometry. Renderers are pure functions of the
         geometry, so worlds with identical settings (e.g. many test rigs from one profile)
@@ -264,6 +289,12 @@ def world_of(context: RigContext | None) -> SimWorld:
     return world
 
 
+def _digest(image: np.ndarray) -> bytes:
+    import hashlib
+
+    return hashlib.blake2b(np.ascontiguousarray(image).tobytes(), digest_size=16).digest()
+
+
 class _Device:
     name = "sim"
 
@@ -305,6 +336,7 @@ class SimCamera(_Device):
                                   s["dark_offset_dn"])
         self.exposure_ms = float(s["exposure_ms"])
         self.frames = 0
+        self._repeats: dict[bytes, int] = {}
         world.camera = self
 
     @property
@@ -351,8 +383,14 @@ class SimCamera(_Device):
         return irr
 
     def capture(self) -> np.ndarray:
+        """One frame; its noise is seeded by the setting ``seed``, the world's state and how
+        many frames were taken in that same state before (see :meth:`SimWorld.state_digest`)."""
         electrons = self.expected_electrons()
-        rng = np.random.default_rng([self.settings["seed"], self.frames])
+        state = self.world.state_digest(self.exposure_ms)
+        repeat = self._repeats.get(state, 0)
+        self._repeats[state] = repeat + 1
+        rng = np.random.default_rng([self.settings["seed"], repeat,
+                                     *np.frombuffer(state, np.uint32).tolist()])
         self.frames += 1
         return sensor(electrons, self.sensor, rng)
 
@@ -375,6 +413,7 @@ class SimProjector(_Device):
         self.pose()  # validate the geometry now
         self._radiance: np.ndarray | None = None
         self.pattern_name = None
+        self.pattern_digest = b""
         world.projector = self
 
     @property
@@ -423,6 +462,7 @@ class SimProjector(_Device):
             img = cv2.GaussianBlur(img, (0, 0), s["defocus_sigma_px"],
                                    borderType=cv2.BORDER_CONSTANT)
         self._radiance = img
+        self.pattern_digest = _digest(p)
 
     def radiance(self) -> np.ndarray | None:
         """Relative radiance (h, w) float32 after defocus; ``None`` when off."""
@@ -451,6 +491,10 @@ class SimTurntable(_Device):
         self.scene = build_scene(s["scene"], s["plate"], s["background"])
         self.target_key: str | None = None  # the calibration target on the stage, if any
         self._angle = 0.0
+        self.follow: Any = None  # mixed rigs: () -> the real stage's angle (degrees)
+        if world.stage is not None:
+            raise DeviceError(f"{self.name}: this rig has both [stage] backend = "
+                              "\"sim-turntable\" and [camera.settings.turntable]; keep one.")
         world.stage = self
 
     def place_target(self, board: dict | None, pose: dict | None) -> None:
@@ -480,10 +524,10 @@ class SimTurntable(_Device):
 
     @property
     def position(self) -> float:
-        return self._angle
+        return float(self.follow()) if self.follow is not None else self._angle
 
     def status(self) -> dict[str, Any]:
-        return {**super().status(), "angle_deg": self._angle}
+        return {**super().status(), "angle_deg": self.position}
 
 
 class SimAnalyzer(_Device):
@@ -640,7 +684,26 @@ def _factory(cls, schema, backend: str):
     return factory
 
 
-make_camera = _factory(SimCamera, CAMERA_SCHEMA, "sim-camera")
+_make_camera = _factory(SimCamera, CAMERA_SCHEMA, "sim-camera")
+
+
+def make_camera(settings: dict | None = None, context: RigContext | None = None) -> SimCamera:
+    """The sim camera; with a ``turntable`` setting (mixed rigs) also the simulated sample on
+    whatever stage the rig has, turning to that stage's reported angle."""
+    camera = _make_camera(settings, context)
+    if camera.settings["turntable"] is not None:
+        table = validate_settings(TURNTABLE_SCHEMA, camera.settings["turntable"], "sim-camera",
+                                  "camera.settings.turntable")
+        SimTurntable(table, camera.world).follow = lambda: _rig_stage_angle(context)
+    return camera
+
+
+def _rig_stage_angle(context: RigContext | None) -> float:
+    stage = context.device("stage") if context is not None else None
+    if stage is None:
+        raise DeviceError("sim-camera: [camera.settings.turntable] follows the rig's stage, but "
+                          "this rig has none; add a [stage] section.")
+    return float(stage.position)
 make_projector = _factory(SimProjector, PROJECTOR_SCHEMA, "sim-projector")
 make_turntable = _factory(SimTurntable, TURNTABLE_SCHEMA, "sim-turntable")
 make_analyzer = _factory(SimAnalyzer, ANALYZER_SCHEMA, "sim-analyzer")
