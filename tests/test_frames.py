@@ -103,7 +103,7 @@ def test_old_png_runs_reconstruct_and_frames_export_as_png(small_scan, tmp_path,
     (no frame_format in its manifest) reconstructs to the same cloud."""
     result, _ = small_scan
     run = tmp_path / "run"
-    shutil.copytree(result.run_dir, run)
+    shutil.copytree(result.run_dir, run, symlinks=True)
     assert main(["frames", str(run)]) == 0
     listing = capsys.readouterr().out
     assert "tiff-stack/1, 34 per view" in listing and "view_005.tif" in listing
