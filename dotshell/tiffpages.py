@@ -62,6 +62,8 @@ class _Layout:
 def read_pages(f: BinaryIO, size: int, stop_after: int | None = None) -> list[Page]:
     """The complete pages of the open file ``f`` of ``size`` bytes, in file order (at most
     ``stop_after``)."""
+    if size < 8:
+        return []  # created, header not written yet: no complete page
     lay = _Layout(f.read(16))
     pages: list[Page] = []
     offset, seen = lay.first, set()

@@ -89,6 +89,8 @@ def test_frame_store_refuses_bad_input_with_clear_errors(tmp_path):
     with pytest.raises(RunError, match="page 0 holds frame 'white' where the run's sequence has "
                                        "'dark'"):
         TiffFrameStore(tmp_path, 0, ["dark"]).read_one(0)
+    (tmp_path / "frames" / "view_001.tif").write_bytes(b"")  # created, nothing written yet
+    assert TiffFrameStore(tmp_path, 1, NAMES).count() == 0
     (tmp_path / "frames" / "view_001.tif").write_bytes(b"not a tiff")
     with pytest.raises(RunError, match="view_001.tif is not a readable frame stack"):
         TiffFrameStore(tmp_path, 1, NAMES).read_all()
