@@ -12,6 +12,8 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from dotshell.cli_decode import add_decode_parser, pixel_counts  # noqa: F401 (for dotshell.cli)
+
 
 def add_captures_args(sp: argparse.ArgumentParser) -> None:
     """Options of ``dotshell reconstruct`` for captures made elsewhere."""
@@ -40,10 +42,9 @@ def reconstruct_captures_command(args: argparse.Namespace, pm, out: Console) -> 
     res = reconstruct_captures(args.captures, args.calibration, args.layout, pm, args.out,
                                reference=args.reference, coverage_radius_mm=args.coverage_radius)
     r = res.report
-    d = r["decode"]
-    out.print(f"decoded {d.get('decoded', 0)} of {d.get('pixels', 0)} pixels "
-              f"(shadow {d.get('shadow', 0)}, low contrast {d.get('low_contrast', 0)}); "
-              f"{r['cloud']['points']} points (camera frame, mm)")
+    out.print(pixel_counts({**r["decode"], "grazing": r.get("grazing", 0),
+                            "row_rejected": r.get("row_rejected", 0)}))
+    out.print(f"{r['cloud']['points']} points (camera frame, mm)")
     ref = r.get("reference")
     if ref:
         t = Table(title=escape(f"against {ref['path']} ({ref['reference_points']} points)"))
