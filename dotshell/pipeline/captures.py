@@ -85,6 +85,17 @@ class Layout:
     def file_name(self, position: int) -> str:
         return self.files.format(index=self.first_index + position)
 
+    def as_dict(self) -> dict[str, Any]:
+        """The layout's TOML tables (``layout``, ``decoder``), as :func:`layout_from_dict`
+        reads them."""
+        return {"layout": {
+            "name": self.name, "description": self.description, "coding": self.coding,
+            "files": self.files, "first_index": self.first_index,
+            "projector_width": self.projector_size[0], "projector_height": self.projector_size[1],
+            "order": list(self.order), "inverse": self.inverse, "msb_first": self.msb_first,
+            "drop_low_bits": self.drop_low_bits, "centred": self.centred,
+            "bright_is_one": self.bright_is_one}, "decoder": dict(self.decoder)}
+
 
 def resolve_layout_path(name_or_path: str | Path) -> Path:
     """A layout file path; a bare name (``slstudio-graycode``) means a shipped layout."""
@@ -107,6 +118,11 @@ def load_layout(name_or_path: str | Path) -> Layout:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise RunError(f"{where}: not valid TOML ({exc}).") from None
+    return layout_from_dict(raw, where)
+
+
+def layout_from_dict(raw: dict[str, Any], where: str) -> Layout:
+    """A layout from its parsed TOML tables (``layout``, ``decoder``), validated."""
     data = validate_settings(LAYOUT_SCHEMA, raw, where)
     lay = data["layout"]
     order = tuple(lay["order"])
@@ -157,12 +173,12 @@ def _read_gray(path: Path) -> np.ndarray:
     return img
 
 
-def read_captures(directory: Path, layout: Layout, coding_names: list[str]) -> dict[str, np.ndarray]:
-    """The frames of ``directory`` by coding frame name; checks count, names and sizes."""
+def sequence_files(directory: Path, layout: Layout, order: list[str]) -> list[Path]:
+    """The files of the sequence in ``directory``, in capture order; a missing frame or a file
+    matching the layout's pattern that the layout does not expect is an error naming them."""
     directory = Path(directory)
     if not directory.is_dir():
         raise RunError(f"captures directory {directory} does not exist.")
-    order = capture_order(layout, coding_names)
     rx = _glob_pattern(layout.files)
     present = sorted(p.name for p in directory.iterdir() if rx.match(p.name))
     expected = [layout.file_name(i) for i in range(len(order))]
@@ -176,7 +192,15 @@ def read_captures(directory: Path, layout: Layout, coding_names: list[str]) -> d
             + (f"; missing: {', '.join(missing[:6])}{' …' if len(missing) > 6 else ''}" if missing else "")
             + (f"; not in the layout: {', '.join(extra[:6])}{' …' if len(extra) > 6 else ''}" if extra else "")
             + ". Check the layout's order, inverse, drop_low_bits and projector size.")
-    frames = {name: _read_gray(directory / fn) for name, fn in zip(order, expected)}
+    return [directory / fn for fn in expected]
+
+
+def read_captures(directory: Path, layout: Layout, coding_names: list[str]) -> dict[str, np.ndarray]:
+    """The frames of ``directory`` by coding frame name; checks count, names and sizes."""
+    order = capture_order(layout, coding_names)
+    files = sequence_files(directory, layout, order)
+    expected = [f.name for f in files]
+    frames = {name: _read_gray(f) for name, f in zip(order, files)}
     shapes = {fn: frames[name].shape for name, fn in zip(order, expected)}
     first = shapes[expected[0]]
     odd = [f"{fn} ({s[1]}x{s[0]})" for fn, s in shapes.items() if s != first]
