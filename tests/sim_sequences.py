@@ -54,3 +54,32 @@ def true_projector_coordinates(rig: dict, angle_deg: float = 0.0
     on_surface = (view.material_fraction(CYLINDER) == 1) | (view.material_fraction(PLATE) == 1)
     lit = on_surface & (view.lit_fraction() == 1)
     return (trace.projector[:, 0].reshape(h, w), trace.projector[:, 1].reshape(h, w), lit)
+
+
+def render_board_poses(rig: dict, board: dict, poses: list[list[float]],
+                       images: list[np.ndarray], parent: Path, name_of: Callable[[int], str],
+                       exposure_ms: float = 10.0) -> list[Path]:
+    """One folder per board pose (``[roll, tilt, pan (deg), x, y, z (mm)]``, sample frame,
+    stage at 0°), each holding the whole sequence ``images`` as captured frames."""
+    rig["camera"].set_exposure(exposure_ms)
+    out = []
+    for k, pose in enumerate(poses):
+        rig["stage"].place_target(board, {"rotation_deg": list(pose[:3]),
+                                          "centre_mm": list(pose[3:])})
+        out.append(render_sequence(rig, images, parent / f"pose{k + 1}", name_of))
+    return out
+
+
+def render_turntable(rig: dict, board: dict, pose: list[float], angles_deg: list[float],
+                     directory: Path, exposure_ms: float = 10.0) -> Path:
+    """The board standing on the stage at ``pose``, one white frame per stage angle
+    (``angle_000.png``, ...)."""
+    w, h = rig["projector"].resolution
+    rig["camera"].set_exposure(exposure_ms)
+    rig["stage"].place_target(board, {"rotation_deg": list(pose[:3]), "centre_mm": list(pose[3:])})
+    directory.mkdir(parents=True, exist_ok=True)
+    rig["projector"].show(np.full((h, w), 255, np.uint8))
+    for k, a in enumerate(angles_deg):
+        rig["stage"].move_to(a)
+        cv2.imwrite(str(directory / f"angle_{k:03d}.png"), rig["camera"].capture())
+    return directory
