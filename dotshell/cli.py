@@ -238,7 +238,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "reconstruct captures from another rig (--captures)")
     sp.add_argument("run", nargs="?", help="run directory")
     sp.add_argument("--calibration", metavar="FILE", help="use this calibration instead")
-    from dotshell.cli_calibration import add_captures_args, add_calibrate_parser, add_decode_parser
+    from dotshell.cli_calibration import add_captures_args, add_calibrate_parser
+    from dotshell.cli_decode import add_decode_parser
 
     add_captures_args(sp)
     sp.set_defaults(func=cmd_reconstruct)

@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from dotshell.cli_decode import add_decode_parser, pixel_counts  # noqa: F401 (for dotshell.cli)
+from dotshell.cli_decode import add_layout_arg, pixel_counts
 
 
 def add_captures_args(sp: argparse.ArgumentParser) -> None:
@@ -20,9 +20,7 @@ def add_captures_args(sp: argparse.ArgumentParser) -> None:
     sp.add_argument("--captures", metavar="DIR",
                     help="reconstruct the image sequence in DIR (made by another rig or program) "
                          "instead of a run; needs --calibration and --layout")
-    sp.add_argument("--layout", metavar="LAYOUT",
-                    help="layout TOML of the sequence, or a shipped one: slstudio-graycode, "
-                         "opencv-graycode")
+    add_layout_arg(sp)
     sp.add_argument("--reference", metavar="FILE",
                     help="reference cloud (.ply, or .mat with xyz) to measure the result against")
     sp.add_argument("--coverage-radius", type=float, default=1.0, metavar="MM",
@@ -87,9 +85,7 @@ def add_calibrate_parser(sub, profile_args=None) -> None:
     sp.add_argument("--captures", nargs="+", metavar="DIR",
                     help="pose folders captured anywhere, one pose's whole sequence each "
                          "(needs --layout, and --board/--square without a profile)")
-    sp.add_argument("--layout", metavar="LAYOUT",
-                    help="layout of the pose folders' sequence (a TOML or a shipped one: "
-                         "opencv-graycode, ...)")
+    add_layout_arg(sp, "the pose folders' sequence")
     sp.add_argument("--board", metavar="COLSxROWS",
                     help="target squares across x down (not inner corners), e.g. 15x11")
     sp.add_argument("--square", type=float, metavar="MM", help="side of a square (mm)")

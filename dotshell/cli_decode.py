@@ -25,6 +25,15 @@ def pixel_counts(counts: dict[str, Any]) -> str:
             f"{', '.join(losses) or 'none'}")
 
 
+def add_layout_arg(sp: argparse.ArgumentParser, what: str = "the sequence") -> None:
+    """``--layout LAYOUT``: a layout TOML or the name of a shipped one."""
+    from dotshell.pipeline.captures import SHIPPED_LAYOUTS
+
+    shipped = ", ".join(sorted(q.stem for q in SHIPPED_LAYOUTS.glob("*.toml")))
+    sp.add_argument("--layout", metavar="LAYOUT",
+                    help=f"layout TOML of {what}, or a shipped one: {shipped}")
+
+
 def add_decode_parser(sub) -> None:
     sp = sub.add_parser("decode", help="decode without triangulating: per-pixel projector column "
                         "and row maps (TIFF/NPY), the mask with reasons, counts, previews")
@@ -33,9 +42,7 @@ def add_decode_parser(sub) -> None:
     sp.add_argument("--captures", metavar="DIR",
                     help="decode the image sequence in DIR (made by another rig or program); "
                          "needs --layout")
-    sp.add_argument("--layout", metavar="LAYOUT",
-                    help="layout TOML of the sequence, or a shipped one: slstudio-graycode, "
-                         "opencv-graycode")
+    add_layout_arg(sp)
     sp.add_argument("--format", choices=("tiff", "npy"), default="tiff",
                     help="map file format: float32 TIFF (default) or NumPy .npy; NaN = not decoded")
     sp.add_argument("--out", metavar="DIR",

@@ -21,8 +21,12 @@ where ``.venv-bench-contrib`` (created by ``make bench``) is present.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+import cv2
 import numpy as np
+
+LAYOUTS = Path(__file__).resolve().parents[1] / "layouts"
 
 
 def image_count(size: int) -> int:
@@ -60,3 +64,29 @@ def capture_sequence(width: int, height: int) -> list[np.ndarray]:
 def file_name(position: int) -> str:
     """cap_pattern.cpp's name of the frame at ``position`` (0-based) for camera 1."""
     return f"pattern_cam1_im{position + 1}.png"
+
+
+def write_stretched(directory: Path, projector: tuple[int, int], camera: tuple[int, int],
+                    dark_columns: int = 0) -> np.ndarray:
+    """Write the capture sequence as a camera sees it that sees the projector stretched over its
+    image (projector column = (x + 0.5) · W / camera width − 0.5; levels 20 dark, 220 lit;
+    the first ``dark_columns`` camera columns unlit). Returns the true column of each camera
+    column."""
+    pw, ph = projector
+    cw, ch = camera
+    cols = np.floor((np.arange(cw) + 0.5) * pw / cw).astype(int)
+    rows = np.floor((np.arange(ch) + 0.5) * ph / ch).astype(int)
+    directory.mkdir(parents=True, exist_ok=True)
+    for i, img in enumerate(capture_sequence(pw, ph)):
+        seen = (img[rows][:, cols].astype(np.uint16) * 200 // 255 + 20).astype(np.uint8)
+        seen[:, :dark_columns] = 20
+        cv2.imwrite(str(directory / file_name(i)), seen)
+    return (np.arange(cw) + 0.5) * pw / cw - 0.5
+
+
+def layout_file(path: Path, projector: tuple[int, int]) -> Path:
+    """The shipped opencv-graycode layout with its projector size set, written to ``path``."""
+    text = (LAYOUTS / "opencv-graycode.toml").read_text()
+    text = text.replace("projector_width = 1024", f"projector_width = {projector[0]}")
+    path.write_text(text.replace("projector_height = 768", f"projector_height = {projector[1]}"))
+    return path

@@ -22,7 +22,6 @@ from dotshell.calibration.board import Board
 from dotshell.calibration.procedure import calibrate_captures, compare_to_truth
 from dotshell.calibration.schema import CALIBRATE_SCHEMA
 from dotshell.cli import main
-from dotshell.errors import CalibrationError
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.settings import validate_settings
 from sim_sequences import connected_rig, render_board_poses, render_turntable
@@ -48,11 +47,7 @@ def _captures(tmp: Path, factor: float) -> tuple[dict, Board, list[Path], Path, 
                               opencv_graycode.capture_sequence(pw, ph), tmp / "poses",
                               opencv_graycode.file_name)
     turn = render_turntable(rig, board.sim_dict(), TURNTABLE_POSE, TRUE_ANGLES, tmp / "turntable")
-    text = (ROOT / "layouts" / "opencv-graycode.toml").read_text()
-    layout = tmp / "opencv.toml"
-    layout.write_text(text.replace("projector_width = 1024", f"projector_width = {pw}")
-                      .replace("projector_height = 768", f"projector_height = {ph}"))
-    return rig, board, dirs, turn, layout
+    return rig, board, dirs, turn, opencv_graycode.layout_file(tmp / "opencv.toml", (pw, ph))
 
 
 @pytest.fixture(scope="module")

@@ -38,29 +38,14 @@ def pm():
 
 
 def _opencv_sequence(tmp: Path, proj=(64, 16), cam=(200, 40)) -> tuple[Path, np.ndarray]:
-    """OpenCV's capture sequence (tests/opencv_graycode.py: generate()'s images, white, black,
-    cap_pattern.cpp's file names) seen by a camera that sees the projector stretched:
-    projector column = (x + 0.5) * proj_w / cam_w - 0.5, levels 20 (dark) to 220 (lit)."""
-    pw, ph = proj
-    cw, ch = cam
-    cols = np.floor((np.arange(cw) + 0.5) * pw / cw).astype(int)
-    rows = np.floor((np.arange(ch) + 0.5) * ph / ch).astype(int)
+    """OpenCV's capture sequence (tests/opencv_graycode.py) seen by a camera that sees the
+    projector stretched; the directory and the true column of each camera column."""
     d = tmp / "caps"
-    d.mkdir()
-    for i, img in enumerate(opencv_graycode.capture_sequence(pw, ph)):
-        seen = (img[rows][:, cols].astype(np.uint16) * 200 // 255 + 20).astype(np.uint8)
-        cv2.imwrite(str(d / opencv_graycode.file_name(i)), seen)
-    truth = (np.arange(cw) + 0.5) * pw / cw - 0.5
-    return d, truth
+    return d, opencv_graycode.write_stretched(d, proj, cam)
 
 
 def _layout(tmp: Path, proj=(64, 16)) -> Path:
-    text = (ROOT / "layouts" / "opencv-graycode.toml").read_text()
-    text = text.replace("projector_width = 1024", f"projector_width = {proj[0]}")
-    text = text.replace("projector_height = 768", f"projector_height = {proj[1]}")
-    p = tmp / "opencv.toml"
-    p.write_text(text)
-    return p
+    return opencv_graycode.layout_file(tmp / "opencv.toml", proj)
 
 
 @pytest.mark.parametrize("proj", [(64, 16), (100, 37)])

@@ -23,22 +23,9 @@ SKULL = next((p / "shared" / "data" / "slstudio-skull" for p in (ROOT.parent, RO
 def _opencv_captures(tmp: Path, proj=(100, 37), cam=(160, 60)) -> tuple[Path, Path, np.ndarray]:
     """OpenCV's sequence seen by a camera that sees the projector stretched, with a dark
     (unlit) band on the left; returns the directory, a layout for it and the true columns."""
-    pw, ph = proj
-    cw, ch = cam
-    cols = np.floor((np.arange(cw) + 0.5) * pw / cw).astype(int)
-    rows = np.floor((np.arange(ch) + 0.5) * ph / ch).astype(int)
     d = tmp / "caps"
-    d.mkdir()
-    for i, img in enumerate(opencv_graycode.capture_sequence(pw, ph)):
-        seen = (img[rows][:, cols].astype(np.uint16) * 200 // 255 + 20).astype(np.uint8)
-        seen[:, :12] = 20  # the projector does not reach these pixels
-        cv2.imwrite(str(d / opencv_graycode.file_name(i)), seen)
-    text = (ROOT / "layouts" / "opencv-graycode.toml").read_text()
-    text = text.replace("projector_width = 1024", f"projector_width = {pw}")
-    text = text.replace("projector_height = 768", f"projector_height = {ph}")
-    layout = tmp / "opencv.toml"
-    layout.write_text(text)
-    return d, layout, (np.arange(cw) + 0.5) * pw / cw - 0.5
+    truth = opencv_graycode.write_stretched(d, proj, cam, dark_columns=12)
+    return d, opencv_graycode.layout_file(tmp / "opencv.toml", proj), truth
 
 
 @pytest.mark.parametrize("fmt", ["tiff", "npy"])

@@ -79,18 +79,12 @@ def read_map(path: Path | str) -> np.ndarray:
     return img
 
 
-def _png(path: Path, image: np.ndarray) -> Path:
-    ok, buf = cv2.imencode(".png", image)
-    if not ok:
-        raise RunError(f"could not encode {path.name} as PNG.")
-    _write_bytes(path, buf.tobytes())
-    return path
-
-
 def mask_preview(reason: np.ndarray, names: tuple[str, ...], path: Path) -> Path:
     """The reason map in colours (:data:`REASON_COLOURS`)."""
+    from dotshell.render import _write_png
+
     lut = np.array([REASON_COLOURS.get(n, (255, 0, 255)) for n in names], np.uint8)
-    return _png(path, lut[np.minimum(reason, len(names) - 1)])
+    return _write_png(path, lut[np.minimum(reason, len(names) - 1)])
 
 
 def write_maps(directory: Path, corr: Correspondence, projector_size: tuple[int, int],
@@ -98,7 +92,7 @@ def write_maps(directory: Path, corr: Correspondence, projector_size: tuple[int,
     """Write one view's maps, mask and previews into ``directory``; returns its report entry
     (files relative to ``directory``, reason codes, counts)."""
     from dotshell.coding import label_reasons
-    from dotshell.render import column_map_preview, frame_preview
+    from dotshell.render import _write_png, column_map_preview, frame_preview
 
     if fmt not in MAP_FORMATS:
         raise RunError(f"map format {fmt!r} is not one of {', '.join(MAP_FORMATS)}.")
@@ -109,7 +103,7 @@ def write_maps(directory: Path, corr: Correspondence, projector_size: tuple[int,
     if reason is None:  # a coding that does not say why: decoded or not
         reason, names = label_reasons(corr.valid, {"not_decoded": ~corr.valid})
     files = {"column": write_map(directory / f"column.{fmt}", corr.column),
-             "mask": _png(directory / "mask.png", reason)}
+             "mask": _write_png(directory / "mask.png", reason)}
     previews = {"frame": frame_preview(white, pdir / "frame.png"),
                 "columns": column_map_preview(corr.column, corr.valid, projector_size[0],
                                               pdir / "columns.png"),
