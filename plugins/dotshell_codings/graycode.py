@@ -395,26 +395,33 @@ class GrayCode:
         for d in decoded:
             coord = d.integer.astype(np.float32)
             if self.subpixel:
-                anchor, span = self.refine_anchors(d.axis)
-
-                def refine(transpose: bool, d: AxisDecode = d) -> tuple[np.ndarray, np.ndarray]:
-                    return _refine(d.axis, d.code, valid, transpose,
-                                   lambda i, flat, step, f=d.first_pair: pairs.d_at(f + i, flat, step),
-                                   anchor, span)
-
-                across = stripes_cross_columns(d.code, valid)
-                fine, ok = refine(across)
-                left = valid & ~ok
-                if left.sum() > SECOND_PASS_SHARE * max(int(valid.sum()), 1):
-                    fine2, ok2 = refine(not across)
-                    more = left & ok2
-                    fine = np.where(more, fine2, fine)
-                    ok |= more
+                fine, ok = self._refine_axis(d, valid, pairs)
                 coord = np.where(ok, fine, coord).astype(np.float32)
                 refined[f"refined_{'column' if d.axis.prefix == 'col' else 'row'}"] = int(ok.sum())
             coord[~valid] = np.nan
             coords.append(coord)
         return coords, refined
+
+    def _refine_axis(self, d: AxisDecode, valid: np.ndarray, pairs: "_Pairs",
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Sub-pixel coordinates of one axis and where they exist: scanned along the image
+        direction its stripes cross, then along the other where that leaves more than
+        :data:`SECOND_PASS_SHARE` of the decoded pixels unrefined."""
+        anchor, span = self.refine_anchors(d.axis)
+
+        def refine(transpose: bool) -> tuple[np.ndarray, np.ndarray]:
+            return _refine(d.axis, d.code, valid, transpose,
+                           lambda i, flat, step: pairs.d_at(d.first_pair + i, flat, step),
+                           anchor, span)
+
+        across = stripes_cross_columns(d.code, valid)
+        fine, ok = refine(across)
+        left = valid & ~ok
+        if left.sum() > SECOND_PASS_SHARE * max(int(valid.sum()), 1):
+            fine2, ok2 = refine(not across)
+            more = left & ok2
+            fine, ok = np.where(more, fine2, fine), ok | more
+        return fine, ok
 
 
 class _Pairs:
