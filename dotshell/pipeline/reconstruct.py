@@ -121,18 +121,22 @@ def explain_grazing(calib: RigCalibration, has_rows: bool, min_angle_deg: float)
 
 def no_points_error(where: str, stats: dict[str, int], calib: RigCalibration, has_rows: bool,
                     min_angle_deg: float) -> ReconstructionError:
-    """The error for a sequence that gave no point: every pixel count, and the largest loss
-    with its cause and fix."""
+    """The error for a sequence that gave no point: every pixel count, then the cause — the
+    triangulation's largest loss when pixels were decoded, else the decoder's — and its fix."""
     counts = {k: int(stats.get(k, 0)) for k in ("shadow", "low_contrast", "uncertain",
                                                  "out_of_range", "grazing", "row_rejected")}
-    worst = max(counts, key=counts.get)
+    decoded = int(stats.get("decoded", 0))
+    stage = ("grazing", "row_rejected") if decoded else ("shadow", "low_contrast", "uncertain",
+                                                         "out_of_range")
+    worst = max(stage, key=counts.get)
     why = (explain_grazing(calib, has_rows, min_angle_deg) if worst == "grazing"
            else LOSSES[worst])
     listing = ", ".join(f"{k} {v}" for k, v in counts.items() if v)
+    cause = (f"the decoded pixels were lost to {worst} ({counts[worst]} px)" if decoded
+             else f"nothing was decoded; the largest loss is {worst} ({counts[worst]} px)")
     return ReconstructionError(
-        f"{where}: no pixel decoded into a point. Of {stats.get('pixels', 0)} pixels "
-        f"{stats.get('decoded', 0)} were decoded; lost: {listing or 'none'}. The largest loss, "
-        f"{worst} ({counts[worst]} px): {why}.")
+        f"{where}: no pixel decoded into a point. Of {stats.get('pixels', 0)} pixels {decoded} "
+        f"were decoded; lost: {listing or 'none'}. Cause: {cause}: {why}.")
 
 
 def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
