@@ -98,30 +98,33 @@ def _from_both(rays: np.ndarray, column: np.ndarray, row: np.ndarray, calib: Rig
     ideal = proj.undistort(np.column_stack([np.asarray(column, np.float64),
                                             np.asarray(row, np.float64)]))
     xp, yp = ideal[:, 0], ideal[:, 1]
-    rp = rays @ calib.R.T  # ray directions in the projector's axes
-    T = calib.T
-    a_col = rp[:, 0] - xp * rp[:, 2]
+    R, T = calib.R, calib.T
+    x, y, z = rays[:, 0], rays[:, 1], rays[:, 2]
+    # the rays in the projector's axes, component by component (cheaper than an (N,3) matmul)
+    r0 = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z
+    r1 = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z
+    r2 = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z
+    a_col = r0 - xp * r2
     b_col = T[0] - xp * T[2]
-    a_row = rp[:, 1] - yp * rp[:, 2]
+    a_row = r1 - yp * r2
     b_row = T[1] - yp * T[2]
     w_col, w_row = proj.K[0, 0] ** 2, proj.K[1, 1] ** 2
-    den = w_col * a_col * a_col + w_row * a_row * a_row
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = -(w_col * a_col * b_col + w_row * a_row * b_row) / den
-        pts = rays * s[:, None]
-        zp = s * rp[:, 2] + T[2]  # depth in front of the projector
+        s = -(w_col * a_col * b_col + w_row * a_row * b_row) / (
+            w_col * a_col * a_col + w_row * a_row * a_row)
+        zp = s * r2 + T[2]  # depth in front of the projector
         # reprojection error (projector px) of the point against the decoded column and row
-        err2 = (w_col * (a_col * s + b_col) ** 2 + w_row * (a_row * s + b_row) ** 2) / zp ** 2
-    # angle between the camera ray and the projector ray through (u, v), in camera axes
-    dp = np.column_stack([xp, yp, np.ones(len(xp))]) @ calib.R
-    cross = np.cross(rays, dp)
-    sin2 = np.einsum("ij,ij->i", cross, cross) / (
-        np.einsum("ij,ij->i", rays, rays) * np.einsum("ij,ij->i", dp, dp))
+        err2 = (w_col * (a_col * s + b_col) ** 2 + w_row * (a_row * s + b_row) ** 2) / (zp * zp)
+    # angle between the camera ray and the projector ray (xp, yp, 1): in the projector's axes
+    # their cross product is (a_row, −a_col, r0·yp − r1·xp)
+    c2 = r0 * yp - r1 * xp
+    sin2 = (a_col * a_col + a_row * a_row + c2 * c2) / (
+        (r0 * r0 + r1 * r1 + r2 * r2) * (1.0 + xp * xp + yp * yp))
     grazing = sin2 < np.sin(np.deg2rad(min_angle_deg)) ** 2
     ok = np.isfinite(s) & (s > 0) & (zp > 0) & ~grazing
     row_rejected = ok & ~(err2 <= tolerance_px ** 2)
     ok &= ~row_rejected
-    pts[~ok] = np.nan
+    pts = rays * np.where(ok, s, np.nan)[:, None]
     return Triangulation(pts, ok, row_rejected, grazing)
 
 
