@@ -139,8 +139,8 @@ def calibrate_settings(args: argparse.Namespace, pm):
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from dotshell.calibration.board import Board
-    from dotshell.calibration.procedure import (TurntableFrames, calibrate_captures, capture,
-                                                solve)
+    from dotshell.calibration.captures import TurntableFrames, calibrate_captures
+    from dotshell.calibration.procedure import capture, solve
     from dotshell.cli import ScanProgress, _pm, err, out
     from dotshell.errors import CalibrationError
     from dotshell.events import EventBus

@@ -19,7 +19,8 @@ import pytest
 import opencv_graycode
 from conftest import ROOT
 from dotshell.calibration.board import Board
-from dotshell.calibration.procedure import calibrate_captures, compare_to_truth
+from dotshell.calibration.captures import calibrate_captures
+from dotshell.calibration.procedure import compare_to_truth
 from dotshell.calibration.schema import CALIBRATE_SCHEMA
 from dotshell.cli import main
 from dotshell.geometry.calibration import RigCalibration
