@@ -37,17 +37,16 @@ def add_layout_arg(sp: argparse.ArgumentParser, what: str = "the sequence") -> N
 def add_decode_parser(sub) -> None:
     sp = sub.add_parser("decode", help="decode without triangulating: per-pixel projector column "
                         "and row maps (TIFF/NPY), the mask with reasons, counts, previews")
-    sp.add_argument("run", nargs="?", help="run directory (decodes every view with the run's "
-                    "coding into RUN/decode/)")
+    sp.add_argument("run", nargs="?", help="run directory: decodes every view with the run's "
+                    "coding (the run is only read)")
     sp.add_argument("--captures", metavar="DIR",
                     help="decode the image sequence in DIR (made by another rig or program); "
                          "needs --layout")
     add_layout_arg(sp)
     sp.add_argument("--format", choices=("tiff", "npy"), default="tiff",
                     help="map file format: float32 TIFF (default) or NumPy .npy; NaN = not decoded")
-    sp.add_argument("--out", metavar="DIR",
-                    help="where to write: parent of a new directory for --captures (default: "
-                         "runs), the output directory for a run (default: RUN/decode)")
+    sp.add_argument("--out", default="runs", metavar="DIR",
+                    help="parent directory of the new output directory (default: runs)")
     sp.set_defaults(func=cmd_decode)
 
 
@@ -61,7 +60,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
         if not args.layout:
             raise RunError("dotshell decode --captures DIR needs --layout LAYOUT (a layout TOML "
                            "or a shipped one: slstudio-graycode, opencv-graycode).")
-        res = decode_captures(args.captures, args.layout, pm, args.out or "runs", args.format)
+        res = decode_captures(args.captures, args.layout, pm, args.out, args.format)
         print_view(res.report, out)
     elif args.run:
         res = decode_run(args.run, pm, args.out, args.format)

@@ -64,6 +64,7 @@ def test_decode_cli_prints_every_loss(tmp_path, capsys):
 def test_decode_run_writes_every_view(small_scan, tmp_path, pm):
     run = small_scan[0].run_dir
     res = decode_run(run, pm, tmp_path / "decoded")
+    assert res.out_dir.parent == tmp_path / "decoded" and run.name in res.out_dir.name
     views = res.report["views"]
     assert sorted(views) == [f"view_{i:03d}" for i in range(6)]
     v = views["view_000"]

@@ -12,7 +12,8 @@ For one view it writes::
 
 and a ``report.json`` with the counts per reason. :func:`decode_captures` decodes a capture
 directory through its layout into ``<out>/<time>_decode-<layout>/``; :func:`decode_run` decodes
-every complete view of a dotshell run into ``<run>/decode/view_NNN/`` (or another directory).
+every complete view of a dotshell run into ``<out>/<time>_decode-<run>/view_NNN/`` — outside
+the run, which it only reads (the run's products belong to its processing generations).
 """
 
 from __future__ import annotations
@@ -141,41 +142,40 @@ def decode_captures(captures: Path | str, layout_file: Path | str, pm,
     return DecodeResult(store.root, report)
 
 
-def decode_run(run_dir: Path | str, pm, out_dir: Path | str | None = None,
+def decode_run(run_dir: Path | str, pm, out_dir: Path | str = "runs",
                fmt: str = "tiff") -> DecodeResult:
-    """Decode every complete view of a dotshell run with the run's own coding into
-    ``out_dir`` (default ``<run>/decode``): ``view_NNN/`` per view and one ``report.json``."""
+    """Decode every complete view of a dotshell run with the run's own coding and projector
+    size into a new ``<out_dir>/<time>_decode-<run name>/``: ``view_NNN/`` per view and one
+    ``report.json``. The run is only read."""
     from dotshell.pipeline.pdi import combine, shots_from_manifest
     from dotshell.pipeline.scan import load_run_profile
-    from dotshell.store import RunStore, atomic_write_text, dumps
+    from dotshell.store import RunStore
 
-    store = RunStore.open(Path(run_dir))
-    profile = load_run_profile(store, pm)
+    run = RunStore.open(Path(run_dir))
+    profile = load_run_profile(run, pm)
     c = profile.role("coding")
     coding = pm.create("coding", c["backend"], c["settings"], None, profile.source)
-    manifest = store.manifest
+    manifest = run.manifest
     shots = shots_from_manifest(manifest)
-    projector_size = _projector_size(store)
-    out = Path(out_dir) if out_dir is not None else store.path("decode")
+    projector_size = _projector_size(run)
+    complete = [v for v in manifest["views"] if v["complete"]]
+    if not complete:
+        raise RunError(f"{run.root}: no view has all its frames on disk; nothing to decode.")
+    out = RunStore.create(Path(out_dir), f"decode-{run.root.name}")
     views: dict[str, Any] = {}
-    skipped: dict[str, str] = {}
-    for v in manifest["views"]:
+    for v in complete:
         name = f"view_{v['index']:03d}"
-        if not v["complete"]:
-            skipped[name] = f"{v['frames']} of {len(manifest['frame_names'])} frames on disk"
-            continue
-        frames = combine(store.read_frames(v["index"]), shots)
+        frames = combine(run.read_frames(v["index"]), shots)
         corr = coding.decode(frames, projector_size)
         views[name] = {"angle_deg": v["angle_deg"],
-                       **write_maps(out / name, corr, projector_size, frames[0], fmt)}
-    if not views:
-        raise RunError(f"{store.root}: no view has all its frames on disk; nothing to decode.")
-    report = {"run": str(store.root.resolve()),
+                       **write_maps(out.path(name), corr, projector_size, frames[0], fmt)}
+    skipped = {f"view_{v['index']:03d}": f"{v['frames']} of {len(manifest['frame_names'])} "
+               "frames on disk" for v in manifest["views"] if not v["complete"]}
+    report = {"run": str(run.root.resolve()),
               "coding": {"backend": c["backend"], "settings": c["settings"]},
               "views": views, "skipped": skipped}
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "report.json", dumps(report))
-    return DecodeResult(out, report)
+    out.write_json("report.json", report)
+    return DecodeResult(out.root, report)
 
 
 def _projector_size(store) -> tuple[int, int]:
