@@ -47,14 +47,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Iterator, Sequence
+from typing import Any, Sequence
 
-import cv2
 import numpy as np
 
 from dotshell.coding import Correspondence, PatternFrame, label_reasons
 from dotshell.settings import Setting
-from dotshell_codings.robust import direct_global, full_scale, noise_sigma, robust_bits
+from dotshell_codings import kernels
+from dotshell_codings.robust import full_scale, noise_sigma
 
 SETTINGS_SCHEMA: dict[str, Setting] = {
     "axes": Setting(
@@ -113,7 +113,6 @@ SETTINGS_SCHEMA: dict[str, Setting] = {
 
 #: robust classification with direct_min = 0: L_d must exceed this many noise sigmas
 AUTO_DIRECT_MIN_SIGMAS = 8.0
-_CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 _MAX_SUBPIXEL_SPAN = 2  # anchors may be at most this many code steps apart
 #: refine along the second image direction too when the first leaves more than this share of
 #: the decoded pixels unrefined (stripes at an angle, curved stripes)
@@ -205,7 +204,7 @@ class AxisDecode:
     axis: _Axis
     first_pair: int  # index of the axis' first pattern (pair) after white and black
     code: np.ndarray  # int32 coarse code value per pixel
-    integer: np.ndarray  # projector coordinate of the decoded block's centre (clipped)
+    integer: np.ndarray  # float32 projector coordinate of the decoded block's centre (clipped)
     weak: np.ndarray  # a weak/uncertain bit that is not tolerated
     tolerated: np.ndarray
     out_of_range: np.ndarray
@@ -292,32 +291,29 @@ class GrayCode:
             rng = np.nan_to_num(rng, nan=0.0, posinf=0.0, neginf=0.0)
         return FrameLevels(b, rng, rng < self.shadow_threshold * full, full, noise_sigma(black))
 
-    def _check_frames(self, frames: Sequence[np.ndarray], axes: list[_Axis]) -> list[np.ndarray]:
+    def _stack(self, frames: Sequence[np.ndarray], axes: list[_Axis]) -> np.ndarray:
+        """The frames as one (F, H, W) array: the caller's stack itself, or a view of it when
+        the frames are evenly spaced views of one array (as read from a frame stack), else a
+        copy. Float frames get NaN → 0 (and ±inf → the largest float32), as the rule needs."""
         per_bit = 2 if self.inverse else 1
         expected = 2 + per_bit * sum(ax.nb for ax in axes)
         if len(frames) != expected:
             raise ValueError(f"{self.label} expects {expected} frames for projector "
                              f"{tuple(ax.size for ax in axes)}, got {len(frames)}")
-        frames = [np.asarray(f) for f in frames]
-        shape = frames[0].shape
-        if len(shape) != 2 or any(f.shape != shape for f in frames):
-            raise ValueError("frames must be 2-D arrays of one shape")
-        if not np.issubdtype(frames[0].dtype, np.integer):
-            frames = [np.nan_to_num(f.astype(np.float32, copy=False)) for f in frames]
-        return frames
+        stack = as_stack(frames)
+        if not np.issubdtype(stack.dtype, np.integer):
+            stack = np.nan_to_num(stack.astype(np.float32, copy=False))
+        return stack
 
     def decode(self, frames: Sequence[np.ndarray], projector_size: tuple[int, int]) -> Correspondence:
         axes = self._axes(projector_size)
-        frames = self._check_frames(frames, axes)
-        lv = self.levels(frames[0], frames[1])
-        pairs = _Pairs(frames, self.inverse, lv)
-        classify = self._classifier(pairs, axes, lv)
+        stack = self._stack(frames, axes)
+        bits = self._classify(stack, axes)
         decoded = []
-        first = 0
-        for ax in axes:
-            decoded.append(_decode_axis(ax, first, self.gray_bits(ax, first, classify)))
-            first += ax.nb
-        shadow = lv.shadow
+        for a, ax in enumerate(axes):
+            gray, weak = self.gray_words(ax, bits.value[a], bits.weak[a])
+            decoded.append(_decode_axis(ax, sum(x.nb for x in axes[:a]), gray, weak))
+        shadow = bits.shadow
         weak = np.zeros(shadow.shape, bool)
         out_of_range = np.zeros(shadow.shape, bool)
         for d in decoded:
@@ -325,24 +321,24 @@ class GrayCode:
             out_of_range |= d.out_of_range
         uncertain = np.zeros(shadow.shape, bool)
         if self.classification == "robust":
-            uncertain = (weak | classify.no_direct) & ~shadow
+            uncertain = (weak | bits.no_direct) & ~shadow
             low_contrast = np.zeros(shadow.shape, bool)
         else:
             low_contrast = weak & ~shadow
         out_of_range &= ~(shadow | low_contrast | uncertain)
         valid = ~(shadow | low_contrast | uncertain | out_of_range)
-        coords, refined = self._coordinates(decoded, valid, pairs)
+        coords, refined = self._coordinates(decoded, valid, stack, bits.range)
         tolerated = np.zeros(shadow.shape, bool)
         for d in decoded:
             tolerated |= d.tolerated
         stats = {
             "pixels": int(valid.size),
-            "decoded": int(valid.sum()),
-            "shadow": int(shadow.sum()),
-            "low_contrast": int(low_contrast.sum()),
-            "uncertain": int(uncertain.sum()),
-            "out_of_range": int(out_of_range.sum()),
-            "edge_tolerated": int((tolerated & valid).sum()),
+            "decoded": int(np.count_nonzero(valid)),
+            "shadow": int(np.count_nonzero(shadow)),
+            "low_contrast": int(np.count_nonzero(low_contrast)),
+            "uncertain": int(np.count_nonzero(uncertain)),
+            "out_of_range": int(np.count_nonzero(out_of_range)),
+            "edge_tolerated": int(np.count_nonzero(tolerated & valid)),
         }
         stats.update(refined)
         masks = {"shadow": shadow, "low_contrast": low_contrast, "uncertain": uncertain,
@@ -355,301 +351,171 @@ class GrayCode:
         return Correspondence(column=coords[0], row=coords[1] if len(coords) > 1 else None,
                               valid=valid, stats=stats, reason=reason, reason_names=names)
 
-    def _classifier(self, pairs: "_Pairs", axes: list[_Axis], lv: FrameLevels) -> "_Classifier":
-        if self.classification == "contrast":
-            return _ContrastClassifier(pairs, self.min_contrast, lv)
-        sep_pairs: list[int] = []
-        high: set[int] = set()
+    def _classify(self, stack: np.ndarray, axes: list[_Axis]) -> "ClassifiedBits":
+        """Every projected bit of every pixel decided in one pass over the frames
+        (:func:`kernels.classify`), with the levels and thresholds of the rule."""
+        full = full_scale(stack[0], self.bit_depth)
+        n_pairs = sum(ax.nb for ax in axes)
+        sep = np.zeros(n_pairs, bool)
+        high = np.zeros(n_pairs, bool)
         first = 0
         for ax in axes:
             k = min(self.high_frequency_pairs, ax.nb)
-            sep_pairs += list(range(first + ax.nb - k, first + ax.nb))
-            high |= {first + i for i in self.high_frequency_bits(ax)}
+            sep[first + ax.nb - k:first + ax.nb] = True
+            high[[first + i for i in self.high_frequency_bits(ax)]] = True
             first += ax.nb
-        ld, lg = direct_global([f for k in sep_pairs for f in pairs.black_subtracted(k)],
-                               self.black_level)
-        m = (self.direct_min * lv.full_scale if self.direct_min > 0
-             else AUTO_DIRECT_MIN_SIGMAS * lv.noise)
-        return _RobustClassifier(pairs, ld, lg, m, high | set(sep_pairs), self.min_contrast)
+        high |= sep
+        robust = self.classification == "robust"
+        m = 0.0
+        if robust:
+            m = (self.direct_min * full if self.direct_min > 0
+                 else AUTO_DIRECT_MIN_SIGMAS * noise_sigma(stack[1]))
+        b = self.black_level
+        if not 0.0 <= b < 1.0:
+            raise ValueError(f"black level ratio must be in [0, 1), not {b}")
+        h, w = stack.shape[1:]
+        out = ClassifiedBits(np.empty((len(axes), h, w), np.uint32),
+                             np.empty((len(axes), h, w), np.uint32), np.empty((h, w), np.float32),
+                             np.empty((h, w), bool), np.empty((h, w), bool))
+        f32 = np.float32
+        kernels.classify(stack, self.inverse, kernels.ROBUST if robust else kernels.CONTRAST,
+                         np.array([ax.nb for ax in axes], np.int64), sep, high,
+                         f32(self.shadow_threshold * full), f32(m), f32(self.min_contrast),
+                         f32(self.min_contrast * (1.0 if self.inverse else 0.5)),
+                         f32(1.0 - b), f32(2.0 / (1.0 - b * b)), f32(b),
+                         out.value, out.weak, out.range, out.shadow, out.no_direct)
+        return out
 
     def high_frequency_bits(self, ax: _Axis) -> list[int]:
         """Projected bits (MSB-first indices) in which global light is the same in pattern and
         inverse: the ``high_frequency_pairs`` finest (the separation's own pairs)."""
         return list(range(ax.nb - min(self.high_frequency_pairs, ax.nb), ax.nb))
 
-    def gray_bits(self, ax: _Axis, first: int, classify: "_Classifier",
-                  ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-        """(value, weak) of each Gray bit of ``ax``, most significant first."""
-        for i in range(ax.nb):
-            yield classify(first + i)
+    def gray_words(self, ax: _Axis, value: np.ndarray, weak: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Packed Gray bits and weak bits of ``ax`` (bit ``nb - 1 - i`` = bit i, MSB first)
+        from the packed projected bits: the same for a gray code."""
+        return value, weak
 
     def refine_anchors(self, ax: _Axis) -> tuple[int | None, int]:
         """(bit whose stripe edges anchor the sub-pixel step or None for all, max anchor
         spacing in code steps)."""
         return None, _MAX_SUBPIXEL_SPAN
 
-    def _coordinates(self, decoded: list[AxisDecode], valid: np.ndarray, pairs: "_Pairs",
-                     ) -> tuple[list[np.ndarray], dict[str, int]]:
+    def _coordinates(self, decoded: list["AxisDecode"], valid: np.ndarray, stack: np.ndarray,
+                     rng: np.ndarray) -> tuple[list[np.ndarray], dict[str, int]]:
         coords = []
         refined: dict[str, int] = {}
         for d in decoded:
-            coord = d.integer.astype(np.float32)
+            coord = d.integer
             if self.subpixel:
-                fine, ok = self._refine_axis(d, valid, pairs)
-                coord = np.where(ok, fine, coord).astype(np.float32)
-                refined[f"refined_{'column' if d.axis.prefix == 'col' else 'row'}"] = int(ok.sum())
+                fine, ok = self._refine_axis(d, valid, stack, rng)
+                np.copyto(coord, fine, where=ok)
+                refined[f"refined_{'column' if d.axis.prefix == 'col' else 'row'}"] = int(
+                    np.count_nonzero(ok))
             coord[~valid] = np.nan
             coords.append(coord)
         return coords, refined
 
-    def _refine_axis(self, d: AxisDecode, valid: np.ndarray, pairs: "_Pairs",
-                     ) -> tuple[np.ndarray, np.ndarray]:
+    def _refine_axis(self, d: "AxisDecode", valid: np.ndarray, stack: np.ndarray,
+                     rng: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Sub-pixel coordinates of one axis and where they exist: scanned along the image
         direction its stripes cross, then along the other where that leaves more than
         :data:`SECOND_PASS_SHARE` of the decoded pixels unrefined."""
         anchor, span = self.refine_anchors(d.axis)
+        ax = d.axis
 
         def refine(transpose: bool) -> tuple[np.ndarray, np.ndarray]:
-            return _refine(d.axis, d.code, valid, transpose,
-                           lambda i, flat, step: pairs.d_at(d.first_pair + i, flat, step),
-                           anchor, span)
+            fine = np.empty(valid.shape, np.float32)
+            ok = np.empty(valid.shape, bool)
+            kernels.refine(stack, self.inverse, rng, d.code, valid, transpose, ax.nb, ax.block,
+                           ax.offset, d.first_pair, -1 if anchor is None else anchor, span,
+                           fine, ok)
+            return fine, ok
 
         across = stripes_cross_columns(d.code, valid)
         fine, ok = refine(across)
         left = valid & ~ok
-        if left.sum() > SECOND_PASS_SHARE * max(int(valid.sum()), 1):
+        n_valid = int(np.count_nonzero(valid))
+        if np.count_nonzero(left) > SECOND_PASS_SHARE * max(n_valid, 1):
             fine2, ok2 = refine(not across)
             more = left & ok2
-            fine, ok = np.where(more, fine2, fine), ok | more
+            np.copyto(fine, fine2, where=more)
+            ok |= more
         return fine, ok
 
 
-class _Pairs:
-    """Access to the pattern/inverse frames (or pattern and per-pixel mid-level) of a view."""
-
-    def __init__(self, frames: list[np.ndarray], inverse: bool, lv: FrameLevels) -> None:
-        self.frames = frames
-        self.inverse = inverse
-        self.per_bit = 2 if inverse else 1
-        self.lv = lv
-        self.mid = None if inverse else lv.black + 0.5 * lv.range
-        self.flat = [f.reshape(-1) for f in frames]
-        self.flat_mid = None if self.mid is None else self.mid.reshape(-1)
-        self.flat_rng = lv.range.reshape(-1)
-
-    def pattern(self, k: int) -> np.ndarray:
-        return self.frames[2 + self.per_bit * k]
-
-    def d(self, k: int) -> np.ndarray:
-        """Difference signal of pattern k: pattern − inverse (or pattern − mid)."""
-        p = self.pattern(k).astype(np.float32)
-        if self.inverse:
-            return p - self.frames[3 + self.per_bit * k].astype(np.float32)
-        return p - self.mid
-
-    def black_subtracted(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Pattern k and its inverse minus the black frame (float32)."""
-        return (self.pattern(k).astype(np.float32) - self.lv.black,
-                self.frames[3 + self.per_bit * k].astype(np.float32) - self.lv.black)
-
-    def d_at(self, k: int, flat: np.ndarray, step: int) -> tuple[np.ndarray, np.ndarray]:
-        """Range-normalised difference signal of pattern k at flat indices flat and
-        flat + step (albedo steps don't move the edge)."""
-        p = self.flat[2 + self.per_bit * k]
-        q = self.flat[3 + self.per_bit * k] if self.inverse else self.flat_mid
-        both = np.concatenate([flat, flat + step])
-        d = p[both].astype(np.float32) - q[both].astype(np.float32)
-        d /= np.maximum(self.flat_rng[both], np.float32(1e-6))
-        return d[:flat.size], d[flat.size:]
+def as_stack(frames: Sequence[np.ndarray]) -> np.ndarray:
+    """Frames as one (F, H, W) array without copying when they already are one: a 3-D array
+    as is, 2-D frames that are evenly spaced views of one array (a frame stack read from disk,
+    split into frames) as a read-only view of it; other frames are copied into a new stack."""
+    if isinstance(frames, np.ndarray):
+        if frames.ndim != 3:
+            raise ValueError("frames must be 2-D arrays of one shape")
+        return frames
+    frames = [np.asarray(f) for f in frames]
+    first = frames[0]
+    if first.ndim != 2 or any(f.shape != first.shape for f in frames):
+        raise ValueError("frames must be 2-D arrays of one shape")
+    view = _stack_view(frames)
+    return view if view is not None else np.stack(frames)
 
 
-class _Classifier:
-    """Decides projected pattern k per pixel: ``(value, weak)`` bool arrays."""
-
-    no_direct: np.ndarray | bool = False
-
-    def __call__(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        raise NotImplementedError
-
-
-class _ContrastClassifier(_Classifier):
-    """value = d > 0; weak where |d| < min_contrast × (white − black) (half that without
-    inverses, where d = pattern − mid swings half as far)."""
-
-    def __init__(self, pairs: _Pairs, min_contrast: float, lv: FrameLevels) -> None:
-        self.pairs = pairs
-        self.thr = (min_contrast * (1.0 if pairs.inverse else 0.5)) * np.maximum(lv.range, 0.0)
-
-    def __call__(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        d = self.pairs.d(k)
-        return d > 0, np.abs(d) < self.thr
+def _stack_view(frames: list[np.ndarray]) -> np.ndarray | None:
+    first = frames[0]
+    base = first.base
+    if base is None or len(frames) < 2 or not isinstance(base, np.ndarray):
+        return None
+    if any(f.base is not base or f.dtype != first.dtype or f.strides != first.strides
+           for f in frames):
+        return None
+    ptr = [f.__array_interface__["data"][0] for f in frames]
+    step = ptr[1] - ptr[0]
+    if any(b - a != step for a, b in zip(ptr, ptr[1:])):
+        return None
+    return np.lib.stride_tricks.as_strided(first, (len(frames), *first.shape),
+                                           (step, *first.strides), writeable=False)
 
 
-class _RobustClassifier(_Classifier):
-    """Xu & Aliaga's rule on black-subtracted frames; weak = uncertain.
+@dataclass
+class ClassifiedBits:
+    """Projected bits of a view, decided per pixel (output of :func:`kernels.classify`).
 
-    High-frequency pairs (the separation's own pairs; every pair of an XOR code) get the
-    rule's ``L_d > L_g`` branch whatever ``L_g``: in them global light is by construction the
-    same in pattern and inverse (what the separation assumes), so it cannot flip the
-    comparison, while the interval tests would reject every blurred pixel near their dense
-    edges. Their bit is uncertain where ``|p − i| < min_contrast · L_d`` — a contrast test
-    relative to the direct light, so it neither rejects everything when global light fills the
-    white frame nor lets noise decide in a faint PDI image."""
+    Attributes:
+        value, weak: (axes, H, W) uint32, bit ``nb - 1 - i`` = projected bit i of the axis
+            (decided 1; undecided: weak/uncertain).
+        range: float32 white − black (frame units).
+        shadow: white − black below ``shadow_threshold`` × full scale.
+        no_direct: robust rule, direct light below the least usable (False for "contrast").
+    """
 
-    def __init__(self, pairs: _Pairs, ld: np.ndarray, lg: np.ndarray, m: float,
-                 high_frequency: set[int], min_contrast: float) -> None:
-        self.pairs = pairs
-        self.ld, self.lg, self.m = ld, lg, m
-        self.no_direct = ld < m
-        self.high_frequency = high_frequency
-        self.thr = min_contrast * ld
-
-    def __call__(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        p, q = self.pairs.black_subtracted(k)
-        if k in self.high_frequency:
-            d = p - q
-            return d > 0, self.no_direct | (np.abs(d) < self.thr)
-        return robust_bits(p, q, self.ld, self.lg, self.m)
+    value: np.ndarray
+    weak: np.ndarray
+    range: np.ndarray
+    shadow: np.ndarray
+    no_direct: np.ndarray
 
 
-def _decode_axis(ax: _Axis, first: int, bits: Iterable[tuple[np.ndarray, np.ndarray]],
-                 ) -> AxisDecode:
-    """Assemble Gray bits (value, weak), MSB first, into the coarse code of one axis.
+def _decode_axis(ax: _Axis, first: int, gray: np.ndarray, weak: np.ndarray) -> AxisDecode:
+    """Coarse code of one axis from its packed Gray bits (:func:`kernels.assemble`).
 
     A single weak bit is harmless when flipping it moves the code by one step and the pixel
     is on that bit's stripe edge (a 4-neighbour where the bit is surely 1 and one where it is
     surely 0); more weak bits, or one off its edge, make the pixel ``weak``."""
-    gray = None
-    for i, (value, weak) in enumerate(bits):
-        if gray is None:
-            shape = value.shape
-            gray = np.zeros(shape, np.int32)
-            n_weak = np.zeros(shape, np.uint8)
-            n_weak_edge = np.zeros(shape, np.uint8)
-            weak_bit = np.zeros(shape, np.int32)
-        gray <<= 1
-        gray |= value
-        n_weak += weak
-        np.copyto(weak_bit, i, where=weak)
-        pos = cv2.dilate((value & ~weak).view(np.uint8), _CROSS)
-        neg = cv2.dilate((~value & ~weak).view(np.uint8), _CROSS)
-        n_weak_edge += weak & (pos & neg).view(bool)
-    code = _gray_to_binary(gray)
-    k = (ax.nb - 1) - weak_bit  # the weak bit's position from the LSB
-    flipped = code ^ ((np.int32(2) << k) - 1)
-    edge_ok = (n_weak == 1) & (n_weak_edge == 1) & (np.abs(flipped - code) == 1)
-    lo, hi = ax.block_range(code)
-    oor = (hi < 0) | (lo > ax.size - 1)
-    integer = 0.5 * (np.maximum(lo, 0) + np.minimum(hi, ax.size - 1))
-    return AxisDecode(ax, first, code, integer, (n_weak > 0) & ~edge_ok, edge_ok, oor)
+    shape = gray.shape
+    code = np.empty(shape, np.int32)
+    integer = np.empty(shape, np.float32)
+    bad, tolerated, oor = (np.empty(shape, bool) for _ in range(3))
+    kernels.assemble(gray, weak, ax.nb, ax.block, ax.offset, ax.size, code, integer, bad,
+                     tolerated, oor)
+    return AxisDecode(ax, first, code, integer, bad, tolerated, oor)
 
 
 def stripes_cross_columns(code: np.ndarray, valid: np.ndarray) -> bool:
     """True when the decoded code changes more often down the camera columns than along the
     camera rows, i.e. the stripes lie closer to the image rows (refine along the columns)."""
-    along_rows = np.count_nonzero((code[:, 1:] != code[:, :-1]) & valid[:, 1:] & valid[:, :-1])
-    along_cols = np.count_nonzero((code[1:] != code[:-1]) & valid[1:] & valid[:-1])
+    along_rows, along_cols = kernels.changes(code, valid)
     return along_cols > along_rows
-
-
-def _refine(ax: _Axis, code: np.ndarray, valid: np.ndarray, transpose: bool,
-            pair_d: Callable[[int, np.ndarray, int], tuple[np.ndarray, np.ndarray]],
-            anchor_bit: int | None = None, max_span: int = _MAX_SUBPIXEL_SPAN,
-            ) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-pixel coordinates along the camera rows (``transpose``: along the camera columns).
-
-    ``code`` and ``valid`` are in camera layout (H, W). ``pair_d(i, flat, step)`` returns the
-    difference signal of projected bit ``i`` at flat pixel indices ``flat`` and ``flat + step``.
-    ``anchor_bit``: use only the stripe edges of this bit (one-step code changes where it
-    flips), anchors then up to ``max_span`` code steps apart; None: every edge.
-    Returns (coordinate, refined mask) in camera layout.
-    """
-    H, W = code.shape
-    if transpose:
-        code_l, valid_l, stride, other = np.ascontiguousarray(code.T), np.ascontiguousarray(valid.T), W, 1
-    else:
-        code_l, valid_l, stride, other = code, valid, 1, W
-    h, w = code_l.shape  # lines x samples along the line
-    if w < 2:
-        return np.zeros(code.shape, np.float32), np.zeros(code.shape, bool)
-    a, b = code_l[:, :-1], code_l[:, 1:]
-    pair_ok = valid_l[:, :-1] & valid_l[:, 1:]
-    step = np.abs(b - a)
-    lo = np.minimum(a, b)
-    anchor_pos = np.full(a.shape, np.nan, np.float32)
-    anchor_val = np.full(a.shape, np.nan, np.float32)
-    # projected bit (MSB-first index) that flips on entering coarse code j: lowest set bit of j
-    j_all = np.arange(1 << ax.nb, dtype=np.int64)
-    low = np.maximum(j_all & -j_all, 1)
-    flip_bit = ((ax.nb - 1) - np.round(np.log2(low)).astype(np.int64)).astype(np.uint8)
-
-    def crossings(line: np.ndarray, idx: np.ndarray, j: np.ndarray) -> np.ndarray:
-        """Sub-pixel offsets in [0, 1] past sample ``idx`` where the bit flipping on entering
-        code ``j`` changes sign."""
-        bit = flip_bit[np.minimum(j, len(flip_bit) - 1)]
-        order = np.argsort(bit, kind="stable")
-        counts = np.bincount(bit, minlength=ax.nb)
-        flat = (line * other + idx * stride)[order]
-        t = np.empty(line.shape, np.float32)
-        start = 0
-        for i, n in enumerate(counts):
-            if n == 0:
-                continue
-            sel = order[start:start + n]
-            d0, d1 = pair_d(i, flat[start:start + n], stride)
-            start += n
-            den = d0 - d1  # d0 and d1 have opposite signs (the decoded bit differs)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t[sel] = np.where(den != 0, d0 / den, np.float32(0.5))
-        return np.clip(t, 0.0, 1.0)
-
-    for k in (1, 2) if anchor_bit is None else (1,):
-        sel_k = pair_ok & (step == k)
-        if anchor_bit is not None:
-            sel_k &= flip_bit[np.minimum(lo + 1, len(flip_bit) - 1)] == anchor_bit
-        line, idx = np.nonzero(sel_k)
-        if line.size == 0:
-            continue
-        base = lo[line, idx].astype(np.int64)
-        t = np.zeros(line.shape, np.float32)
-        for s in range(1, k + 1):
-            t += crossings(line, idx, base + s)
-        anchor_pos[line, idx] = idx + t / k
-        anchor_val[line, idx] = ax.boundary(base + 1) + 0.5 * (k - 1) * ax.block
-
-    has = ~np.isnan(anchor_pos)
-    slots = np.arange(w - 1, dtype=np.int32)
-    # slot s sits between samples s and s+1; for sample x the left anchor is the last slot < x,
-    # the right anchor the first slot >= x
-    left = np.maximum.accumulate(np.where(has, slots, np.int32(-1)), axis=1)
-    left = np.concatenate([np.full((h, 1), -1, np.int32), left], axis=1)
-    right = np.where(has, slots, np.int32(w))[:, ::-1]
-    right = np.minimum.accumulate(right, axis=1)[:, ::-1]
-    right = np.concatenate([right, np.full((h, 1), w, np.int32)], axis=1)
-    # stay within the run of valid samples
-    xs = np.arange(w, dtype=np.int32)
-    last_bad = np.maximum.accumulate(np.where(valid_l, np.int32(-1), xs), axis=1)
-    next_bad = np.minimum.accumulate(np.where(valid_l, np.int32(w), xs)[:, ::-1], axis=1)[:, ::-1]
-    ok = valid_l & (left > last_bad) & (right < next_bad) & (left >= 0) & (right < w - 1)
-
-    li = np.clip(left, 0, w - 2)
-    ri = np.clip(right, 0, w - 2)
-    pl = np.take_along_axis(anchor_pos, li, axis=1)
-    vl = np.take_along_axis(anchor_val, li, axis=1)
-    pr = np.take_along_axis(anchor_pos, ri, axis=1)
-    vr = np.take_along_axis(anchor_val, ri, axis=1)
-    span = vr - vl
-    with np.errstate(invalid="ignore", divide="ignore"):
-        fine = vl + (xs - pl) / (pr - pl) * span
-        ok &= (span != 0) & (np.abs(span) <= max_span * ax.block) & (pr > pl)
-        # the pixel's own decoded block must lie between the anchors
-        own_lo, own_hi = ax.block_range(code_l)
-        centre = 0.5 * (own_lo + own_hi)
-        ok &= (centre >= np.minimum(vl, vr)) & (centre <= np.maximum(vl, vr))
-    fine = np.where(ok, fine, np.float32(np.nan)).astype(np.float32)
-    if transpose:
-        return np.ascontiguousarray(fine.T), np.ascontiguousarray(ok.T)
-    return fine, ok
 
 
 def make_graycode(settings: dict[str, Any] | None = None, context: Any = None) -> GrayCode:

@@ -53,7 +53,12 @@ def full_scale(white: np.ndarray, bit_depth: int = 0) -> float:
 def noise_sigma(black: np.ndarray) -> float:
     """Camera noise σ (frame units) from the black frame: 1.4826 × the median absolute
     deviation of the differences of horizontally adjacent pixels, divided by √2. Differencing
-    drops smooth ambient structure; the median ignores edges and hot pixels."""
+    drops smooth ambient structure; the median ignores edges and hot pixels.
+
+    Integer frames take their medians from a histogram of the differences (exact, the same
+    value as ``np.median``; a sort of 1.3 M values took 60 ms)."""
+    if np.issubdtype(np.asarray(black).dtype, np.integer) and black.ndim == 2:
+        return _noise_sigma_integer(black)
     f = np.asarray(black, dtype=np.float32)
     if f.ndim != 2 or f.shape[1] < 2:
         return 0.0
@@ -63,6 +68,32 @@ def noise_sigma(black: np.ndarray) -> float:
         return 0.0
     mad = float(np.median(np.abs(diff - np.median(diff))))
     return 1.4826 * mad / math.sqrt(2.0)
+
+
+def _noise_sigma_integer(black: np.ndarray) -> float:
+    if black.shape[1] < 2 or black.shape[0] == 0:
+        return 0.0
+    diff = np.subtract(black[:, 1:], black[:, :-1], dtype=np.int32).ravel()
+    low = int(diff.min())
+    counts = np.bincount(diff - low)
+    values = np.nonzero(counts)[0]
+    counts = counts[values]
+    values = values.astype(np.float64) + low
+    med = _median_of_counts(values, counts)
+    dev = np.abs(values - med)
+    order = np.argsort(dev, kind="stable")
+    mad = _median_of_counts(dev[order], counts[order])
+    return 1.4826 * mad / math.sqrt(2.0)
+
+
+def _median_of_counts(values: np.ndarray, counts: np.ndarray) -> float:
+    """The median (as ``np.median``: the mean of the two middle values of an even count) of
+    sorted ``values`` each occurring ``counts`` times."""
+    n = int(counts.sum())
+    ends = np.cumsum(counts)
+    lo = values[np.searchsorted(ends, (n - 1) // 2, side="right")]
+    hi = values[np.searchsorted(ends, n // 2, side="right")]
+    return float(0.5 * (lo + hi))
 
 
 def direct_global(frames: Sequence[np.ndarray], black_level: float = 0.0,

@@ -18,12 +18,12 @@ weak bit the gray code tolerates on its own edge. Sub-pixel stripe edges, centri
 
 from __future__ import annotations
 
-from typing import Any, Iterator
+from typing import Any
 
 import cv2
 import numpy as np
 
-from dotshell_codings.graycode import SETTINGS_SCHEMA, GrayCode, _Axis, _Classifier
+from dotshell_codings.graycode import SETTINGS_SCHEMA, GrayCode, _Axis
 
 #: base stripe width (projector pixels) → position of the base bit counted from the finest
 BASE_FROM_END = {2: 1, 4: 2}
@@ -64,16 +64,24 @@ class XorCode(GrayCode):
         patterns have stripes as narrow as half the base stripe next to their own edges."""
         return self.base_bit(ax), 1 << BASE_FROM_END[self.base_stripe_px]
 
-    def gray_bits(self, ax: _Axis, first: int, classify: _Classifier,
-                  ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    def gray_words(self, ax: _Axis, value: np.ndarray, weak: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Gray bits = projected bits XOR the base bit, bit by bit (:func:`_unxor`)."""
         b = self.base_bit(ax)
-        base, base_weak = classify(first + b)
+        shift = np.uint32(ax.nb - 1 - b)
+        base = ((value >> shift) & 1).astype(bool)
+        base_weak = ((weak >> shift) & 1).astype(bool)
+        gray = value & (np.uint32(1) << shift)
+        gray_weak = weak & (np.uint32(1) << shift)
         for i in range(ax.nb):
             if i == b:
-                yield base, base_weak
                 continue
-            x, x_weak = classify(first + i)
-            yield _unxor(x, x_weak, base, base_weak)
+            s = np.uint32(ax.nb - 1 - i)
+            g, g_weak = _unxor(((value >> s) & 1).astype(bool), ((weak >> s) & 1).astype(bool),
+                               base, base_weak)
+            gray |= g.astype(np.uint32) << s
+            gray_weak |= g_weak.astype(np.uint32) << s
+        return gray, gray_weak
 
 
 def _unxor(x: np.ndarray, x_weak: np.ndarray, base: np.ndarray, base_weak: np.ndarray,

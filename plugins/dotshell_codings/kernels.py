@@ -1,0 +1,358 @@
+"""Compiled per-pixel loops of the binary codings' decoder (numba; parallel over image lines).
+
+The decoder of :mod:`dotshell_codings.graycode` runs in three passes over a view, each a loop
+compiled here, with no image-sized temporary per bit:
+
+* :func:`classify` reads every frame once, row by row, and decides each projected bit of each
+  pixel (the contrast rule or Xu & Aliaga's robust rule after the direct/global separation),
+  packing the bits into one word per axis (``value``) and one for the undecided ones
+  (``weak``), most significant bit first — the arithmetic is the decoder's documented rule in
+  float32 exactly as numpy evaluated it before (NEP 50: Python scalars cast to float32);
+* :func:`assemble` turns the words into the coarse code (gray → binary, the one-weak-bit edge
+  tolerance with its 4-neighbour check, out-of-range test);
+* :func:`refine` computes the sub-pixel stripe-edge coordinates line by line, reading the
+  pattern/inverse frames only at the stripe edges.
+
+Why numba (docs/performance.md, "Decoder"): numpy needs a full-size temporary per operation
+and per bit (the decoder made ~40 passes over 1.3 M-pixel arrays per bit pair), OpenCV has no
+kernel for the robust rule or the edge-anchored interpolation, and threads running numpy
+release the GIL only inside each small operation. Compiled loops touch each frame pixel once,
+keep the per-pixel state in registers and split the image rows across the cores
+(``parallel=True``; ``cache=True`` keeps the compiled code in ``__pycache__``).
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+_OPTS = dict(nogil=True, cache=True, error_model="numpy")
+
+_INNER = dict(nogil=True, cache=True, error_model="numpy")
+
+CONTRAST, ROBUST = 0, 1
+
+
+@numba.njit(parallel=True, **_OPTS)
+def classify(stack, inverse, mode, axis_bits, sep, high, shadow_thr, m, min_contrast,
+             contrast_scale, one_minus_b, lg_scale, b_level, value, weak, rng, shadow,
+             no_direct):
+    """Decide every projected bit of every pixel.
+
+    Args:
+        stack: (F, H, W) frames (white, black, then the pairs), uint8/uint16/float32.
+        inverse: frames come in pattern/inverse pairs (else pattern vs (white + black) / 2).
+        mode: :data:`CONTRAST` or :data:`ROBUST`.
+        axis_bits: (A,) int64 bits per axis (pairs are numbered across the axes).
+        sep: (P,) bool, pairs used by the direct/global separation (robust).
+        high: (P,) bool, pairs decided by the high-frequency branch (robust).
+        shadow_thr: float32, white − black below it is shadow.
+        m: float32, least direct light (robust).
+        min_contrast: float32 (robust high-frequency contrast test).
+        contrast_scale: float32, min_contrast (× 0.5 without inverses) for the contrast rule.
+        one_minus_b, lg_scale, b_level: float32 constants of the separation.
+        value, weak: (A, H, W) uint32 outputs, bit ``nb - 1 - i`` = projected bit i.
+        rng: (H, W) float32 output, white − black.
+        shadow, no_direct: (H, W) bool outputs.
+    """
+    n_axes = axis_bits.shape[0]
+    per_bit = 2 if inverse else 1
+    H, W = rng.shape
+    zero = np.float32(0.0)
+    half = np.float32(0.5)
+    for y in numba.prange(H):
+        black = np.empty(W, np.float32)
+        r = rng[y]
+        _levels(stack[0, y], stack[1, y], shadow_thr, black, r, shadow[y])
+        ld = np.empty(W, np.float32)
+        lg = np.empty(W, np.float32)
+        thr = np.empty(W, np.float32)
+        nd = no_direct[y]
+        if mode == ROBUST:
+            lmax = np.full(W, -np.inf, np.float32)
+            lmin = np.full(W, np.inf, np.float32)
+            for k in range(sep.shape[0]):
+                if sep[k]:
+                    for j in range(2):
+                        _extremes(stack[2 + per_bit * k + j, y], black, lmax, lmin)
+            for x in range(W):
+                d = (lmax[x] - lmin[x]) / one_minus_b
+                g = lg_scale * (lmin[x] - b_level * lmax[x])
+                if g < 0:
+                    d = lmax[x]
+                    g = zero
+                ld[x] = d
+                lg[x] = g
+                nd[x] = d < m
+                thr[x] = min_contrast * d
+        else:
+            for x in range(W):
+                nd[x] = False
+                thr[x] = contrast_scale * max(r[x], zero)
+                lg[x] = black[x] + half * r[x]  # the mid level, for frames without inverses
+        k = 0
+        for a in range(n_axes):
+            nb = axis_bits[a]
+            val = value[a, y]
+            wk = weak[a, y]
+            val[:] = 0
+            wk[:] = 0
+            for i in range(nb):
+                shift = np.uint32(nb - 1 - i)
+                p = stack[2 + per_bit * k, y]
+                q = stack[3 + per_bit * k, y] if inverse else stack[1, y]
+                if mode == ROBUST and high[k]:
+                    _high_frequency(p, q, black, thr, nd, shift, val, wk)
+                elif mode == ROBUST:
+                    _robust(p, q, black, ld, lg, m, shift, val, wk)
+                elif inverse:
+                    _contrast(p, q, thr, shift, val, wk)
+                else:
+                    _contrast_mid(p, lg, thr, shift, val, wk)
+                k += 1
+
+
+@numba.njit(**_INNER)
+def _levels(white, black_in, shadow_thr, black, rng, shadow):
+    zero = np.float32(0.0)
+    for x in range(white.shape[0]):
+        bv = np.float32(black_in[x])
+        r = np.float32(white[x]) - bv
+        if not np.isfinite(r):
+            r = zero
+        rng[x] = r
+        black[x] = bv
+        shadow[x] = r < shadow_thr
+
+
+@numba.njit(**_INNER)
+def _extremes(frame, black, lmax, lmin):
+    for x in range(frame.shape[0]):
+        v = np.float32(frame[x]) - black[x]
+        lmax[x] = max(lmax[x], v)
+        lmin[x] = min(lmin[x], v)
+
+
+@numba.njit(**_INNER)
+def _high_frequency(p, q, black, thr, nd, shift, val, wk):
+    """Robust rule, high-frequency pair: bit = p > q, uncertain without enough direct light
+    or where |p − q| < min_contrast · L_d."""
+    for x in range(p.shape[0]):
+        d = (np.float32(p[x]) - black[x]) - (np.float32(q[x]) - black[x])
+        val[x] |= np.uint32(d > 0) << shift
+        wk[x] |= np.uint32(nd[x] | (abs(d) < thr[x])) << shift
+
+
+@numba.njit(**_INNER)
+def _robust(p, q, black, ld, lg, m, shift, val, wk):
+    """Xu & Aliaga's rule (see ``robust.robust_bits``), without branches."""
+    for x in range(p.shape[0]):
+        pv = np.float32(p[x]) - black[x]
+        qv = np.float32(q[x]) - black[x]
+        d, g = ld[x], lg[x]
+        enough = d >= m
+        wins = enough & (d > g)
+        is_zero = (wins & (pv <= qv)) | (~wins & enough & (pv <= d) & (qv >= g))
+        one = ((wins & (pv > qv)) | (~wins & enough & (pv >= g) & (qv <= d))) & ~is_zero
+        val[x] |= np.uint32(one) << shift
+        wk[x] |= np.uint32(~(one | is_zero)) << shift
+
+
+@numba.njit(**_INNER)
+def _contrast(p, q, thr, shift, val, wk):
+    """bit = pattern > inverse, weak where |pattern − inverse| < threshold."""
+    for x in range(p.shape[0]):
+        d = np.float32(p[x]) - np.float32(q[x])
+        val[x] |= np.uint32(d > 0) << shift
+        wk[x] |= np.uint32(abs(d) < thr[x]) << shift
+
+
+@numba.njit(**_INNER)
+def _contrast_mid(p, mid, thr, shift, val, wk):
+    """Without inverses: bit = pattern > (white + black) / 2."""
+    for x in range(p.shape[0]):
+        d = np.float32(p[x]) - mid[x]
+        val[x] |= np.uint32(d > 0) << shift
+        wk[x] |= np.uint32(abs(d) < thr[x]) << shift
+
+
+@numba.njit(**_INNER)
+def _sure(value, weak, y, x, bit):
+    """0 or 1 where pixel (y, x) exists and has ``bit`` decided, else -1."""
+    H, W = value.shape
+    if y < 0 or y >= H or x < 0 or x >= W or weak[y, x] & bit:
+        return -1
+    return 1 if value[y, x] & bit else 0
+
+
+@numba.njit(**_INNER)
+def _on_edge(value, weak, y, x, bit):
+    """A 4-neighbour of (y, x) has ``bit`` surely 1 and one has it surely 0."""
+    a = _sure(value, weak, y - 1, x, bit)
+    b = _sure(value, weak, y + 1, x, bit)
+    c = _sure(value, weak, y, x - 1, bit)
+    d = _sure(value, weak, y, x + 1, bit)
+    return max(a, b, c, d) == 1 and (a == 0 or b == 0 or c == 0 or d == 0)
+
+
+@numba.njit(parallel=True, **_OPTS)
+def assemble(value, weak, nb, block, offset, size, code, integer, bad, tolerated, oor):
+    """Coarse code of one axis from its packed Gray bits (see ``graycode._decode_axis``'s rule:
+    one weak bit is tolerated on its own stripe edge, where it moves the code by one step).
+
+    Outputs (H, W): code int32, integer float32 (projector coordinate of the block centre,
+    clipped), bad (weak and not tolerated), tolerated, oor (block off the projector)."""
+    H, W = value.shape
+    for y in numba.prange(H):
+        for x in range(W):
+            b = np.int64(value[y, x])
+            b ^= b >> 1
+            b ^= b >> 2
+            b ^= b >> 4
+            b ^= b >> 8
+            b ^= b >> 16
+            c = np.int32(b)
+            code[y, x] = c
+            wk = weak[y, x]
+            ok = False
+            if wk != 0 and (wk & (wk - np.uint32(1))) == 0:  # exactly one weak bit
+                mask = np.int32(wk) * 2 - 1  # flipping that bit of the Gray code: binary bits k..0
+                flipped = c ^ mask
+                ok = abs(flipped - c) == 1 and _on_edge(value, weak, y, x, wk)
+            tolerated[y, x] = ok
+            bad[y, x] = wk != 0 and not ok
+            lo = np.int64(c) * block - offset
+            hi = lo + (block - 1)
+            oor[y, x] = hi < 0 or lo > size - 1
+            integer[y, x] = np.float32(0.5 * (max(lo, 0) + min(hi, size - 1)))
+
+
+@numba.njit(**_OPTS)
+def changes(code, valid):
+    """(code changes along the camera rows, down the camera columns) between valid pixels."""
+    H, W = code.shape
+    along_rows = 0
+    along_cols = 0
+    for y in range(H):
+        for x in range(W):
+            if not valid[y, x]:
+                continue
+            if x + 1 < W and valid[y, x + 1] and code[y, x + 1] != code[y, x]:
+                along_rows += 1
+            if y + 1 < H and valid[y + 1, x] and code[y + 1, x] != code[y, x]:
+                along_cols += 1
+    return along_rows, along_cols
+
+
+@numba.njit(**_INNER)
+def _flip_bit(j, nb):
+    """Projected bit (MSB-first index) that flips on entering coarse code ``j``."""
+    top = (np.int64(1) << nb) - 1
+    if j > top:
+        j = top
+    if j < 1:
+        return nb - 1
+    t = 0
+    while not (j >> t) & 1:
+        t += 1
+    return nb - 1 - t
+
+
+@numba.njit(**_INNER)
+def _at(transpose, line, i):
+    """(y, x) of sample ``i`` of scan line ``line`` (a camera row, or column if ``transpose``)."""
+    if transpose:
+        return np.int64(i), np.int64(line)
+    return np.int64(line), np.int64(i)
+
+
+@numba.njit(**_INNER)
+def _d(stack, inverse, fp, y, x, rng):
+    """Range-normalised difference signal of the pair whose pattern is frame ``fp``."""
+    p = np.float32(stack[fp, y, x])
+    if inverse:
+        q = np.float32(stack[fp + 1, y, x])
+    else:
+        q = np.float32(stack[1, y, x]) + np.float32(0.5) * rng[y, x]
+    return (p - q) / max(rng[y, x], np.float32(1e-6))
+
+
+@numba.njit(parallel=True, **_OPTS)
+def refine(stack, inverse, rng, code, valid, transpose, nb, block, offset, first_pair,
+           anchor_bit, max_span, fine, ok):
+    """Sub-pixel coordinates of one axis along the camera rows (``transpose``: columns).
+
+    Between adjacent valid samples whose codes differ by one step (or two, ``anchor_bit`` < 0)
+    the zero crossings of the flipping bits' difference signals anchor the projector boundary;
+    a valid sample between two anchors of its run (at most ``max_span`` blocks apart, its own
+    block between them) is interpolated linearly. Outputs fine (float32, NaN where not
+    refined) and ok (bool), (H, W)."""
+    H, W = code.shape
+    per_bit = 2 if inverse else 1
+    lines = W if transpose else H
+    w = H if transpose else W
+    nan32 = np.float32(np.nan)
+    for line in numba.prange(lines):
+        pos = np.full(max(w - 1, 1), nan32, np.float32)
+        val = np.full(max(w - 1, 1), nan32, np.float32)
+        has = np.zeros(max(w - 1, 1), np.bool_)
+        left = np.empty(w, np.int64)
+        last_bad = np.empty(w, np.int64)
+        for s in range(w - 1):
+            y0, x0 = _at(transpose, line, s)
+            y1, x1 = _at(transpose, line, s + 1)
+            if not (valid[y0, x0] and valid[y1, x1]):
+                continue
+            a, b = code[y0, x0], code[y1, x1]
+            k = abs(b - a)
+            if k == 0 or k > 2 or (anchor_bit >= 0 and k != 1):
+                continue
+            base = np.int64(min(a, b))
+            if anchor_bit >= 0 and _flip_bit(base + 1, nb) != anchor_bit:
+                continue
+            t = np.float32(0.0)
+            for step in range(1, k + 1):
+                fp = 2 + per_bit * (first_pair + _flip_bit(base + step, nb))
+                d0 = _d(stack, inverse, fp, y0, x0, rng)
+                d1 = _d(stack, inverse, fp, y1, x1, rng)
+                den = d0 - d1
+                c = d0 / den if den != 0 else np.float32(0.5)
+                c = min(max(c, np.float32(0.0)), np.float32(1.0))
+                t += c
+            pos[s] = np.float32(np.float64(s) + np.float64(t / np.float32(k)))
+            val[s] = np.float32((base + 1) * block - offset - 0.5 + 0.5 * (k - 1) * block)
+            has[s] = True
+        lft = -1
+        bad = -1
+        for x in range(w):
+            yy, xx = _at(transpose, line, x)
+            if x >= 1 and has[x - 1]:
+                lft = x - 1
+            if not valid[yy, xx]:
+                bad = x
+            left[x] = lft
+            last_bad[x] = bad
+        rgt = w
+        nxt = w
+        for x in range(w - 1, -1, -1):
+            yy, xx = _at(transpose, line, x)
+            if x <= w - 2 and has[x]:
+                rgt = x
+            if not valid[yy, xx]:
+                nxt = x
+            lf = left[x]
+            good = (valid[yy, xx] and lf > last_bad[x] and rgt < nxt and lf >= 0
+                    and rgt < w - 1)
+            f = nan32
+            if good:
+                pl, vl, pr, vr = pos[lf], val[lf], pos[rgt], val[rgt]
+                span = vr - vl
+                lo = np.int64(code[yy, xx]) * block - offset
+                centre = 0.5 * (lo + lo + (block - 1))
+                good = (span != 0 and abs(span) <= max_span * block and pr > pl
+                        and centre >= min(vl, vr) and centre <= max(vl, vr))
+                if good:
+                    f = np.float32(np.float64(vl) + (np.float64(x) - np.float64(pl))
+                                   / np.float64(pr - pl) * np.float64(span))
+            fine[yy, xx] = f
+            ok[yy, xx] = good
