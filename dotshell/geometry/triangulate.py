@@ -24,6 +24,14 @@ The point lies on the camera ray through the pixel.
   slightly and is handled by a fixed-point iteration on the predicted row. ``grazing``: the ray
   meets the plane at less than ``min_ray_angle_deg`` (always the case when the projector is
   above or below the camera: decode rows then).
+
+Speed (docs/performance.md): the point solves are compiled loops (numba) over the pixels, in
+parallel; camera rays come from a grid computed once per camera (a lookup table of every
+pixel's undistorted ray), the projector's distortion is undone per point by OpenCV's
+fixed-point iteration run to convergence (a few steps; measured faster than a lookup table of
+the projector's pixels, whose scattered reads miss the cache), and
+:func:`triangulate_image` triangulates a decoded image in place, without gathering its pixels,
+optionally moving the points into another frame (the sample's) on the way.
 """
 
 from __future__ import annotations
@@ -31,6 +39,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import lru_cache
 
+import numba
 import numpy as np
 
 from dotshell.geometry.calibration import RigCalibration
@@ -66,10 +75,35 @@ def _ray_grid(key: tuple) -> np.ndarray:
     return np.column_stack([n, np.ones(len(n))]).reshape(h, w, 3)
 
 
+def _lens_key(lens: Lens) -> tuple:
+    return (tuple(lens.K.ravel()), tuple(lens.dist), lens.width, lens.height)
+
+
 def camera_ray_grid(lens: Lens) -> np.ndarray:
     """(H, W, 3) un-normalized ray directions (x_n, y_n, 1) for every camera pixel centre."""
-    key = (tuple(lens.K.ravel()), tuple(lens.dist), lens.width, lens.height)
-    return _ray_grid(key)
+    return _ray_grid(_lens_key(lens))
+
+
+@dataclass
+class _Rig:
+    """The calibration as the compiled solves take it."""
+
+    R: np.ndarray
+    T: np.ndarray
+    K: np.ndarray
+    dist: np.ndarray
+    tolerance2: float
+    sin2_min: float
+
+    @classmethod
+    def of(cls, calib: RigCalibration, tolerance_px: float, min_angle_deg: float) -> "_Rig":
+        return cls(np.ascontiguousarray(calib.R, np.float64),
+                   np.ascontiguousarray(calib.T, np.float64).ravel(),
+                   calib.projector.K, calib.projector.dist,
+                   float(tolerance_px) ** 2, float(np.sin(np.deg2rad(min_angle_deg))) ** 2)
+
+    def args(self) -> tuple:
+        return (self.R, self.T, self.K, self.dist, self.tolerance2, self.sin2_min)
 
 
 def triangulate(rays: np.ndarray, column: np.ndarray, calib: RigCalibration,
@@ -87,20 +121,101 @@ def triangulate(rays: np.ndarray, column: np.ndarray, calib: RigCalibration,
             codes) or the column plane (columns only), degrees.
         iterations: fixed-point iterations for projector distortion without rows.
     """
-    if row is None:
-        return _from_columns(rays, column, calib, row_tolerance_px, min_ray_angle_deg, iterations)
-    return _from_both(rays, column, row, calib, row_tolerance_px, min_ray_angle_deg)
+    rays = np.ascontiguousarray(rays, np.float64).reshape(-1, 3)
+    n = len(rays)
+    column = np.ascontiguousarray(column, np.float64).ravel()
+    rows = np.zeros(0) if row is None else np.ascontiguousarray(row, np.float64).ravel()
+    pts = np.empty((n, 3))
+    flags = np.empty(n, np.uint8)
+    _solve_rays(rays, column, rows, row is not None, iterations,
+                *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(), pts, flags)
+    return Triangulation(pts, flags == KEPT, flags == ROW_REJECTED, flags == GRAZING)
 
 
-def _from_both(rays: np.ndarray, column: np.ndarray, row: np.ndarray, calib: RigCalibration,
-               tolerance_px: float, min_angle_deg: float) -> Triangulation:
-    proj = calib.projector
-    ideal = proj.undistort(np.column_stack([np.asarray(column, np.float64),
-                                            np.asarray(row, np.float64)]))
-    xp, yp = ideal[:, 0], ideal[:, 1]
-    R, T = calib.R, calib.T
-    x, y, z = rays[:, 0], rays[:, 1], rays[:, 2]
-    # the rays in the projector's axes, component by component (cheaper than an (N,3) matmul)
+@dataclass
+class ImagePoints:
+    """Points of the decoded pixels of one camera image (:func:`triangulate_image`).
+
+    Attributes:
+        pixels: (N, 2) int32 camera pixels (x, y) of the points, in raster order.
+        points: (N, 3) float64 points in the requested frame (mm).
+        depth: (N,) camera-frame depth z (mm).
+        counts: ``triangulated``, ``row_rejected``, ``grazing`` over the decoded pixels.
+    """
+
+    pixels: np.ndarray
+    points: np.ndarray
+    depth: np.ndarray
+    counts: dict[str, int]
+
+
+def triangulate_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
+                      calib: RigCalibration, row_tolerance_px: float = 1.5,
+                      min_ray_angle_deg: float = 5.0, to_frame: np.ndarray | None = None,
+                      iterations: int = 3) -> ImagePoints:
+    """Triangulate every ``valid`` pixel of decoded (H, W) column (and row) maps, as
+    :func:`triangulate` does, and keep the points that pass its checks.
+
+    ``to_frame``: optional (3, 4) affine map [A | b] taking camera-frame points (row vectors)
+    to the output frame, ``p_out = A @ p + b``; default the camera frame."""
+    h, w = valid.shape
+    rays = camera_ray_grid(calib.camera)
+    if rays.shape[:2] != (h, w):
+        raise ValueError(f"decoded maps are {w}x{h} px but the calibration's camera is "
+                         f"{calib.camera.width}x{calib.camera.height} px")
+    affine = np.eye(3, 4) if to_frame is None else np.ascontiguousarray(to_frame, np.float64)
+    rows = np.zeros((0, 0), np.float32) if row is None else row
+    per_row = np.empty(h, np.int64)
+    _count_rows(valid, per_row)
+    start = np.concatenate([[0], np.cumsum(per_row)])
+    n = int(start[-1])
+    pts = np.empty((n, 3))
+    depth = np.empty(n)
+    pixels = np.empty((n, 2), np.int32)
+    flags = np.empty(n, np.uint8)
+    _solve_image(valid, column, rows, row is not None, iterations, rays, start, affine,
+                 *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(),
+                 pts, depth, pixels, flags)
+    keep = flags == KEPT
+    counts = {"triangulated": int(np.count_nonzero(keep)),
+              "row_rejected": int(np.count_nonzero(flags == ROW_REJECTED)),
+              "grazing": int(np.count_nonzero(flags == GRAZING))}
+    return ImagePoints(pixels[keep], pts[keep], depth[keep], counts)
+
+
+# ---- compiled solves ------------------------------------------------------------------------
+
+KEPT, DROPPED, ROW_REJECTED, GRAZING = 0, 1, 2, 3
+_OPTS = dict(nogil=True, cache=True, error_model="numpy")
+MAX_UNDISTORT_STEPS = 50
+
+
+@numba.njit(**_OPTS)
+def _ideal(K, dist, u, v):
+    """Ideal normalized coordinates of distorted pixel (u, v): the Brown–Conrady model
+    inverted by fixed-point iteration, as ``cv2.undistortPoints`` does, to convergence
+    (|step| < 1e-15; each step divides the error by ~1 / (3 |k1| r²), 100 or more here)."""
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    x0 = (u - K[0, 2]) / K[0, 0]
+    y0 = (v - K[1, 2]) / K[1, 1]
+    x, y = x0, y0
+    for _ in range(MAX_UNDISTORT_STEPS):
+        r2 = x * x + y * y
+        icdist = 1.0 / (1.0 + ((k3 * r2 + k2) * r2 + k1) * r2)
+        dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+        dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+        nx = (x0 - dx) * icdist
+        ny = (y0 - dy) * icdist
+        if abs(nx - x) < 1e-15 and abs(ny - y) < 1e-15:
+            return nx, ny
+        x, y = nx, ny
+    return x, y
+
+
+@numba.njit(**_OPTS)
+def _both(x, y, z, u, v, R, T, K, dist, tolerance2, sin2_min):
+    """(s, flag): the point is ``s`` × ray from column u and row v (module docstring)."""
+    xp, yp = _ideal(K, dist, u, v)
     r0 = R[0, 0] * x + R[0, 1] * y + R[0, 2] * z
     r1 = R[1, 0] * x + R[1, 1] * y + R[1, 2] * z
     r2 = R[2, 0] * x + R[2, 1] * y + R[2, 2] * z
@@ -108,48 +223,118 @@ def _from_both(rays: np.ndarray, column: np.ndarray, row: np.ndarray, calib: Rig
     b_col = T[0] - xp * T[2]
     a_row = r1 - yp * r2
     b_row = T[1] - yp * T[2]
-    w_col, w_row = proj.K[0, 0] ** 2, proj.K[1, 1] ** 2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = -(w_col * a_col * b_col + w_row * a_row * b_row) / (
-            w_col * a_col * a_col + w_row * a_row * a_row)
-        zp = s * r2 + T[2]  # depth in front of the projector
-        # reprojection error (projector px) of the point against the decoded column and row
-        err2 = (w_col * (a_col * s + b_col) ** 2 + w_row * (a_row * s + b_row) ** 2) / (zp * zp)
-    # angle between the camera ray and the projector ray (xp, yp, 1): in the projector's axes
-    # their cross product is (a_row, −a_col, r0·yp − r1·xp)
+    w_col = K[0, 0] ** 2
+    w_row = K[1, 1] ** 2
+    s = -(w_col * a_col * b_col + w_row * a_row * b_row) / (
+        w_col * a_col * a_col + w_row * a_row * a_row)
+    zp = s * r2 + T[2]
+    e_col = a_col * s + b_col
+    e_row = a_row * s + b_row
+    err2 = (w_col * e_col * e_col + w_row * e_row * e_row) / (zp * zp)
     c2 = r0 * yp - r1 * xp
     sin2 = (a_col * a_col + a_row * a_row + c2 * c2) / (
         (r0 * r0 + r1 * r1 + r2 * r2) * (1.0 + xp * xp + yp * yp))
-    grazing = sin2 < np.sin(np.deg2rad(min_angle_deg)) ** 2
-    ok = np.isfinite(s) & (s > 0) & (zp > 0) & ~grazing
-    row_rejected = ok & ~(err2 <= tolerance_px ** 2)
-    ok &= ~row_rejected
-    pts = rays * np.where(ok, s, np.nan)[:, None]
-    return Triangulation(pts, ok, row_rejected, grazing)
+    if sin2 < sin2_min:
+        return s, GRAZING
+    if not (np.isfinite(s) and s > 0 and zp > 0):
+        return s, DROPPED
+    if not err2 <= tolerance2:
+        return s, ROW_REJECTED
+    return s, KEPT
 
 
-def _from_columns(rays: np.ndarray, column: np.ndarray, calib: RigCalibration,
-                  tolerance_px: float, min_angle_deg: float, iterations: int) -> Triangulation:
-    del tolerance_px  # nothing to check the column against without rows
-    proj = calib.projector
-    n = len(column)
-    col = np.asarray(column, np.float64)
-    guess_row = np.full(n, proj.K[1, 2])
-    pts = np.full((n, 3), np.nan)
-    sin_angle = np.zeros(n)
+@numba.njit(**_OPTS)
+def _project_y(K, dist, px, py, pz):
+    """Distorted projector pixel row of a projector-frame point (OpenCV's model)."""
+    x = px / pz
+    y = py / pz
+    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return K[1, 1] * yd + K[1, 2]
+
+
+@numba.njit(**_OPTS)
+def _columns(x, y, z, u, iterations, R, T, K, dist, sin2_min):
+    """(s, flag) from column u only: the ray meets the column plane, whose bend by the
+    projector's distortion follows the predicted row (fixed-point iterations)."""
+    guess = K[1, 2]
+    s = np.nan
+    sin2 = 0.0
     for _ in range(iterations):
-        ideal = proj.undistort(np.column_stack([col, guess_row]))
-        normal_p = np.column_stack([np.ones(n), np.zeros(n), -ideal[:, 0]])  # plane in proj frame
-        normal_c = normal_p @ calib.R  # (R^T n_p) as rows
-        offset = normal_p @ calib.T
-        denom = np.einsum("ij,ij->i", normal_c, rays)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = -offset / denom
-        pts = rays * s[:, None]
-        sin_angle = np.abs(denom) / (np.linalg.norm(normal_c, axis=1) * np.linalg.norm(rays, axis=1))
-        predicted = proj.project(np.where(np.isfinite(pts), pts, 0.0) @ calib.R.T + calib.T)
-        guess_row = predicted[:, 1]
-    grazing = sin_angle < np.sin(np.deg2rad(min_angle_deg))
-    ok = np.isfinite(pts).all(axis=1) & (pts[:, 2] > 0) & ~grazing
-    pts[~ok] = np.nan
-    return Triangulation(pts, ok, np.zeros(n, bool), grazing)
+        xi, _yi = _ideal(K, dist, u, guess)
+        # plane normal (1, 0, -xi) in the projector frame, R^T n in the camera frame
+        n0 = R[0, 0] - xi * R[2, 0]
+        n1 = R[0, 1] - xi * R[2, 1]
+        n2 = R[0, 2] - xi * R[2, 2]
+        offset = T[0] - xi * T[2]
+        denom = n0 * x + n1 * y + n2 * z
+        s = -offset / denom
+        sin2 = denom * denom / ((n0 * n0 + n1 * n1 + n2 * n2) * (x * x + y * y + z * z))
+        px, py, pz = s * x, s * y, s * z
+        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+            px, py, pz = (px if np.isfinite(px) else 0.0, py if np.isfinite(py) else 0.0,
+                          pz if np.isfinite(pz) else 0.0)
+        qx = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + T[0]
+        qy = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + T[1]
+        qz = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + T[2]
+        guess = _project_y(K, dist, qx, qy, qz)
+    if sin2 < sin2_min:
+        return s, GRAZING
+    if not (np.isfinite(s * x) and np.isfinite(s * y) and np.isfinite(s * z) and s * z > 0):
+        return s, DROPPED
+    return s, KEPT
+
+
+@numba.njit(**_OPTS)
+def _solve(x, y, z, u, v, has_rows, iterations, R, T, K, dist, tolerance2, sin2_min):
+    if has_rows:
+        return _both(x, y, z, u, v, R, T, K, dist, tolerance2, sin2_min)
+    return _columns(x, y, z, u, iterations, R, T, K, dist, sin2_min)
+
+
+@numba.njit(parallel=True, **_OPTS)
+def _solve_rays(rays, column, row, has_rows, iterations, R, T, K, dist, tolerance2,
+                sin2_min, pts, flags):
+    for i in numba.prange(rays.shape[0]):
+        x, y, z = rays[i, 0], rays[i, 1], rays[i, 2]
+        s, f = _solve(x, y, z, column[i], row[i] if has_rows else 0.0, has_rows, iterations,
+                      R, T, K, dist, tolerance2, sin2_min)
+        flags[i] = f
+        if f != KEPT:
+            s = np.nan
+        pts[i, 0], pts[i, 1], pts[i, 2] = s * x, s * y, s * z
+
+
+@numba.njit(parallel=True, **_OPTS)
+def _count_rows(valid, out):
+    for y in numba.prange(valid.shape[0]):
+        c = 0
+        for x in range(valid.shape[1]):
+            c += valid[y, x]
+        out[y] = c
+
+
+@numba.njit(parallel=True, **_OPTS)
+def _solve_image(valid, column, row, has_rows, iterations, rays, start, affine, R, T, K,
+                 dist, tolerance2, sin2_min, pts, depth, pixels, flags):
+    for yy in numba.prange(valid.shape[0]):
+        i = start[yy]
+        for xx in range(valid.shape[1]):
+            if not valid[yy, xx]:
+                continue
+            x, y, z = rays[yy, xx, 0], rays[yy, xx, 1], rays[yy, xx, 2]
+            v = np.float64(row[yy, xx]) if has_rows else 0.0
+            s, f = _solve(x, y, z, np.float64(column[yy, xx]), v, has_rows, iterations, R, T,
+                          K, dist, tolerance2, sin2_min)
+            flags[i] = f
+            if f != KEPT:
+                s = np.nan
+            px, py, pz = s * x, s * y, s * z
+            for k in range(3):
+                pts[i, k] = affine[k, 0] * px + affine[k, 1] * py + affine[k, 2] * pz + affine[k, 3]
+            depth[i] = pz
+            pixels[i, 0] = xx
+            pixels[i, 1] = yy
+            i += 1

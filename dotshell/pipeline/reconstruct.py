@@ -12,7 +12,7 @@ import numpy as np
 from dotshell.coding import Correspondence, PatternCoding
 from dotshell.errors import CalibrationError, ReconstructionError
 from dotshell.geometry.calibration import RigCalibration
-from dotshell.geometry.triangulate import camera_ray_grid, triangulate
+from dotshell.geometry.triangulate import ImagePoints, triangulate_image
 
 
 @dataclass
@@ -40,11 +40,19 @@ def speckle_mask(pixels: np.ndarray, depth_mm: np.ndarray, shape: tuple[int, int
                  max_jump_mm: float) -> np.ndarray:
     """True for points whose depth agrees with the median of their 5×5 camera neighbourhood
     within ``max_jump_mm`` (isolated decoding errors — speckles — fail). Pixels without
-    points count as depth 0, so a point needs mostly valid neighbours to pass."""
-    img = np.zeros(shape, np.float32)
-    img[pixels[:, 1], pixels[:, 0]] = depth_mm
+    points count as depth 0, so a point needs mostly valid neighbours to pass. The median
+    runs on the points' bounding box (+2 px of zeros: the same result as on the whole image,
+    whose border OpenCV replicates)."""
+    if len(pixels) == 0:
+        return np.zeros(0, bool)
+    h, w = shape
+    x0, y0 = np.maximum(pixels.min(axis=0) - 2, 0)
+    x1, y1 = np.minimum(pixels.max(axis=0) + 3, (w, h))
+    img = np.zeros((y1 - y0, x1 - x0), np.float32)
+    xs, ys = pixels[:, 0] - x0, pixels[:, 1] - y0
+    img[ys, xs] = depth_mm
     med = cv2.medianBlur(img, 5)
-    return np.abs(med[pixels[:, 1], pixels[:, 0]] - depth_mm) <= max_jump_mm
+    return np.abs(med[ys, xs] - depth_mm) <= max_jump_mm
 
 
 def check_frames(frames: Sequence[np.ndarray], calib: RigCalibration, view: int) -> None:
@@ -56,6 +64,16 @@ def check_frames(frames: Sequence[np.ndarray], calib: RigCalibration, view: int)
             "at this resolution.")
 
 
+def triangulate_pixels(corr: Correspondence, calib: RigCalibration, processing: dict[str, Any],
+                       to_frame: np.ndarray | None = None) -> ImagePoints:
+    """Triangulate every valid pixel of a correspondence (points in the camera frame, or in
+    the frame of the (3, 4) affine map ``to_frame``)."""
+    return triangulate_image(corr.valid, corr.column, corr.row, calib,
+                             row_tolerance_px=processing["row_tolerance_px"],
+                             min_ray_angle_deg=processing["min_ray_angle_deg"],
+                             to_frame=to_frame)
+
+
 def triangulate_correspondence(corr: Correspondence, calib: RigCalibration,
                                processing: dict[str, Any]
                                ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
@@ -63,15 +81,15 @@ def triangulate_correspondence(corr: Correspondence, calib: RigCalibration,
 
     Returns the camera pixels (N, 2) (x, y) kept, their camera-frame points (N, 3) in mm, and
     the counts ``triangulated``, ``row_rejected``, ``grazing``."""
-    ys, xs = np.nonzero(corr.valid)
-    rays = camera_ray_grid(calib.camera)[ys, xs]
-    tri = triangulate(rays, corr.column[ys, xs], calib,
-                      row=None if corr.row is None else corr.row[ys, xs],
-                      row_tolerance_px=processing["row_tolerance_px"],
-                      min_ray_angle_deg=processing["min_ray_angle_deg"])
-    stats = {"triangulated": int(tri.keep.sum()), "row_rejected": int(tri.row_rejected.sum()),
-             "grazing": int(tri.grazing.sum())}
-    return np.column_stack([xs, ys])[tri.keep], tri.points[tri.keep], stats
+    tri = triangulate_pixels(corr, calib, processing)
+    return tri.pixels, tri.points, tri.counts
+
+
+def sample_frame_map(calib: RigCalibration, angle_deg: float) -> np.ndarray:
+    """(3, 4) affine map [A | b] from the camera frame to the sample frame at stage angle θ
+    (degrees): ``p_sample = A @ p + b``, as :meth:`RigCalibration.camera_to_sample`."""
+    a = calib.sample_rotation(angle_deg).T
+    return np.column_stack([a, -a @ calib.axis_point])
 
 
 #: Pixel losses in the order they happen, with what each means and what would fix it.
@@ -147,16 +165,16 @@ def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
     t0 = time.perf_counter()
     corr = coding.decode(frames, calib.projector.size)
     t1 = time.perf_counter()
-    pixels, cam_pts, tri_stats = triangulate_correspondence(corr, calib, processing)
-    smooth = np.ones(len(cam_pts), bool)
+    tri = triangulate_pixels(corr, calib, processing, sample_frame_map(calib, angle_deg))
+    smooth = np.ones(len(tri.points), bool)
     if processing["max_depth_jump_mm"] > 0:
-        smooth = speckle_mask(pixels, cam_pts[:, 2], frames[0].shape[:2],
+        smooth = speckle_mask(tri.pixels, tri.depth, frames[0].shape[:2],
                               processing["max_depth_jump_mm"])
-    pts = calib.camera_to_sample(cam_pts[smooth], angle_deg)
-    pixels = pixels[smooth]
-    inside = in_roi(pts, processing["roi"])
+    inside = in_roi(tri.points, processing["roi"])
+    keep = smooth & inside
     t2 = time.perf_counter()
-    stats = {**corr.stats, **tri_stats, "speckle": int((~smooth).sum()),
-             "outside_roi": int((~inside).sum()), "points": int(inside.sum())}
-    return ViewCloud(view, angle_deg, pts[inside], pixels[inside], corr, stats,
+    stats = {**corr.stats, **tri.counts, "speckle": int(np.count_nonzero(~smooth)),
+             "outside_roi": int(np.count_nonzero(smooth & ~inside)),
+             "points": int(np.count_nonzero(keep))}
+    return ViewCloud(view, angle_deg, tri.points[keep], tri.pixels[keep], corr, stats,
                      {"decode": t1 - t0, "triangulate": t2 - t1})
