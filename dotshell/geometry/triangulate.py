@@ -180,17 +180,29 @@ def triangulate_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | N
     counts = {"triangulated": int(np.count_nonzero(keep)),
               "row_rejected": int(np.count_nonzero(flags == ROW_REJECTED)),
               "grazing": int(np.count_nonzero(flags == GRAZING))}
-    return ImagePoints(pixels[keep], pts[keep], depth[keep], counts)
+    return ImagePoints(*select(keep, pixels, pts, depth), counts)
+
+
+def select(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``a[mask]`` for each array, computed in place (the arrays' first ``mask.sum()`` rows
+    are overwritten; the results are views of them): one compiled pass instead of a boolean
+    index per array (50 ms for a view's points in numpy on a busy machine)."""
+    n = 0
+    for a in arrays:
+        n = _select_in_place(mask, a.reshape(len(a), -1))
+    return tuple(a[:n] for a in arrays) if arrays else ()
 
 
 # ---- compiled solves ------------------------------------------------------------------------
 
 KEPT, DROPPED, ROW_REJECTED, GRAZING = 0, 1, 2, 3
 _OPTS = dict(nogil=True, cache=True, error_model="numpy")
+#: per-point helpers are inlined: a compiled call passing arrays pays reference counting
+_INNER = dict(_OPTS, inline="always")
 MAX_UNDISTORT_STEPS = 50
 
 
-@numba.njit(**_OPTS)
+@numba.njit(**_INNER)
 def _ideal(K, dist, u, v):
     """Ideal normalized coordinates of distorted pixel (u, v): the Brown–Conrady model
     inverted by fixed-point iteration, as ``cv2.undistortPoints`` does, to convergence
@@ -212,7 +224,7 @@ def _ideal(K, dist, u, v):
     return x, y
 
 
-@numba.njit(**_OPTS)
+@numba.njit(**_INNER)
 def _both(x, y, z, u, v, R, T, K, dist, tolerance2, sin2_min):
     """(s, flag): the point is ``s`` × ray from column u and row v (module docstring)."""
     xp, yp = _ideal(K, dist, u, v)
@@ -243,7 +255,7 @@ def _both(x, y, z, u, v, R, T, K, dist, tolerance2, sin2_min):
     return s, KEPT
 
 
-@numba.njit(**_OPTS)
+@numba.njit(**_INNER)
 def _project_y(K, dist, px, py, pz):
     """Distorted projector pixel row of a projector-frame point (OpenCV's model)."""
     x = px / pz
@@ -255,7 +267,7 @@ def _project_y(K, dist, px, py, pz):
     return K[1, 1] * yd + K[1, 2]
 
 
-@numba.njit(**_OPTS)
+@numba.njit(**_INNER)
 def _columns(x, y, z, u, iterations, R, T, K, dist, sin2_min):
     """(s, flag) from column u only: the ray meets the column plane, whose bend by the
     projector's distortion follows the predicted row (fixed-point iterations)."""
@@ -287,7 +299,7 @@ def _columns(x, y, z, u, iterations, R, T, K, dist, sin2_min):
     return s, KEPT
 
 
-@numba.njit(**_OPTS)
+@numba.njit(**_INNER)
 def _solve(x, y, z, u, v, has_rows, iterations, R, T, K, dist, tolerance2, sin2_min):
     if has_rows:
         return _both(x, y, z, u, v, R, T, K, dist, tolerance2, sin2_min)
@@ -305,6 +317,18 @@ def _solve_rays(rays, column, row, has_rows, iterations, R, T, K, dist, toleranc
         if f != KEPT:
             s = np.nan
         pts[i, 0], pts[i, 1], pts[i, 2] = s * x, s * y, s * z
+
+
+@numba.njit(**_OPTS)
+def _select_in_place(mask, rows):
+    n = 0
+    for i in range(mask.shape[0]):
+        if mask[i]:
+            if n != i:
+                for k in range(rows.shape[1]):
+                    rows[n, k] = rows[i, k]
+            n += 1
+    return n
 
 
 @numba.njit(parallel=True, **_OPTS)

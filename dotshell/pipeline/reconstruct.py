@@ -2,17 +2,18 @@
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
-import cv2
+import numba
 import numpy as np
 
 from dotshell.coding import Correspondence, PatternCoding
 from dotshell.errors import CalibrationError, ReconstructionError
 from dotshell.geometry.calibration import RigCalibration
-from dotshell.geometry.triangulate import ImagePoints, triangulate_image
+from dotshell.geometry.triangulate import ImagePoints, select, triangulate_image
 
 
 @dataclass
@@ -31,28 +32,58 @@ class ViewCloud:
 
 def in_roi(points: np.ndarray, roi: dict[str, float]) -> np.ndarray:
     """Mask of sample-frame points (N, 3) inside the cylindrical region of interest."""
-    r = np.hypot(points[:, 0], points[:, 1])
-    return (r <= roi["radius_mm"]) & (points[:, 2] >= roi["z_min_mm"]) & (
-        points[:, 2] <= roi["z_max_mm"])
+    out = np.empty(len(points), bool)
+    _in_cylinder(np.ascontiguousarray(points, np.float64), float(roi["radius_mm"]),
+                 float(roi["z_min_mm"]), float(roi["z_max_mm"]), out)
+    return out
 
 
 def speckle_mask(pixels: np.ndarray, depth_mm: np.ndarray, shape: tuple[int, int],
                  max_jump_mm: float) -> np.ndarray:
     """True for points whose depth agrees with the median of their 5×5 camera neighbourhood
     within ``max_jump_mm`` (isolated decoding errors — speckles — fail). Pixels without
-    points count as depth 0, so a point needs mostly valid neighbours to pass. The median
-    runs on the points' bounding box (+2 px of zeros: the same result as on the whole image,
-    whose border OpenCV replicates)."""
-    if len(pixels) == 0:
-        return np.zeros(0, bool)
-    h, w = shape
-    x0, y0 = np.maximum(pixels.min(axis=0) - 2, 0)
-    x1, y1 = np.minimum(pixels.max(axis=0) + 3, (w, h))
-    img = np.zeros((y1 - y0, x1 - x0), np.float32)
-    xs, ys = pixels[:, 0] - x0, pixels[:, 1] - y0
-    img[ys, xs] = depth_mm
-    med = cv2.medianBlur(img, 5)
-    return np.abs(med[ys, xs] - depth_mm) <= max_jump_mm
+    points count as depth 0 (float32 depths, the image border replicated, as OpenCV's
+    ``medianBlur`` of the depth image), so a point needs mostly valid neighbours to pass.
+
+    Computed per point without sorting: the median m of the 25 values lies within
+    [d − j, d + j] exactly when at least 13 values v have ``v − d ≤ j`` and at least 13 have
+    ``v − d ≥ −j`` (v − d is monotone in v), which is the same test on the same numbers."""
+    img = np.zeros(shape, np.float32)
+    pixels = np.ascontiguousarray(pixels)
+    depth = np.ascontiguousarray(depth_mm, np.float64)
+    _scatter(pixels, depth, img)
+    out = np.empty(len(depth), bool)
+    _median_within(pixels, depth, img, float(max_jump_mm), out)
+    return out
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _in_cylinder(points, radius, z_min, z_max, out):
+    for i in numba.prange(points.shape[0]):
+        z = points[i, 2]
+        out[i] = math.hypot(points[i, 0], points[i, 1]) <= radius and z_min <= z <= z_max
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _scatter(pixels, depth, img):
+    for i in numba.prange(pixels.shape[0]):
+        img[pixels[i, 1], pixels[i, 0]] = depth[i]
+
+
+@numba.njit(parallel=True, nogil=True, cache=True)
+def _median_within(pixels, depth, img, max_jump, out):
+    h, w = img.shape
+    for i in numba.prange(pixels.shape[0]):
+        x, y, d = pixels[i, 0], pixels[i, 1], depth[i]
+        below = 0
+        above = 0
+        for dy in range(-2, 3):
+            yy = min(max(y + dy, 0), h - 1)
+            for dx in range(-2, 3):
+                e = np.float64(img[yy, min(max(x + dx, 0), w - 1)]) - d
+                below += e <= max_jump
+                above += e >= -max_jump
+        out[i] = below >= 13 and above >= 13
 
 
 def check_frames(frames: Sequence[np.ndarray], calib: RigCalibration, view: int) -> None:
@@ -176,5 +207,7 @@ def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
     stats = {**corr.stats, **tri.counts, "speckle": int(np.count_nonzero(~smooth)),
              "outside_roi": int(np.count_nonzero(smooth & ~inside)),
              "points": int(np.count_nonzero(keep))}
-    return ViewCloud(view, angle_deg, tri.points[keep], tri.pixels[keep], corr, stats,
-                     {"decode": t1 - t0, "triangulate": t2 - t1})
+    pixels, points = select(keep, tri.pixels, tri.points)
+    t3 = time.perf_counter()
+    return ViewCloud(view, angle_deg, points, pixels, corr, stats,
+                     {"decode": t1 - t0, "triangulate": t3 - t1})

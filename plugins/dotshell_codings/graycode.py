@@ -426,11 +426,16 @@ class GrayCode:
         ax = d.axis
 
         def refine(transpose: bool) -> tuple[np.ndarray, np.ndarray]:
+            h, w = valid.shape
+            shape = (h - 1, w) if transpose else (h, w - 1)
+            pos, val = np.empty(shape, np.float32), np.empty(shape, np.float32)
+            kernels.anchors(stack, self.inverse, rng, d.code, valid, transpose, ax.nb,
+                            ax.block, ax.offset, d.first_pair, -1 if anchor is None else anchor,
+                            pos, val)
             fine = np.empty(valid.shape, np.float32)
             ok = np.empty(valid.shape, bool)
-            kernels.refine(stack, self.inverse, rng, d.code, valid, transpose, ax.nb, ax.block,
-                           ax.offset, d.first_pair, -1 if anchor is None else anchor, span,
-                           fine, ok)
+            scan = kernels.interpolate_down if transpose else kernels.interpolate
+            scan(d.code, valid, pos, val, ax.block, ax.offset, span, fine, ok)
             return fine, ok
 
         across = stripes_cross_columns(d.code, valid)

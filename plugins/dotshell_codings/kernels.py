@@ -28,7 +28,8 @@ import numpy as np
 
 _OPTS = dict(nogil=True, cache=True, error_model="numpy")
 
-_INNER = dict(nogil=True, cache=True, error_model="numpy")
+#: helpers called per pixel are inlined: a compiled call passing arrays pays reference counting
+_INNER = dict(nogil=True, cache=True, error_model="numpy", inline="always")
 
 CONTRAST, ROBUST = 0, 1
 
@@ -259,14 +260,6 @@ def _flip_bit(j, nb):
 
 
 @numba.njit(**_INNER)
-def _at(transpose, line, i):
-    """(y, x) of sample ``i`` of scan line ``line`` (a camera row, or column if ``transpose``)."""
-    if transpose:
-        return np.int64(i), np.int64(line)
-    return np.int64(line), np.int64(i)
-
-
-@numba.njit(**_INNER)
 def _d(stack, inverse, fp, y, x, rng):
     """Range-normalised difference signal of the pair whose pattern is frame ``fp``."""
     p = np.float32(stack[fp, y, x])
@@ -277,82 +270,148 @@ def _d(stack, inverse, fp, y, x, rng):
     return (p - q) / max(rng[y, x], np.float32(1e-6))
 
 
-@numba.njit(parallel=True, **_OPTS)
-def refine(stack, inverse, rng, code, valid, transpose, nb, block, offset, first_pair,
-           anchor_bit, max_span, fine, ok):
-    """Sub-pixel coordinates of one axis along the camera rows (``transpose``: columns).
-
-    Between adjacent valid samples whose codes differ by one step (or two, ``anchor_bit`` < 0)
-    the zero crossings of the flipping bits' difference signals anchor the projector boundary;
-    a valid sample between two anchors of its run (at most ``max_span`` blocks apart, its own
-    block between them) is interpolated linearly. Outputs fine (float32, NaN where not
-    refined) and ok (bool), (H, W)."""
-    H, W = code.shape
-    per_bit = 2 if inverse else 1
-    lines = W if transpose else H
-    w = H if transpose else W
+@numba.njit(**_INNER)
+def _anchor(stack, inverse, rng, code, valid, y0, x0, y1, x1, s, nb, block, offset,
+            first_pair, anchor_bit):
+    """(position along the scan line, projector coordinate) of the stripe edge between the
+    adjacent pixels (y0, x0) = sample ``s`` and (y1, x1) = sample ``s + 1``, or NaN, NaN."""
     nan32 = np.float32(np.nan)
-    for line in numba.prange(lines):
-        pos = np.full(max(w - 1, 1), nan32, np.float32)
-        val = np.full(max(w - 1, 1), nan32, np.float32)
-        has = np.zeros(max(w - 1, 1), np.bool_)
-        left = np.empty(w, np.int64)
-        last_bad = np.empty(w, np.int64)
-        for s in range(w - 1):
-            y0, x0 = _at(transpose, line, s)
-            y1, x1 = _at(transpose, line, s + 1)
-            if not (valid[y0, x0] and valid[y1, x1]):
-                continue
-            a, b = code[y0, x0], code[y1, x1]
-            k = abs(b - a)
-            if k == 0 or k > 2 or (anchor_bit >= 0 and k != 1):
-                continue
-            base = np.int64(min(a, b))
-            if anchor_bit >= 0 and _flip_bit(base + 1, nb) != anchor_bit:
-                continue
-            t = np.float32(0.0)
-            for step in range(1, k + 1):
-                fp = 2 + per_bit * (first_pair + _flip_bit(base + step, nb))
-                d0 = _d(stack, inverse, fp, y0, x0, rng)
-                d1 = _d(stack, inverse, fp, y1, x1, rng)
-                den = d0 - d1
-                c = d0 / den if den != 0 else np.float32(0.5)
-                c = min(max(c, np.float32(0.0)), np.float32(1.0))
-                t += c
-            pos[s] = np.float32(np.float64(s) + np.float64(t / np.float32(k)))
-            val[s] = np.float32((base + 1) * block - offset - 0.5 + 0.5 * (k - 1) * block)
-            has[s] = True
+    if not (valid[y0, x0] and valid[y1, x1]):
+        return nan32, nan32
+    a, b = code[y0, x0], code[y1, x1]
+    k = abs(b - a)
+    if k == 0 or k > 2 or (anchor_bit >= 0 and k != 1):
+        return nan32, nan32
+    base = np.int64(min(a, b))
+    if anchor_bit >= 0 and _flip_bit(base + 1, nb) != anchor_bit:
+        return nan32, nan32
+    per_bit = 2 if inverse else 1
+    t = np.float32(0.0)
+    for step in range(1, k + 1):
+        fp = 2 + per_bit * (first_pair + _flip_bit(base + step, nb))
+        d0 = _d(stack, inverse, fp, y0, x0, rng)
+        d1 = _d(stack, inverse, fp, y1, x1, rng)
+        den = d0 - d1
+        c = d0 / den if den != 0 else np.float32(0.5)
+        t += min(max(c, np.float32(0.0)), np.float32(1.0))
+    pos = np.float32(np.float64(s) + np.float64(t / np.float32(k)))
+    val = np.float32((base + 1) * block - offset - 0.5 + 0.5 * (k - 1) * block)
+    return pos, val
+
+
+@numba.njit(parallel=True, **_OPTS)
+def anchors(stack, inverse, rng, code, valid, down, nb, block, offset, first_pair, anchor_bit,
+            pos, val):
+    """Stripe-edge anchors between horizontally adjacent pixels, (H, W − 1) outputs (``down``:
+    vertically adjacent, (H − 1, W)): position along the scan line and projector coordinate,
+    NaN where there is none. Rows are read along memory in both cases."""
+    for y in numba.prange(pos.shape[0]):
+        for x in range(pos.shape[1]):
+            if down:
+                pos[y, x], val[y, x] = _anchor(stack, inverse, rng, code, valid, y, x, y + 1, x,
+                                               y, nb, block, offset, first_pair, anchor_bit)
+            else:
+                pos[y, x], val[y, x] = _anchor(stack, inverse, rng, code, valid, y, x, y, x + 1,
+                                               x, nb, block, offset, first_pair, anchor_bit)
+
+
+@numba.njit(**_INNER)
+def _interpolate(i, c, pl, vl, pr, vr, block, offset, max_span):
+    """Coordinate of sample ``i`` (code ``c``) between the anchors (pl, vl) and (pr, vr), and
+    whether it holds (anchors at most ``max_span`` blocks apart, its own block between)."""
+    span = vr - vl
+    lo = np.int64(c) * block - offset
+    centre = 0.5 * (lo + lo + (block - 1))
+    if (span != 0 and abs(span) <= max_span * block and pr > pl
+            and centre >= min(vl, vr) and centre <= max(vl, vr)):
+        return np.float32(np.float64(vl) + (np.float64(i) - np.float64(pl))
+                          / np.float64(pr - pl) * np.float64(span)), True
+    return np.float32(np.nan), False
+
+
+@numba.njit(parallel=True, **_OPTS)
+def interpolate(code, valid, pos, val, block, offset, max_span, fine, ok):
+    """Sub-pixel coordinates along the lines of line-major (H, W) ``code`` and ``valid`` from
+    the (H, W − 1) anchors between their samples (:func:`anchors`): a valid sample between two
+    anchors of its run of valid samples (at most ``max_span`` blocks apart, its own block
+    between them) is interpolated linearly. Outputs fine (float32, NaN where not refined) and
+    ok (bool), line-major."""
+    H, W = code.shape
+    for y in numba.prange(H):
+        left = np.empty(W, np.int64)
+        last_bad = np.empty(W, np.int64)
         lft = -1
         bad = -1
-        for x in range(w):
-            yy, xx = _at(transpose, line, x)
-            if x >= 1 and has[x - 1]:
+        for x in range(W):
+            if x >= 1 and not np.isnan(pos[y, x - 1]):
                 lft = x - 1
-            if not valid[yy, xx]:
+            if not valid[y, x]:
                 bad = x
             left[x] = lft
             last_bad[x] = bad
-        rgt = w
-        nxt = w
-        for x in range(w - 1, -1, -1):
-            yy, xx = _at(transpose, line, x)
-            if x <= w - 2 and has[x]:
+        rgt = W
+        nxt = W
+        for x in range(W - 1, -1, -1):
+            if x <= W - 2 and not np.isnan(pos[y, x]):
                 rgt = x
-            if not valid[yy, xx]:
+            if not valid[y, x]:
                 nxt = x
             lf = left[x]
-            good = (valid[yy, xx] and lf > last_bad[x] and rgt < nxt and lf >= 0
-                    and rgt < w - 1)
-            f = nan32
-            if good:
-                pl, vl, pr, vr = pos[lf], val[lf], pos[rgt], val[rgt]
-                span = vr - vl
-                lo = np.int64(code[yy, xx]) * block - offset
-                centre = 0.5 * (lo + lo + (block - 1))
-                good = (span != 0 and abs(span) <= max_span * block and pr > pl
-                        and centre >= min(vl, vr) and centre <= max(vl, vr))
-                if good:
-                    f = np.float32(np.float64(vl) + (np.float64(x) - np.float64(pl))
-                                   / np.float64(pr - pl) * np.float64(span))
-            fine[yy, xx] = f
-            ok[yy, xx] = good
+            f = np.float32(np.nan)
+            good = False
+            if valid[y, x] and lf > last_bad[x] and rgt < nxt and lf >= 0 and rgt < W - 1:
+                f, good = _interpolate(x, code[y, x], pos[y, lf], val[y, lf], pos[y, rgt],
+                                       val[y, rgt], block, offset, max_span)
+            fine[y, x] = f
+            ok[y, x] = good
+
+
+#: camera columns scanned together by :func:`interpolate_down` (one task of its parallel loop)
+COLUMN_BLOCK = 64
+
+
+@numba.njit(parallel=True, **_OPTS)
+def interpolate_down(code, valid, pos, val, block, offset, max_span, fine, ok):
+    """:func:`interpolate` along the camera columns, from (H − 1, W) anchors, without
+    transposing: blocks of :data:`COLUMN_BLOCK` columns are scanned row by row, so that every
+    read runs along memory."""
+    H, W = code.shape
+    left = np.empty((H, W), np.int32)
+    last_bad = np.empty((H, W), np.int32)
+    n_blocks = (W + COLUMN_BLOCK - 1) // COLUMN_BLOCK
+    for blk in numba.prange(n_blocks):
+        x0 = blk * COLUMN_BLOCK
+        x1 = min(W, x0 + COLUMN_BLOCK)
+        lft = np.empty(COLUMN_BLOCK, np.int32)
+        bad = np.empty(COLUMN_BLOCK, np.int32)
+        for j in range(COLUMN_BLOCK):
+            lft[j] = -1
+            bad[j] = -1
+        for y in range(H):
+            for x in range(x0, x1):
+                j = x - x0
+                if y >= 1 and not np.isnan(pos[y - 1, x]):
+                    lft[j] = y - 1
+                if not valid[y, x]:
+                    bad[j] = y
+                left[y, x] = lft[j]
+                last_bad[y, x] = bad[j]
+        for j in range(COLUMN_BLOCK):
+            lft[j] = H  # now the right anchor
+            bad[j] = H  # now the next invalid sample
+        for y in range(H - 1, -1, -1):
+            for x in range(x0, x1):
+                j = x - x0
+                if y <= H - 2 and not np.isnan(pos[y, x]):
+                    lft[j] = y
+                if not valid[y, x]:
+                    bad[j] = y
+                lf = left[y, x]
+                rg = lft[j]
+                f = np.float32(np.nan)
+                good = False
+                if valid[y, x] and lf > last_bad[y, x] and rg < bad[j] and lf >= 0 and rg < H - 1:
+                    f, good = _interpolate(y, code[y, x], pos[lf, x], val[lf, x], pos[rg, x],
+                                           val[rg, x], block, offset, max_span)
+                fine[y, x] = f
+                ok[y, x] = good
