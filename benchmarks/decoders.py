@@ -1,11 +1,13 @@
-"""Decoding one view three ways, timings interleaved in one run: dotshell's decoder, OpenCV
-contrib's ``getProjPixel`` on the lit pixels in raster order (its own venv, a server process so
-its runs alternate with ours), and the plain numpy integer decoder (:mod:`numpy_gray`).
+"""Decoding one view four ways, timings interleaved in one run: dotshell's decoder, the decoder
+before issue 16 part 2 (:mod:`graycode_before`, frozen), OpenCV contrib's ``getProjPixel`` on the
+lit pixels in raster order (its own venv, a server process so its runs alternate with ours), and
+the plain numpy integer decoder (:mod:`numpy_gray`).
 
 Each repeat runs all of them (and dotshell's decoder with ``subpixel = false``, so that the
-refinement's share shows), in a rotating order; min and median per side. Agreement: the numpy
-decoder and OpenCV against dotshell's integer codes (the same decoder with ``subpixel = false``,
-so the compared values are integers on both sides).
+refinement's share shows), in a rotating order; min and median per side. Agreement: dotshell's
+decoder against the one before, bit for bit (integer codes, masks, statistics, and the sub-pixel
+coordinates); the numpy decoder and OpenCV against dotshell's integer codes (the same decoder
+with ``subpixel = false``, so the compared values are integers on both sides).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+import graycode_before
 import numpy_gray
 from dotshell.coding import Correspondence
 from dotshell_codings.graycode import code_offset
@@ -78,9 +81,12 @@ def _timed(fn) -> tuple[float, Any]:
     return time.perf_counter() - t0, out
 
 
-def compare(view, integer_coding, peer: OpenCVPeer, repeats: int) -> dict[str, Any]:
-    """Interleaved timings of the three decoders on ``view`` and their agreement."""
+def compare(view, integer_coding, peer: OpenCVPeer, repeats: int,
+            settings: dict[str, Any]) -> dict[str, Any]:
+    """Interleaved timings of the decoders on ``view`` and their agreement; ``settings``: the
+    coding's settings (for the decoder before)."""
     frames, names, size = view.frames, view.names, view.projector_size
+    before = graycode_before.GrayCode(**settings)
     shadow_dn = view.coding.shadow_threshold * full_scale(frames[names.index("white")],
                                                           view.coding.bit_depth)
     sides = {
@@ -88,6 +94,7 @@ def compare(view, integer_coding, peer: OpenCVPeer, repeats: int) -> dict[str, A
         "opencv_lit_raster": peer.time_once,
         "numpy_integer": lambda: numpy_gray.decode(frames, names, size, shadow_dn),
         "dotshell_no_refine": lambda: integer_coding.decode(frames, size),
+        "dotshell_before": lambda: before.decode(frames, size),
     }
     runs: dict[str, list[float]] = {k: [] for k in sides}
     keys = list(sides)
@@ -99,6 +106,10 @@ def compare(view, integer_coding, peer: OpenCVPeer, repeats: int) -> dict[str, A
                 s, _ = _timed(sides[k])
                 runs[k].append(s)
     out: dict[str, Any] = {k: min_median(v) for k, v in runs.items()}
+    out["identical_to_before"] = {
+        "integer": _identical(integer_coding.decode(frames, size), graycode_before.GrayCode(
+            **{**settings, "subpixel": False}).decode(frames, size)),
+        "subpixel": _identical(view.coding.decode(frames, size), before.decode(frames, size))}
     ours = integer_coding.decode(frames, size)
     out["numpy_agreement"] = _numpy_agreement(ours, numpy_gray.decode(frames, names, size,
                                                                       shadow_dn))
@@ -110,8 +121,22 @@ def compare(view, integer_coding, peer: OpenCVPeer, repeats: int) -> dict[str, A
     out["opencv_over_dotshell"] = {s: out["opencv_lit_raster"][s] / out["dotshell"][s]
                                    for s in stats}
     out["dotshell_over_numpy"] = {s: out["dotshell"][s] / out["numpy_integer"][s] for s in stats}
+    out["before_over_dotshell"] = {s: out["dotshell_before"][s] / out["dotshell"][s]
+                                   for s in stats}
     out["refine_s"] = out["dotshell"]["median"] - out["dotshell_no_refine"]["median"]
     return out
+
+
+def _identical(ours: Correspondence, theirs: Correspondence) -> dict[str, Any]:
+    """Pixels where two decodes differ (codes or coordinates, NaN equal to NaN), and whether
+    the masks and statistics are the same."""
+    differ = ours.valid != theirs.valid
+    for axis in ("column", "row"):
+        a, b = getattr(ours, axis), getattr(theirs, axis)
+        if a is not None and b is not None:
+            differ |= ~((a == b) | (np.isnan(a) & np.isnan(b)))
+    return {"differing_px": int(differ.sum()), "same_stats": ours.stats == theirs.stats,
+            "same_reasons": bool(np.array_equal(ours.reason, theirs.reason))}
 
 
 def _numpy_agreement(ours: Correspondence, codes: numpy_gray.IntegerCodes) -> dict[str, Any]:
@@ -139,6 +164,7 @@ def print_decoders(d: dict[str, Any], baseline: dict[str, Any]) -> None:
     print(f"\n== 3. decoders on the same view, interleaved (min / median of {d['repeats']}; "
           f"ms per view) ==")
     rows = (("dotshell decode (robust, sub-pixel)", "dotshell"),
+            ("the same decoder before issue 16 part 2 (frozen)", "dotshell_before"),
             (f"OpenCV {d['opencv_version']} getProjPixel, {d['lit_px']} lit px, raster order",
              "opencv_lit_raster"),
             ("plain numpy integer gray decode", "numpy_integer"),
@@ -149,11 +175,16 @@ def print_decoders(d: dict[str, Any], baseline: dict[str, Any]) -> None:
     before = baseline.get("refine_ms")
     print(f"  sub-pixel refinement (difference of the medians) {d['refine_s'] * 1e3:9.1f}"
           + (f"   (baseline {before:.0f})" if before else ""))
-    for key, what in (("opencv_over_dotshell", "OpenCV time / dotshell time"),
+    for key, what in (("before_over_dotshell", "before time / dotshell time"),
+                      ("opencv_over_dotshell", "OpenCV time / dotshell time"),
                       ("dotshell_over_numpy", "dotshell time / numpy time")):
         r, before = d[key], baseline.get(key, {}).get("median")
         print(f"  {what:40s} {r['min']:7.2f}x min {r['median']:7.2f}x median"
               + (f"   (baseline {before:.2f}x median)" if before else ""))
+    for key, ident in d["identical_to_before"].items():
+        print(f"  dotshell vs before ({key}): {ident['differing_px']} px differ, statistics "
+              f"{'equal' if ident['same_stats'] else 'DIFFERENT'}, reasons "
+              f"{'equal' if ident['same_reasons'] else 'DIFFERENT'}")
     a = d["numpy_agreement"]
     print(f"  numpy integer codes == dotshell's (subpixel = false) on {a['equal_pct']:.4f} % of "
           f"{a['both']} px valid in both (dotshell {a['dotshell_valid']}, numpy "

@@ -44,6 +44,9 @@ import numpy as np
 
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens
+from dotshell.runtime import passive_openmp_waits
+
+passive_openmp_waits()  # before numba loads OpenMP: see dotshell.runtime
 
 
 @dataclass

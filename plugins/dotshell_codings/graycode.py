@@ -10,7 +10,7 @@ Bits are projected most significant first. For a projector axis of ``N`` pixels 
 of the projector. ``drop_low_bits = m`` leaves out the ``m`` finest bits; the decoded value is
 then the coarse code ``v >> m``, i.e. a block of ``2**m`` projector pixels.
 
-Decoding (all vectorised, one pass per bit):
+Decoding (per pixel, in compiled passes over the view: :mod:`dotshell_codings.kernels`):
 
 * bit = pattern > inverse (or pattern > (white + black) / 2 without inverses);
 * ``shadow``: white - black < ``shadow_threshold`` * full scale;

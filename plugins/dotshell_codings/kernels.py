@@ -26,6 +26,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from dotshell.runtime import passive_openmp_waits
+
+passive_openmp_waits()  # before numba loads OpenMP: see dotshell.runtime
+
 _OPTS = dict(nogil=True, cache=True, error_model="numpy")
 
 #: helpers called per pixel are inlined: a compiled call passing arrays pays reference counting
