@@ -4,7 +4,8 @@
    (:mod:`frame_io`).
 2. ``reconstruct_view`` of one view (simulated reference bench, full resolution by default):
    decode and triangulate (BLAS on one thread, as the ``dotshell`` command runs it), with the
-   compiled loops on every core and on one thread, interleaved.
+   compiled passes split across every core and on one thread (``DOTSHELL_THREADS``),
+   interleaved.
 3. Decoders on the same frames, interleaved (:mod:`decoders`): dotshell's; the decoder before
    issue 16 part 2 (``graycode_before``, frozen), with a bit-for-bit comparison; OpenCV contrib's
    ``GrayCodePattern.getProjPixel`` on every lit pixel in raster order, in its own venv
@@ -35,12 +36,12 @@ from pathlib import Path
 from typing import Any
 
 import cv2
-import numba
 import numpy as np
 
 import decoders
 import frame_io
 from bench_profile import ROOT, load_bench_profile
+from dotshell import parallel
 from dotshell.runtime import configure_process
 from dotshell.coding import PatternCoding
 from dotshell.devices import ExposureControl
@@ -103,16 +104,17 @@ def render_view(profile: Profile, pm: PluginManager) -> RenderedView:
 def time_reconstruct(view: RenderedView, processing: dict[str, Any], repeats: int
                      ) -> dict[str, Any]:
     """Decode / triangulate seconds of ``reconstruct_view`` (min and median of ``repeats``),
-    the compiled loops on every core and on one thread, alternated."""
-    cores = numba.get_num_threads()
+    the compiled passes split across every core and on one thread, alternated."""
+    cores = parallel.workers()
+    # untimed first run: loads the compiled passes from numba's cache (or compiles them)
+    reconstruct_view(0, view.angle_deg, view.frames, view.coding, view.calib, processing)
     runs: dict[str, list[dict[str, float]]] = {"cores": [], "one": []}
     for r in range(repeats):
         for key in (("cores", "one") if r % 2 == 0 else ("one", "cores")):
-            numba.set_num_threads(cores if key == "cores" else 1)
-            vc = reconstruct_view(0, view.angle_deg, view.frames, view.coding,
-                                  view.calib, processing)
+            with parallel.threads(cores if key == "cores" else 1):
+                vc = reconstruct_view(0, view.angle_deg, view.frames, view.coding,
+                                      view.calib, processing)
             runs[key].append(vc.seconds)
-    numba.set_num_threads(cores)
     out: dict[str, Any] = {}
     for key, rs in runs.items():
         for stage in ("decode", "triangulate"):

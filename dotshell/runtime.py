@@ -1,7 +1,7 @@
-"""Process-wide settings of the ``dotshell`` command: BLAS on one thread, large
-allocations returned to the system when freed, and OpenMP threads that sleep while they wait.
-Python callers of the pipeline can call :func:`configure_process` (or any of its functions)
-themselves; the benchmarks do, as the command does.
+"""Process-wide settings of the ``dotshell`` command: BLAS on one thread, and large
+allocations returned to the system when freed. Python callers of the pipeline can call
+:func:`configure_process` (or either function) themselves; the benchmarks do, as the command
+does.
 
 **BLAS threads.** dotshell's dense products are small — (N, 3) points or rays times a 3×3
 rotation, 3-vectors dotted — and numpy hands them to its BLAS (OpenBLAS), which splits each
@@ -16,20 +16,12 @@ the first full-size temporaries are freed, the next ones of a few MiB come from 
 keeps the freed memory: a reconstruction's resident memory grows view by view. A fixed
 threshold of 1 MiB keeps every image-sized array in its own mapping, returned when freed
 (measured: ``dotshell reconstruct`` of the demo run, RSS between views 517 → 380 MiB).
-
-**OpenMP waits.** The compiled decode and triangulation loops (numba, its OpenMP threading
-layer) split each pass across the cores. GNU OpenMP's idle threads spin before they sleep; on a
-busy machine the spinning thread takes the core from the one still working, and every pass waits
-for both: measured on 2 cores at load 5, a view at 320x256 took 96 ms on two threads against
-26 ms on one; with ``OMP_WAIT_POLICY=PASSIVE`` 27 ms (docs/performance.md). The modules with
-parallel loops call :func:`passive_openmp_waits` when imported; a value the user set wins.
 """
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
-import os
 
 from threadpoolctl import threadpool_limits
 
@@ -53,15 +45,7 @@ def fix_mmap_threshold(nbytes: int = 1 << 20) -> bool:
     return bool(mallopt and mallopt(_M_MMAP_THRESHOLD, nbytes))
 
 
-def passive_openmp_waits() -> None:
-    """Idle OpenMP threads sleep instead of spinning (``OMP_WAIT_POLICY=PASSIVE``, unless the
-    environment sets it); effective when set before the OpenMP runtime loads (numba loads it
-    at its first parallel loop)."""
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-
 def configure_process() -> None:
-    """All three settings, as the ``dotshell`` command runs."""
+    """Both settings, as the ``dotshell`` command runs."""
     limit_blas_threads(1)
     fix_mmap_threshold()
-    passive_openmp_waits()

@@ -103,6 +103,12 @@ def test_full_scale_and_noise_floor():
     rng = np.random.default_rng(1)
     black = (8 + rng.normal(0, 3.0, (200, 200))).astype(np.float32)
     assert 2.85 < noise_sigma(black) < 3.15
+    # integer frames: the histogram medians give exactly the float path's value
+    for shape, dtype, top in (((200, 200), np.uint16, 4095), ((7, 8), np.uint8, 255),
+                              ((9, 2), np.uint16, 65535), ((40, 41), np.int32, 30)):
+        for seed in range(5):
+            ints = np.random.default_rng(seed).integers(0, top + 1, shape).astype(dtype)
+            assert noise_sigma(ints) == noise_sigma(ints.astype(np.float32))
 
 
 def test_robust_needs_inverse():

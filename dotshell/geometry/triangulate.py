@@ -25,8 +25,8 @@ The point lies on the camera ray through the pixel.
   meets the plane at less than ``min_ray_angle_deg`` (always the case when the projector is
   above or below the camera: decode rows then).
 
-Speed (docs/performance.md): the point solves are compiled loops (numba) over the pixels, in
-parallel; camera rays come from a grid computed once per camera (a lookup table of every
+Speed (docs/performance.md): the point solves are compiled loops (numba) over the pixels, split
+across the cores (:mod:`dotshell.parallel`); camera rays come from a grid computed once per camera (a lookup table of every
 pixel's undistorted ray), the projector's distortion is undone per point by OpenCV's
 fixed-point iteration run to convergence (a few steps; measured faster than a lookup table of
 the projector's pixels, whose scattered reads miss the cache), and
@@ -44,9 +44,7 @@ import numpy as np
 
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens
-from dotshell.runtime import passive_openmp_waits
-
-passive_openmp_waits()  # before numba loads OpenMP: see dotshell.runtime
+from dotshell.parallel import split
 
 
 @dataclass
@@ -130,8 +128,8 @@ def triangulate(rays: np.ndarray, column: np.ndarray, calib: RigCalibration,
     rows = np.zeros(0) if row is None else np.ascontiguousarray(row, np.float64).ravel()
     pts = np.empty((n, 3))
     flags = np.empty(n, np.uint8)
-    _solve_rays(rays, column, rows, row is not None, iterations,
-                *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(), pts, flags)
+    split(_solve_rays, n, rays, column, rows, row is not None, iterations,
+          *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(), pts, flags)
     return Triangulation(pts, flags == KEPT, flags == ROW_REJECTED, flags == GRAZING)
 
 
@@ -169,16 +167,16 @@ def triangulate_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | N
     affine = np.eye(3, 4) if to_frame is None else np.ascontiguousarray(to_frame, np.float64)
     rows = np.zeros((0, 0), np.float32) if row is None else row
     per_row = np.empty(h, np.int64)
-    _count_rows(valid, per_row)
+    split(_count_rows, h, valid, per_row)
     start = np.concatenate([[0], np.cumsum(per_row)])
     n = int(start[-1])
     pts = np.empty((n, 3))
     depth = np.empty(n)
     pixels = np.empty((n, 2), np.int32)
     flags = np.empty(n, np.uint8)
-    _solve_image(valid, column, rows, row is not None, iterations, rays, start, affine,
-                 *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(),
-                 pts, depth, pixels, flags)
+    split(_solve_image, h, valid, column, rows, row is not None, iterations, rays, start,
+          affine, *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(), pts, depth,
+          pixels, flags)
     keep = flags == KEPT
     counts = {"triangulated": int(np.count_nonzero(keep)),
               "row_rejected": int(np.count_nonzero(flags == ROW_REJECTED)),
@@ -309,10 +307,10 @@ def _solve(x, y, z, u, v, has_rows, iterations, R, T, K, dist, tolerance2, sin2_
     return _columns(x, y, z, u, iterations, R, T, K, dist, sin2_min)
 
 
-@numba.njit(parallel=True, **_OPTS)
+@numba.njit(**_OPTS)
 def _solve_rays(rays, column, row, has_rows, iterations, R, T, K, dist, tolerance2,
-                sin2_min, pts, flags):
-    for i in numba.prange(rays.shape[0]):
+                sin2_min, pts, flags, start, stop):
+    for i in range(start, stop):
         x, y, z = rays[i, 0], rays[i, 1], rays[i, 2]
         s, f = _solve(x, y, z, column[i], row[i] if has_rows else 0.0, has_rows, iterations,
                       R, T, K, dist, tolerance2, sin2_min)
@@ -334,19 +332,19 @@ def _select_in_place(mask, rows):
     return n
 
 
-@numba.njit(parallel=True, **_OPTS)
-def _count_rows(valid, out):
-    for y in numba.prange(valid.shape[0]):
+@numba.njit(**_OPTS)
+def _count_rows(valid, out, start, stop):
+    for y in range(start, stop):
         c = 0
         for x in range(valid.shape[1]):
             c += valid[y, x]
         out[y] = c
 
 
-@numba.njit(parallel=True, **_OPTS)
+@numba.njit(**_OPTS)
 def _solve_image(valid, column, row, has_rows, iterations, rays, start, affine, R, T, K,
-                 dist, tolerance2, sin2_min, pts, depth, pixels, flags):
-    for yy in numba.prange(valid.shape[0]):
+                 dist, tolerance2, sin2_min, pts, depth, pixels, flags, start_row, stop_row):
+    for yy in range(start_row, stop_row):
         i = start[yy]
         for xx in range(valid.shape[1]):
             if not valid[yy, xx]:

@@ -14,6 +14,7 @@ from dotshell.coding import Correspondence, PatternCoding
 from dotshell.errors import CalibrationError, ReconstructionError
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.triangulate import ImagePoints, select, triangulate_image
+from dotshell.parallel import split
 
 
 @dataclass
@@ -33,8 +34,8 @@ class ViewCloud:
 def in_roi(points: np.ndarray, roi: dict[str, float]) -> np.ndarray:
     """Mask of sample-frame points (N, 3) inside the cylindrical region of interest."""
     out = np.empty(len(points), bool)
-    _in_cylinder(np.ascontiguousarray(points, np.float64), float(roi["radius_mm"]),
-                 float(roi["z_min_mm"]), float(roi["z_max_mm"]), out)
+    split(_in_cylinder, len(points), np.ascontiguousarray(points, np.float64),
+          float(roi["radius_mm"]), float(roi["z_min_mm"]), float(roi["z_max_mm"]), out)
     return out
 
 
@@ -51,29 +52,29 @@ def speckle_mask(pixels: np.ndarray, depth_mm: np.ndarray, shape: tuple[int, int
     img = np.zeros(shape, np.float32)
     pixels = np.ascontiguousarray(pixels)
     depth = np.ascontiguousarray(depth_mm, np.float64)
-    _scatter(pixels, depth, img)
+    split(_scatter, len(depth), pixels, depth, img)
     out = np.empty(len(depth), bool)
-    _median_within(pixels, depth, img, float(max_jump_mm), out)
+    split(_median_within, len(depth), pixels, depth, img, float(max_jump_mm), out)
     return out
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
-def _in_cylinder(points, radius, z_min, z_max, out):
-    for i in numba.prange(points.shape[0]):
+@numba.njit(nogil=True, cache=True)
+def _in_cylinder(points, radius, z_min, z_max, out, start, stop):
+    for i in range(start, stop):
         z = points[i, 2]
         out[i] = math.hypot(points[i, 0], points[i, 1]) <= radius and z_min <= z <= z_max
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
-def _scatter(pixels, depth, img):
-    for i in numba.prange(pixels.shape[0]):
+@numba.njit(nogil=True, cache=True)
+def _scatter(pixels, depth, img, start, stop):
+    for i in range(start, stop):
         img[pixels[i, 1], pixels[i, 0]] = depth[i]
 
 
-@numba.njit(parallel=True, nogil=True, cache=True)
-def _median_within(pixels, depth, img, max_jump, out):
+@numba.njit(nogil=True, cache=True)
+def _median_within(pixels, depth, img, max_jump, out, start, stop):
     h, w = img.shape
-    for i in numba.prange(pixels.shape[0]):
+    for i in range(start, stop):
         x, y, d = pixels[i, 0], pixels[i, 1], depth[i]
         below = 0
         above = 0

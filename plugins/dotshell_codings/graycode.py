@@ -53,6 +53,7 @@ import numpy as np
 
 from dotshell.coding import Correspondence, PatternFrame, label_reasons
 from dotshell.settings import Setting
+from dotshell.parallel import split
 from dotshell_codings import kernels
 from dotshell_codings.robust import full_scale, noise_sigma
 
@@ -291,10 +292,12 @@ class GrayCode:
             rng = np.nan_to_num(rng, nan=0.0, posinf=0.0, neginf=0.0)
         return FrameLevels(b, rng, rng < self.shadow_threshold * full, full, noise_sigma(black))
 
-    def _stack(self, frames: Sequence[np.ndarray], axes: list[_Axis]) -> np.ndarray:
-        """The frames as one (F, H, W) array: the caller's stack itself, or a view of it when
-        the frames are evenly spaced views of one array (as read from a frame stack), else a
-        copy. Float frames get NaN → 0 (and ±inf → the largest float32), as the rule needs."""
+    def _stack(self, frames: Sequence[np.ndarray], axes: list[_Axis]) -> tuple[np.ndarray, float]:
+        """The frames as one read-only (F, H, W) array — the caller's stack itself, or a view
+        of it when the frames are evenly spaced views of one array (as read from a frame
+        stack), else a copy — and their full scale (:func:`robust.full_scale`). Float frames
+        get NaN → 0 (and ±inf → the largest float32), as the rule needs; uint8 frames become
+        uint16 (exact, and one compiled variant fewer)."""
         per_bit = 2 if self.inverse else 1
         expected = 2 + per_bit * sum(ax.nb for ax in axes)
         if len(frames) != expected:
@@ -303,12 +306,17 @@ class GrayCode:
         stack = as_stack(frames)
         if not np.issubdtype(stack.dtype, np.integer):
             stack = np.nan_to_num(stack.astype(np.float32, copy=False))
-        return stack
+        full = full_scale(stack[0], self.bit_depth)
+        if stack.dtype == np.uint8:
+            stack = stack.astype(np.uint16)
+        stack = stack.view()
+        stack.flags.writeable = False  # one compiled variant for stacks and views of them
+        return stack, full
 
     def decode(self, frames: Sequence[np.ndarray], projector_size: tuple[int, int]) -> Correspondence:
         axes = self._axes(projector_size)
-        stack = self._stack(frames, axes)
-        bits = self._classify(stack, axes)
+        stack, full = self._stack(frames, axes)
+        bits = self._classify(stack, axes, full)
         decoded = []
         for a, ax in enumerate(axes):
             gray, weak = self.gray_words(ax, bits.value[a], bits.weak[a])
@@ -351,10 +359,10 @@ class GrayCode:
         return Correspondence(column=coords[0], row=coords[1] if len(coords) > 1 else None,
                               valid=valid, stats=stats, reason=reason, reason_names=names)
 
-    def _classify(self, stack: np.ndarray, axes: list[_Axis]) -> "ClassifiedBits":
+    def _classify(self, stack: np.ndarray, axes: list[_Axis], full: float) -> "ClassifiedBits":
         """Every projected bit of every pixel decided in one pass over the frames
-        (:func:`kernels.classify`), with the levels and thresholds of the rule."""
-        full = full_scale(stack[0], self.bit_depth)
+        (:func:`kernels.classify`), with the levels and thresholds of the rule (``full``: the
+        frames' full scale)."""
         n_pairs = sum(ax.nb for ax in axes)
         sep = np.zeros(n_pairs, bool)
         high = np.zeros(n_pairs, bool)
@@ -378,12 +386,13 @@ class GrayCode:
                              np.empty((len(axes), h, w), np.uint32), np.empty((h, w), np.float32),
                              np.empty((h, w), bool), np.empty((h, w), bool))
         f32 = np.float32
-        kernels.classify(stack, self.inverse, kernels.ROBUST if robust else kernels.CONTRAST,
-                         np.array([ax.nb for ax in axes], np.int64), sep, high,
-                         f32(self.shadow_threshold * full), f32(m), f32(self.min_contrast),
-                         f32(self.min_contrast * (1.0 if self.inverse else 0.5)),
-                         f32(1.0 - b), f32(2.0 / (1.0 - b * b)), f32(b),
-                         out.value, out.weak, out.range, out.shadow, out.no_direct)
+        split(kernels.classify, h, stack, self.inverse,
+              kernels.ROBUST if robust else kernels.CONTRAST,
+              np.array([ax.nb for ax in axes], np.int64), sep, high,
+              f32(self.shadow_threshold * full), f32(m), f32(self.min_contrast),
+              f32(self.min_contrast * (1.0 if self.inverse else 0.5)),
+              f32(1.0 - b), f32(2.0 / (1.0 - b * b)), f32(b),
+              out.value, out.weak, out.range, out.shadow, out.no_direct)
         return out
 
     def high_frequency_bits(self, ax: _Axis) -> list[int]:
@@ -429,13 +438,19 @@ class GrayCode:
             h, w = valid.shape
             shape = (h - 1, w) if transpose else (h, w - 1)
             pos, val = np.empty(shape, np.float32), np.empty(shape, np.float32)
-            kernels.anchors(stack, self.inverse, rng, d.code, valid, transpose, ax.nb,
-                            ax.block, ax.offset, d.first_pair, -1 if anchor is None else anchor,
-                            pos, val)
+            split(kernels.anchors, shape[0], stack, self.inverse, rng, d.code, valid,
+                  transpose, ax.nb, ax.block, ax.offset, d.first_pair,
+                  -1 if anchor is None else anchor, pos, val)
             fine = np.empty(valid.shape, np.float32)
             ok = np.empty(valid.shape, bool)
-            scan = kernels.interpolate_down if transpose else kernels.interpolate
-            scan(d.code, valid, pos, val, ax.block, ax.offset, span, fine, ok)
+            if transpose:
+                blocks = -(-w // kernels.COLUMN_BLOCK)
+                split(kernels.interpolate_down, blocks, d.code, valid, pos, val, ax.block,
+                      ax.offset, span, fine, ok, np.empty((h, w), np.int32),
+                      np.empty((h, w), np.int32), min_chunk=1)
+            else:
+                split(kernels.interpolate, h, d.code, valid, pos, val, ax.block, ax.offset,
+                      span, fine, ok)
             return fine, ok
 
         across = stripes_cross_columns(d.code, valid)
@@ -511,8 +526,8 @@ def _decode_axis(ax: _Axis, first: int, gray: np.ndarray, weak: np.ndarray) -> A
     code = np.empty(shape, np.int32)
     integer = np.empty(shape, np.float32)
     bad, tolerated, oor = (np.empty(shape, bool) for _ in range(3))
-    kernels.assemble(gray, weak, ax.nb, ax.block, ax.offset, ax.size, code, integer, bad,
-                     tolerated, oor)
+    split(kernels.assemble, shape[0], gray, weak, ax.nb, ax.block, ax.offset, ax.size, code,
+          integer, bad, tolerated, oor)
     return AxisDecode(ax, first, code, integer, bad, tolerated, oor)
 
 

@@ -17,18 +17,15 @@ Why numba (docs/performance.md, "Decoder"): numpy needs a full-size temporary pe
 and per bit (the decoder made ~40 passes over 1.3 M-pixel arrays per bit pair), OpenCV has no
 kernel for the robust rule or the edge-anchored interpolation, and threads running numpy
 release the GIL only inside each small operation. Compiled loops touch each frame pixel once,
-keep the per-pixel state in registers and split the image rows across the cores
-(``parallel=True``; ``cache=True`` keeps the compiled code in ``__pycache__``).
+keep the per-pixel state in registers; each takes a range of rows (``start``, ``stop``) and
+releases the GIL, and :func:`dotshell.parallel.split` runs the ranges on the cores
+(``cache=True`` keeps the compiled code in ``__pycache__``).
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
-
-from dotshell.runtime import passive_openmp_waits
-
-passive_openmp_waits()  # before numba loads OpenMP: see dotshell.runtime
 
 _OPTS = dict(nogil=True, cache=True, error_model="numpy")
 
@@ -38,10 +35,10 @@ _INNER = dict(nogil=True, cache=True, error_model="numpy", inline="always")
 CONTRAST, ROBUST = 0, 1
 
 
-@numba.njit(parallel=True, **_OPTS)
+@numba.njit(**_OPTS)
 def classify(stack, inverse, mode, axis_bits, sep, high, shadow_thr, m, min_contrast,
              contrast_scale, one_minus_b, lg_scale, b_level, value, weak, rng, shadow,
-             no_direct):
+             no_direct, start, stop):
     """Decide every projected bit of every pixel.
 
     Args:
@@ -59,13 +56,14 @@ def classify(stack, inverse, mode, axis_bits, sep, high, shadow_thr, m, min_cont
         value, weak: (A, H, W) uint32 outputs, bit ``nb - 1 - i`` = projected bit i.
         rng: (H, W) float32 output, white − black.
         shadow, no_direct: (H, W) bool outputs.
+        start, stop: the rows to do.
     """
     n_axes = axis_bits.shape[0]
     per_bit = 2 if inverse else 1
-    H, W = rng.shape
+    W = rng.shape[1]
     zero = np.float32(0.0)
     half = np.float32(0.5)
-    for y in numba.prange(H):
+    for y in range(start, stop):
         black = np.empty(W, np.float32)
         r = rng[y]
         _levels(stack[0, y], stack[1, y], shadow_thr, black, r, shadow[y])
@@ -200,15 +198,16 @@ def _on_edge(value, weak, y, x, bit):
     return max(a, b, c, d) == 1 and (a == 0 or b == 0 or c == 0 or d == 0)
 
 
-@numba.njit(parallel=True, **_OPTS)
-def assemble(value, weak, nb, block, offset, size, code, integer, bad, tolerated, oor):
+@numba.njit(**_OPTS)
+def assemble(value, weak, nb, block, offset, size, code, integer, bad, tolerated, oor, start,
+             stop):
     """Coarse code of one axis from its packed Gray bits (see ``graycode._decode_axis``'s rule:
     one weak bit is tolerated on its own stripe edge, where it moves the code by one step).
 
     Outputs (H, W): code int32, integer float32 (projector coordinate of the block centre,
     clipped), bad (weak and not tolerated), tolerated, oor (block off the projector)."""
-    H, W = value.shape
-    for y in numba.prange(H):
+    W = value.shape[1]
+    for y in range(start, stop):
         for x in range(W):
             b = np.int64(value[y, x])
             b ^= b >> 1
@@ -303,13 +302,13 @@ def _anchor(stack, inverse, rng, code, valid, y0, x0, y1, x1, s, nb, block, offs
     return pos, val
 
 
-@numba.njit(parallel=True, **_OPTS)
+@numba.njit(**_OPTS)
 def anchors(stack, inverse, rng, code, valid, down, nb, block, offset, first_pair, anchor_bit,
-            pos, val):
+            pos, val, start, stop):
     """Stripe-edge anchors between horizontally adjacent pixels, (H, W − 1) outputs (``down``:
     vertically adjacent, (H − 1, W)): position along the scan line and projector coordinate,
     NaN where there is none. Rows are read along memory in both cases."""
-    for y in numba.prange(pos.shape[0]):
+    for y in range(start, stop):
         for x in range(pos.shape[1]):
             if down:
                 pos[y, x], val[y, x] = _anchor(stack, inverse, rng, code, valid, y, x, y + 1, x,
@@ -333,15 +332,15 @@ def _interpolate(i, c, pl, vl, pr, vr, block, offset, max_span):
     return np.float32(np.nan), False
 
 
-@numba.njit(parallel=True, **_OPTS)
-def interpolate(code, valid, pos, val, block, offset, max_span, fine, ok):
+@numba.njit(**_OPTS)
+def interpolate(code, valid, pos, val, block, offset, max_span, fine, ok, start, stop):
     """Sub-pixel coordinates along the lines of line-major (H, W) ``code`` and ``valid`` from
     the (H, W − 1) anchors between their samples (:func:`anchors`): a valid sample between two
     anchors of its run of valid samples (at most ``max_span`` blocks apart, its own block
     between them) is interpolated linearly. Outputs fine (float32, NaN where not refined) and
     ok (bool), line-major."""
-    H, W = code.shape
-    for y in numba.prange(H):
+    W = code.shape[1]
+    for y in range(start, stop):
         left = np.empty(W, np.int64)
         last_bad = np.empty(W, np.int64)
         lft = -1
@@ -374,16 +373,15 @@ def interpolate(code, valid, pos, val, block, offset, max_span, fine, ok):
 COLUMN_BLOCK = 64
 
 
-@numba.njit(parallel=True, **_OPTS)
-def interpolate_down(code, valid, pos, val, block, offset, max_span, fine, ok):
+@numba.njit(**_OPTS)
+def interpolate_down(code, valid, pos, val, block, offset, max_span, fine, ok, left, last_bad,
+                     start, stop):
     """:func:`interpolate` along the camera columns, from (H − 1, W) anchors, without
-    transposing: blocks of :data:`COLUMN_BLOCK` columns are scanned row by row, so that every
-    read runs along memory."""
+    transposing: blocks ``start`` to ``stop`` of :data:`COLUMN_BLOCK` columns are scanned row
+    by row, so that every read runs along memory (``left``, ``last_bad``: (H, W) int32
+    scratch)."""
     H, W = code.shape
-    left = np.empty((H, W), np.int32)
-    last_bad = np.empty((H, W), np.int32)
-    n_blocks = (W + COLUMN_BLOCK - 1) // COLUMN_BLOCK
-    for blk in numba.prange(n_blocks):
+    for blk in range(start, stop):
         x0 = blk * COLUMN_BLOCK
         x1 = min(W, x0 + COLUMN_BLOCK)
         lft = np.empty(COLUMN_BLOCK, np.int32)
@@ -419,3 +417,22 @@ def interpolate_down(code, valid, pos, val, block, offset, max_span, fine, ok):
                                            val[rg, x], block, offset, max_span)
                 fine[y, x] = f
                 ok[y, x] = good
+
+
+@numba.njit(**_OPTS)
+def difference_histogram(image):
+    """(lowest value, counts) of the differences of horizontally adjacent pixels of an integer
+    image (``counts[i]`` = how often the difference ``lowest + i`` occurs)."""
+    H, W = image.shape
+    low = np.int64(0)
+    high = np.int64(0)
+    for y in range(H):
+        for x in range(W - 1):
+            d = np.int64(image[y, x + 1]) - np.int64(image[y, x])
+            low = min(low, d)
+            high = max(high, d)
+    counts = np.zeros(high - low + 1, np.int64)
+    for y in range(H):
+        for x in range(W - 1):
+            counts[np.int64(image[y, x + 1]) - np.int64(image[y, x]) - low] += 1
+    return low, counts

@@ -24,6 +24,8 @@ from typing import Sequence
 
 import numpy as np
 
+from dotshell_codings.kernels import difference_histogram
+
 #: percentile of the white frame taken as full scale for float frames (PDI differences)
 FLOAT_FULL_SCALE_PERCENTILE = 99.5
 
@@ -56,7 +58,7 @@ def noise_sigma(black: np.ndarray) -> float:
     drops smooth ambient structure; the median ignores edges and hot pixels.
 
     Integer frames take their medians from a histogram of the differences (exact, the same
-    value as ``np.median``; a sort of 1.3 M values took 60 ms)."""
+    value as ``np.median``; a sort of 1.3 M values took 60 ms, the histogram takes 2)."""
     if np.issubdtype(np.asarray(black).dtype, np.integer) and black.ndim == 2:
         return _noise_sigma_integer(black)
     f = np.asarray(black, dtype=np.float32)
@@ -73,9 +75,7 @@ def noise_sigma(black: np.ndarray) -> float:
 def _noise_sigma_integer(black: np.ndarray) -> float:
     if black.shape[1] < 2 or black.shape[0] == 0:
         return 0.0
-    diff = np.subtract(black[:, 1:], black[:, :-1], dtype=np.int32).ravel()
-    low = int(diff.min())
-    counts = np.bincount(diff - low)
+    low, counts = difference_histogram(black)
     values = np.nonzero(counts)[0]
     counts = counts[values]
     values = values.astype(np.float64) + low

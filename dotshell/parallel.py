@@ -1,0 +1,62 @@
+"""Work split across the cores: compiled loops (numba, ``nogil``) run on index ranges in a pool
+of Python threads, one range per core.
+
+Why threads and not numba's ``parallel=True`` (measured, docs/performance.md): the compiled
+passes of a view are each a few milliseconds, and on a shared machine numba's OpenMP layer
+made them 3-4x slower on two threads than on one (idle threads spin on the busy cores); the
+passive wait policy cured that, but ``parallel=True`` also made each kernel take 4-12 s to
+compile instead of under 1 s (a cold cache cost the test suite ~40 s per frame type). Plain
+serial kernels that release the GIL, split by rows here, compile fast, wait without spinning,
+and are safe to call from several threads at once.
+"""
+
+from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from typing import Any, Callable, Iterator
+
+_POOL: ThreadPoolExecutor | None = None
+_LIMIT: int | None = None
+
+
+def workers() -> int:
+    """Threads a pass is split across: ``DOTSHELL_THREADS`` if set, else the cores."""
+    if _LIMIT is not None:
+        return _LIMIT
+    return max(1, int(os.environ.get("DOTSHELL_THREADS", 0)) or os.cpu_count() or 1)
+
+
+@contextmanager
+def threads(n: int) -> Iterator[None]:
+    """Split passes across at most ``n`` threads inside the block (benchmarks)."""
+    global _LIMIT
+    before, _LIMIT = _LIMIT, max(1, int(n))
+    try:
+        yield
+    finally:
+        _LIMIT = before
+
+
+def _pool() -> ThreadPoolExecutor:
+    global _POOL
+    if _POOL is None:
+        _POOL = ThreadPoolExecutor(max_workers=max(1, (os.cpu_count() or 1) - 1),
+                                   thread_name_prefix="dotshell-pass")
+    return _POOL
+
+
+def split(kernel: Callable[..., Any], n: int, *args: Any, min_chunk: int = 16) -> None:
+    """Run ``kernel(*args, start, stop)`` over ``range(n)`` cut into one contiguous range per
+    worker (ranges of at least ``min_chunk``); returns when all are done, re-raising the first
+    error. The kernel must release the GIL (``nogil=True``) to run in parallel."""
+    parts = max(1, min(workers(), n // max(min_chunk, 1)))
+    if parts == 1:
+        kernel(*args, 0, n)
+        return
+    bounds = [n * i // parts for i in range(parts + 1)]
+    futures = [_pool().submit(kernel, *args, a, b) for a, b in zip(bounds[1:-1], bounds[2:])]
+    kernel(*args, bounds[0], bounds[1])  # the calling thread takes the first range
+    for f in futures:
+        f.result()
