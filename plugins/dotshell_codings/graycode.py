@@ -320,7 +320,8 @@ class GrayCode:
         decoded = []
         for a, ax in enumerate(axes):
             gray, weak = self.gray_words(ax, bits.value[a], bits.weak[a])
-            decoded.append(_decode_axis(ax, sum(x.nb for x in axes[:a]), gray, weak))
+            decoded.append(_decode_axis(ax, sum(x.nb for x in axes[:a]), gray, weak,
+                                        bits.shadow))
         shadow = bits.shadow
         weak = np.zeros(shadow.shape, bool)
         out_of_range = np.zeros(shadow.shape, bool)
@@ -516,18 +517,20 @@ class ClassifiedBits:
     no_direct: np.ndarray
 
 
-def _decode_axis(ax: _Axis, first: int, gray: np.ndarray, weak: np.ndarray) -> AxisDecode:
+def _decode_axis(ax: _Axis, first: int, gray: np.ndarray, weak: np.ndarray,
+                 shadow: np.ndarray) -> AxisDecode:
     """Coarse code of one axis from its packed Gray bits (:func:`kernels.assemble`).
 
     A single weak bit is harmless when flipping it moves the code by one step and the pixel
     is on that bit's stripe edge (a 4-neighbour where the bit is surely 1 and one where it is
-    surely 0); more weak bits, or one off its edge, make the pixel ``weak``."""
+    surely 0); more weak bits, or one off its edge, make the pixel ``weak``. Shadow pixels are
+    not decoded (code 0, no flag)."""
     shape = gray.shape
     code = np.empty(shape, np.int32)
     integer = np.empty(shape, np.float32)
     bad, tolerated, oor = (np.empty(shape, bool) for _ in range(3))
-    split(kernels.assemble, shape[0], gray, weak, ax.nb, ax.block, ax.offset, ax.size, code,
-          integer, bad, tolerated, oor)
+    split(kernels.assemble, shape[0], gray, weak, shadow, ax.nb, ax.block, ax.offset, ax.size,
+          code, integer, bad, tolerated, oor)
     return AxisDecode(ax, first, code, integer, bad, tolerated, oor)
 
 

@@ -60,59 +60,101 @@ def classify(stack, inverse, mode, axis_bits, sep, high, shadow_thr, m, min_cont
     """
     n_axes = axis_bits.shape[0]
     per_bit = 2 if inverse else 1
-    W = rng.shape[1]
+    H, W = rng.shape
     zero = np.float32(0.0)
     half = np.float32(0.5)
+    spans = np.empty(W + 2, np.int64)
     for y in range(start, stop):
         black = np.empty(W, np.float32)
         r = rng[y]
         _levels(stack[0, y], stack[1, y], shadow_thr, black, r, shadow[y])
+        n_spans = _needed(stack, y, shadow_thr, shadow[y], spans)
         ld = np.empty(W, np.float32)
         lg = np.empty(W, np.float32)
         thr = np.empty(W, np.float32)
         nd = no_direct[y]
-        if mode == ROBUST:
-            lmax = np.full(W, -np.inf, np.float32)
-            lmin = np.full(W, np.inf, np.float32)
-            for k in range(sep.shape[0]):
-                if sep[k]:
-                    for j in range(2):
-                        _extremes(stack[2 + per_bit * k + j, y], black, lmax, lmin)
-            for x in range(W):
-                d = (lmax[x] - lmin[x]) / one_minus_b
-                g = lg_scale * (lmin[x] - b_level * lmax[x])
-                if g < 0:
-                    d = lmax[x]
-                    g = zero
-                ld[x] = d
-                lg[x] = g
-                nd[x] = d < m
-                thr[x] = min_contrast * d
-        else:
-            for x in range(W):
-                nd[x] = False
-                thr[x] = contrast_scale * max(r[x], zero)
-                lg[x] = black[x] + half * r[x]  # the mid level, for frames without inverses
-        k = 0
+        nd[:] = False
         for a in range(n_axes):
-            nb = axis_bits[a]
-            val = value[a, y]
-            wk = weak[a, y]
-            val[:] = 0
-            wk[:] = 0
-            for i in range(nb):
-                shift = np.uint32(nb - 1 - i)
-                p = stack[2 + per_bit * k, y]
-                q = stack[3 + per_bit * k, y] if inverse else stack[1, y]
-                if mode == ROBUST and high[k]:
-                    _high_frequency(p, q, black, thr, nd, shift, val, wk)
-                elif mode == ROBUST:
-                    _robust(p, q, black, ld, lg, m, shift, val, wk)
-                elif inverse:
-                    _contrast(p, q, thr, shift, val, wk)
-                else:
-                    _contrast_mid(p, lg, thr, shift, val, wk)
-                k += 1
+            value[a, y, :] = 0
+            weak[a, y, :] = 0
+        for sp in range(n_spans):
+            x0, x1 = spans[2 * sp], spans[2 * sp + 1]
+            if mode == ROBUST:
+                lmax = np.full(x1 - x0, -np.inf, np.float32)
+                lmin = np.full(x1 - x0, np.inf, np.float32)
+                for k in range(sep.shape[0]):
+                    if sep[k]:
+                        for j in range(2):
+                            _extremes(stack[2 + per_bit * k + j, y, x0:x1], black[x0:x1],
+                                      lmax, lmin)
+                for x in range(x0, x1):
+                    d = (lmax[x - x0] - lmin[x - x0]) / one_minus_b
+                    g = lg_scale * (lmin[x - x0] - b_level * lmax[x - x0])
+                    if g < 0:
+                        d = lmax[x - x0]
+                        g = zero
+                    ld[x] = d
+                    lg[x] = g
+                    nd[x] = d < m
+                    thr[x] = min_contrast * d
+            else:
+                for x in range(x0, x1):
+                    thr[x] = contrast_scale * max(r[x], zero)
+                    lg[x] = black[x] + half * r[x]  # the mid level, for frames without inverses
+            k = 0
+            for a in range(n_axes):
+                nb = axis_bits[a]
+                val = value[a, y, x0:x1]
+                wk = weak[a, y, x0:x1]
+                for i in range(nb):
+                    shift = np.uint32(nb - 1 - i)
+                    p = stack[2 + per_bit * k, y, x0:x1]
+                    q = stack[3 + per_bit * k, y, x0:x1] if inverse else stack[1, y, x0:x1]
+                    b_, t_, n_ = black[x0:x1], thr[x0:x1], nd[x0:x1]
+                    if mode == ROBUST and high[k]:
+                        _high_frequency(p, q, b_, t_, n_, shift, val, wk)
+                    elif mode == ROBUST:
+                        _robust(p, q, b_, ld[x0:x1], lg[x0:x1], m, shift, val, wk)
+                    elif inverse:
+                        _contrast(p, q, t_, shift, val, wk)
+                    else:
+                        _contrast_mid(p, lg[x0:x1], t_, shift, val, wk)
+                    k += 1
+
+
+@numba.njit(**_INNER)
+def _shadow_at(stack, y, x, shadow_thr):
+    r = np.float32(stack[0, y, x]) - np.float32(stack[1, y, x])
+    if not np.isfinite(r):
+        r = np.float32(0.0)
+    return r < shadow_thr
+
+
+@numba.njit(**_INNER)
+def _needed(stack, y, shadow_thr, shadow, spans):
+    """Runs [x0, x1) of row ``y`` whose bits matter, as pairs in ``spans``; returns how many.
+    A shadow pixel's bits matter only to a lit 4-neighbour (its edge-tolerance check): shadow
+    pixels with shadow all around are never decoded, and their bits are left 0."""
+    H, W = stack.shape[1], stack.shape[2]
+    n = 0
+    inside = False
+    for x in range(W):
+        need = not shadow[x]
+        if not need:
+            need = ((x > 0 and not shadow[x - 1]) or (x + 1 < W and not shadow[x + 1])
+                    or (y > 0 and not _shadow_at(stack, y - 1, x, shadow_thr))
+                    or (y + 1 < H and not _shadow_at(stack, y + 1, x, shadow_thr)))
+        if need and not inside:
+            spans[2 * n] = x
+            inside = True
+        elif not need and inside:
+            spans[2 * n + 1] = x
+            n += 1
+            inside = False
+    if inside:
+        spans[2 * n + 1] = W
+        n += 1
+    return n
 
 
 @numba.njit(**_INNER)
@@ -199,16 +241,24 @@ def _on_edge(value, weak, y, x, bit):
 
 
 @numba.njit(**_OPTS)
-def assemble(value, weak, nb, block, offset, size, code, integer, bad, tolerated, oor, start,
-             stop):
+def assemble(value, weak, shadow, nb, block, offset, size, code, integer, bad, tolerated, oor,
+             start, stop):
     """Coarse code of one axis from its packed Gray bits (see ``graycode._decode_axis``'s rule:
     one weak bit is tolerated on its own stripe edge, where it moves the code by one step).
 
     Outputs (H, W): code int32, integer float32 (projector coordinate of the block centre,
-    clipped), bad (weak and not tolerated), tolerated, oor (block off the projector)."""
+    clipped), bad (weak and not tolerated), tolerated, oor (block off the projector); all 0
+    in ``shadow`` (never decoded)."""
     W = value.shape[1]
     for y in range(start, stop):
         for x in range(W):
+            if shadow[y, x]:
+                code[y, x] = 0
+                integer[y, x] = 0
+                bad[y, x] = False
+                tolerated[y, x] = False
+                oor[y, x] = False
+                continue
             b = np.int64(value[y, x])
             b ^= b >> 1
             b ^= b >> 2
