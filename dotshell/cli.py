@@ -92,6 +92,10 @@ def cmd_scan(args: argparse.Namespace) -> int:
     from dotshell.pipeline.scan import scan
     from dotshell.profile import load_profile
 
+    if args.detach:
+        from dotshell.cli_server import scan_detached
+
+        return scan_detached(args)
     pm = _pm(args)
     profile = load_profile(args.profile, pm, args.set)
     bus = EventBus()
@@ -192,14 +196,6 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_tui(args: argparse.Namespace) -> int:
-    from dotshell.console import Session
-    from dotshell.tui.app import run_tui  # imported before the app starts: it probes the terminal
-
-    session = Session(args.profile, pm=_pm(args), out_dir=args.out, overrides=args.set)
-    return run_tui(session)
-
-
 def cmd_script(args: argparse.Namespace) -> int:
     from dotshell.console import Session, run_script, split_script_args
 
@@ -271,11 +267,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="override a profile key (TOML value), e.g. --set scan.views=24")
         sp.add_argument("--out", default="runs", help="parent directory of runs (default: runs)")
 
-    sp = sub.add_parser("tui", help="terminal UI: rig, scan, previews, log, Python console")
-    sp.add_argument("profile", nargs="?", help="profile TOML file (omit to pick one in the UI)")
-    session_args(sp)
-    sp.set_defaults(func=cmd_tui)
+    from dotshell.cli_server import add_server_parsers
 
+    add_server_parsers(sub)  # serve, tui, attach, status, stop, scan --detach
     sp = sub.add_parser("script", help="run a Python script against a live session, headless")
     sp.add_argument("file", help="the Python script (rig, profile, run, scan(), np, ... are "
                     "defined; see docs/tui.md)")

@@ -16,8 +16,8 @@ from dotshell.events import (EventBus, FrameCaptured, ScanFinished, ScanPaused, 
                              ScanStarted, ViewCaptured, ViewReconstructed)
 from dotshell.pipeline.scan import scan
 from dotshell.profile import load_profile
-from dotshell.tui.interpreter import Interpreter, wants_more
-from dotshell.tui.progress import ScanTracker, format_seconds
+from dotshell.server.interpreter import Interpreter, wants_more
+from dotshell.server.progress import ScanTracker, format_seconds
 
 
 @pytest.fixture
