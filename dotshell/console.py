@@ -230,7 +230,8 @@ class Session:
         self.projected: str | None = None
         self.job: ScanJob | None = None
         self._state = "idle"
-        self._lock = threading.RLock()
+        self._lock = threading.RLock()  # device I/O: one action at a time
+        self._state_lock = threading.Lock()  # scan state changes, never held during I/O
         self._stop = threading.Event()
         self._running = threading.Event()
         self._coding: Any = None
@@ -403,13 +404,14 @@ class Session:
         return float(ms)
 
     def stop(self) -> None:
-        """Stop now, from any thread: abort a running scan cleanly (frames kept) and stop every
-        device that can move (:meth:`dotshell.rig.Rig.stop`). Safe when nothing moves."""
-        self.abort()
+        """Stop now, from any thread, without waiting for the action under way (a move holds
+        the session): every device that can move is stopped (:meth:`dotshell.rig.Rig.stop`),
+        then a running scan is aborted cleanly (frames kept). Safe when nothing moves."""
         rig = self.rig
         if rig is not None and rig.connected:
             rig.stop()
             self.bus.warn("stop: every device that can move was told to stop")
+        self.abort()
 
     # ---- patterns, frames, decoding -------------------------------------------------------------
 
@@ -502,7 +504,7 @@ class Session:
         directory), with the profile's calibration or the ``calibration`` file. Blocks and
         returns the :class:`Run`, or with ``wait=False`` returns a :class:`ScanJob` at once. A
         stopped scan returns normally with status ``aborted``."""
-        with self._lock:
+        with self._lock, self._state_lock:
             self._require_profile()
             self._require_idle("start a scan")
             self._stop = threading.Event()
@@ -528,7 +530,8 @@ class Session:
             if self._live.get("run_dir"):
                 self.run = Run(self._live["run_dir"])
             self._live = {"run_dir": self._live.get("run_dir")}  # no frame kept past the scan
-            self._state = "idle"
+            with self._state_lock:
+                self._state = "idle"
             self._refresh_namespaces()
         run = self.run = Run(result.run_dir)
         for kind, rel in (result.report.get("previews") or {}).items():
@@ -549,29 +552,32 @@ class Session:
         self._require_idle("normalize")
         return normalize_run(root, self.pm, self.bus, normalizer=normalizer)
 
+    def _transition(self, allowed: tuple[str, ...], to: str) -> bool:
+        """Move the scan state from one of ``allowed`` to ``to``; False if it was elsewhere."""
+        with self._state_lock:
+            if self._state not in allowed:
+                return False
+            self._state = to
+            return True
+
     def pause(self) -> None:
         """Pause the running scan before its next frame."""
-        with self._lock:
-            if self._state == "running":
-                self._running.clear()
-                self._state = "paused"
-                self.bus.info("pause requested: the scan stops before its next frame")
+        if self._transition(("running",), "paused"):
+            self._running.clear()
+            self.bus.info("pause requested: the scan stops before its next frame")
 
     def resume(self) -> None:
         """Resume a paused scan."""
-        with self._lock:
-            if self._state == "paused":
-                self._state = "running"
-                self._running.set()
-                self.bus.info("resume requested")
+        if self._transition(("paused",), "running"):
+            self._running.set()
+            self.bus.info("resume requested")
 
     def abort(self) -> None:
-        """Stop the scan cleanly: frames captured so far are kept, the run is ``aborted``."""
-        with self._lock:
-            if self._state in ("running", "paused"):
-                self._state = "stopping"
-                self._stop.set()
-                self.bus.warn("abort requested: stopping the scan, frames are kept")
+        """Stop the scan cleanly: frames captured so far are kept, the run is ``aborted``. Never
+        waits for a device action under way."""
+        if self._transition(("running", "paused"), "stopping"):
+            self._stop.set()
+            self.bus.warn("abort requested: stopping the scan, frames are kept")
 
     def wait(self, timeout: float | None = None) -> Run:
         """Wait for a background scan (``scan(wait=False)``) and return its run."""
