@@ -5,6 +5,8 @@
    (``.venv-bench-contrib``, created on first use; opencv-contrib conflicts with the project's
    opencv-python-headless).
 3. End-to-end demo scan in a subprocess: wall time by stage, peak memory, accuracy.
+4. An idle ``dotshell tui`` attached to its rig server after a 4-view scan: resident memory and
+   CPU; peer: a bare Textual app on the same pseudo-terminal (``bench_tui.py``).
 
 Prints the figures and writes them to ``bench-results/latest.json`` (``latest-quick.json``
 with ``--quick``, so a harness test never replaces the full figures). ``--quick`` scales the
@@ -269,6 +271,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5, help="reconstruct_view runs (median)")
     ap.add_argument("--sample", type=int, default=20000, help="pixels decoded by the peer")
     ap.add_argument("--skip-scan", action="store_true", help="sections 1 and 2 only")
+    ap.add_argument("--skip-tui", action="store_true", help="without section 4")
     args = ap.parse_args()
     pm = get_plugin_manager()
     profile = load_bench_profile(pm, args.quick)
@@ -290,6 +293,11 @@ def main() -> None:
         if not args.skip_scan:
             results["scan"] = run_scan(args.quick, work)
             print_scan(results["scan"])
+        if not args.skip_tui:
+            from bench_tui import print_tui, run_tui_bench
+
+            results["tui"] = run_tui_bench(args.quick)
+            print_tui(results["tui"])
     results["machine"]["loadavg_1min_end"] = os.getloadavg()[0]
     print(f"\n1-min load average at end {os.getloadavg()[0]:.2f} (other work on the machine "
           "skews every figure above; peer and dotshell ran back to back)")
