@@ -76,7 +76,8 @@ CAMERA_SCHEMA: dict[str, Setting] = {
                                 "px", min=0.0),
     "supersample": Setting("int", 2, "sub-pixel rays per pixel along each axis (pixel-area "
                            "integration)", min=1, max=4),
-    "seed": Setting("int", 0, "noise seed; frame k uses default_rng([seed, k])", min=0),
+    "seed": Setting("int", 0, "noise seed; each frame's noise is drawn from this seed and the "
+                   "rig's state when it is taken (pattern, angles, exposure)", min=0),
     "vignetting": Setting("float", 0.0, "extra lens vignetting: relative light loss at the image "
                           "corner, falling off as 1 − v·(r/r_corner)² from the principal point "
                           "(on top of the natural cos⁴); applies to all light, flat fields "
@@ -218,6 +219,25 @@ class SimWorld:
                               axis_point=stage.axis_point, axis_direction=stage.axis_direction,
                               source="ground-truth")
 
+    def state_digest(self, exposure_ms: float) -> bytes:
+        """A digest of everything a frame depends on (pattern shown, stage and analyzer
+        angles, laser and flat field, exposure): the camera seeds its noise with it, so a frame
+        depends on the state it was taken in, not on how many frames came before — a resumed
+        scan captures the same frames as an uninterrupted one."""
+        import hashlib
+
+        h = hashlib.blake2b(digest_size=16)
+        if self.projector is not None:
+            h.update(self.projector.pattern_digest)
+        if self.stage is not None:
+            h.update(repr((round(self.stage.position, 6), self.stage.target_key)).encode())
+        if self.analyzer is not None and self.analyzer.connected:
+            h.update(repr(round(self.analyzer.angle_deg, 6)).encode())
+        if self.laser is not None:
+            h.update(repr((self.laser.on, self.laser.flat, self.laser.target)).encode())
+        h.update(repr(round(exposure_ms, 9)).encode())
+        return h.digest()
+
     def renderer(self) -> Renderer:
         """The renderer for this world's geometry. Renderers are pure functions of the
         geometry, so worlds with identical settings (e.g. many test rigs from one profile)
@@ -248,6 +268,12 @@ def world_of(context: RigContext | None) -> SimWorld:
     if world is None:
         world = context.shared[WORLD_KEY] = SimWorld()
     return world
+
+
+def _digest(image: np.ndarray) -> bytes:
+    import hashlib
+
+    return hashlib.blake2b(np.ascontiguousarray(image).tobytes(), digest_size=16).digest()
 
 
 class _Device:
@@ -291,6 +317,7 @@ class SimCamera(_Device):
                                   s["dark_offset_dn"])
         self.exposure_ms = float(s["exposure_ms"])
         self.frames = 0
+        self._repeats: dict[bytes, int] = {}
         world.camera = self
 
     @property
@@ -333,8 +360,14 @@ class SimCamera(_Device):
         return irr
 
     def capture(self) -> np.ndarray:
+        """One frame; its noise is seeded by the setting ``seed``, the world's state and how
+        many frames were taken in that same state before (see :meth:`SimWorld.state_digest`)."""
         electrons = self.expected_electrons()
-        rng = np.random.default_rng([self.settings["seed"], self.frames])
+        state = self.world.state_digest(self.exposure_ms)
+        repeat = self._repeats.get(state, 0)
+        self._repeats[state] = repeat + 1
+        rng = np.random.default_rng([self.settings["seed"], repeat,
+                                     *np.frombuffer(state, np.uint32).tolist()])
         self.frames += 1
         return sensor(electrons, self.sensor, rng)
 
@@ -357,6 +390,7 @@ class SimProjector(_Device):
         self.pose()  # validate the geometry now
         self._radiance: np.ndarray | None = None
         self.pattern_name = None
+        self.pattern_digest = b""
         world.projector = self
 
     @property
@@ -405,6 +439,7 @@ class SimProjector(_Device):
             img = cv2.GaussianBlur(img, (0, 0), s["defocus_sigma_px"],
                                    borderType=cv2.BORDER_CONSTANT)
         self._radiance = img
+        self.pattern_digest = _digest(p)
 
     def radiance(self) -> np.ndarray | None:
         """Relative radiance (h, w) float32 after defocus; ``None`` when off."""
