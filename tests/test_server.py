@@ -116,7 +116,13 @@ def test_clients_watch_one_controls_and_everyone_sees_the_scan(session):
         # a client that never reads must not hold the scan up
         stalled = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         stalled.connect(str(server.socket_path))
-        stalled.sendall(protocol.encode({"id": 1, "cmd": "hello", "protocol": 1,
+        stalled.sendall(protocol.encode({"id": 1, "cmd": "jog", "degrees": 1}))
+        refused = protocol.decode(stalled.makefile("rb").readline())
+        assert refused["ok"] is False and "first request must be hello" in refused["error"]
+        stalled.sendall(protocol.encode({"id": 2, "cmd": "hello", "protocol": 99}))
+        refused = protocol.decode(stalled.makefile("rb").readline())
+        assert "speaks protocol 1" in refused["error"] and "99" in refused["error"]
+        stalled.sendall(protocol.encode({"id": 3, "cmd": "hello", "protocol": 1,
                                          "client": "stalled"}))
         run_dir = tui.scan()["run_dir"]
         done = theirs.wait_for(lambda m: m.get("type") == "event"

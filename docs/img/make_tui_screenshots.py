@@ -51,10 +51,11 @@ async def until(pilot, condition, seconds: float = 300.0) -> None:
         await pilot.pause(0.05)
 
 
-async def shoot(pilot, name: str, size=(120, 40)) -> None:
+async def shoot(pilot, name: str, size=(120, 40), suffix: str | None = None) -> None:
     await pilot.resize_terminal(*size)
     await settle(pilot)
-    suffix = "" if size == (120, 40) else f"-{size[0]}x{size[1]}"
+    if suffix is None:
+        suffix = "" if size == (120, 40) else f"-{size[0]}x{size[1]}"
     pilot.app.save_screenshot(f"{name}{suffix}.svg", str(OUT))
     print("wrote", OUT / f"{name}{suffix}.svg")
 
@@ -138,7 +139,7 @@ async def main() -> None:
             await until(wpilot, lambda: watcher.focused is not None)
             watcher.action_show_tab("scan")
             await until(wpilot, lambda: watcher.tracker.frames_done >= 50)
-            await shoot(wpilot, "server-watcher", (100, 30))
+            await shoot(wpilot, "server-watcher", (100, 30), suffix="")
         hold.set()
         await until(pilot, lambda: app.tracker.status == "completed"
                     and not app.session.scanning)

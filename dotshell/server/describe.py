@@ -61,6 +61,8 @@ def describe_event(ev: Event) -> tuple[str, str]:
         extra = ", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}"
                           for k, v in ev.summary.items())
         why = " (no points)" if status != ev.status else ""
+        if getattr(ev, "reason", ""):
+            why += f" — {ev.reason}"
         return level, (f"scan {status}{why}: {short_path(ev.run_dir)}"
                        + (f" ({extra})" if extra else ""))
     kind = getattr(ev, "kind", None)

@@ -207,6 +207,7 @@ class RigServer:
         self.console = ServerConsole(session, self.broadcast, history_file)
         self.context = Context(session, self.console)
         self._clients_lock = threading.RLock()
+        self._event_lock = threading.Lock()  # an attaching client sees each event exactly once
         self._log_lock = threading.RLock()
         self._log: TextIO = open(self.log_path, "a", encoding="utf-8", buffering=1)
         self._run_log: TextIO | None = None
@@ -389,14 +390,19 @@ class RigServer:
             if cmd not in ("state", "devices", "history", "complete", "patterns", "plugins"):
                 self.log(f"{conn.describe()}: {cmd} {str(args)[:200] if args else ''}".rstrip(),
                          "debug")
-            if cmd in SERVER_COMMANDS:
+            if cmd == "hello":
+                self._cmd_hello(conn, rid, args)  # it replies itself
+            elif cmd in SERVER_COMMANDS:
                 result = getattr(self, f"_cmd_{cmd}")(conn, args)
+                conn.send({"type": "reply", "id": rid, "ok": True, "result": result})
             else:
                 result = COMMANDS[cmd](self.context, args)
-            conn.send({"type": "reply", "id": rid, "ok": True, "result": result})
+                conn.send({"type": "reply", "id": rid, "ok": True, "result": result})
         except Exception as exc:  # the request failed; the server and the session live on
             conn.send(error_reply(rid, exc))
-            if not isinstance(exc, DotshellError):
+            if isinstance(exc, DotshellError):
+                self.log(f"{conn.describe()}: {cmd} refused: {exc}", "warning")
+            else:
                 self.log(f"{conn.describe()}: {cmd} failed: {type(exc).__name__}: {exc}", "error")
         if cmd == "hello" and conn.greeted:
             self.log(f"{conn.describe()} attached"
@@ -412,21 +418,24 @@ class RigServer:
                 raise ServerError(f"cannot {cmd}: {self.controller.describe()} controls the rig; "
                                   "watch, or take control (in the TUI: ctrl+t).")
 
-    def _cmd_hello(self, conn: Connection, args: dict[str, Any]) -> dict[str, Any]:
+    def _cmd_hello(self, conn: Connection, rid: Any, args: dict[str, Any]) -> None:
+        """Greet a client: its reply (the state, the scan so far, recent events) is queued
+        before any event that is not in it, so the client sees each event exactly once."""
         if args.get("protocol") != PROTOCOL_VERSION:
-            conn.close("protocol mismatch")
             raise ServerError(f"this server speaks protocol {PROTOCOL_VERSION} (dotshell "
                               f"{__version__}), the client {args.get('protocol')!r}; use the same "
                               "dotshell for both, or stop the server (dotshell stop).")
         conn.info.update(client=str(args.get("client", "client"))[:40],
                          tty=args.get("tty") or None)
         with self._clients_lock:
-            conn.greeted = True
             if args.get("control") and self.controller is None:
                 self.controller = conn
-        return {"you": conn.id, "state": self.state(), "tracker": self.tracker.to_dict(),
+        with self._event_lock:
+            conn.greeted = True
+            conn.send({"type": "reply", "id": rid, "ok": True, "result": {
+                "you": conn.id, "state": self.state(), "tracker": self.tracker.to_dict(),
                 "backlog": list(self.backlog), "history": self.console.history[-500:],
-                "rows": self._last_rows}
+                "rows": self._last_rows}})
 
     def _cmd_state(self, conn: Connection, args: dict[str, Any]) -> dict[str, Any]:
         return {"state": self.state(), "tracker": self.tracker.to_dict()}
@@ -489,15 +498,16 @@ class RigServer:
 
     def _on_event(self, ev: Event) -> None:
         wire = ev.to_dict()
-        self.tracker.update(ev)
         level, text = describe_event(ev)
         if isinstance(ev, ScanStarted):
             self._open_run_log(Path(ev.run_dir))
         self.log(text, level, ev.time)
         if isinstance(ev, ScanFinished):
             self._close_run_log()
-        self.backlog.append(wire)
-        self.broadcast({"type": "event", "event": wire})
+        with self._event_lock:
+            self.tracker.update(ev)
+            self.backlog.append(wire)
+            self.broadcast({"type": "event", "event": wire})
         if isinstance(ev, LIFECYCLE):
             self.push_state()
         if isinstance(ev, ScanFinished) and self.session.job is not None:
