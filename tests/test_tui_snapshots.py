@@ -166,13 +166,18 @@ async def test_console_screen(server, tmp_path):
         await check_sizes(pilot, "console", tmp_path)
 
 
-async def test_keys_overlay(server, tmp_path):
+async def check_screen(server, key, screen, name, tmp_path):
+    """The app with ``screen`` opened by ``key``, at every size."""
     app = DotshellApp(attach(server))
     async with app.run_test(size=SIZES[1]) as pilot:
         await until(pilot, lambda: app.focused is not None)
-        await pilot.press("question_mark")
-        await until(pilot, lambda: isinstance(app.screen, KeysScreen))
-        await check_sizes(pilot, "keys", tmp_path)
+        await pilot.press(key)
+        await until(pilot, lambda: isinstance(app.screen, screen))
+        await check_sizes(pilot, name, tmp_path)
+
+
+async def test_keys_overlay(server, tmp_path):
+    await check_screen(server, "question_mark", KeysScreen, "keys", tmp_path)
 
 
 class FixedPlugin:
@@ -193,9 +198,4 @@ async def test_plugins_screen(server, tmp_path):
     pm.load_errors.append(PluginLoadError("broken", "dotshell-broken 0.1",
                                           "ImportError: needs libfoo.so"))
     server.session.pm = pm
-    app = DotshellApp(attach(server))
-    async with app.run_test(size=SIZES[1]) as pilot:
-        await until(pilot, lambda: app.focused is not None)
-        await pilot.press("ctrl+g")
-        await until(pilot, lambda: isinstance(app.screen, PluginsScreen))
-        await check_sizes(pilot, "plugins", tmp_path)
+    await check_screen(server, "ctrl+g", PluginsScreen, "plugins", tmp_path)

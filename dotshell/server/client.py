@@ -16,8 +16,8 @@ from typing import Any, Callable
 
 from dotshell.events import Event
 from dotshell.server.progress import ScanTracker
-from dotshell.server.protocol import (MAX_LINE, PROTOCOL_VERSION, ServerError, decode, encode,
-                                      event_from_wire, raise_remote)
+from dotshell.server.protocol import (PROTOCOL_VERSION, ServerError, decode, encode,
+                                      event_from_wire, raise_remote, read_lines)
 
 Handler = Callable[[dict[str, Any]], None]
 
@@ -109,19 +109,9 @@ class ServerClient:
         """Seen first, before the subscribers (subclasses mirror state here)."""
 
     def _read(self) -> None:
-        buf = b""
         try:
-            while True:
-                data = self.sock.recv(65536)
-                if not data:
-                    break
-                buf += data
-                while b"\n" in buf:
-                    line, buf = buf.split(b"\n", 1)
-                    if line.strip():
-                        self._deliver(decode(line))
-                if len(buf) > MAX_LINE:
-                    break
+            for line in read_lines(self.sock):
+                self._deliver(decode(line))
         except (OSError, ServerError):
             pass
         self._lost(self.close_reason or "the connection closed")

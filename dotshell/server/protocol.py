@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import socket
+import threading
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 from dotshell.errors import DotshellError
 from dotshell.events import Event
@@ -75,6 +77,23 @@ def decode(line: bytes) -> dict[str, Any]:
     if not isinstance(message, dict):
         raise ServerError(f"not a protocol message (a JSON object): {line[:80]!r}")
     return message
+
+
+def read_lines(sock: socket.socket, stop: threading.Event | None = None) -> Iterator[bytes]:
+    """The non-empty lines a peer sends (without the newline) until it closes the connection
+    or ``stop`` is set; ServerError when a line grows past :data:`MAX_LINE`."""
+    buf = b""
+    while stop is None or not stop.is_set():
+        data = sock.recv(65536)
+        if not data:
+            return
+        buf += data
+        while b"\n" in buf:
+            line, buf = buf.split(b"\n", 1)
+            if line.strip():
+                yield line
+        if len(buf) > MAX_LINE:
+            raise ServerError(f"a line longer than {MAX_LINE} bytes; the connection is closed.")
 
 
 def error_reply(request_id: Any, exc: BaseException) -> dict[str, Any]:

@@ -35,8 +35,8 @@ from dotshell.server.commands import COMMANDS, Context, profile_summary
 from dotshell.server.describe import describe_event
 from dotshell.server.paths import HANGUP_CHOICES, alive
 from dotshell.server.progress import ScanTracker
-from dotshell.server.protocol import (CONTROL_COMMANDS, MAX_LINE, PROTOCOL_VERSION,
-                                      URGENT_COMMANDS, ServerError, decode, encode, error_reply)
+from dotshell.server.protocol import (CONTROL_COMMANDS, PROTOCOL_VERSION, URGENT_COMMANDS,
+                                      ServerError, decode, encode, error_reply, read_lines)
 from dotshell.server.repl import ServerConsole
 
 #: Messages waiting for one client before it is dropped as stalled.
@@ -114,21 +114,11 @@ class Connection:
     # ---- in --------------------------------------------------------------------------------------
 
     def _read(self) -> None:
-        buf = b""
         try:
-            while not self.closed.is_set():
-                data = self.sock.recv(65536)
-                if not data:
-                    break
-                buf += data
-                while b"\n" in buf:
-                    line, buf = buf.split(b"\n", 1)
-                    if line.strip():
-                        self._dispatch(line)
-                if len(buf) > MAX_LINE:
-                    self.send(error_reply(None, ServerError(
-                        f"a request longer than {MAX_LINE} bytes; the connection is closed")))
-                    break
+            for line in read_lines(self.sock, self.closed):
+                self._dispatch(line)
+        except ServerError as exc:
+            self.send(error_reply(None, exc))
         except OSError:
             pass
         self.close("disconnected")

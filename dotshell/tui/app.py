@@ -299,36 +299,33 @@ class DotshellApp(App):
     def get_system_commands(self, screen: Screen) -> Iterable[SystemCommand]:
         """dotshell's own actions in the command palette (ctrl+p), before Textual's."""
         rig, scan = self.panel(RigPanel), self.panel(ScanPanel)
-        yield SystemCommand("Connect the rig", "connect every device", rig.action_connect)
-        yield SystemCommand("Disconnect the rig", "close every device", rig.action_disconnect)
-        yield SystemCommand("Start scan", "scan with the loaded profile (Scan: s)",
-                            scan.action_start)
-        yield SystemCommand("Pause or resume the scan", "between frames (Scan: p)",
-                            scan.action_pause)
-        yield SystemCommand("Abort the scan", "frames are kept, run aborted (Scan: x)",
-                            scan.action_abort)
-        yield SystemCommand("Stop devices now", "abort a scan and stop every moving device (esc)",
-                            self.action_stop)
-        yield SystemCommand("Go to stage angle", "absolute, degrees (Rig: g)", rig.action_goto)
-        yield SystemCommand("Jog stage +", "by the jog step (Rig: ])", lambda: rig.action_jog(1))
-        yield SystemCommand("Jog stage −", "by the jog step (Rig: [)", lambda: rig.action_jog(-1))
-        yield SystemCommand("Set analyzer angle", "degrees (Rig: a)", rig.action_analyzer)
-        yield SystemCommand("Set camera exposure", "ms (Rig: e)", rig.action_exposure)
-        yield SystemCommand("Snap a frame", "with the current pattern (Rig: space)",
-                            rig.action_snap)
-        yield SystemCommand("Project a pattern", "from the coding's sequence (Rig: p)",
-                            rig.action_project)
-        yield SystemCommand("Decode map", "project, capture and decode here (Rig: m)",
-                            rig.action_decode)
-        yield SystemCommand("Load profile", "pick a profile (ctrl+o)", self.action_pick_profile)
-        yield SystemCommand("Plugins", "backends and load errors (ctrl+g)", self.action_plugins)
-        yield SystemCommand("Take control", "of the rig from another front end (ctrl+t)",
-                            self.action_take_control)
-        yield SystemCommand("Detach", "quit this terminal, leave the server and its scan running",
-                            self.detach_and_exit)
-        for i, tab in enumerate(TABS):
-            yield SystemCommand(f"Show {tab.title()}", f"tab {i + 1}",
-                                lambda tab=tab: self.action_show_tab(tab))
+        commands: list[tuple[str, str, Callable[[], Any]]] = [
+            ("Connect the rig", "connect every device", rig.action_connect),
+            ("Disconnect the rig", "close every device", rig.action_disconnect),
+            ("Start scan", "scan with the loaded profile (Scan: s)", scan.action_start),
+            ("Pause or resume the scan", "between frames (Scan: p)", scan.action_pause),
+            ("Abort the scan", "frames are kept, run aborted (Scan: x)", scan.action_abort),
+            ("Stop devices now", "abort a scan and stop every moving device (esc)",
+             self.action_stop),
+            ("Go to stage angle", "absolute, degrees (Rig: g)", rig.action_goto),
+            ("Jog stage +", "by the jog step (Rig: ])", lambda: rig.action_jog(1)),
+            ("Jog stage −", "by the jog step (Rig: [)", lambda: rig.action_jog(-1)),
+            ("Set analyzer angle", "degrees (Rig: a)", rig.action_analyzer),
+            ("Set camera exposure", "ms (Rig: e)", rig.action_exposure),
+            ("Snap a frame", "with the current pattern (Rig: space)", rig.action_snap),
+            ("Project a pattern", "from the coding's sequence (Rig: p)", rig.action_project),
+            ("Decode map", "project, capture and decode here (Rig: m)", rig.action_decode),
+            ("Load profile", "pick a profile (ctrl+o)", self.action_pick_profile),
+            ("Plugins", "backends and load errors (ctrl+g)", self.action_plugins),
+            ("Take control", "of the rig from another front end (ctrl+t)",
+             self.action_take_control),
+            ("Detach", "quit this terminal, leave the server and its scan running",
+             self.detach_and_exit),
+            *((f"Show {tab.title()}", f"tab {i + 1}", lambda tab=tab: self.action_show_tab(tab))
+              for i, tab in enumerate(TABS)),
+        ]
+        for title, help_text, callback in commands:
+            yield SystemCommand(title, help_text, callback)
         yield from super().get_system_commands(screen)
 
     # ---- quitting -----------------------------------------------------------------------------
