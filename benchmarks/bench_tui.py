@@ -16,6 +16,7 @@ import fcntl
 import json
 import os
 import pty
+import shutil
 import signal
 import struct
 import subprocess
@@ -167,6 +168,7 @@ def run_tui_bench(quick: bool) -> dict[str, Any]:
         peer_figures = idle_figures(peer.proc.pid, IDLE_S)
     finally:
         peer.close()
+        shutil.rmtree(work, ignore_errors=True)
     return {"quick": quick, "views": tracker["n_views"], "frames": tracker["frames_done"],
             "status": tracker["status"], "points": tracker["points"], "scan_s": scan_s,
             "tui": figures, "peer": peer_figures,

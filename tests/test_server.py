@@ -24,12 +24,12 @@ from dotshell.server.client import RemoteSession
 from dotshell.server.paths import server_log_dir, server_name, socket_path
 from dotshell.server.protocol import ServerError, UnknownEvent, event_from_wire
 from dotshell.server.repl import read_history
-from rig_server import attach, private_dirs, served
+from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
 
 
 @pytest.fixture
-def dirs(monkeypatch):
-    return private_dirs(monkeypatch)
+def dirs(user_dirs):
+    return user_dirs
 
 
 @pytest.fixture

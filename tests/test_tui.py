@@ -37,7 +37,7 @@ from dotshell.tui.widgets.quit_screen import QuitScreen
 from dotshell.tui.widgets.reflow_log import ReflowLog
 from dotshell.tui.widgets.rig_panel import RigPanel
 from dotshell.tui.widgets.scan_panel import ScanPanel
-from rig_server import attach, private_dirs, served
+from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
 
 pytestmark = pytest.mark.asyncio
 
@@ -48,9 +48,8 @@ def truecolor(monkeypatch):
 
 
 @pytest.fixture
-def server(tmp_path, pm, monkeypatch, truecolor):
+def server(tmp_path, pm, monkeypatch, truecolor, user_dirs):
     """A rig server on the tiny simulated bench; ``server.session`` is its Session."""
-    private_dirs(monkeypatch)
     monkeypatch.chdir(tmp_path)
     session = Session(write_test_profile(tmp_path), pm=pm, out_dir="runs")
     with served(session, poll_s=0.1) as srv:
@@ -398,8 +397,8 @@ async def test_short_scan_runs_to_the_end(server):
         assert "view 2 reconstructed" in " ".join(texts) and "view 0 " not in " ".join(texts)
 
 
-async def test_pause_resume_then_abort_midway_keeps_frames(tmp_path, pm, monkeypatch, truecolor):
-    private_dirs(monkeypatch)
+async def test_pause_resume_then_abort_midway_keeps_frames(tmp_path, pm, monkeypatch, truecolor,
+                                                           user_dirs):
     monkeypatch.chdir(tmp_path)
     session = Session(write_test_profile(tmp_path, views=3), pm=pm, out_dir="runs")
     first, second = Gate(session, 0, 2), Gate(session, 1, 4)
@@ -670,8 +669,7 @@ async def test_console_errors_and_interrupts_and_the_app_lives_on(server):
 # ---- profiles, plugins, log, colours -----------------------------------------------------------
 
 async def test_profile_picker_lists_config_dirs_and_plugins_screen_lists_backends(
-        tmp_path, pm, monkeypatch, truecolor):
-    private_dirs(monkeypatch)
+        tmp_path, pm, monkeypatch, truecolor, user_dirs):
     monkeypatch.chdir(tmp_path)
     (tmp_path / "profiles").mkdir()
     write_test_profile(tmp_path / "profiles", views=4, name="four.toml")

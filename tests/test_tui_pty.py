@@ -22,17 +22,16 @@ import pytest
 from conftest import write_test_profile
 from dotshell.server.client import RemoteSession
 from dotshell.server.paths import server_name, socket_path
-from rig_server import private_dirs
+from rig_server import user_dirs  # noqa: F401 (a fixture)
 
 COLS, ROWS = 80, 24
 F_KEYS = {"f2": "\x1bOQ", "f3": "\x1bOR", "f4": "\x1bOS", "f6": "\x1b[17~"}
 
 
 @pytest.fixture
-def profile(tmp_path, monkeypatch):
+def profile(tmp_path, user_dirs):
     """A tiny profile (0.1 s a frame, so a person — or a loaded machine — can follow the
     scan), the user's directories private to the test, the server stopped after."""
-    private_dirs(monkeypatch)
     path = write_test_profile(tmp_path, views=3, settle_ms=100.0)
     yield path
     subprocess.run([sys.executable, "-m", "dotshell.cli", "stop", str(path), "--abort"],

@@ -29,7 +29,7 @@ from dotshell.tui.app import DotshellApp
 from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.keys_screen import KeysScreen
 from dotshell.tui.widgets.plugins_screen import PluginsScreen
-from rig_server import attach, private_dirs, served
+from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
 
 pytestmark = pytest.mark.asyncio
 
@@ -88,8 +88,7 @@ async def settle(pilot):
 
 
 @pytest.fixture
-def server(tmp_path, monkeypatch):
-    private_dirs(monkeypatch)
+def server(tmp_path, monkeypatch, user_dirs):
     monkeypatch.chdir(tmp_path)  # paths on screen are relative: runs/..., p.toml
     monkeypatch.setattr(textual.constants, "COLOR_SYSTEM", "truecolor")
     pm = PluginManager()

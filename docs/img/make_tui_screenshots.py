@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import shutil
 import sys
 import tempfile
 import threading
@@ -175,6 +176,8 @@ async def main() -> None:
         box.text = ""
     server.shutdown("screenshots taken", abort=True)
     server.wait(120)
+    os.chdir(ROOT)
+    shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":

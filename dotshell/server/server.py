@@ -282,15 +282,18 @@ class RigServer:
     def shutdown(self, reason: str, abort: bool = True) -> None:
         """Stop the server in the background: abort the scan (``abort``; else refuse while one
         runs), stop the devices, close the rig, say ``bye`` to every client."""
-        if self.session.scanning and not abort:
-            raise DotshellError(f"a scan is {self.session.state} ({self.tracker.views_done}/"
-                                f"{self.tracker.n_views} views); stop it first, or stop the "
-                                "server with dotshell stop --abort (frames are kept).")
+        self._refuse_stop_during_scan(abort)
         if self._stopping.is_set():
             return
         self._stopping.set()
         threading.Thread(target=self._shutdown, args=(reason,), daemon=True,
                          name="dotshell-shutdown").start()
+
+    def _refuse_stop_during_scan(self, abort: bool) -> None:
+        if self.session.scanning and not abort:
+            raise DotshellError(f"a scan is {self.session.state} ({self.tracker.views_done}/"
+                                f"{self.tracker.n_views} views); stop it first, or stop the "
+                                "server with dotshell stop --abort (frames are kept).")
 
     def _shutdown(self, reason: str) -> None:
         self.exit_reason = reason
@@ -380,8 +383,8 @@ class RigServer:
             if cmd not in ("state", "devices", "history", "complete", "patterns", "plugins"):
                 self.log(f"{conn.describe()}: {cmd} {str(args)[:200] if args else ''}".rstrip(),
                          "debug")
-            if cmd == "hello":
-                self._cmd_hello(conn, rid, args)  # it replies itself
+            if cmd in ("hello", "shutdown"):
+                getattr(self, f"_cmd_{cmd}")(conn, rid, args)  # they reply themselves
             elif cmd in SERVER_COMMANDS:
                 result = getattr(self, f"_cmd_{cmd}")(conn, args)
                 conn.send({"type": "reply", "id": rid, "ok": True, "result": result})
@@ -448,9 +451,12 @@ class RigServer:
             if self.controller is conn:
                 self.controller = None
 
-    def _cmd_shutdown(self, conn: Connection, args: dict[str, Any]) -> dict[str, Any]:
-        self.shutdown(f"dotshell stop from {conn.describe()}", abort=bool(args.get("abort")))
-        return {"stopping": True}
+    def _cmd_shutdown(self, conn: Connection, rid: Any, args: dict[str, Any]) -> None:
+        """Answer first, then stop (the stop closes this connection too)."""
+        abort = bool(args.get("abort"))
+        self._refuse_stop_during_scan(abort)
+        conn.send({"type": "reply", "id": rid, "ok": True, "result": {"stopping": True}})
+        self.shutdown(f"dotshell stop from {conn.describe()}", abort=abort)
 
     def _cmd_bye(self, conn: Connection, args: dict[str, Any]) -> None:
         conn.close("said bye")
