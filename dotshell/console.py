@@ -377,7 +377,9 @@ class Session:
         """Home the stage (or ``role``): find its reference position; the angle afterwards."""
         with self._lock:
             self._device(role, f"home the {role}")
-            return self.rig.home(role)  # type: ignore[union-attr]
+            reached = self.rig.home(role)  # type: ignore[union-attr]
+        self.bus.info(f"{role} homed" + (f": at {reached:.2f}°" if reached is not None else ""))
+        return reached
 
     def jog(self, degrees: float) -> float:
         """Rotate the stage by ``degrees`` (relative); returns the angle reached."""

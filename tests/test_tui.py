@@ -189,6 +189,10 @@ async def test_prompts_start_from_current_values_and_project_highlights_the_patt
         await pilot.press("enter")
         await settle(pilot)
         assert session.rig.stage.position == pytest.approx(40.0)
+        await pilot.press("h")  # home: back to the reference
+        await settle(pilot)
+        assert session.rig.stage.position == 0.0 and "stage at 0.00°" in static_text(app, "#rig-result")
+        session.move_to(40.0)
         await pilot.press("e")
         await pilot.pause()
         assert app.screen.query_one("Input").value == "12"
@@ -210,6 +214,7 @@ async def test_prompts_start_from_current_values_and_project_highlights_the_patt
         await pilot.press("escape")
         log = server.log_path.read_text()
         assert "stage moved to 40.00°" in log and "camera exposure set to 7.5 ms" in log
+        assert "stage homed: at 0.00°" in log
         assert "projector shows pattern white" in log
 
 

@@ -250,6 +250,9 @@ class RemoteSession(ServerClient):
     def jog(self, degrees: float) -> float:
         return self.call("jog", degrees=float(degrees))
 
+    def home(self, role: str = "stage") -> float | None:
+        return self.call("home", role=role)
+
     def set_analyzer(self, degrees: float) -> float:
         return self.call("analyzer", degrees=float(degrees))
 

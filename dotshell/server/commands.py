@@ -136,6 +136,7 @@ COMMANDS: dict[str, Handler] = {
     "disconnect": lambda c, a: c.session.disconnect(),
     "move": lambda c, a: c.session.move_to(_number(a, "degrees")),
     "jog": lambda c, a: c.session.jog(_number(a, "degrees")),
+    "home": lambda c, a: c.session.home(str(a.get("role") or "stage")),
     "analyzer": lambda c, a: c.session.set_analyzer(_number(a, "degrees")),
     "exposure": lambda c, a: c.session.set_exposure(_number(a, "ms")),
     "project": lambda c, a: c.session.project(_text(a, "name")),

@@ -29,7 +29,8 @@ MAX_LINE = 4 * 1024 * 1024
 OPEN_COMMANDS = frozenset({"hello", "state", "devices", "patterns", "plugins", "history",
                            "control", "release", "abort", "stop", "shutdown", "bye"})
 #: Requests that change the rig or the session: only the client in control may send them.
-CONTROL_COMMANDS = frozenset({"load", "set", "connect", "disconnect", "move", "jog", "analyzer",
+CONTROL_COMMANDS = frozenset({"load", "set", "connect", "disconnect", "move", "jog", "home",
+                              "analyzer",
                               "exposure", "project", "snap", "decode", "scan", "pause", "resume",
                               "normalize", "console", "console_reply", "console_interrupt",
                               "complete"})

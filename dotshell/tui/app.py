@@ -308,6 +308,7 @@ class DotshellApp(App):
             ("Stop devices now", "abort a scan and stop every moving device (esc)",
              self.action_stop),
             ("Go to stage angle", "absolute, degrees (Rig: g)", rig.action_goto),
+            ("Home the stage", "find its reference position (Rig: h)", rig.action_home),
             ("Jog stage +", "by the jog step (Rig: ])", lambda: rig.action_jog(1)),
             ("Jog stage −", "by the jog step (Rig: [)", lambda: rig.action_jog(-1)),
             ("Set analyzer angle", "degrees (Rig: a)", rig.action_analyzer),

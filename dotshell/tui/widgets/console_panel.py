@@ -19,8 +19,9 @@ from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.reflow_log import ReflowLog
 
 BANNER = ("Python console on the live session: rig, profile, run, session, np, dotshell; "
-          "connect(), jog(deg), move_to(deg), snap(), project(name), patterns(), decode(), "
-          "scan(), pause(), resume(), abort(), stop(). Enter runs, a blank line ends a block, "
+          "connect(), jog(deg), move_to(deg), home(), snap(), project(name), patterns(), "
+          "decode(), scan(), pause(), resume(), abort(), stop(). Enter runs, a blank line ends a "
+          "block, "
           "↑/↓ history, Tab completes, ctrl+c interrupts; input() and help() ask here.")
 STYLES = {"out": "", "err": "yellow", "result": "cyan", "error": "red", "input": "bold",
           "note": "dim"}

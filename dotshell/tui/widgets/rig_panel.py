@@ -29,7 +29,8 @@ from dotshell.tui.widgets.prompt import PromptScreen
 
 ROLES = ("camera", "projector", "stage", "analyzer", "light_source")
 HELP = ("[b]c[/] connect  [b]d[/] disconnect  [b][ ][/] jog ∓step  [b]+ -[/] step  "
-        "[b]g[/] go to  [b]a[/] analyzer  [b]e[/] exposure  [b]space[/] snap  [b]p[/] project  "
+        "[b]g[/] go to  [b]h[/] home  [b]a[/] analyzer  [b]e[/] exposure  [b]space[/] snap  "
+        "[b]p[/] project  "
         "[b]m[/] decode map  [b]esc[/] stop")
 #: Below this width the device table is stacked: one device per two lines.
 STACK_BELOW = 80
@@ -46,6 +47,7 @@ class RigPanel(Vertical, can_focus=True):
         Binding("plus,equals_sign", "step(2)", "Step ×2", show=False),
         Binding("minus", "step(0.5)", "Step ÷2", show=False),
         Binding("g", "goto", "Go to", show=False),
+        Binding("h", "home", "Home", show=False),
         Binding("a", "analyzer", "Analyzer", show=False),
         Binding("e", "exposure", "Exposure", show=False),
         Binding("space", "snap", "Snap"),
@@ -149,7 +151,7 @@ class RigPanel(Vertical, can_focus=True):
             pct = 100.0 * result["decoded_pixels"] / max(result["total_pixels"], 1)
             return (f"decoded {result['decoded_pixels']} of {result['total_pixels']} pixels "
                     f"({pct:.1f} %) → {short_path(result['preview'])}")
-        if label in ("jog", "go to"):
+        if label in ("jog", "go to", "home") and isinstance(result, (int, float)):
             return f"stage at {result:.2f}°"
         if label == "connect" and isinstance(result, dict):
             return f"connected: {', '.join(result)}"
@@ -202,6 +204,9 @@ class RigPanel(Vertical, can_focus=True):
     def action_goto(self) -> None:
         self._ask("Stage angle (degrees, absolute):", self.current("stage", "angle_deg", 0.0),
                   "go to", self.session.move_to)
+
+    def action_home(self) -> None:
+        self._do("home", self.session.home)
 
     def action_analyzer(self) -> None:
         self._ask("Analyzer angle (degrees):", self.current("analyzer", "angle_deg", 0.0),
