@@ -192,16 +192,18 @@ def _print_status(info: dict[str, Any]) -> None:
     srv, profile = s["server"], s["profile"]
     out.print(f"[b]{escape(srv['name'])}[/] (pid {srv['pid']}, up "
               f"{format_seconds(time.time() - srv['started'])}) on {escape(srv['socket'])}")
-    out.print(f"  profile    {escape(profile['name'] + ' — ' + profile['source']) if profile else 'none'}")
-    out.print(f"  session    {s['session']}, rig {'connected' if s['connected'] else 'not connected'}")
+    shown = f"{profile['name']} — {profile['source']}" if profile else "none"
+    rig = "connected" if s["connected"] else "not connected"
+    out.print(f"  profile    {escape(shown)}")
+    out.print(f"  session    {s['session']}, rig {rig}")
     if t.status != "idle":
         out.print(f"  scan       {t.shown_status}: {_describe_progress(t, time.time())}")
         out.print(f"  run        {escape(t.run_dir)}")
     elif s["run"]:
         out.print(f"  last run   {escape(s['run']['dir'])} ({s['run']['status']})")
     c = s["controller"]
-    out.print(f"  control    {escape(c['client'] + '#' + str(c['id']) + ' pid ' + str(c['pid'])) if c else 'nobody'}"
-              f"; {len(s['clients'])} client(s) attached")
+    who = f"{c['client']}#{c['id']} pid {c['pid']}" if c else "nobody"
+    out.print(f"  control    {escape(who)}; {len(s['clients'])} client(s) attached")
     out.print(f"  log        {escape(srv['log'])}")
 
 

@@ -126,8 +126,17 @@ class Run:
 
     @property
     def status(self) -> str:
-        """``running``, ``completed``, ``aborted``, ``failed`` (or ``unknown``)."""
-        return self.manifest.get("status", "unknown")
+        """``running``, ``completed``, ``aborted``, ``failed``, ``interrupted`` (recorded
+        ``running`` but no process writes it any more) or ``unknown``."""
+        return self.status_and_reason()[0]
+
+    def status_and_reason(self) -> tuple[str, str]:
+        """The run's status as it truly is, and why when it is not ``completed``."""
+        from dotshell.store import RunStore
+
+        if not (self.root / "manifest.json").is_file():
+            return "unknown", f"{self.root} has no manifest.json"
+        return RunStore(self.root).status()
 
     def frame_count(self) -> int:
         """Frames on disk over all views."""

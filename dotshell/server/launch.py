@@ -61,7 +61,8 @@ def start_server(profile: str | Path | None, *, sock: Path, out: str | Path,
             if code is None:
                 proc.terminate()
             tail = out_file.read_text(errors="replace")[-2000:].strip()
-            raise ServerError(f"the rig server did not start ({'exit code ' + str(code) if code is not None else 'no answer in ' + str(START_TIMEOUT_S) + ' s'}); "
-                              f"its output ({out_file}):\n{tail}")
+            why = f"exit code {code}" if code is not None else f"no answer in {START_TIMEOUT_S} s"
+            raise ServerError(f"the rig server did not start ({why}); its output ({out_file}):"
+                              f"\n{tail}")
         time.sleep(0.1)
     return proc.pid

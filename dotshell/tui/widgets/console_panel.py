@@ -118,33 +118,32 @@ class ConsolePanel(Vertical):
 
     # ---- input --------------------------------------------------------------------------------
 
+    def _request(self, label: str, fn: Any, *args: Any) -> None:
+        self.app.run_session_action(label, fn, *args, reply_to=self)  # type: ignore[attr-defined]
+
     def on_console_input_submitted(self, message: ConsoleInput.Submitted) -> None:
         if self.box.busy:
             self._status("[yellow]still running the previous input — ctrl+c interrupts it[/]")
             self.box.text = message.source
             return
         self.box.busy = True
-        self.app.run_session_action("console", self.session.console_run,  # type: ignore[attr-defined]
-                                    message.source, reply_to=self)
+        self._request("console", self.session.console_run, message.source)
 
     def on_console_input_reply(self, message: ConsoleInput.Reply) -> None:
         self.box.waiting_prompt = None
         self._status("[b]running…[/] ctrl+c interrupts")
-        self.app.run_session_action("console reply", self.session.console_reply,  # type: ignore[attr-defined]
-                                    message.line, reply_to=self)
+        self._request("console reply", self.session.console_reply, message.line)
 
     def on_console_input_interrupt(self, message: ConsoleInput.Interrupt) -> None:
         self._status("[yellow]interrupting…[/]")
-        self.app.run_session_action("interrupt", self.session.console_interrupt,  # type: ignore[attr-defined]
-                                    reply_to=self)
+        self._request("interrupt", self.session.console_interrupt)
 
     def on_console_input_page(self, message: ConsoleInput.Page) -> None:
         output = self.query_one(ReflowLog)
         (output.scroll_page_up if message.up else output.scroll_page_down)(animate=False)
 
     def on_console_input_complete_request(self, message: ConsoleInput.CompleteRequest) -> None:
-        self.app.run_session_action("complete", self.session.complete, message.text,  # type: ignore[attr-defined]
-                                    reply_to=self)
+        self._request("complete", self.session.complete, message.text)
 
     def on_action_done(self, message: ActionDone) -> None:
         if message.error:

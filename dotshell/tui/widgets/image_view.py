@@ -47,7 +47,8 @@ def fit_cells(width_px: int, height_px: int, cols: int, rows: int,
     if width_px <= 0 or height_px <= 0 or cols <= 0 or rows <= 0:
         return 0, 0
     scale = min(cols / width_px, rows * aspect / height_px)
-    return max(1, min(cols, round(width_px * scale))), max(1, min(rows, round(height_px * scale / aspect)))
+    return (max(1, min(cols, round(width_px * scale))),
+            max(1, min(rows, round(height_px * scale / aspect))))
 
 
 def fit_size(width_px: int, height_px: int, cols: int, rows: int) -> tuple[int, int]:
