@@ -136,7 +136,10 @@ class Run:
 
         if not (self.root / "manifest.json").is_file():
             return "unknown", f"{self.root} has no manifest.json"
-        return RunStore(self.root).status()
+        try:
+            return RunStore(self.root).status()
+        except RunError as exc:  # a damaged manifest: say so rather than fail the caller
+            return "unknown", str(exc)
 
     def frame_count(self) -> int:
         """Frames on disk over all views."""

@@ -2,6 +2,7 @@
 acquisition runner and the progress tracker — headless, on the reduced simulated bench."""
 
 import json
+import shutil
 import threading
 import time
 
@@ -340,3 +341,18 @@ def test_readable_reprs(session):
     assert readable_repr(session.profile).startswith("<Profile sim-metal-cylinder from ")
     assert "2 views, exposure 20 ms, coding graycode>" in readable_repr(session.profile)
     assert readable_repr([1, 2]) == "[1, 2]"
+
+
+def test_a_run_nobody_writes_any_more_reads_interrupted(small_scan, tmp_path):
+    """The manifest says ``running`` but no process holds the run: the session says
+    ``interrupted`` (the engine's view), not ``running`` for good."""
+    result, _ = small_scan
+    copy = tmp_path / "run"
+    shutil.copytree(result.run_dir, copy, symlinks=True)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["status"] = "running"
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    status, reason = Run(copy).status_and_reason()
+    assert status == "interrupted" and "ended without finishing" in reason
+    (copy / "manifest.json").write_text("{}")
+    assert Run(copy).status_and_reason()[0] == "unknown"  # damaged: said, not raised
