@@ -22,6 +22,8 @@ from dotshell.coding import PatternFrame
 from dotshell.devices import ExposureControl
 from dotshell.errors import DeviceError, ProfileError, RunError
 from dotshell.events import EventBus, FrameCaptured, ScanPaused, ScanResumed, ViewCaptured
+from dotshell.framecheck import FrameSpec
+from dotshell.pipeline.lifecycle import signals_deferred
 from dotshell.pipeline.pdi import Shot, plan_shots
 from dotshell.rig import Rig
 from dotshell.store import RunStore
@@ -44,6 +46,14 @@ def with_retries(action: Callable[[], T], retries: int, what: str, bus: EventBus
     raise AssertionError("unreachable")
 
 
+def check_frame(rig: Rig, spec: FrameSpec, frame: object, what: str) -> np.ndarray:
+    """A frame just captured, checked against the run's frames (:mod:`dotshell.framecheck`)."""
+    backend = rig.profile.role("camera")["backend"]
+    return spec.check(frame, f"{what} from the camera ({backend})",
+                      "Fix the camera's settings or its plugin; frames already written are "
+                      "kept.")
+
+
 class FrameWriter:
     """Writes frames to a :class:`RunStore` on a background thread, in order."""
 
@@ -51,6 +61,8 @@ class FrameWriter:
         self.store = store
         self.queue: queue.Queue = queue.Queue(maxsize=depth)
         self.error: BaseException | None = None
+        #: fringe frames written per view: what a view's count in the manifest may say
+        self.written: dict[int, int] = {}
         self.thread = threading.Thread(target=self._run, name="dotshell-frame-writer", daemon=True)
         self.thread.start()
 
@@ -61,7 +73,10 @@ class FrameWriter:
                 if item is None:
                     return
                 if self.error is None:
-                    self.store.write_image(*item)
+                    path, image, label, view = item
+                    self.store.write_image(path, image, label)
+                    if view is not None:
+                        self.written[view] = self.written.get(view, 0) + 1
             except OSError as exc:  # disk full, permissions, unplugged drive
                 self.error = RunError(f"could not write {item[2]} to {self.store.root}: {exc}. "
                                       "Free disk space or scan with --out on another drive; "
@@ -74,12 +89,15 @@ class FrameWriter:
     def put(self, view: int, index: int, name: str, image: np.ndarray) -> None:
         """Queue a fringe frame of a view."""
         self.put_path(self.store.frame_path(view, index, name), image,
-                      f"frame {name!r} of view {view}")
+                      f"frame {name!r} of view {view}", view)
 
-    def put_path(self, path: Path, image: np.ndarray, label: str) -> None:
-        """Queue any captured image for ``path`` in the run; ``label`` names it in errors."""
+    def put_path(self, path: Path, image: np.ndarray, label: str,
+                 view: int | None = None) -> None:
+        """Queue any captured image for ``path`` in the run; ``label`` names it in errors;
+        ``view``: a fringe frame of that view (counted in :attr:`written` once on disk)."""
         self.check()
-        self.queue.put((path, image, label))
+        with signals_deferred():  # a put cut short by Ctrl-C would leave the writer asleep
+            self.queue.put((path, image, label, view))
 
     def check(self) -> None:
         if self.error is not None:
@@ -87,7 +105,8 @@ class FrameWriter:
 
     def close(self) -> None:
         self.queue.join()
-        self.queue.put(None)
+        with signals_deferred():
+            self.queue.put(None)
         self.thread.join()
 
 
@@ -111,6 +130,7 @@ class Acquisition:
         self.seconds = 0.0
         self._analyzer_deg: float | None = None
         self.writer = FrameWriter(store)
+        self.spec = FrameSpec.of_camera(rig.camera)
         if isinstance(rig.camera, ExposureControl):
             rig.camera.set_exposure(scan["exposure_ms"])
 
@@ -130,8 +150,9 @@ class Acquisition:
                 self._analyzer_deg = None  # unknown after a failure: set it again
                 raise
 
-        return with_retries(attempt, self.scan["retries"], f"view {view}, frame {shot.name!r}",
-                            self.bus)
+        what = f"view {view}, frame {shot.name!r}"
+        return check_frame(self.rig, self.spec,
+                           with_retries(attempt, self.scan["retries"], what, self.bus), what)
 
     def _wait_if_paused(self, view: int, index: int) -> bool:
         """Block while ``running`` is cleared (a pause between frames); False if stopped
@@ -164,8 +185,8 @@ class Acquisition:
                 self.bus.emit(FrameCaptured(view=view, index=i, name=shot.name))
         finally:
             self.writer.queue.join()  # every frame taken is on disk before we go on
-            complete = len(frames) == len(self.shots)
-            self.store.mark_view(view, len(frames), complete)
+            written = self.writer.written.get(view, 0)  # on disk, not merely captured
+            self.store.mark_view(view, written, written == len(self.shots))
             self.seconds += time.perf_counter() - t0
         self.writer.check()
         self.bus.emit(ViewCaptured(view=view, angle_deg=angle_deg, n_frames=len(frames)))
