@@ -59,10 +59,10 @@ class FrameSpec:
 
     def problem(self, frame: Any) -> str:
         """What is wrong with ``frame`` for this run ('' if nothing): "is ...; ..."."""
-        want = f"a {self.width}x{self.height} px {np.dtype(dtype_for(self.bit_depth)).name} " \
-               f"array ({self.bit_depth} bit)"
+        want = f"{self.width}x{self.height} px {np.dtype(dtype_for(self.bit_depth)).name} " \
+               f"arrays, {self.bit_depth} bit"
         if not isinstance(frame, np.ndarray):
-            return f"is a {type(frame).__name__}, not an image: frames are numpy arrays ({want})"
+            return f"is a {type(frame).__name__}, not an image: frames are {want}"
         if frame.ndim == 3 and frame.shape[2] in (3, 4):
             return (f"is a colour image ({frame.shape[2]} channels); the run needs monochrome "
                     f"frames ({want}): set the camera to a monochrome pixel format (Mono8, "

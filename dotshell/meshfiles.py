@@ -52,6 +52,9 @@ def _read_meshio(path: Path, what: str):
     if not path.is_file():
         raise RunError(f"{path} is missing: {what}. Run `dotshell mesh RUN` first (or set "
                        "[mesh] after_scan = true in the profile).")
+    if path.suffix.lower() == ".ply" and not _whole_ply_header(path):
+        raise RunError(f"{path} cannot be read (no complete PLY header: 'ply' ... "
+                       "'end_header'); re-run `dotshell mesh RUN`.")
     said = io.StringIO()
     try:  # meshio prints its reasons and calls sys.exit(1) for some damaged files
         with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
@@ -59,6 +62,15 @@ def _read_meshio(path: Path, what: str):
     except (Exception, SystemExit) as exc:  # many types for a damaged file
         why = " ".join(said.getvalue().split()) or f"{type(exc).__name__}: {exc}"
         raise RunError(f"{path} cannot be read ({why}); re-run `dotshell mesh RUN`.") from None
+
+
+def _whole_ply_header(path: Path) -> bool:
+    """A 'ply' line and an 'end_header' line: meshio's PLY reader loops for ever at the end of
+    a file whose header never ends."""
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    lines = [ln.strip() for ln in head.split(b"\n")]
+    return bool(lines) and lines[0] == b"ply" and b"end_header" in lines
 
 
 def write_surface(path: Path, surface: TriangleSurface) -> Path:

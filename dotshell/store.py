@@ -142,11 +142,15 @@ def check_manifest(m: Any, path: Path) -> dict[str, Any]:
                 raise bad(f"views[{i}].{key} is missing or of the wrong type")
         if not math.isfinite(v["angle_deg"]) or v["index"] != i:
             raise bad(f"views[{i}] has index {v['index']} / angle {v['angle_deg']}")
+        if "angle_read_deg" in v and not _number(v["angle_read_deg"]):
+            raise bad(f"views[{i}].angle_read_deg = {v['angle_read_deg']!r} is not a finite "
+                      "number of degrees")
         if not 0 <= v["frames"] <= n_names or (v["complete"] and v["frames"] != n_names):
             raise bad(f"views[{i}] counts {v['frames']} frames "
                       f"({'complete' if v['complete'] else 'incomplete'}) of a sequence of "
                       f"{n_names}")
-    _check_shots(m.get("shots"), m["frame_names"], bad)
+    if "shots" in m:
+        _check_shots(m["shots"], m["frame_names"], bad)
     _check_camera_entry(m.get("camera"), bad)
     _check_trans_entry(m.get("transillumination"), bad)
     return m
@@ -155,14 +159,13 @@ def check_manifest(m: Any, path: Path) -> dict[str, Any]:
 def _check_shots(shots: Any, names: list[str], bad) -> None:
     """``shots``: per frame of the sequence, its ``name``, ``pattern`` index and analyzer angle
     (degrees or null); every pattern shot once, or twice (PDI)."""
-    if shots is None:
-        return
     if not isinstance(shots, list) or len(shots) != len(names):
         raise bad(f"'shots' must list the {len(names)} frames of frame_names")
     for i, (shot, name) in enumerate(zip(shots, names)):
         if not (isinstance(shot, dict) and shot.get("name") == name
                 and _number(shot.get("pattern"), True) and 0 <= shot["pattern"] < len(names)
-                and (shot.get("analyzer_deg") is None or _number(shot["analyzer_deg"]))):
+                and "analyzer_deg" in shot
+                and (shot["analyzer_deg"] is None or _number(shot["analyzer_deg"]))):
             raise bad(f"shots[{i}] is not {{name: {name!r}, pattern: N, analyzer_deg: degrees "
                       "or null}")
     counts = [0] * (max(s["pattern"] for s in shots) + 1) if shots else []
@@ -289,7 +292,7 @@ class RunStore:
         try:
             atomic_write_bytes(p, bytes(RESERVE_BYTES))
         except OSError as exc:
-            if exc.errno not in FULL:
+            if exc.errno not in (*FULL, errno.EFBIG):  # no room (or a size limit): go without
                 raise
 
     def release_reserve(self) -> bool:
@@ -393,7 +396,8 @@ class RunStore:
         """A stored image as written; ``why`` says what cannot be done without it."""
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if img is None:
-            raise RunError(f"{path} is missing or unreadable; {why}.")
+            raise RunError(f"{path} is missing or unreadable; {why}. Restore it from a backup "
+                           "of the run.")
         return img
 
     def trans_path(self, name: str, view: int | None = None) -> Path:

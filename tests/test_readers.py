@@ -209,7 +209,7 @@ def _valid_manifest() -> dict:
     store = RunStore(Path(tempfile.mkdtemp(prefix="dotshell-readers-")))
     store.init_manifest("seed", [0.0, 180.0], ["white", "black", "col_00", "col_00_inv"])
     m = store.manifest
-    m["views"][0].update(frames=4, complete=True)
+    m["views"][0].update(frames=4, complete=True, angle_read_deg=0.01)
     m["views"][1].update(frames=2)
     m["shots"] = [{"name": n, "pattern": i, "analyzer_deg": None}
                   for i, n in enumerate(m["frame_names"])]
@@ -227,13 +227,14 @@ def _manifest_ok(m) -> None:
     """What the commands do with a manifest that passed the check, they can do."""
     from dotshell.framecheck import FrameSpec
     from dotshell.pipeline.pdi import shots_from_manifest
+    from dotshell.pipeline.steps import view_angle
 
     names = m["frame_names"]
     for v in m["views"]:
-        assert 0 <= v["frames"] <= len(names) and math.isfinite(v["angle_deg"])
+        assert 0 <= v["frames"] <= len(names) and math.isfinite(view_angle(v))
     shots = shots_from_manifest(m)
     assert [s.name for s in shots] == names
-    if "camera" in m:
+    if m.get("camera") is not None:  # null: a run made before it was recorded
         FrameSpec.from_dict(m["camera"])
     t = m.get("transillumination")
     if t is not None:
