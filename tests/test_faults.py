@@ -671,6 +671,30 @@ def _(env):
     return ["resume", str(run)]
 
 
+@case("calibration", "without a measured turntable axis (scan)",
+      ("no measured turntable axis", "dotshell calibrate", "scan.views=1"))
+def _(env):
+    from dotshell.plugins import PluginManager
+    from dotshell.profile import load_profile
+    from dotshell.rig import Rig
+
+    prof = env.profile()
+    pm = PluginManager()
+    pm.load_entry_points()
+    calib = Rig(load_profile(prof, pm), pm).calibration().to_dict()
+    calib["turntable"]["measured"] = False
+    f = env.file("cal.json", calib)
+    return ["scan", str(prof), "--out", str(env.tmp / "runs"), "--calibration", str(f)]
+
+
+@case("profile", "every point outside the region of interest",
+      ("were triangulated but no point is left", "outside the region of interest",
+       "[processing.roi]"))
+def _(env):
+    return ["scan", str(env.profile(processing__roi__radius_mm=0.01)), "--out",
+            str(env.tmp / "runs")]
+
+
 @case("calibration", "broken OpenCV .yml", ("{tmp}/cal.yml", "not a readable opencv"))
 def _(env):
     f = env.file("cal.yml", "%YAML:1.0\n---\nK: !!opencv-matrix\n  rows: 3\n  cols: [\n")

@@ -29,7 +29,8 @@ from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.generations import Generation, ProductStore
 from dotshell.pipeline.lifecycle import describe_holder, lock_holder, on_interrupt
 from dotshell.pipeline.pdi import plan_shots
-from dotshell.pipeline.steps import make_coding, reconstruct_one_view, view_angle
+from dotshell.pipeline.steps import (make_coding, reconstruct_one_view,
+                                     require_turntable_axis, view_angle)
 from dotshell.pipeline.transillum import TransilluminationCapture
 from dotshell.plugins import PluginManager
 from dotshell.profile import Profile, validate_profile
@@ -203,6 +204,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
             calib = RigCalibration.load(store.path("calibration.json"))
         else:
             calib = rig.calibration(calibration_file)
+            require_turntable_axis(calib, profile.angles_deg(), profile.source)
         _check_devices(store, rig, calib, resuming)
         if not resuming:
             calib.save(store.path("calibration.json"))
