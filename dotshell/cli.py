@@ -421,8 +421,9 @@ def main(argv: list[str] | None = None) -> int:
                   "continues a scan).")
         return 130
     except MemoryError as exc:
-        return _fail(args, exc, "out of memory. Scan at a lower resolution (--set "
-                     "camera.settings.width=...), fewer views, or on a machine with more memory.", 2)
+        return _fail(args, exc, "out of memory. Lower the camera or projector resolution "
+                     "(e.g. --set camera.settings.width=... --set camera.settings.height=...), "
+                     "scan fewer views, or use a machine with more memory.", 2)
     except OSError as exc:
         return _fail(args, exc, os_error_message(exc), 2)
     except Exception as exc:  # a bug: one paragraph, the traceback with --debug
@@ -451,7 +452,10 @@ def os_error_message(exc: OSError) -> str:
         errno.EACCES: "write somewhere you may write (--out) or fix the directory's permissions",
         errno.EPERM: "write somewhere you may write (--out) or check the directory's owner and "
                      "permissions",
-        errno.EROFS: "write to another drive (--out)",
+        errno.EROFS: "write to another drive (--out), or copy a run there (cp -a) to "
+                     "process it",
+        errno.EFBIG: "the file is larger than this process may write (`ulimit -f`) or than the "
+                     "file system allows: raise the limit or write to another drive (--out)",
         errno.ENOENT: "check the path",
         errno.ENOTDIR: "a part of the path is a file: give a directory",
         errno.EISDIR: "give a file, not a directory",

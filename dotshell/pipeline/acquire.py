@@ -31,6 +31,8 @@ from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, Profil
 from dotshell.events import (EventBus, FrameCaptured, Message, ScanPaused, ScanResumed,
                              ViewCaptured)
 from dotshell.frames import FrameStore
+from dotshell.framecheck import FrameSpec
+from dotshell.pipeline.lifecycle import signals_deferred
 from dotshell.pipeline.pdi import Shot, plan_shots
 from dotshell.rig import Rig
 from dotshell.store import RunStore
@@ -56,6 +58,14 @@ def with_retries(action: Callable[[], T], retries: int, what: str, bus: EventBus
     raise AssertionError("unreachable")
 
 
+def check_frame(rig: Rig, spec: FrameSpec, frame: object, what: str) -> np.ndarray:
+    """A frame just captured, checked against the run's frames (:mod:`dotshell.framecheck`)."""
+    backend = rig.profile.role("camera")["backend"]
+    return spec.check(frame, f"{what} from the camera ({backend})",
+                      "Fix the camera's settings or its plugin; frames already written are "
+                      "kept.")
+
+
 class FrameWriter:
     """Writes captured images to a :class:`RunStore` on a background thread, in order.
 
@@ -69,6 +79,8 @@ class FrameWriter:
         self.queue: queue.Queue = queue.Queue(maxsize=depth)
         self.error: BaseException | None = None
         self._views: dict[int, FrameStore] = {}  # views being written
+        #: fringe frames written per view: what a view's count in the manifest may say
+        self.written: dict[int, int] = {}
         self.thread = threading.Thread(target=self._run, name="dotshell-frame-writer", daemon=True)
         self.thread.start()
 
@@ -94,7 +106,9 @@ class FrameWriter:
             view, index, image, _ = args
             if view not in self._views:
                 self._views[view] = self.store.frames(view)
+            self.store.check_room(self._views[view].path)
             self._views[view].append(index, image)
+            self.written[view] = self.written.get(view, 0) + 1
         elif kind == "image":
             self.store.write_image(*args)
         elif kind == "sync":
@@ -109,22 +123,26 @@ class FrameWriter:
     def put(self, view: int, index: int, name: str, image: np.ndarray) -> None:
         """Queue a fringe frame of a view."""
         self.check()
-        self.queue.put(("frame", view, index, image, f"frame {name!r} of view {view}"))
+        with signals_deferred():  # a put cut short by Ctrl-C would leave the writer asleep
+            self.queue.put(("frame", view, index, image, f"frame {name!r} of view {view}"))
 
     def put_path(self, path: Path, image: np.ndarray, label: str) -> None:
         """Queue any captured image for ``path`` in the run; ``label`` names it in errors."""
         self.check()
-        self.queue.put(("image", path, image, label))
+        with signals_deferred():
+            self.queue.put(("image", path, image, label))
 
     def sync(self) -> None:
         """Return when everything queued is written and the frames of open views are synced."""
-        self.queue.put(("sync", "the frames of the open views"))
+        with signals_deferred():
+            self.queue.put(("sync", "the frames of the open views"))
         self.queue.join()
 
     def end_view(self, view: int) -> None:
         """Return when every frame queued for ``view`` is written and synced to the disk (one
         fsync per view); the view's file is then complete."""
-        self.queue.put(("end", view, f"the frames of view {view}"))
+        with signals_deferred():
+            self.queue.put(("end", view, f"the frames of view {view}"))
         self.queue.join()
 
     def check(self) -> None:
@@ -133,9 +151,11 @@ class FrameWriter:
 
     def close(self) -> None:
         """Finish every view still open and stop the thread."""
-        self.queue.put(("end", None, "the frames of the open views"))
+        with signals_deferred():
+            self.queue.put(("end", None, "the frames of the open views"))
         self.queue.join()
-        self.queue.put(None)
+        with signals_deferred():
+            self.queue.put(None)
         self.thread.join()
 
 
@@ -167,6 +187,7 @@ class Acquisition:
         self._closed = threading.Event()
         threading.Thread(target=self._stop_watch, name="dotshell-stop-watch", daemon=True).start()
         self.writer = FrameWriter(store)
+        self.spec = FrameSpec.of_camera(rig.camera)
         if implements(rig.camera, ExposureControl):
             rig.camera.set_exposure(scan["exposure_ms"])
         for role, policy in rig.policies.items():
@@ -207,8 +228,9 @@ class Acquisition:
                 self._analyzer_deg = None  # unknown after a failure: set it again
                 raise
 
-        return with_retries(attempt, self.scan["retries"], f"view {view}, frame {shot.name!r}",
-                            self.bus)
+        what = f"view {view}, frame {shot.name!r}"
+        return check_frame(self.rig, self.spec,
+                           with_retries(attempt, self.scan["retries"], what, self.bus), what)
 
     def _move(self, view: int, angle_deg: float) -> dict[str, Any]:
         """Move the stage for a view (retried like captures); what the stage read back."""
@@ -266,8 +288,8 @@ class Acquisition:
             raise
         finally:
             self.writer.end_view(view)  # every frame taken is on disk before we go on
-            complete = len(frames) == len(self.shots)
-            self.store.mark_view(view, len(frames), complete)
+            written = self.writer.written.get(view, 0)  # on disk, not merely captured
+            self.store.mark_view(view, written, written == len(self.shots))
             self._record_view(view, reached, infos)
             self.flush_device_log()
             self.seconds += time.perf_counter() - t0
