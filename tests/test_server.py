@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from conftest import write_test_profile
+from dotshell.store import RunStore
 from dotshell.console import PreviewSaved, Session
 from dotshell.errors import DeviceError
 from dotshell.events import FrameCaptured, ScanFinished, ScanStarted, ViewCaptured
@@ -262,7 +263,8 @@ def test_sigterm_aborts_the_scan_cleanly_and_sighup_can_be_kept(tmp_path, dirs):
     manifest = json.loads((run_dir / "manifest.json").read_text())
     assert manifest["status"] == "aborted"
     frames = sum(v["frames"] for v in manifest["views"])
-    assert frames == len(list((run_dir / "frames").rglob("*.png"))) >= 1
+    store = RunStore.open(run_dir)
+    assert frames == sum(store.frames(v["index"]).count() for v in manifest["views"]) >= 1
     log = (server_log_dir("sig") / "server.log").read_text()
     assert "SIGHUP: kept running (on_hangup = keep)" in log
     assert "SIGTERM: aborting any scan cleanly" in log and "server stopped (SIGTERM)" in log
