@@ -96,6 +96,14 @@ class Connection:
     def send(self, message: dict[str, Any]) -> None:
         self.send_bytes(encode(message))
 
+    def flushed(self, timeout_s: float) -> bool:
+        """Wait (at most ``timeout_s``) until the messages queued before :meth:`close` are
+        written to the socket; False if the client did not take them in time."""
+        writer = self._threads[2]
+        if writer.is_alive() and writer is not threading.current_thread():
+            writer.join(timeout_s)
+        return not writer.is_alive()
+
     def _write(self) -> None:
         while True:
             data = self.outbox.get()
@@ -311,6 +319,8 @@ class RigServer:
             clients = list(self.clients)
         for c in clients:
             c.close("the server stopped")
+        for c in clients:  # bye is on its way before the process may end (daemon writers)
+            c.flushed(timeout_s=5.0)
         self._unsubscribe()
         self._done.set()
         self._wake()
