@@ -89,7 +89,9 @@ def test_stop_midway_keeps_frames_marks_aborted_and_reconstructs_complete_views(
                 stop.set()
 
     bus.subscribe(stop_in_view_1)
-    result = scan(_profile(tmp_path, pm), pm, tmp_path / "runs", bus=bus, stop=stop)
+    profile = _profile(tmp_path, pm)
+    profile.data["scan"]["acquisition"] = "show-capture"  # a stop lands between two frames
+    result = scan(profile, pm, tmp_path / "runs", bus=bus, stop=stop)
     assert result.status == "aborted"
     manifest = json.loads((result.run_dir / "manifest.json").read_text())
     assert manifest["status"] == "aborted"

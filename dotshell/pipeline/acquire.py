@@ -19,10 +19,11 @@ from typing import Any, Callable, TypeVar
 import numpy as np
 
 from dotshell.coding import PatternFrame
-from dotshell.devices import ExposureControl
+from dotshell.devices import ExposureControl, accepted_kwargs
 from dotshell.errors import DeviceError, ProfileError, RunError
 from dotshell.events import EventBus, FrameCaptured, ScanPaused, ScanResumed, ViewCaptured
 from dotshell.pipeline.pdi import Shot, plan_shots
+from dotshell.pipeline.sequenced import SequencedCapture, uses_sequenced
 from dotshell.rig import Rig
 from dotshell.store import RunStore
 
@@ -113,16 +114,25 @@ class Acquisition:
         self.writer = FrameWriter(store)
         if isinstance(rig.camera, ExposureControl):
             rig.camera.set_exposure(scan["exposure_ms"])
+        self._show_kwargs = accepted_kwargs(rig.projector.show, ("name", "index"))
+        self.sequenced = (SequencedCapture(rig, patterns, self.shots, scan, bus, with_retries)
+                          if uses_sequenced(rig, scan) else None)
+
+    def _set_analyzer(self, degrees: float) -> None:
+        if degrees != self._analyzer_deg:
+            self._analyzer_deg = None  # unknown until the move succeeds
+            self.rig.analyzer.set_angle(degrees)
+            self._analyzer_deg = degrees
 
     def _capture(self, shot: Shot, view: int) -> np.ndarray:
         pattern = self.patterns[shot.pattern]
 
         def attempt() -> np.ndarray:
             try:
-                if shot.analyzer_deg is not None and shot.analyzer_deg != self._analyzer_deg:
-                    self.rig.analyzer.set_angle(shot.analyzer_deg)
-                    self._analyzer_deg = shot.analyzer_deg
-                self.rig.projector.show(pattern.image)
+                if shot.analyzer_deg is not None:
+                    self._set_analyzer(shot.analyzer_deg)
+                ident = {"name": pattern.name, "index": shot.pattern}
+                self.rig.projector.show(pattern.image, **{k: ident[k] for k in self._show_kwargs})
                 if self.scan["settle_ms"] > 0:
                     time.sleep(self.scan["settle_ms"] / 1000.0)
                 return self.rig.camera.capture()
@@ -156,9 +166,11 @@ class Acquisition:
         frames: list[np.ndarray] = []
         try:
             for i, shot in enumerate(self.shots):
-                if self.stop.is_set() or not self._wait_if_paused(view, i):
+                captured = self.sequenced is not None and self.sequenced.pending()
+                if (self.stop.is_set() and not captured) or not self._wait_if_paused(view, i):
                     return None
-                frame = self._capture(shot, view)
+                frame = (self.sequenced.frame(view, i, self._set_analyzer) if self.sequenced
+                         else self._capture(shot, view))
                 self.writer.put(view, i, shot.name, frame)
                 frames.append(frame)
                 self.bus.emit(FrameCaptured(view=view, index=i, name=shot.name))

@@ -559,6 +559,9 @@ class SimProjector(_Device):
 
     # ---- hardware sequences (SequencedProjector) ---------------------------------------------
 
+    def shortest_period_ms(self, exposure_ms: float, at_least_ms: float) -> float:
+        return max(float(exposure_ms), float(at_least_ms))
+
     def load_sequence(self, patterns, exposure_ms: float, period_ms: float) -> None:
         self._check("load a pattern sequence")
         if not patterns:
