@@ -25,6 +25,7 @@ from dotshell.events import EventBus, FrameCaptured, ScanPaused, ScanResumed, Vi
 from dotshell.pipeline.pdi import Shot, plan_shots
 from dotshell.pipeline.sequenced import SequencedCapture, uses_sequenced
 from dotshell.rig import Rig
+from dotshell.rig_checks import refused_controls
 from dotshell.store import RunStore
 
 T = TypeVar("T")
@@ -114,6 +115,8 @@ class Acquisition:
         self.writer = FrameWriter(store)
         if isinstance(rig.camera, ExposureControl):
             rig.camera.set_exposure(scan["exposure_ms"])
+        for line in refused_controls(rig):
+            bus.warn(line)
         self._show_kwargs = accepted_kwargs(rig.projector.show, ("name", "index"))
         self.sequenced = (SequencedCapture(rig, patterns, self.shots, scan, bus, with_retries)
                           if uses_sequenced(rig, scan) else None)

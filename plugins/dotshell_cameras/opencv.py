@@ -79,7 +79,7 @@ def _is_file_source(source: str, api: str) -> bool:
 class OpenCVCamera:
     """Camera, ExposureControl, FrameInfoSource and Identified over ``cv2.VideoCapture``.
 
-    ``opener(source, api) -> VideoCapture-like`` is for tests of the control logic."""
+    ``opener(source, api, params) -> VideoCapture-like`` is for tests of the control logic."""
 
     def __init__(self, settings: dict[str, Any], base_dir: str = ".", opener=None) -> None:
         self.settings = settings
@@ -88,8 +88,8 @@ class OpenCVCamera:
         if self.is_file and "://" not in src and not Path(src).is_absolute():
             src = str(Path(base_dir) / src)
         self.source = src
-        self.opener = opener or (lambda s, api: cv2.VideoCapture(
-            int(s) if s.isdigit() else s, api))
+        self.opener = opener or (lambda s, api, params: cv2.VideoCapture(
+            int(s) if s.isdigit() else s, api, params))
         self.cap: Any = None
         self.size = (settings["width"], settings["height"])
         self.exposure_ms = float("nan")
@@ -118,7 +118,9 @@ class OpenCVCamera:
 
     def connect(self) -> None:
         s = self.settings
-        cap = self.opener(self.source, APIS[s["api"]])
+        # >8-bit frames must reach us undecoded: asked at open (FFmpeg decides it there)
+        params = [cv2.CAP_PROP_CONVERT_RGB, 0] if s["bit_depth"] > 8 else []
+        cap = self.opener(self.source, APIS[s["api"]], params)
         if cap is None or not cap.isOpened():
             what = "file" if self.is_file else "camera"
             raise DeviceError(f"opencv camera: cannot open {what} {self.source!r} with API "
@@ -131,8 +133,6 @@ class OpenCVCamera:
         if s["pixel_format"]:
             code = cv2.VideoWriter_fourcc(*s["pixel_format"].ljust(4)[:4])
             self._control("pixel_format", cv2.CAP_PROP_FOURCC, code, exact=True)
-        if s["bit_depth"] > 8:
-            self._control("convert_rgb", cv2.CAP_PROP_CONVERT_RGB, 0, exact=True)
         for key, prop in (("width", cv2.CAP_PROP_FRAME_WIDTH),
                           ("height", cv2.CAP_PROP_FRAME_HEIGHT)):
             if s[key]:
