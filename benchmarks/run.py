@@ -5,6 +5,8 @@
    (``.venv-bench-contrib``, created on first use; opencv-contrib conflicts with the project's
    opencv-python-headless).
 3. End-to-end demo scan in a subprocess: wall time by stage, peak memory, accuracy.
+4. Acquisition rate of show/settle/capture vs hardware-sequenced on the simulator's time model
+   (``acquisition_rate.py``): frames per second, seconds per 42-frame view, their ratio.
 
 Prints the figures and writes them to ``bench-results/latest.json`` (``latest-quick.json``
 with ``--quick``, so a harness test never replaces the full figures). ``--quick`` scales the
@@ -30,6 +32,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+import acquisition_rate
 from bench_profile import ROOT, load_bench_profile
 from dotshell.coding import Correspondence, PatternCoding
 from dotshell.devices import ExposureControl
@@ -290,6 +293,8 @@ def main() -> None:
         if not args.skip_scan:
             results["scan"] = run_scan(args.quick, work)
             print_scan(results["scan"])
+        results["acquisition_rate"] = acquisition_rate.measure(pm, work / "acquisition")
+        acquisition_rate.print_rates(results["acquisition_rate"])
     results["machine"]["loadavg_1min_end"] = os.getloadavg()[0]
     print(f"\n1-min load average at end {os.getloadavg()[0]:.2f} (other work on the machine "
           "skews every figure above; peer and dotshell ran back to back)")

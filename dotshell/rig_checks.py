@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -75,9 +75,11 @@ class LatencyResult:
 
 
 def _bright_mask(black: np.ndarray, white: np.ndarray) -> tuple[np.ndarray, float]:
+    """Pixels the projector lights (at least half the 99th-percentile step) and their mean
+    black → white step (DN)."""
     diff = white.astype(np.float64) - black.astype(np.float64)
-    top = float(np.percentile(diff, 99))
-    return diff > 0.5 * top, top
+    mask = diff > 0.5 * float(np.percentile(diff, 99))
+    return mask, float(diff[mask].mean()) if mask.any() else 0.0
 
 
 def measure_latency(rig: Any, exposure_ms: float, max_ms: float = 1000.0,
@@ -85,7 +87,9 @@ def measure_latency(rig: Any, exposure_ms: float, max_ms: float = 1000.0,
     """Flip the projector between black and white and find the shortest wait after
     ``show(white)`` after which a capture sees the whole white (≥ 95 % of the step on the
     pixels the projector lights), each wait tried ``repeats`` times (the display's refresh
-    phase varies). Search: doubling from ``resolution_ms`` up to ``max_ms``, then bisection."""
+    phase varies). Search: doubling from ``resolution_ms`` up to ``max_ms``, then bisection.
+    Only the waits are timed (by sleeping), never the captures, so the result is in the
+    clock the runner's ``settle_ms`` sleeps in."""
     cam, proj = rig.camera, rig.projector
     if devices.implements(cam, devices.ExposureControl):
         cam.set_exposure(exposure_ms)
@@ -113,12 +117,19 @@ def measure_latency(rig: Any, exposure_ms: float, max_ms: float = 1000.0,
     def share(frame: np.ndarray) -> float:
         return (float(frame[mask].mean()) - base) / step
 
+    def poll(until: Callable[[float], bool]) -> None:
+        deadline = time.monotonic() + 5 * max_ms / 1000.0
+        while not until(share(cam.capture())):
+            if time.monotonic() > deadline:
+                raise DeviceError("latency check: the camera image did not settle within "
+                                  f"{5 * max_ms:.0f} ms; is the light in the scene changing?")
+
     def to_black() -> None:
-        """Show black and capture until the camera sees it (at most ``max_ms``)."""
-        deadline = time.monotonic() + max_ms / 1000.0
-        frame = settled(black, 0.0)
-        while share(frame) > 1 - WHITE_SHARE and time.monotonic() < deadline:
-            frame = cam.capture()
+        """A display with nothing in flight, showing black: wait for the last white to arrive
+        (a trial that saw black left it on its way), then show black and wait to see it."""
+        poll(lambda seen: seen >= WHITE_SHARE)
+        proj.show(black, name="latency-check", index=-1)
+        poll(lambda seen: seen <= 1 - WHITE_SHARE)
 
     def passes(wait_ms: float) -> bool:
         ok = True
