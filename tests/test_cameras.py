@@ -92,7 +92,7 @@ def test_refused_and_ignored_controls_are_reported():
     cam.set_exposure(20.0)
     refused = cam.status()["refused_controls"]
     assert refused["gain"] == "the v4l2 driver refused 4.0"
-    assert refused["exposure_ms"].== "asked 200, the v4l2 driver kept 0.0"
+    assert refused["exposure_ms"] == "asked 200, the v4l2 driver kept 0.0"
 
 
 def test_a_hung_read_times_out_and_the_camera_is_reported_lost():
