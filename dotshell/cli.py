@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -36,13 +37,36 @@ def _pm(args: argparse.Namespace):
     return pm
 
 
+class StallAwareRemaining(TimeRemainingColumn):
+    """The ETA, or ``stalled N s`` when a task has not advanced for ``STALL_S`` seconds (a device
+    or a step that hangs is shown as such, not as an ETA of one second)."""
+
+    STALL_S = 30.0
+
+    def __init__(self, last_advance: dict[Any, float]) -> None:
+        super().__init__()
+        self.last_advance = last_advance
+
+    def render(self, task):  # type: ignore[override]
+        from rich.text import Text
+
+        last = self.last_advance.get(task.id)
+        if last is not None and not task.finished:
+            idle = time.monotonic() - last
+            if idle > self.STALL_S:
+                return Text(f"stalled {idle:.0f} s", style="bold yellow")
+        return super().render(task)
+
+
 class ScanProgress:
     """Renders scan events as progress bars (views, frames, ETA) and log lines."""
 
     def __init__(self, console: Console) -> None:
+        self.last_advance: dict[Any, float] = {}
         self.progress = Progress(TextColumn("{task.description:<12}"), BarColumn(),
                                  MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("ETA"),
-                                 TimeRemainingColumn(), console=console, transient=False)
+                                 StallAwareRemaining(self.last_advance), console=console,
+                                 transient=False)
         self.tasks: dict[str, Any] = {}
         self.console = console
 
@@ -51,12 +75,16 @@ class ScanProgress:
         if isinstance(ev, ScanStarted):
             self.tasks["views"] = p.add_task("views", total=ev.n_views)
             self.tasks["frames"] = p.add_task("frames", total=ev.n_views * ev.frames_per_view)
+            for t in self.tasks.values():
+                self.last_advance[t] = time.monotonic()
         elif isinstance(ev, FrameCaptured) and "frames" in self.tasks:
             p.advance(self.tasks["frames"])
+            self.last_advance[self.tasks["frames"]] = time.monotonic()
         elif isinstance(ev, ViewCaptured) and "views" in self.tasks:
             p.advance(self.tasks["views"])
+            self.last_advance[self.tasks["views"]] = time.monotonic()
         elif isinstance(ev, ViewReconstructed):
-            p.console.print(f"  view {ev.view:3d}: {ev.n_points:8d} points")
+            p.console.print(f"  view {ev.view + 1:3d}: {ev.n_points:8d} points")
         elif isinstance(ev, StepStarted) and ev.step not in ("acquire",):
             p.console.print(f"[dim]→ {ev.step}[/]")
         elif isinstance(ev, Message):
@@ -88,6 +116,14 @@ def _print_report(report: dict[str, Any], run_dir: Path) -> None:
     out.print(f"run: {run_dir}  (status: {report.get('status', '?')})")
 
 
+def _scan_outcome(result) -> int:
+    _print_report(result.report, result.run_dir)
+    if result.status != "completed":
+        err.print(f"[yellow]{result.status}[/]: {escape(result.reason)}. Continue it with "
+                  f"`dotshell resume {result.run_dir}`.")
+    return 0 if result.status == "completed" else 1
+
+
 def cmd_scan(args: argparse.Namespace) -> int:
     from dotshell.pipeline.scan import scan
     from dotshell.profile import load_profile
@@ -97,11 +133,52 @@ def cmd_scan(args: argparse.Namespace) -> int:
     bus = EventBus()
     view = ScanProgress(err)
     bus.subscribe(view)
-    stop = threading.Event()
     with view.progress:
-        result = scan(profile, pm, args.out, bus=bus, stop=stop, calibration_file=args.calibration)
-    _print_report(result.report, result.run_dir)
-    return 0 if result.status == "completed" else 1
+        result = scan(profile, pm, args.out, bus=bus, stop=threading.Event(),
+                      calibration_file=args.calibration)
+    return _scan_outcome(result)
+
+
+def cmd_resume(args: argparse.Namespace) -> int:
+    from dotshell.pipeline.scan import resume_run
+
+    pm = _pm(args)
+    bus = EventBus()
+    view = ScanProgress(err)
+    bus.subscribe(view)
+    with view.progress:
+        result = resume_run(args.run, pm, bus=bus, stop=threading.Event())
+    return _scan_outcome(result)
+
+
+def cmd_inspect(args: argparse.Namespace) -> int:
+    from dotshell.pipeline.generations import current_number, generation_numbers
+    from dotshell.store import RunStore
+
+    store = RunStore.open(Path(args.run))
+    m = store.manifest
+    status, reason = store.status()
+    views = m["views"]
+    done = sum(v["complete"] for v in views)
+    out.print(f"run: {store.root}")
+    out.print(f"status: [bold]{status}[/]" + (f" — {escape(reason)}" if reason else ""))
+    out.print(f"profile: {escape(str(m.get('profile', '?')))}, created {m.get('created', '?')}")
+    out.print(f"views: {done} of {len(views)} complete, "
+              f"{sum(v['frames'] for v in views)} frames on disk")
+    cur = current_number(store.root)
+    gens = generation_numbers(store.root)
+    out.print(f"generations: {', '.join(f'{g:03d}' for g in gens) or 'none'}; published: "
+              f"{'none' if cur is None else f'{cur:03d}'}")
+    t = Table(title="jobs")
+    for col in ("command", "status", "generation", "finished", "reason"):
+        t.add_column(col)
+    for j in m.get("jobs", []):
+        gen = j.get("generation")
+        t.add_row(str(j.get("command", "")), str(j.get("status", "")),
+                  "" if gen is None else f"{gen:03d}", str(j.get("finished", "")),
+                  escape(str(j.get("reason", ""))))
+    out.print(t)
+    return 0
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
@@ -231,6 +308,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--version", action="version", version=f"dotshell {__version__}")
     p.add_argument("--strict-plugins", action="store_true",
                    help="fail when any plugin fails to load (for plugin authors and CI)")
+    p.add_argument("--debug", action="store_true",
+                   help="show the Python traceback of any error (for bug reports)")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def profile_args(sp):
@@ -244,6 +323,15 @@ def build_parser() -> argparse.ArgumentParser:
     profile_args(sp)
     sp.add_argument("--out", default="runs", help="parent directory of the run (default: runs)")
     sp.set_defaults(func=cmd_scan)
+
+    sp = sub.add_parser("resume", help="finish an interrupted, aborted or failed scan (the "
+                        "views it misses, then the processing)")
+    sp.add_argument("run", help="run directory")
+    sp.set_defaults(func=cmd_resume)
+
+    sp = sub.add_parser("inspect", help="a run's true status, views, generations and jobs")
+    sp.add_argument("run", help="run directory")
+    sp.set_defaults(func=cmd_inspect)
 
     sp = sub.add_parser("reconstruct", help="re-process a run from its frames on disk, or "
                         "reconstruct captures from another rig (--captures)")
@@ -302,15 +390,64 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from dotshell.pipeline.lifecycle import interrupt_reason, interrupts
+
+    argv = list(sys.argv[1:] if argv is None else argv)
+    head = argv[:argv.index("--")] if "--" in argv else argv  # --debug anywhere before `--`
+    debug = "--debug" in head
+    argv = [a for a in head if a != "--debug"] + argv[len(head):]
     args = build_parser().parse_args(argv)
+    args.debug = args.debug or debug
     try:
-        return args.func(args)
+        with interrupts(notify=lambda text: err.print(f"[yellow]{escape(text)}[/]")):
+            return args.func(args)
     except DotshellError as exc:
-        err.print(f"[red]error:[/] {escape(str(exc))}", soft_wrap=True)
-        return exc.exit_code
-    except KeyboardInterrupt:
-        err.print("[yellow]interrupted[/]: frames captured so far are kept in the run directory.")
+        return _fail(args, exc, str(exc), exc.exit_code)
+    except KeyboardInterrupt as exc:
+        err.print(f"[yellow]interrupted[/]: {interrupt_reason(exc)}; devices were stopped and "
+                  "frames captured so far are kept in the run directory (`dotshell resume RUN` "
+                  "continues a scan).")
         return 130
+    except MemoryError as exc:
+        return _fail(args, exc, "out of memory. Scan at a lower resolution (--set "
+                     "camera.settings.width=...), fewer views, or on a machine with more memory.", 2)
+    except OSError as exc:
+        return _fail(args, exc, os_error_message(exc), 2)
+    except Exception as exc:  # a bug: one paragraph, the traceback with --debug
+        return _fail(args, exc, f"internal error: {type(exc).__name__}: {exc}. This is a bug in "
+                     "dotshell or a plugin; run again with --debug for the traceback and report "
+                     "it.", 1)
+
+
+def _fail(args: argparse.Namespace, exc: BaseException, text: str, code: int) -> int:
+    if getattr(args, "debug", False):
+        import traceback
+
+        err.print("".join(traceback.format_exception(exc)), markup=False, highlight=False)
+    err.print(f"[red]error:[/] {escape(text)}", soft_wrap=True)
+    return code
+
+
+def os_error_message(exc: OSError) -> str:
+    """One paragraph for a file-system error: what, where, and the fix."""
+    import errno
+
+    where = f" {exc.filename}" if exc.filename else ""
+    fixes = {
+        errno.ENOSPC: "free disk space or write to another drive (--out)",
+        errno.EDQUOT: "free space within your quota or write to another drive (--out)",
+        errno.EACCES: "write somewhere you may write (--out) or fix the directory's permissions",
+        errno.EPERM: "write somewhere you may write (--out) or check the directory's owner and "
+                     "permissions",
+        errno.EROFS: "write to another drive (--out)",
+        errno.ENOENT: "check the path",
+        errno.ENOTDIR: "a part of the path is a file: give a directory",
+        errno.EISDIR: "give a file, not a directory",
+        errno.EMFILE: "raise the open-file limit (ulimit -n)",
+        errno.ENOMEM: "close other programs or scan at a lower resolution",
+    }
+    fix = fixes.get(exc.errno or 0, "check the path, the disk and the permissions")
+    return f"could not read or write{where}: {exc.strerror or exc} — {fix}."
 
 
 if __name__ == "__main__":  # pragma: no cover

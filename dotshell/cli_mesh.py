@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
 from rich.console import Console
@@ -35,7 +36,7 @@ def mesh_table(section: dict[str, Any]) -> Table:
 def cmd_mesh(args: argparse.Namespace, pm) -> int:
     from dotshell.cli import ScanProgress
     from dotshell.events import EventBus
-    from dotshell.pipeline.mesh import mesh_run
+    from dotshell.pipeline.commands import mesh_run
 
     bus = EventBus()
     bus.subscribe(ScanProgress(err))
@@ -49,9 +50,9 @@ def cmd_mesh(args: argparse.Namespace, pm) -> int:
 
 
 def cmd_forward(args: argparse.Namespace, pm) -> int:
-    from dotshell.pipeline.mesh import forward_run
+    from dotshell.pipeline.commands import forward_run
 
-    r = forward_run(args.run, args.source, args.mesh_dir)
+    r = forward_run(args.run, pm, args.source, args.mesh_dir)
     b = r["boundary_fluence_per_mm2"]
     out.print(f"CW diffusion forward solution on {r['nodes']} nodes / {r['elements']} tetrahedra "
               f"(Robin A = {r['robin_A']:.3f}) in {r['solve_s']:.2f} s")
@@ -60,7 +61,8 @@ def cmd_forward(args: argparse.Namespace, pm) -> int:
               f"power; negative nodes: {r['negative_nodes']}")
     if "detector_fluence_per_mm2" in r:
         out.print("detectors: " + ", ".join(f"{v:.3e}" for v in r["detector_fluence_per_mm2"]))
-    out.print(f"fluence written to {escape(r['file'])} (point data 'fluence')")
+    out.print(f"fluence written to {escape(str(Path(args.run) / r['file']))} (point data "
+              "'fluence')")
     return 0
 
 

@@ -56,7 +56,7 @@ def print_section(section: dict[str, Any], run_dir) -> None:
 def cmd_normalize(args: argparse.Namespace, pm) -> int:
     from dotshell.cli import ScanProgress
     from dotshell.events import EventBus
-    from dotshell.pipeline.normalize import normalize_run
+    from dotshell.pipeline.commands import normalize_run
 
     bus = EventBus()
     bus.subscribe(ScanProgress(err))

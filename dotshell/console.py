@@ -350,9 +350,9 @@ class Session:
 
     def _coding_patterns(self) -> dict[str, np.ndarray]:
         if self._patterns is None:
-            from dotshell.pipeline.scan import _make_coding
+            from dotshell.pipeline.steps import make_coding
 
-            self._coding = _make_coding(self._require_profile(), self.pm)
+            self._coding = make_coding(self._require_profile(), self.pm)
             size = self.rig.projector.resolution  # type: ignore[union-attr]
             self._patterns = {p.name: p.image for p in self._coding.patterns(size)}
         return self._patterns
@@ -462,7 +462,7 @@ class Session:
                   normalizer: str | None = None) -> dict[str, Any]:
         """Normalize a run's trans-illumination frames on its surface (default: the session's
         last run) and return the report section (docs/transillumination.md)."""
-        from dotshell.pipeline.normalize import normalize_run
+        from dotshell.pipeline.commands import normalize_run
 
         target = run if run is not None else self.run
         if target is None:

@@ -319,13 +319,24 @@ def _members(protocol: type) -> list[str]:
     return sorted(names)
 
 
+def _is_property(protocol: type, name: str) -> bool:
+    return any(isinstance(vars(k).get(name), property) for k in protocol.__mro__)
+
+
 def missing_members(obj: Any, protocol: type) -> list[str]:
     """The members of ``protocol`` that ``obj`` lacks, found on its class (or set on the
-    instance), without calling any property."""
+    instance), without calling any property. A proxy class with ``__getattr__`` is asked for
+    the protocol's methods (never its properties) by name."""
     cls = type(obj)
     inst = getattr(obj, "__dict__", {})
-    return [n for n in _members(protocol)
-            if not (any(n in vars(k) for k in cls.__mro__) or n in inst)]
+    proxy = any("__getattr__" in vars(k) for k in cls.__mro__ if k is not object)
+
+    def has(n: str) -> bool:
+        if any(n in vars(k) for k in cls.__mro__) or n in inst:
+            return True
+        return proxy and not _is_property(protocol, n) and hasattr(obj, n)
+
+    return [n for n in _members(protocol) if not has(n)]
 
 
 def implements(obj: Any, protocol: type) -> bool:

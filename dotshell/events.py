@@ -88,9 +88,13 @@ class Message(Event):
 
 @dataclass(frozen=True)
 class ScanFinished(Event):
+    """A scan (or its resume) ended: ``status`` is ``completed``, ``aborted`` or ``failed``;
+    ``reason`` says why when it is not ``completed``."""
+
     status: str
     run_dir: str
     summary: dict[str, Any] = field(default_factory=dict)
+    reason: str = ""
 
 
 Subscriber = Callable[[Event], None]

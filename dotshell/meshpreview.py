@@ -26,11 +26,9 @@ def _shoot(pl, path: Path, title: str) -> Path:
     pl.camera_position = "iso"
     pl.camera.azimuth = 30
     pl.show_axes()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp.png")
-    pl.screenshot(str(tmp))
-    os.replace(tmp, path)
-    return path
+    from dotshell.render import screenshot
+
+    return screenshot(pl, path)
 
 
 def render_mesh_previews(mesh_dir: Path, out_dir: Path, suffix: str = "") -> dict[str, Path]:

@@ -16,7 +16,7 @@ import pluggy
 
 from dotshell import hookspecs
 from dotshell.backends import ROLES, Backend
-from dotshell.errors import PluginError
+from dotshell.errors import DotshellError, PluginError, PluginFault
 from dotshell.settings import validate_settings
 
 GROUP = "dotshell"
@@ -54,26 +54,42 @@ class PluginManager:
         self.load_errors: list[PluginLoadError] = []
         self.distributions: dict[str, str] = {}
         self._backends: dict[str, dict[str, BackendInfo]] | None = None
+        self.qualified: dict[str, dict[str, BackendInfo]] = {}
+        #: seconds a workflow hook may take before the workflow goes on without it
+        self.hook_timeout_s = HOOK_TIMEOUT_S
 
     # ---- discovery --------------------------------------------------------------------------
 
     def load_entry_points(self, entry_points: Iterable[md.EntryPoint] | None = None) -> None:
-        """Load every entry point of the ``dotshell`` group (or the ones given)."""
+        """Load every entry point of the ``dotshell`` group (or the ones given), first-party
+        ones first, then collect every plugin's backends at once, so load errors —
+        duplicate backend names, entry-point names that shadow dotshell's own — are known to
+        every command at start-up."""
         eps = md.entry_points(group=GROUP) if entry_points is None else entry_points
-        seen: set[str] = set()
-        for ep in sorted(eps, key=lambda e: e.name):
-            if ep.name in seen:
-                continue
-            seen.add(ep.name)
+        seen: dict[str, str] = {}
+        for ep in sorted(eps, key=lambda e: (not _first_party(e), e.name)):
             dist = f"{ep.dist.name} {ep.dist.version}" if ep.dist else "unknown distribution"
+            name = ep.name
+            if name in seen:
+                if seen[name] == dist:
+                    continue  # the same distribution seen twice on sys.path
+                name = f"{ep.name}@{ep.dist.name if ep.dist else 'unknown'}"
+                self._load_failed(PluginLoadError(
+                    ep.name, dist, f"its entry-point name {ep.name!r} is already taken by "
+                    f"{seen[ep.name]}; it is loaded as {name!r} (rename the entry point in the "
+                    "plugin's pyproject.toml)"))
+            seen.setdefault(ep.name, dist)
             try:
                 plugin = ep.load()
-            except Exception as exc:  # any import-time failure of third-party code
+            except BaseException as exc:  # any import-time failure, sys.exit() included
+                if _user_interrupt(exc):
+                    raise
                 last = traceback.extract_tb(exc.__traceback__)[-1:] if exc.__traceback__ else []
                 at = f" at {last[0].filename}:{last[0].lineno}" if last else ""
                 self._load_failed(PluginLoadError(ep.name, dist, f"{type(exc).__name__}: {exc}{at}"))
                 continue
-            self.register(plugin, name=ep.name, distribution=dist)
+            self.register(plugin, name=name, distribution=dist)
+        self.backends("camera")  # collect now: duplicate or malformed backends are load errors
 
     def register(self, plugin: Any, name: str, distribution: str = "local") -> None:
         """Register a plugin object or module directly (tests, scripts)."""
@@ -95,24 +111,54 @@ class PluginManager:
 
     def _collect(self) -> dict[str, dict[str, BackendInfo]]:
         table: dict[str, dict[str, BackendInfo]] = {role: {} for role in ROLES}
+        self.qualified: dict[str, dict[str, BackendInfo]] = {role: {} for role in ROLES}
+        impls = {role: getattr(self.pm.hook, hook).get_hookimpls() for role, hook in ROLES.items()}
         for role, hook_name in ROLES.items():
-            for impl in getattr(self.pm.hook, hook_name).get_hookimpls():
+            # pluggy lists the last registered first; first-party plugins were registered first
+            for impl in sorted(impls[role], key=lambda i: self._order(i.plugin_name)):
                 dist = self.distributions.get(impl.plugin_name, "local")
-                try:
-                    provided = impl.function() or []
-                except Exception as exc:
-                    self._load_failed(PluginLoadError(
-                        impl.plugin_name, dist, f"{hook_name}() raised {type(exc).__name__}: {exc}"))
-                    continue
-                for b in provided:
+                for b in self._provided(impl, hook_name, dist):
+                    info = BackendInfo(role, b, impl.plugin_name, dist)
+                    self.qualified[role][f"{impl.plugin_name}:{b.name}"] = info
                     if b.name in table[role]:
                         other = table[role][b.name]
                         self._load_failed(PluginLoadError(
                             impl.plugin_name, dist, f"{role} backend {b.name!r} is already "
-                            f"provided by plugin {other.plugin!r}; the first one is kept"))
+                            f"provided by plugin {other.plugin!r} ({other.distribution}), which "
+                            f"is kept; choose this one with backend = "
+                            f"\"{impl.plugin_name}:{b.name}\""))
                         continue
-                    table[role][b.name] = BackendInfo(role, b, impl.plugin_name, dist)
+                    table[role][b.name] = info
         return table
+
+    def _order(self, plugin_name: str) -> tuple[bool, int]:
+        dist = self.distributions.get(plugin_name, "local")
+        names = list(self.distributions)
+        return (not dist.startswith("dotshell "),
+                names.index(plugin_name) if plugin_name in names else len(names))
+
+    def _provided(self, impl: Any, hook_name: str, dist: str) -> list[Backend]:
+        """What one plugin's backend hook returned, checked; a fault is that plugin's load
+        error."""
+        try:
+            provided = impl.function()
+        except BaseException as exc:  # noqa: BLE001 - plugin code: contain everything
+            if _user_interrupt(exc):
+                raise
+            self._load_failed(PluginLoadError(
+                impl.plugin_name, dist, f"{hook_name}() raised {type(exc).__name__}: {exc}"))
+            return []
+        if provided is None:
+            return []
+        if not isinstance(provided, (list, tuple)) or not all(
+                isinstance(b, Backend) and isinstance(b.name, str) and b.name and callable(b.factory)
+                and _schema_ok(b.settings_schema) for b in provided):
+            self._load_failed(PluginLoadError(
+                impl.plugin_name, dist, f"{hook_name}() must return a list of "
+                "dotshell.backends.Backend (a name, a callable factory and a settings schema of "
+                f"dotshell.settings.Setting); it returned {_describe(provided)}"))
+            return []
+        return list(provided)
 
     def backends(self, role: str) -> dict[str, BackendInfo]:
         """All backends for ``role`` by name."""
@@ -127,6 +173,8 @@ class PluginManager:
         found = self.backends(role)
         if name in found:
             return found[name]
+        if ":" in name and name in self.qualified.get(role, {}):  # plugin:backend
+            return self.qualified[role][name]
         choices = ", ".join(repr(n) for n in sorted(found)) or "(none installed)"
         hint = ""
         if self.load_errors:
@@ -141,7 +189,13 @@ class PluginManager:
         """Validate ``settings`` against the backend's schema and call its factory."""
         info = self.backend(role, name, where)
         clean = validate_settings(info.backend.settings_schema, settings, where, f"{role}.settings")
-        return info.backend.factory(settings=clean, context=context)
+        try:
+            return info.backend.factory(settings=clean, context=context)
+        except DotshellError:
+            raise
+        except Exception as exc:  # plugin code: name it, never a traceback
+            raise PluginFault(plugin_fault(info, "creating the device" if role in DEVICE_ROLES
+                                           else f"creating the {role}", exc)) from exc
 
     # ---- workflow hooks ---------------------------------------------------------------------
 
@@ -150,12 +204,67 @@ class PluginManager:
         warnings = []
         for impl in getattr(self.pm.hook, hook_name).get_hookimpls():
             args = {k: v for k, v in kwargs.items() if k in impl.argnames}
-            try:
-                impl.function(**args)
-            except Exception as exc:
-                warnings.append(f"plugin {impl.plugin_name!r} failed in {hook_name}: "
-                                f"{type(exc).__name__}: {exc}")
+            failure = _call_with_timeout(impl.function, args, self.hook_timeout_s)
+            if failure:
+                warnings.append(f"plugin {impl.plugin_name!r} {failure} in {hook_name}; the "
+                                "workflow went on without it")
         return warnings
+
+
+HOOK_TIMEOUT_S = 10.0
+DEVICE_ROLES = ("camera", "projector", "stage", "analyzer", "light_source")
+
+
+def _first_party(ep: md.EntryPoint) -> bool:
+    return ep.dist is not None and ep.dist.name == "dotshell"
+
+
+def _user_interrupt(exc: BaseException) -> bool:
+    """A real Ctrl-C / stop signal (to be obeyed), not a plugin raising KeyboardInterrupt."""
+    from dotshell.pipeline.lifecycle import Interrupted
+
+    return isinstance(exc, Interrupted)
+
+
+def _schema_ok(schema: Any) -> bool:
+    from dotshell.settings import Setting
+
+    return isinstance(schema, Mapping) and all(
+        isinstance(k, str) and isinstance(v, Setting) for k, v in schema.items())
+
+
+def _describe(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def plugin_fault(info: BackendInfo, doing: str, exc: BaseException) -> str:
+    """The one-paragraph message for plugin code that raised something unexpected."""
+    return (f"plugin {info.plugin!r} ({info.distribution}; role {info.role}, backend "
+            f"{info.backend.name!r}) raised {type(exc).__name__} while {doing}: {exc}. This is a "
+            "fault of the plugin: update or fix it, or choose another backend in the profile.")
+
+
+def _call_with_timeout(fn: Any, kwargs: dict[str, Any], timeout_s: float) -> str:
+    """Run a workflow hook on a helper thread; '' if it returned in time, else what went
+    wrong ('raised X: ...', 'did not return within N s')."""
+    import threading
+
+    result: list[str] = []
+
+    def target() -> None:
+        try:
+            fn(**kwargs)
+            result.append("")
+        except BaseException as exc:  # noqa: BLE001 - plugin code
+            result.append(f"raised {type(exc).__name__}: {exc}")
+
+    t = threading.Thread(target=target, name="dotshell-hook", daemon=True)
+    t.start()
+    t.join(timeout_s)
+    if t.is_alive():
+        return f"did not return within {timeout_s:g} s"
+    return result[0]
 
 
 _default: PluginManager | None = None

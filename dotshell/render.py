@@ -8,13 +8,14 @@ impossible the cloud preview is skipped with a warning naming the reason — nev
 from __future__ import annotations
 
 import os
+import threading
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from dotshell.store import atomic_write_bytes
+from dotshell.store import FILE_MODE, atomic_write_bytes
 
 
 #: points drawn in a cloud preview (a fixed-seed random subset of larger clouds)
@@ -83,31 +84,33 @@ def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
             pl.camera_position = camera
             pl.reset_camera()  # same viewing direction, the whole cloud in the picture
             pl.enable_eye_dome_lighting()
-        tmp = Path(path).with_suffix(".tmp.png")
-        pl.screenshot(str(tmp))
-        os.replace(tmp, path)
+        screenshot(pl, Path(path))
     finally:
         pl.close()
     return Path(path)
 
 
-def render_previews(store, clouds, points: np.ndarray, profile, calib, bus) -> dict[str, Any]:
-    """Write the run's previews; returns {name: relative path} and warns on any it skipped."""
+def screenshot(plotter, path: Path) -> Path:
+    """Render ``plotter`` to ``path`` (PNG) through a temporary file of this process only and a
+    rename, so two processes never share a temporary name and a reader never sees half a PNG."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}-{threading.get_ident()}.tmp.png")
+    try:
+        plotter.screenshot(str(tmp))
+        os.chmod(tmp, FILE_MODE)
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return path
+
+
+def cloud_previews(store, points: np.ndarray, profile, bus) -> dict[str, Any]:
+    """``previews/cloud.png`` of the merged cloud (by radius error for a cylinder, by height
+    otherwise); returns {name: path relative to the run's products} and warns if skipped."""
     out: dict[str, Any] = {}
     pdir = store.path("previews")
-    pdir.mkdir(exist_ok=True)
-    want = profile.data["outputs"]["preview_view"]
-    vc = next((c for c in clouds if c.view == want and c.correspondence is not None), None)
-    if vc is None:
-        bus.warn(f"frame previews skipped: view {want} ([outputs] preview_view) was not "
-                 "reconstructed")
-    else:
-        first = store.frame_path(vc.view, 0, store.manifest["frame_names"][0])
-        out["frame"] = frame_preview(cv2.imread(str(first), cv2.IMREAD_UNCHANGED),
-                                     pdir / f"frame_view{vc.view:03d}.png")
-        out["columns"] = column_map_preview(vc.correspondence.column, vc.correspondence.valid,
-                                            calib.projector.width,
-                                            pdir / f"columns_view{vc.view:03d}.png")
+    pdir.mkdir(parents=True, exist_ok=True)
     r = np.hypot(points[:, 0], points[:, 1])
     v = profile.data["validation"]
     style: dict[str, Any] = {}

@@ -7,6 +7,7 @@ path, the bad value and what would be valid, so the user can fix the profile in 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
@@ -61,6 +62,9 @@ def _check_number(where: str, key: str, value: Any, s: Setting, integer: bool) -
     if isinstance(value, bool) or not ok:
         raise _fail(where, key, value, "an integer" if integer else "a number"
                     + (f" in {s.unit}" if s.unit else ""))
+    if not math.isfinite(value):  # comparisons with NaN are all false: refuse it first
+        raise _fail(where, key, value, "a finite number" + (f" in {s.unit}" if s.unit else "")
+                    + " (nan and inf are not values a device or a step can use)")
     if (s.min is not None and value < s.min) or (s.max is not None and value > s.max):
         lo = "-inf" if s.min is None else s.min
         hi = "+inf" if s.max is None else s.max

@@ -30,12 +30,25 @@ from dotshell.errors import RunError
 RUN_FORMAT = "dotshell-run/1"
 
 
+def _process_umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+#: Mode of the files dotshell writes: what the user's umask allows (lab groups can read runs);
+#: ``mkstemp`` alone would make every file 0600.
+FILE_MODE = 0o666 & ~_process_umask()
+TMP_SUFFIX = ".tmp"
+
+
 def atomic_write_bytes(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` via a temporary file in the same directory and a rename."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TMP_SUFFIX)
     try:
+        os.fchmod(fd, FILE_MODE)
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
@@ -81,6 +94,38 @@ def versions() -> dict[str, str]:
     return out
 
 
+_MANIFEST_KEYS = {"status": str, "frame_names": list, "views": list}
+_VIEW_KEYS = {"index": int, "angle_deg": (int, float), "frames": int, "complete": bool}
+
+
+def check_manifest(m: Any, path: Path) -> dict[str, Any]:
+    """``m`` if it has the keys and types every command relies on; a :class:`RunError` naming
+    the first problem otherwise."""
+    import math
+
+    def bad(what: str) -> RunError:
+        return RunError(f"{path} is damaged: {what}. It is written by dotshell only; restore it "
+                        "from a backup, or re-capture the run.")
+
+    if not isinstance(m, dict):
+        raise bad(f"it holds a {type(m).__name__}, not an object")
+    for key, kind in _MANIFEST_KEYS.items():
+        if not isinstance(m.get(key), kind):
+            raise bad(f"'{key}' is missing or not a {kind.__name__}")
+    for i, v in enumerate(m["views"]):
+        if not isinstance(v, dict):
+            raise bad(f"views[{i}] is not an object")
+        for key, kind in _VIEW_KEYS.items():
+            val = v.get(key)
+            if not isinstance(val, kind) or (key != "complete" and isinstance(val, bool)):
+                raise bad(f"views[{i}].{key} is missing or of the wrong type")
+        if not math.isfinite(v["angle_deg"]) or v["index"] != i:
+            raise bad(f"views[{i}] has index {v['index']} / angle {v['angle_deg']}")
+    if not all(isinstance(n, str) and n for n in m["frame_names"]):
+        raise bad("frame_names must be non-empty strings")
+    return m
+
+
 class RunStore:
     """Reads and writes one run directory."""
 
@@ -96,6 +141,9 @@ class RunStore:
         safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", profile_name) or "run"
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
         parent = Path(parent)
+        if parent.exists() and not parent.is_dir():
+            raise RunError(f"--out {parent} is a file, not a directory; give the directory runs "
+                           "are written under (it is made if missing).")
         parent.mkdir(parents=True, exist_ok=True)
         for n in range(1000):
             root = parent / (f"{stamp}_{safe}" + (f"_{n}" if n else ""))
@@ -119,6 +167,21 @@ class RunStore:
 
     def path(self, *parts: str) -> Path:
         return self.root.joinpath(*parts)
+
+    @property
+    def run_root(self) -> Path:
+        """The run directory (for a generation's view of the run, its top)."""
+        return self.root
+
+    def clean_orphans(self) -> list[Path]:
+        """Remove temporary files (``.NAME.*.tmp``) left by a process killed mid-write; call
+        only while holding the run's lock. Returns what was removed."""
+        gone = []
+        for p in [*self.root.rglob(f".*{TMP_SUFFIX}"), *self.root.rglob(f".*{TMP_SUFFIX}.*")]:
+            if p.is_file() or p.is_symlink():
+                p.unlink()
+                gone.append(p)
+        return gone
 
     def write_json(self, name: str, obj: Any) -> Path:
         p = self.path(name)
@@ -156,7 +219,14 @@ class RunStore:
 
     @property
     def manifest(self) -> dict[str, Any]:
-        return self.read_json("manifest.json")
+        return check_manifest(self.read_json("manifest.json"), self.path("manifest.json"))
+
+    def status(self) -> tuple[str, str]:
+        """(status, reason) as it truly is (a ``running`` run whose process is gone is
+        ``interrupted``; see :mod:`dotshell.pipeline.lifecycle`)."""
+        from dotshell.pipeline.lifecycle import effective_status
+
+        return effective_status(self.root, self.manifest)
 
     def update_manifest(self, **changes: Any) -> None:
         m = self.manifest

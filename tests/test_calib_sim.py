@@ -52,7 +52,7 @@ def small_capture(tmp_path_factory):
 
 def _copy(run: Path, tmp: Path) -> Path:
     dst = tmp / "copy"
-    shutil.copytree(run, dst)
+    shutil.copytree(run, dst, symlinks=True)
     return dst
 
 

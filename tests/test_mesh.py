@@ -27,7 +27,7 @@ def _pm() -> PluginManager:
 def copy_run(src: Path, dst: Path, frames: bool = False, **profile_changes) -> Path:
     """A private copy of a run (the session's small scan is shared, read-only)."""
     if frames:
-        shutil.copytree(src, dst)
+        shutil.copytree(src, dst, symlinks=True)
     else:
         dst.mkdir(parents=True)
         for name in RUN_FILES:
@@ -44,7 +44,7 @@ OPTODES = {"sources_mm": [[7.7, 0.0, 15.0]], "detectors_mm": [[-7.7, 0.0, 15.0],
 
 @pytest.fixture(scope="module")
 def meshed(small_scan, tmp_path_factory):
-    from dotshell.pipeline.mesh import mesh_run
+    from dotshell.pipeline.commands import mesh_run
 
     run = copy_run(small_scan[0].run_dir, tmp_path_factory.mktemp("mesh") / "run",
                    mesh={"node_distance_mm": 1.0, "optodes": OPTODES},
@@ -105,7 +105,7 @@ def test_scanned_mesh_exports_read_back(meshed):
 
 
 def test_forward_on_the_scanned_mesh(meshed):
-    from dotshell.pipeline.mesh import forward_run
+    from dotshell.pipeline.commands import forward_run
 
     out = forward_run(meshed.run_dir)
     # the optode source on the skin is moved 1/μs' = 1 mm inside, as NIRFAST does
@@ -142,7 +142,7 @@ def _cloud_run(tmp_path: Path, small_scan, points: np.ndarray) -> Path:
 
 
 def test_too_sparse_cloud_is_a_clear_error(small_scan, tmp_path):
-    from dotshell.pipeline.mesh import mesh_run
+    from dotshell.pipeline.commands import mesh_run
 
     pts = np.random.default_rng(0).normal(size=(150, 3)) * 5 + [0, 0, 15]
     with pytest.raises(MeshError, match="too sparse to close a surface"):
@@ -150,7 +150,7 @@ def test_too_sparse_cloud_is_a_clear_error(small_scan, tmp_path):
 
 
 def test_one_sided_cloud_is_a_clear_error(small_scan, tmp_path):
-    from dotshell.pipeline.mesh import mesh_run
+    from dotshell.pipeline.commands import mesh_run
 
     rng = np.random.default_rng(1)
     pts = np.column_stack([rng.uniform(-8, 8, 20000), np.zeros(20000), rng.uniform(1, 20, 20000)])
@@ -180,7 +180,7 @@ def test_open_surface_that_cannot_be_repaired_is_a_clear_error():
 
 def test_node_distance_zero_is_a_clear_error(meshed, tmp_path):
     from dotshell.cli import main
-    from dotshell.pipeline.mesh import mesh_run
+    from dotshell.pipeline.commands import mesh_run
     from dotshell.profile import validate_profile
 
     with pytest.raises(MeshError, match="node distance must be a positive number"):

@@ -258,7 +258,7 @@ def test_normalize_command_reruns_with_another_normalizer(trans_run, capsys):
 def _copy_run(trans_run, tmp_path):
     src = trans_run[0].run_dir
     dst = tmp_path / src.name
-    shutil.copytree(src, dst)
+    shutil.copytree(src, dst, symlinks=True)
     return dst
 
 
@@ -268,12 +268,12 @@ def test_bad_runs_are_clear_errors(trans_run, small_scan, tmp_path, capsys):
     assert main(["normalize", str(small_scan[0].run_dir)]) == 2
     assert "has no trans-illumination frames" in capsys.readouterr().err
     run = _copy_run(trans_run, tmp_path)
-    (run / "surface.ply").unlink()
+    (run / "current" / "surface.ply").unlink()  # a damaged generation
     assert main(["normalize", str(run)]) == 2
     err = capsys.readouterr().err
     assert "has no surface" in err and "dotshell mesh" in err
     run = _copy_run(trans_run, tmp_path / "b")
-    (run / "calibration.json").unlink()
+    (run / "current" / "calibration.json").unlink()
     assert main(["normalize", str(run)]) == 2
     assert "has no calibration.json" in capsys.readouterr().err
     run = _copy_run(trans_run, tmp_path / "c")

@@ -70,3 +70,114 @@ def test_workflow_hooks_called_with_keywords_and_failures_become_warnings(dotshe
     assert w.seen == [(3, 10)]
     warns = dotshell_pm.notify("dotshell_scan_finished", run_dir="r", status="completed", report={})
     assert warns and "watcher" in warns[0] and "observer bug" in warns[0]
+
+
+# ---- third-party plugins that misbehave (issue: runs that never lie) ---------------------------
+
+from conftest import make_dist  # noqa: E402
+
+
+def _install(tmp_path, monkeypatch, dist, module, source, ep_name):
+    path = make_dist(tmp_path / dist, dist, module, source, ep_name)
+    monkeypatch.syspath_prepend(str(path))
+
+
+SIM_CAMERA_TWIN = '''
+from dotshell import hookimpl
+from dotshell.backends import Backend
+
+@hookimpl
+def dotshell_cameras():
+    return [Backend("sim-camera", lambda settings, context: None, {}, "an impostor")]
+'''
+
+
+def test_a_third_party_duplicate_never_takes_over_and_is_reported_at_start(
+        tmp_path, monkeypatch, capsys):
+    from dotshell.cli import main
+
+    _install(tmp_path, monkeypatch, "dotshell-twin", "dotshell_twin_mod", SIM_CAMERA_TWIN, "twin")
+    pm = PluginManager()
+    pm.load_entry_points()
+    assert pm.backends("camera")["sim-camera"].plugin == "sim"  # first party wins
+    assert pm.backend("camera", "twin:sim-camera").plugin == "twin"  # still choosable
+    [err] = [e for e in pm.load_errors if e.name == "twin"]
+    assert "already provided by plugin 'sim'" in err.reason and "twin:sim-camera" in err.reason
+    assert main(["plugins"]) == 1  # every command shows it at start-up
+    assert "twin:sim-camera" in capsys.readouterr().err
+
+
+def test_an_entry_point_named_like_a_first_party_one_does_not_hide_it(tmp_path, monkeypatch):
+    _install(tmp_path, monkeypatch, "dotshell-shadow", "dotshell_shadow_mod",
+             SIM_CAMERA_TWIN.replace('"sim-camera"', '"shadow-camera"'), "sim")
+    pm = PluginManager()
+    pm.load_entry_points()
+    assert pm.backends("camera")["sim-camera"].plugin == "sim"  # ours still loaded
+    assert pm.backends("camera")["shadow-camera"].plugin == "sim@dotshell-shadow"
+    assert any("entry-point name 'sim' is already taken" in e.reason for e in pm.load_errors)
+
+
+@pytest.mark.parametrize("source,why", [
+    ("import sys\nsys.exit(3)\n", "SystemExit: 3"),
+    ("raise KeyboardInterrupt\n", "KeyboardInterrupt"),
+])
+def test_exiting_at_import_is_contained(tmp_path, monkeypatch, source, why):
+    from dotshell.cli import main
+
+    _install(tmp_path, monkeypatch, "dotshell-exit", "dotshell_exit_mod", source, "exits")
+    pm = PluginManager()
+    pm.load_entry_points()
+    [err] = [e for e in pm.load_errors if e.name == "exits"]
+    assert why in err.reason and "sim-camera" in pm.backends("camera")
+    assert main(["check", "profiles/sim-metal-cylinder.toml"]) == 0
+
+
+@pytest.mark.parametrize("returned", ["'not a list'", "[42]", "[Backend('', None)]",
+                                      "[Backend('x', lambda **k: 1, {'k': 3})]"])
+def test_a_backend_hook_returning_the_wrong_type_is_that_plugins_load_error(
+        tmp_path, monkeypatch, returned):
+    src = ("from dotshell import hookimpl\nfrom dotshell.backends import Backend\n"
+           f"@hookimpl\ndef dotshell_stages():\n    return {returned}\n")
+    _install(tmp_path, monkeypatch, "dotshell-wrong", "dotshell_wrong_mod", src, "wrong")
+    pm = PluginManager()
+    pm.load_entry_points()
+    [err] = [e for e in pm.load_errors if e.name == "wrong"]
+    assert "must return a list of dotshell.backends.Backend" in err.reason
+    assert "sim-turntable" in pm.backends("stage")
+
+
+def test_a_factory_raising_is_named_with_plugin_role_backend_and_exit_2(
+        tmp_path, monkeypatch, capsys):
+    from conftest import small_profile_dict, write_profile
+    from dotshell.cli import main
+
+    src = ("from dotshell import hookimpl\nfrom dotshell.backends import Backend\n"
+           "def boom(settings, context):\n    raise ZeroDivisionError('driver bug')\n"
+           "@hookimpl\ndef dotshell_stages():\n    return [Backend('boom-stage', boom)]\n")
+    _install(tmp_path, monkeypatch, "dotshell-boom", "dotshell_boom_mod", src, "boom")
+    raw = small_profile_dict(views=2)
+    raw["stage"] = {"backend": "boom-stage"}
+    prof = write_profile(tmp_path / "p.toml", raw)
+    assert main(["scan", str(prof), "--out", str(tmp_path / "runs")]) == 2
+    err = capsys.readouterr().err
+    assert "plugin 'boom'" in err and "role stage" in err and "'boom-stage'" in err
+    assert "ZeroDivisionError" in err and "Traceback" not in err
+
+
+def test_a_hanging_workflow_hook_is_named_and_the_workflow_goes_on(dotshell_pm):
+    import threading
+
+    gate = threading.Event()
+
+    class Hangs:
+        @hookimpl
+        def dotshell_view_captured(self, view):
+            gate.wait(30)
+
+    dotshell_pm.register(Hangs(), name="hangs")
+    dotshell_pm.hook_timeout_s = 0.2
+    warnings = dotshell_pm.notify("dotshell_view_captured", run_dir="r", view=0, angle_deg=0.0,
+                                  n_frames=1)
+    gate.set()
+    assert warnings == ["plugin 'hangs' did not return within 0.2 s in dotshell_view_captured; "
+                        "the workflow went on without it"]

@@ -102,7 +102,7 @@ def test_stop_midway_keeps_frames_marks_aborted_and_reconstructs_complete_views(
     again = reconstruct_run(result.run_dir, pm)
     assert [v["view"] for v in again.report["views"]] == [0]
     events = [json.loads(x)["event"] for x in (result.run_dir / "events.jsonl").read_text().splitlines()]
-    assert "ScanFinished" in events and "view 1 has 6 of" in (result.run_dir / "events.jsonl").read_text()
+    assert "ScanFinished" in events and "view 2 of 3 has 6 of" in (result.run_dir / "events.jsonl").read_text()
 
 
 def test_transient_device_error_is_retried(tmp_path):

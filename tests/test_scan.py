@@ -24,7 +24,8 @@ def test_scan_writes_complete_run_directory(small_scan):
     assert all(v["complete"] and v["frames"] == len(manifest["frame_names"]) == 34
                for v in manifest["views"])  # 256x192 projector: 8+8 bits, inverses, white, black
     assert len(list((run / "frames").rglob("*.png"))) == 6 * 34
-    assert sorted(p.name for p in (run / "views").iterdir()) == [f"view_{i:03d}.ply" for i in range(6)]
+    assert sorted(p.name for p in (run / "views").glob("*.ply")) == [f"view_{i:03d}.ply" for i in range(6)]
+    assert (run / "current").resolve() == (run / "gen" / "001").resolve()
     frame = cv2.imread(str(run / "frames/view_000/000_white.png"), cv2.IMREAD_UNCHANGED)
     assert frame.dtype == np.uint16 and frame.shape == (256, 320) and frame.max() <= 4095
 
@@ -71,14 +72,15 @@ def test_previews_are_real_pngs(small_scan):
 def test_reconstruct_reproduces_cloud_from_frames(small_scan, tmp_path):
     result, _ = small_scan
     copy = tmp_path / "run"
-    shutil.copytree(result.run_dir, copy)
+    shutil.copytree(result.run_dir, copy, symlinks=True)
     before, _ = read_ply(copy / "cloud.ply")
-    (copy / "cloud.ply").unlink()
-    shutil.rmtree(copy / "views")
+    gen1 = {p: p.read_bytes() for p in (copy / "gen" / "001").rglob("*") if p.is_file()}
     pm = PluginManager()
     pm.load_entry_points()
     again = reconstruct_run(copy, pm)
-    after, _ = read_ply(copy / "cloud.ply")
+    after, _ = read_ply(copy / "cloud.ply")  # now generation 2's, through `current`
+    assert (copy / "current").resolve().name == "002"
     assert len(after) == len(before) and np.allclose(after, before, atol=1e-6)
+    assert all(p.read_bytes() == b for p, b in gen1.items())  # the original is untouched
     assert again.report["reprocessed"] is True
     assert again.report["validation"]["mean_rel_error_pct"] == result.report["validation"]["mean_rel_error_pct"]

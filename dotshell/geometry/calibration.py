@@ -60,7 +60,8 @@ class RigCalibration:
         object.__setattr__(self, "T", np.asarray(self.T, float).reshape(3))
         object.__setattr__(self, "axis_point", np.asarray(self.axis_point, float).reshape(3))
         d = np.asarray(self.axis_direction, float).reshape(3)
-        object.__setattr__(self, "axis_direction", d / np.linalg.norm(d))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            object.__setattr__(self, "axis_direction", d / np.linalg.norm(d))
 
     @property
     def projector_centre(self) -> np.ndarray:
@@ -114,12 +115,15 @@ class RigCalibration:
 
     @classmethod
     def from_dict(cls, d: dict, where: str = "calibration") -> "RigCalibration":
+        if not isinstance(d, dict):
+            raise CalibrationError(f"{where}: a calibration is a JSON object, not a "
+                                   f"{type(d).__name__}. Write one with `dotshell calibrate`.")
         if d.get("format") != FORMAT:
             raise CalibrationError(
                 f"{where}: not a dotshell calibration (expected format {FORMAT!r}, found "
                 f"{d.get('format')!r}). Write one with `dotshell scan` or convert it first.")
         try:
-            return cls(
+            calib = cls(
                 camera=Lens.from_dict(d["camera"]),
                 projector=Lens.from_dict(d["projector"]),
                 R=d["R"], T=d["T"],
@@ -127,11 +131,33 @@ class RigCalibration:
                 axis_direction=d["turntable"]["axis_direction"],
                 source=d.get("source", where), rms=d.get("rms") or None,
             )
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise CalibrationError(
                 f"{where}: calibration is incomplete or malformed ({type(exc).__name__}: {exc}). "
                 "It needs camera, projector (width, height, K, dist), R, T and turntable "
                 "(axis_point, axis_direction).") from None
+        problem = calib.problem()
+        if problem:
+            raise CalibrationError(f"{where}: {problem}. Re-solve it with `dotshell calibrate` "
+                                   "or restore the file.")
+        return calib
+
+    def problem(self) -> str:
+        """What makes this calibration unusable, or ''."""
+        for name, lens in (("camera", self.camera), ("projector", self.projector)):
+            K = np.asarray(lens.K, float)
+            if not (np.all(np.isfinite(K)) and np.all(np.isfinite(lens.dist))):
+                return f"the {name} matrix or distortion holds NaN or infinity"
+            if K[0, 0] <= 0 or K[1, 1] <= 0 or lens.width < 1 or lens.height < 1:
+                return f"the {name} has a non-positive focal length or size"
+        arrays = (self.R, self.T, self.axis_point, self.axis_direction)
+        if not all(np.all(np.isfinite(a)) for a in arrays):
+            return "R, T or the turntable axis holds NaN or infinity (or a zero axis direction)"
+        if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-6) or np.linalg.det(self.R) < 0:
+            return "R is not a rotation matrix"
+        if self.baseline_mm <= 0:
+            return "the camera and projector are at the same place (T = 0): no baseline"
+        return ""
 
     def save(self, path: Path) -> None:
         from dotshell.store import atomic_write_text

@@ -11,11 +11,9 @@ each of ``[mesh] also_node_distances_mm`` into ``meshes/<d>mm/``.
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -150,42 +148,19 @@ def _previews(store: RunStore, target: Path, node_distance_mm: float, bus: Event
     return {k: str(Path(p).relative_to(store.root)) for k, p in files.items()}
 
 
-@dataclass
-class MeshRunResult:
-    run_dir: Path
-    report: dict[str, Any]
-
-
-def mesh_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
-             node_distance_mm: float | None = None, export: bool = True) -> MeshRunResult:
-    """``dotshell mesh RUN``: mesh a run's cloud, run the profile's exporters, update
-    ``report.json`` (its ``mesh`` and ``exports`` sections)."""
-    from dotshell.pipeline.scan import reopened_run, run_exporters
-
-    bus = bus or EventBus()
-    with reopened_run(run_dir, pm, bus) as (store, profile):
-        t0 = time.perf_counter()
-        sections = {"mesh": mesh_stage(store, profile, pm, bus, node_distance_mm)}
-        if export and profile.data["export"]:
-            sections["exports"] = run_exporters(store, profile, pm, bus)
-        report = store.update_report(timings_s={"mesh": round(time.perf_counter() - t0, 3)},
-                                     **sections)
-    return MeshRunResult(store.root, report)
-
-
-def forward_run(run_dir: Path | str, source_mm: list[float] | None = None,
-                mesh_dir: str = ".") -> dict[str, Any]:
-    """``dotshell forward RUN``: CW fluence for a point source on the run's volume mesh, written
-    as ``forward.vtu`` (point data ``fluence``) next to it; returns figures for the report."""
+def forward_stage(store: RunStore, source_mm: list[float] | None = None,
+                  mesh_dir: str = ".") -> dict[str, Any]:
+    """CW fluence for a point source on the volume mesh in ``mesh_dir`` of the run's
+    products, written as ``forward.vtu`` (point data ``fluence``) beside it; returns figures
+    for the report (``file`` relative to the run)."""
     from dotshell.forward import move_inside, solve_cw
     from dotshell.meshfiles import _atomic_meshio
 
-    root = Path(run_dir)
-    if not root.is_dir():
-        raise RunError(f"{root} is not a directory; give a run directory.")
-    d = root / mesh_dir
+    d = store.path(mesh_dir)
     mesh = read_volume(d / "volume.vtu")
     source = _default_source(mesh, d) if source_mm is None else np.asarray(source_mm, float)
+    if not np.all(np.isfinite(source)) or source.shape != (3,):
+        raise RunError(f"--source must be three finite numbers (x y z in mm), got {source_mm!r}.")
     if not _inside(mesh, source):  # a source on the skin: one 1/μs' inside, like NIRFAST
         musp = float(np.mean(mesh.point_data.get("musp_per_mm", np.array([1.0]))))
         source = move_inside(mesh, source, 1.0 / musp)
@@ -203,18 +178,14 @@ def forward_run(run_dir: Path | str, source_mm: list[float] | None = None,
            "elements": len(mesh.tets), "robin_A": res.A, "solve_s": round(seconds, 3),
            "boundary_fluence_per_mm2": {"min": float(fb.min()), "median": float(np.median(fb)),
                                         "max": float(fb.max())},
-           "negative_nodes": int((res.fluence < 0).sum()), "file": str(d / "forward.vtu")}
+           "negative_nodes": int((res.fluence < 0).sum()),
+           "file": str(Path(mesh_dir) / "forward.vtu")}
     optodes = read_optodes(d / "optodes.json")
     if len(optodes.detectors_mm):
         from scipy.spatial import cKDTree
 
         _, idx = cKDTree(mesh.nodes[b]).query(optodes.detectors_mm)
         out["detector_fluence_per_mm2"] = fb[idx].tolist()
-    rpt = root / "report.json"
-    if rpt.is_file():
-        report = json.loads(rpt.read_text())
-        report["forward"] = out
-        RunStore(root).write_json("report.json", report)
     return out
 
 

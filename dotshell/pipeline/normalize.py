@@ -298,18 +298,3 @@ def normalize_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: E
     section["seconds"] = round(time.perf_counter() - t0, 3)
     store.write_json("normalize/report.json", section)
     return section
-
-
-def normalize_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
-                  normalizer: str | None = None, min_sin_beta: float | None = None,
-                  max_normal_spread_deg: float | None = None) -> dict[str, Any]:
-    """``dotshell normalize RUN``: re-run the normalization from the stored frames and update
-    the ``normalize`` section of ``report.json``."""
-    from dotshell.pipeline.scan import reopened_run
-
-    bus = bus or EventBus()
-    with reopened_run(run_dir, pm, bus) as (store, profile):
-        section = normalize_stage(store, profile, pm, bus, normalizer, min_sin_beta,
-                                  max_normal_spread_deg)
-        store.update_report(normalize=section)
-    return section

@@ -1,13 +1,17 @@
-"""The scan workflow: profile → rig → acquire → reconstruct per view → merge → validate →
-previews, and re-processing of a finished run from its frames on disk.
+"""Scans: capture every view (reconstructing each one while the next is captured), then the
+rest of the processing steps; ``resume`` finishes an interrupted or failed scan; ``reconstruct``
+re-processes a run from its frames as a new generation.
 
-Front ends call :func:`scan` and :func:`reconstruct_run` and listen to the :class:`EventBus`.
+Front ends call :func:`scan`, :func:`resume_run` and :func:`reconstruct_run` and listen to the
+:class:`EventBus`. The lifecycle (lock, status, reason) belongs to
+:class:`dotshell.pipeline.engine.RunJob`; the steps after acquisition to
+:func:`dotshell.pipeline.engine.process`.
 """
 
 from __future__ import annotations
 
 import threading
-import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,20 +19,24 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from dotshell.errors import ReconstructionError, RunError
-from dotshell.events import (EventBus, ScanFinished, ScanStarted, StepProgress, StepStarted,
-                             ViewCaptured, ViewReconstructed)
+from dotshell.errors import RunError
+from dotshell.events import EventBus, ScanFinished, ScanStarted, StepStarted, ViewCaptured, \
+    ViewReconstructed
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.acquire import Acquisition
-from dotshell.pipeline.pdi import combine, plan_shots, shots_from_manifest
-from dotshell.pipeline.reconstruct import ViewCloud, reconstruct_view
+from dotshell.pipeline.engine import RunJob, process
+from dotshell.pipeline.generations import Generation, ProductStore
+from dotshell.pipeline.lifecycle import on_interrupt
+from dotshell.pipeline.pdi import plan_shots
+from dotshell.pipeline.steps import make_coding, reconstruct_one_view
 from dotshell.pipeline.transillum import TransilluminationCapture
-from dotshell.pipeline.validate import cylinder_report
 from dotshell.plugins import PluginManager
-from dotshell.ply import write_ply
 from dotshell.profile import Profile, validate_profile
 from dotshell.rig import Rig
 from dotshell.store import RunStore
+
+#: What a scan makes: everything downstream of the calibration.
+SCAN_TARGETS = ("calibration",)
 
 
 @dataclass
@@ -36,9 +44,10 @@ class ScanResult:
     run_dir: Path
     status: str
     report: dict[str, Any]
+    reason: str = ""
 
 
-def _forward_to_plugins(bus: EventBus, pm: PluginManager, profile: Profile):
+def _forward_to_plugins(bus: EventBus, pm: PluginManager, profile: Profile, run_dir: str):
     """Subscribe a bridge from bus events to the plugins' workflow hooks."""
 
     def forward(ev):
@@ -46,10 +55,10 @@ def _forward_to_plugins(bus: EventBus, pm: PluginManager, profile: Profile):
             warns = pm.notify("dotshell_scan_started", run_dir=ev.run_dir, profile=profile.data,
                               n_views=ev.n_views)
         elif isinstance(ev, ViewCaptured):
-            warns = pm.notify("dotshell_view_captured", run_dir=run_dir[0], view=ev.view,
+            warns = pm.notify("dotshell_view_captured", run_dir=run_dir, view=ev.view,
                               angle_deg=ev.angle_deg, n_frames=ev.n_frames)
         elif isinstance(ev, ViewReconstructed):
-            warns = pm.notify("dotshell_view_reconstructed", run_dir=run_dir[0], view=ev.view,
+            warns = pm.notify("dotshell_view_reconstructed", run_dir=run_dir, view=ev.view,
                               n_points=ev.n_points)
         elif isinstance(ev, ScanFinished):
             warns = pm.notify("dotshell_scan_finished", run_dir=ev.run_dir, status=ev.status,
@@ -59,33 +68,7 @@ def _forward_to_plugins(bus: EventBus, pm: PluginManager, profile: Profile):
         for w in warns:
             bus.warn(w)
 
-    run_dir = [""]
-
-    def track(ev):
-        if isinstance(ev, ScanStarted):
-            run_dir[0] = ev.run_dir
-
-    bus.subscribe(track)
     return bus.subscribe(forward)
-
-
-def _make_coding(profile: Profile, pm: PluginManager):
-    c = profile.role("coding")
-    return pm.create("coding", c["backend"], c["settings"], None, profile.source)
-
-
-def _slim(vc: ViewCloud, profile: Profile) -> ViewCloud:
-    """Drop per-pixel maps no later step needs (all but the preview view's), ~10 MB a view."""
-    vc.pixels = None
-    if vc.view != profile.data["outputs"]["preview_view"]:
-        vc.correspondence = None
-    return vc
-
-
-def _store_view(store: RunStore, vc: ViewCloud, bus: EventBus) -> None:
-    write_ply(store.path("views", f"view_{vc.view:03d}.ply"), vc.points)
-    bus.emit(ViewReconstructed(view=vc.view, n_points=len(vc.points),
-                               decoded_pixels=int(vc.stats.get("decoded", 0))))
 
 
 @contextmanager
@@ -95,87 +78,217 @@ def _kept_open(rig: Rig) -> Iterator[Rig]:
     yield rig
 
 
+class ViewPipeline:
+    """Reconstructs captured views on one worker thread while the next view is captured. At
+    most one view waits, so memory holds at most three views' frames."""
+
+    def __init__(self, store: RunStore, profile: Profile, coding: Any, calib: RigCalibration,
+                 bus: EventBus) -> None:
+        self.args = (profile, coding, calib, bus)
+        self.store = store
+        self.pool = ThreadPoolExecutor(1, thread_name_prefix="dotshell-reconstruct")
+        self.futures: dict[int, Future] = {}
+
+    def submit(self, view: int, angle_deg: float, frames: list[np.ndarray]) -> None:
+        self._wait(keep_pending=1)
+        profile, coding, calib, bus = self.args
+        self.futures[view] = self.pool.submit(reconstruct_one_view, self.store, view, angle_deg,
+                                              profile, coding, calib, bus, frames)
+
+    def _wait(self, keep_pending: int) -> None:
+        """Block until at most ``keep_pending`` views are unfinished; raise the first failure."""
+        while sum(not f.done() for f in self.futures.values()) > keep_pending:
+            next(f for f in self.futures.values() if not f.done()).result()
+        for f in self.futures.values():
+            if f.done() and f.exception() is not None:
+                raise f.exception()  # type: ignore[misc]
+
+    def results(self) -> dict[int, dict[str, Any]]:
+        """Every view's record, once all are done (raises the first failure)."""
+        self._wait(keep_pending=0)
+        return {v: f.result() for v, f in self.futures.items()}
+
+    def close(self) -> None:
+        """Drop views not started yet; wait for the one in progress (its files stay partial
+        in the unpublished generation)."""
+        for f in self.futures.values():
+            f.cancel()
+        self.pool.shutdown(wait=True)
+
+
 def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
          bus: EventBus | None = None, stop: threading.Event | None = None,
          calibration_file: str | None = None, running: threading.Event | None = None,
          rig: Rig | None = None) -> ScanResult:
-    """Run a full scan; returns when done, stopped (``status="aborted"``) or failed (raises).
+    """Run a full scan; returns when done or stopped through ``stop`` (``status="aborted"``);
+    raises on failure or Ctrl-C/SIGTERM (the run is then marked ``failed``/``aborted`` with
+    the reason, and everything captured so far is kept).
 
-    Frames are on disk as they arrive; on any failure the run is marked ``failed`` (or
-    ``aborted`` on Ctrl-C) and everything captured so far is kept. Clearing ``running``
-    pauses the acquisition before its next frame, setting it again resumes. ``rig``: use this
-    rig (connected if needed, left open afterwards, e.g. a front end's live session) instead
-    of opening the profile's devices for the scan alone.
+    Clearing ``running`` pauses the acquisition before its next frame, setting it again
+    resumes. ``rig``: use this rig (connected if needed, left open afterwards, e.g. a front
+    end's live session) instead of opening the profile's devices for the scan alone.
     """
     bus = bus or EventBus()
-    coding = _make_coding(profile, pm)
+    coding = make_coding(profile, pm)  # a bad coding is refused before a run is made
     store = RunStore.create(Path(out_dir), profile.name)
-    unsubs = [bus.subscribe(lambda ev: store.append_event(ev.to_dict())),
-              _forward_to_plugins(bus, pm, profile)]
-    status, report = "failed", {}
-    try:
+
+    def create() -> None:
         store.write_profile(profile.raw())
-        angles = profile.angles_deg()
-        store.init_manifest(profile.name, angles, [])
-        with (Rig(profile, pm) if rig is None else _kept_open(rig)) as rig:
-            calib = rig.calibration(calibration_file)
-            calib.save(store.path("calibration.json"))
-            patterns = coding.patterns(rig.projector.resolution)
-            shots = plan_shots(patterns, profile.data["scan"])
-            store.update_manifest(frame_names=[s.name for s in shots],
-                                  shots=[s.to_dict() for s in shots],
-                                  pattern_names=[p.name for p in patterns])
-            bus.emit(ScanStarted(run_dir=str(store.root), profile=profile.name,
-                                 n_views=len(angles), frames_per_view=len(shots)))
-            bus.emit(StepStarted(step="acquire", total=len(angles) * len(shots)))
-            acq = Acquisition(rig, patterns, store, profile.data["scan"], bus, stop, running,
-                              shots=shots)
-            clouds = []
-            try:
-                trans = _transillumination(rig, store, profile, acq, bus)
-                for view, angle in enumerate(angles):
-                    frames = acq.run_view(view, angle)
-                    if frames is None:
-                        status = "aborted"
-                        bus.warn(f"scan stopped during view {view}; frames kept in {store.root}")
-                        break
-                    if trans is not None and trans.covers(view):
-                        trans.run_view(view)
-                    vc = reconstruct_view(view, angle, combine(frames, shots), coding, calib,
-                                          profile.data["processing"])
-                    _store_view(store, vc, bus)
-                    clouds.append(_slim(vc, profile))
-                else:
-                    status = "completed"
-            finally:
-                acq.close()
-        if clouds:
-            report = finish(store, profile, pm, calib, clouds, bus, {"acquire": acq.seconds})
-        report["status"] = status
-        store.write_json("report.json", report)
-    except KeyboardInterrupt:
-        status = "aborted"
-        raise
+        store.init_manifest(profile.name, profile.angles_deg(), [])
+
+    return _capture_and_process(store, profile, pm, bus, "scan", coding, stop, running, rig,
+                                calibration_file, create)
+
+
+def resume_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
+               stop: threading.Event | None = None, running: threading.Event | None = None,
+               rig: Rig | None = None) -> ScanResult:
+    """``dotshell resume RUN``: capture the views an interrupted, aborted or failed scan did not
+    finish — same profile, same calibration, the stage back at each view's angle — then process
+    the whole run into a new generation. Frames of an unfinished view are set aside in
+    ``frames/view_NNN.partial-K`` (never deleted) before the view is captured again."""
+    bus = bus or EventBus()
+    store = RunStore.open(Path(run_dir))
+    status, _ = store.status()
+    if status == "running":
+        raise RunError(f"{store.root} is still being written (`dotshell status`); it can be "
+                       "resumed only once that process has ended.")
+    if status == "completed":
+        raise RunError(f"{store.root} is completed; nothing to resume. Re-process it with "
+                       "`dotshell reconstruct RUN`.")
+    profile = load_run_profile(store, pm)
+    coding = make_coding(profile, pm)
+    return _capture_and_process(store, profile, pm, bus, "resume", coding, stop, running, rig,
+                                None, None)
+
+
+def _capture_and_process(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
+                         command: str, coding: Any, stop: threading.Event | None,
+                         running: threading.Event | None, rig: Rig | None,
+                         calibration_file: str | None, create) -> ScanResult:
+    unsubs = [bus.subscribe(lambda ev: store.append_event(ev.to_dict())),
+              _forward_to_plugins(bus, pm, profile, str(store.root))]
+    job = RunJob(store, command, bus, create)
+    report: dict[str, Any] = {}
+    try:
+        with job:
+            report = _acquire_then_process(job, profile, pm, coding, stop, running, rig,
+                                           calibration_file)
     finally:
-        if store.path("manifest.json").is_file():
-            store.update_manifest(status=status)
-        bus.emit(ScanFinished(status=status, run_dir=str(store.root), summary=_summary(report)))
+        if job.status is not None:
+            bus.emit(ScanFinished(status=job.status, run_dir=str(store.root),
+                                  summary=_summary(report), reason=job.reason))
         for u in unsubs:
             u()
         store.close()
-    return ScanResult(store.root, status, report)
+    return ScanResult(store.root, job.status or "failed", report, job.reason)
+
+
+def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, coding: Any,
+                          stop: threading.Event | None, running: threading.Event | None,
+                          rig: Rig | None, calibration_file: str | None) -> dict[str, Any]:
+    store, bus = job.store, job.bus
+    resuming = job.command == "resume"
+    gen = Generation.start(store)
+    products = ProductStore(store, gen.dir)
+    with (Rig(profile, pm) if rig is None else _kept_open(rig)) as rig, on_interrupt(rig.stop):
+        if resuming:
+            calib = RigCalibration.load(store.path("calibration.json"))
+        else:
+            calib = rig.calibration(calibration_file)
+            calib.save(store.path("calibration.json"))
+        patterns = coding.patterns(rig.projector.resolution)
+        shots = plan_shots(patterns, profile.data["scan"])
+        _record_sequence(store, shots, patterns, resuming)
+        angles = profile.angles_deg()
+        bus.emit(ScanStarted(run_dir=str(store.root), profile=profile.name,
+                             n_views=len(angles), frames_per_view=len(shots)))
+        acq = Acquisition(rig, patterns, store, profile.data["scan"], bus, stop, running,
+                          shots=shots)
+        pipeline = ViewPipeline(products, profile, coding, calib, bus)
+        try:
+            trans = _transillumination(rig, store, profile, acq, bus)
+            todo = _views_to_capture(store, trans)
+            bus.emit(StepStarted(step="acquire", total=len(todo) * len(shots)))
+            for view, fringes in todo:
+                angle = angles[view]
+                if fringes:
+                    _set_aside_partial(store, view)
+                    frames = acq.run_view(view, angle)
+                    if frames is None:
+                        job.finish("aborted", "aborted by the user")
+                        bus.warn(f"scan stopped during view {view + 1} of {len(angles)}; frames "
+                                 f"kept in {store.root}")
+                        break
+                else:
+                    rig.stage.move_to(angle)
+                if trans is not None and trans.covers(view):
+                    trans.run_view(view)
+                if fringes:
+                    pipeline.submit(view, angle, frames)
+            reconstructed = pipeline.results()
+        finally:
+            acq.close()
+            pipeline.close()
+    if not any(v["complete"] for v in store.manifest["views"]) and job.status == "aborted":
+        return {}
+    options = {"reconstructed": reconstructed, "prewritten": {"views": gen.listing()},
+               "timings": {"acquire": acq.seconds}}
+    return process(job, profile, pm, SCAN_TARGETS, options,
+                   final_status=job.status or "completed", generation=gen)
+
+
+def _record_sequence(store: RunStore, shots, patterns, resuming: bool) -> None:
+    names = [s.name for s in shots]
+    if resuming:
+        if store.manifest["frame_names"] != names:
+            raise RunError(f"{store.root}: the coding now gives the frames {names[:3]}... but "
+                           f"the run was captured with {store.manifest['frame_names'][:3]}...; "
+                           "resume with the plugins the run was made with.")
+        return
+    store.update_manifest(frame_names=names, shots=[s.to_dict() for s in shots],
+                          pattern_names=[p.name for p in patterns])
+
+
+def _views_to_capture(store: RunStore, trans: TransilluminationCapture | None
+                      ) -> list[tuple[int, bool]]:
+    """(view, fringes needed) for every view that misses fringe or trans-illumination frames."""
+    m = store.manifest
+    done_trans = (m.get("transillumination") or {}).get("views", {})
+    todo = []
+    for v in m["views"]:
+        needs_trans = trans is not None and trans.covers(v["index"]) and \
+            done_trans.get(str(v["index"])) != trans.expected_names()
+        if not v["complete"] or needs_trans:
+            todo.append((v["index"], not v["complete"]))
+    return todo
+
+
+def _set_aside_partial(store: RunStore, view: int) -> None:
+    """Move the frames of an unfinished view out of the way (kept, never deleted)."""
+    d = store.path("frames", f"view_{view:03d}")
+    if not d.exists() or not any(d.iterdir()):
+        return
+    k = 1
+    while store.path("frames", f"view_{view:03d}.partial-{k}").exists():
+        k += 1
+    d.rename(store.path("frames", f"view_{view:03d}.partial-{k}"))
 
 
 def _transillumination(rig: Rig, store: RunStore, profile: Profile, acq: Acquisition,
                        bus: EventBus) -> TransilluminationCapture | None:
-    """The scan's trans-illumination step (flat field captured now), or None if disabled."""
+    """The scan's trans-illumination step (flat field captured now, unless a resumed run
+    already has it), or None if disabled."""
     t = profile.data["transillumination"]
     if not t["enabled"]:
         return None
     trans = TransilluminationCapture(rig, store, t, profile.data["scan"], acq.writer, bus,
                                      profile.base_dir)
-    store.update_manifest(transillumination=trans.manifest_entry())
-    trans.capture_flat_field()
+    entry = store.manifest.get("transillumination")
+    if entry is None:
+        store.update_manifest(transillumination=trans.manifest_entry())
+    if entry is None or (entry.get("flat_field") is None and t["flat_field"] != "none"):
+        trans.capture_flat_field()
     return trans
 
 
@@ -188,128 +301,23 @@ def load_run_profile(store: RunStore, pm: PluginManager) -> Profile:
         raw = tomllib.loads(p.read_text())
     except FileNotFoundError:
         raise RunError(f"{p} is missing; this run cannot be re-processed.") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise RunError(f"{p} is damaged ({exc}); it is written by dotshell only — restore it "
+                       "from a backup or copy the profile the run was made with.") from None
     return validate_profile(raw, pm, str(p), store.root)
-
-
-@contextmanager
-def reopened_run(run_dir: Path | str, pm: PluginManager,
-                 bus: EventBus) -> Iterator[tuple[RunStore, Profile]]:
-    """An existing run opened for re-processing, with the exact profile it was made with; the
-    bus's events go to its ``events.jsonl`` until the block ends."""
-    store = RunStore.open(Path(run_dir))
-    unsub = bus.subscribe(lambda ev: store.append_event(ev.to_dict()))
-    try:
-        yield store, load_run_profile(store, pm)
-    finally:
-        unsub()
-        store.close()
 
 
 def reconstruct_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
                     calibration_file: str | None = None) -> ScanResult:
-    """Re-run processing of a run from its frames on disk (views not fully captured are
-    skipped with a warning). Overwrites the run's views, cloud, report and previews."""
-    bus = bus or EventBus()
-    with reopened_run(run_dir, pm, bus) as (store, profile):
-        calib = RigCalibration.load(calibration_file or store.path("calibration.json"))
-        if calibration_file:
-            calib.save(store.path("calibration.json"))
-        coding = _make_coding(profile, pm)
-        manifest = store.manifest
-        shots = shots_from_manifest(manifest)
-        views = manifest["views"]
-        bus.emit(StepStarted(step="reconstruct", total=len(views)))
-        clouds = []
-        for v in views:
-            if not v["complete"]:
-                bus.warn(f"view {v['index']} has {v['frames']} of "
-                         f"{len(manifest['frame_names'])} frames; skipped")
-                continue
-            frames = combine(store.read_frames(v["index"]), shots)
-            vc = reconstruct_view(v["index"], v["angle_deg"], frames, coding, calib,
-                                  profile.data["processing"])
-            _store_view(store, vc, bus)
-            clouds.append(_slim(vc, profile))
-            bus.emit(StepProgress(step="reconstruct", done=v["index"] + 1, total=len(views)))
-        report = finish(store, profile, pm, calib, clouds, bus, {})
-        report["status"] = manifest.get("status", "unknown")
-        report["reprocessed"] = True
-        store.write_json("report.json", report)
-    return ScanResult(store.root, report["status"], report)
+    """Re-process a run from its frames on disk into a new generation (views not fully
+    captured are skipped with a warning); with ``calibration_file``, that calibration is
+    validated first and used for the new generation. Nothing of earlier generations changes."""
+    from dotshell.pipeline.commands import reprocess
 
-
-def finish(store: RunStore, profile: Profile, pm: PluginManager, calib: RigCalibration,
-           clouds: list[ViewCloud], bus: EventBus, timings: dict[str, float]) -> dict[str, Any]:
-    """Merge views into ``cloud.ply``, validate, render previews; return the report."""
-    timings = dict(timings)
-    timings["decode"] = sum(c.seconds.get("decode", 0.0) for c in clouds)
-    timings["triangulate"] = sum(c.seconds.get("triangulate", 0.0) for c in clouds)
-    bus.emit(StepStarted(step="merge", total=len(clouds)))
-    t0 = time.perf_counter()
-    if not clouds or sum(len(c.points) for c in clouds) == 0:
-        raise ReconstructionError(
-            f"{store.root}: no view produced points inside the region of interest. Check the "
-            "previews (is the sample lit and in focus?), the calibration and [processing.roi].")
-    points = np.concatenate([c.points for c in clouds])
-    view_ids = np.concatenate([np.full(len(c.points), c.view) for c in clouds])
-    write_ply(store.path("cloud.ply"), points, view=view_ids)
-    timings["merge"] = time.perf_counter() - t0
-    report: dict[str, Any] = {
-        "profile": profile.name,
-        "calibration": calib.source,
-        "views": [{"view": c.view, "angle_deg": c.angle_deg, **c.stats} for c in clouds],
-        "cloud": {"path": "cloud.ply", "points": int(len(points))},
-    }
-    v = profile.data["validation"]
-    t0 = time.perf_counter()
-    if v["shape"] == "cylinder":
-        bus.emit(StepStarted(step="validate"))
-        report["validation"] = cylinder_report(points, calib, v, profile.data["processing"]["roi"])
-    timings["validate"] = time.perf_counter() - t0
-    if profile.data["outputs"]["previews"]:
-        from dotshell.render import render_previews
-
-        bus.emit(StepStarted(step="previews"))
-        t0 = time.perf_counter()
-        report["previews"] = render_previews(store, clouds, points, profile, calib, bus)
-        timings["previews"] = time.perf_counter() - t0
-    if profile.data["mesh"]["after_scan"]:  # surface + volume before the exporters use them
-        from dotshell.pipeline.mesh import mesh_stage
-
-        t0 = time.perf_counter()
-        report["mesh"] = mesh_stage(store, profile, pm, bus)
-        timings["mesh"] = time.perf_counter() - t0
-    if _normalize_after(store, profile):
-        from dotshell.pipeline.normalize import normalize_stage
-
-        t0 = time.perf_counter()
-        report["normalize"] = normalize_stage(store, profile, pm, bus)
-        timings["normalize"] = time.perf_counter() - t0
-    if profile.data["export"]:
-        t0 = time.perf_counter()
-        report["exports"] = run_exporters(store, profile, pm, bus)
-        timings["export"] = time.perf_counter() - t0
-    report["timings_s"] = {k: round(s, 3) for k, s in timings.items()}
-    return report
-
-
-def _normalize_after(store: RunStore, profile: Profile) -> bool:
-    """Normalize at the end of processing: trans-illumination frames exist, a surface was
-    meshed now, and the profile asks for it."""
-    entry = store.manifest.get("transillumination") or {}
-    return bool(entry.get("views")) and profile.data["mesh"]["after_scan"] \
-        and profile.data["normalize"]["after_scan"]
-
-
-def run_exporters(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus) -> dict[str, list[str]]:
-    """Run the profile's ``[export.NAME]`` exporters; returns the files each wrote."""
-    out = {}
-    for name, settings in profile.data["export"].items():
-        bus.emit(StepStarted(step=f"export {name}"))
-        exporter = pm.create("exporter", name, settings, None, profile.source)
-        paths = exporter.export(store.root)
-        out[name] = [str(Path(p).relative_to(store.root)) for p in paths]
-    return out
+    report = reprocess(run_dir, pm, "reconstruct", ("views",), bus,
+                       {"calibration_file": calibration_file} if calibration_file else {},
+                       targets_if_calibration=("calibration",))
+    return ScanResult(Path(run_dir), report.get("status", "completed"), report)
 
 
 def _summary(report: dict[str, Any]) -> dict[str, Any]:

@@ -68,7 +68,7 @@ class TransilluminationCapture:
         return {"exposure_ms": self.s["exposure_ms"],
                 "camera_bit_depth": int(self.rig.camera.bit_depth),
                 "targets_mm": [list(t) for t in self.targets] or [None],
-                "frame_names": self.names + (["dark"] if self.s["dark"] else []),
+                "frame_names": self.expected_names(),
                 "flat_field": None, "views": {}}
 
     def _capture(self, what: str) -> np.ndarray:
@@ -128,6 +128,10 @@ class TransilluminationCapture:
             self._exposure(self.scan["exposure_ms"])
         self.writer.queue.join()
         self.writer.check()
+
+    def expected_names(self) -> list[str]:
+        """The frame names a fully trans-illuminated view has."""
+        return self.names + (["dark"] if self.s["dark"] else [])
 
     def covers(self, view: int) -> bool:
         """Whether this view is trans-illuminated ([transillumination] views; empty = all)."""

@@ -78,7 +78,8 @@ CAMERA_SCHEMA: dict[str, Setting] = {
                                 "px", min=0.0),
     "supersample": Setting("int", 2, "sub-pixel rays per pixel along each axis (pixel-area "
                            "integration)", min=1, max=4),
-    "seed": Setting("int", 0, "noise seed; frame k uses default_rng([seed, k])", min=0),
+    "seed": Setting("int", 0, "noise seed; each frame's noise is drawn from this seed and the "
+                   "rig's state when it is taken (pattern, angles, exposure)", min=0),
     "vignetting": Setting("float", 0.0, "extra lens vignetting: relative light loss at the image "
                           "corner, falling off as 1 − v·(r/r_corner)² from the principal point "
                           "(on top of the natural cos⁴); applies to all light, flat fields "
@@ -237,6 +238,27 @@ class SimWorld:
                               axis_point=stage.axis_point, axis_direction=stage.axis_direction,
                               source="ground-truth")
 
+    def state_digest(self, exposure_ms: float, light: bytes | None = None) -> bytes:
+        """A digest of everything a frame depends on (pattern shown, stage and analyzer
+        angles, laser and flat field, exposure): the camera seeds its noise with it, so a frame
+        depends on the state it was taken in, not on how many frames came before — a resumed
+        scan captures the same frames as an uninterrupted one. ``light``: the digest of what
+        the panel showed during the exposure (:meth:`SimProjector.light_digest`); the newest
+        pattern's when omitted."""
+        import hashlib
+
+        h = hashlib.blake2b(digest_size=16)
+        if self.projector is not None:
+            h.update(self.projector.pattern_digest if light is None else light)
+        if self.stage is not None:
+            h.update(repr((round(self.stage.position, 6), self.stage.target_key)).encode())
+        if self.analyzer is not None and self.analyzer.connected:
+            h.update(repr(round(self.analyzer.angle_deg, 6)).encode())
+        if self.laser is not None:
+            h.update(repr((self.laser.on, self.laser.flat, self.laser.target)).encode())
+        h.update(repr(round(exposure_ms, 9)).encode())
+        return h.digest()
+
     def renderer(self) -> Renderer:
         """The renderer for this world's geometry. Renderers are pure functions of the
         geometry, so worlds with identical settings (e.g. many test rigs from one profile)
@@ -267,6 +289,12 @@ def world_of(context: RigContext | None) -> SimWorld:
     if world is None:
         world = context.shared[WORLD_KEY] = SimWorld()
     return world
+
+
+def _digest(image: np.ndarray) -> bytes:
+    import hashlib
+
+    return hashlib.blake2b(np.ascontiguousarray(image).tobytes(), digest_size=16).digest()
 
 
 class _Device:
@@ -300,9 +328,9 @@ class SimCamera(_Device):
 
     Time model (:mod:`dotshell_sim.timing`): ``capture()`` exposes over
     ``[now, now + exposure]`` and takes exposure + ``readout_ms``; a triggered frame exposes
-    from its trigger edge. Frame k (counted over all frames since the camera was made) uses
-    noise seed ``[seed, k]`` in both paths, so a triggered view and a captured view of the same
-    light are the same frames."""
+    from its trigger edge. A frame's noise is seeded by the rig's state during its exposure
+    (the light on the panel included), the same in both paths, so a triggered view and a
+    captured view of the same light are the same frames."""
 
     name = "sim-camera"
 
@@ -319,6 +347,7 @@ class SimCamera(_Device):
         self.frames = 0
         self._info = FrameInfo(timestamp_s=float("nan"))
         self._armed: tuple[int, float] | None = None  # (frames wanted, armed at clock time)
+        self._repeats: dict[bytes, int] = {}
         world.camera = self
 
     @property
@@ -364,9 +393,19 @@ class SimCamera(_Device):
         return irr
 
     def _frame(self, start_s: float, trigger: str) -> np.ndarray:
+        """One frame exposed from clock time ``start_s``; its noise is seeded by the setting
+        ``seed``, the world's state (the light on the panel during the exposure included) and
+        how many frames were taken in that same state before (see
+        :meth:`SimWorld.state_digest`)."""
+        exposure_s = self.exposure_ms / 1000.0
         with self.world.clock.computing():
             electrons = self.expected_electrons(start_s)
-            rng = np.random.default_rng([self.settings["seed"], self.frames])
+            light = self.world.projector.light_digest(start_s, start_s + exposure_s)
+            state = self.world.state_digest(self.exposure_ms, light)
+            repeat = self._repeats.get(state, 0)
+            self._repeats[state] = repeat + 1
+            rng = np.random.default_rng([self.settings["seed"], repeat,
+                                         *np.frombuffer(state, np.uint32).tolist()])
             frame = sensor(electrons, self.sensor, rng)
         self._info = FrameInfo(timestamp_s=start_s, frame_id=self.frames,
                                exposure_ms=self.exposure_ms, extra={"trigger": trigger})
@@ -464,6 +503,7 @@ class SimProjector(_Device):
         self._sequence: tuple[list[SequencePattern], float, float] | None = None
         self.last_shown: tuple[str, int] = ("", -1)
         self._running_until = -math.inf
+        self._digests: dict[int, tuple[np.ndarray, bytes]] = {}
         world.projector = self
 
     @property
@@ -540,6 +580,35 @@ class SimProjector(_Device):
         while len(self._radiance_cache) > 4:
             self._radiance_cache.popitem(last=False)
         return img
+
+    def _image_digest(self, image: np.ndarray | None) -> bytes:
+        if image is None:
+            return b"dark"
+        hit = self._digests.get(id(image))
+        if hit is None or hit[0] is not image:
+            hit = self._digests[id(image)] = (image, _digest(image))
+            while len(self._digests) > 8:
+                self._digests.pop(next(iter(self._digests)))
+        return hit[1]
+
+    @property
+    def pattern_digest(self) -> bytes:
+        """Digest of the newest pattern on the timeline (b"" before any)."""
+        image = self.timeline.segments[-1].image
+        return b"" if image is None and len(self.timeline.segments) == 1 else (
+            self._image_digest(image))
+
+    def light_digest(self, t0_s: float, t1_s: float) -> bytes:
+        """Digest of what the panel showed over ``[t0, t1)``: the pattern's digest when one
+        pattern covered it, else of every pattern with its share."""
+        parts = [(w, seg) for w, seg in self.timeline.weights(t0_s, t1_s) if w > 1e-9]
+        if not self.connected:
+            return b"off"
+        if len(parts) == 1:
+            return self._image_digest(parts[0][1].image)
+        return _digest(np.frombuffer(b"".join(
+            repr(round(w, 6)).encode() + self._image_digest(seg.image) for w, seg in parts),
+            np.uint8))
 
     def radiance_during(self, t0_s: float, t1_s: float) -> np.ndarray | None:
         """Mean relative radiance (h, w) float32 over the clock window ``[t0, t1)`` (an

@@ -1,0 +1,219 @@
+"""The workflow engine: one owner of a run's lifecycle, and the steps a job needs for its targets.
+
+A **job** is one command working on one run (``scan``, ``resume``, ``reconstruct``, ``mesh``,
+``normalize``, ``forward``, a batch task). :class:`RunJob` holds the run's lock for the job,
+records ``status = running`` and, when the job ends, its outcome — ``completed``, ``failed``
+(with the reason), ``aborted`` (with the signal or the user) — in the manifest's ``jobs``
+history. The run's ``status`` is then what is true of the run: a scan's or resume's outcome;
+after a re-processing job the state it had before (a failed re-processing publishes nothing),
+except that a successful one makes a fully captured run ``completed``. :func:`process` runs the steps of
+:mod:`dotshell.pipeline.steps` that the targets need into a new generation and publishes it
+(:mod:`dotshell.pipeline.generations`); products the job does not change are carried over,
+products that would be stale are dropped, so a published generation is always consistent.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+from typing import Any, Callable, Iterable
+
+from dotshell import __version__
+from dotshell.errors import DotshellError, RunError
+from dotshell.events import EventBus, StepStarted
+from dotshell.pipeline.generations import Generation, ProductStore, current_number
+from dotshell.pipeline.lifecycle import Interrupted, RunLock, effective_status
+from dotshell.pipeline.steps import STEPS, StepContext
+from dotshell.plugins import PluginManager
+from dotshell.profile import Profile
+from dotshell.store import RunStore
+
+
+class RunJob:
+    """Context manager: the lifecycle of one job on one run (see the module docstring)."""
+
+    def __init__(self, store: RunStore, command: str, bus: EventBus | None = None,
+                 create: Callable[[], None] | None = None) -> None:
+        """``create``: writes a new run's first files (profile, manifest) once the lock is
+        held, so no other process ever sees a new run without its writer."""
+        self.create = create
+        self.store = store
+        self.command = command
+        self.bus = bus or EventBus()
+        self.lock = RunLock(store.root)
+        self.status: str | None = None
+        self.reason = ""
+        self.generation: int | None = None
+        self.previous: tuple[str, str] = ("unknown", "")
+        self.started = 0.0
+
+    def __enter__(self) -> "RunJob":
+        self.lock.acquire(self.command)
+        try:
+            if self.create is not None:
+                self.create()
+            manifest = self.store.manifest
+            self.previous = effective_status(self.store.root, manifest)
+            if self.create is None and manifest["status"] == "running":  # its writer is gone
+                self._history({"command": (manifest.get("job") or {}).get("command", "?"),
+                               "status": "interrupted", "reason": self.previous[1]})
+            for p in self.store.clean_orphans():
+                self.bus.info(f"removed {p.relative_to(self.store.root)}, left by an "
+                              "interrupted write")
+            self.started = time.time()
+            self.store.update_manifest(status="running", reason="", job={
+                "command": self.command, "pid": os.getpid(), "host": socket.gethostname(),
+                "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "dotshell": __version__})
+        except BaseException:
+            self.lock.release()
+            raise
+        return self
+
+    def finish(self, status: str, reason: str = "") -> None:
+        """Decide the job's final state (recorded when the job's block ends)."""
+        self.status, self.reason = status, reason
+
+    def __exit__(self, exc_type: Any, exc: BaseException | None, tb: Any) -> None:
+        try:
+            if exc is not None:
+                self.status, self.reason = outcome_of(exc)
+            elif self.status is None:
+                self.status = "completed"
+            if self.status != "completed" and not self.captures:
+                cur = current_number(self.store.root)
+                if cur is not None:
+                    self.reason += (f" (nothing published: generation {cur} is unchanged and "
+                                    "still the run's products)")
+            self._history({"command": self.command, "status": self.status,
+                           "reason": self.reason, "generation": self.generation})
+            self.store.update_manifest(**self.run_state(), job=None)
+        finally:
+            self.lock.release()
+
+    @property
+    def captures(self) -> bool:
+        """Whether this job captures (scan, resume) rather than re-processes."""
+        return self.command in ("scan", "resume")
+
+    def run_state(self) -> dict[str, str]:
+        """The run's status after this job: a capturing job's own outcome; after a
+        re-processing job the run keeps its state, except that a successful one makes a run
+        whose every view is captured ``completed`` (its products are now whole)."""
+        if self.captures:
+            return {"status": self.status or "failed", "reason": self.reason}
+        status, reason = self.previous
+        if self.status == "completed" and all(v["complete"] for v in self.store.manifest["views"]):
+            return {"status": "completed", "reason": ""}
+        return {"status": status, "reason": reason}
+
+    def _history(self, entry: dict[str, Any]) -> None:
+        m = self.store.manifest
+        entry = {**entry, "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
+        if self.started:
+            entry["seconds"] = round(time.time() - self.started, 3)
+        self.store.update_manifest(jobs=[*m.get("jobs", []), entry])
+
+
+def outcome_of(exc: BaseException) -> tuple[str, str]:
+    """(status, reason) for a job that ended with ``exc``."""
+    if isinstance(exc, Interrupted):
+        return "aborted", exc.reason
+    if isinstance(exc, KeyboardInterrupt):
+        return "aborted", "stopped by Ctrl-C (SIGINT)"
+    if isinstance(exc, DotshellError):
+        return "failed", str(exc)
+    if isinstance(exc, MemoryError):
+        return "failed", "out of memory"
+    return "failed", f"{type(exc).__name__}: {exc}"
+
+
+# ---- planning and running steps ----------------------------------------------------------------
+
+def plan(targets: Iterable[str], ctx: StepContext, base: set[str]) -> tuple[list[str], list[str],
+                                                                            list[str]]:
+    """(steps to run, products to carry over, products dropped as stale), in step order.
+
+    A step runs when it is a target, when a target needs its product and the base generation
+    lacks it, or when something it reads runs and the run wants it (the profile asks for it,
+    or the base has it); a product of the base is carried over when nothing it reads runs, and
+    dropped as stale otherwise."""
+    targets = set(targets)
+    unknown = targets - {s.name for s in STEPS}
+    if unknown:
+        raise RunError(f"unknown products {sorted(unknown)}; known: {[s.name for s in STEPS]}")
+    needed = set(targets)
+    for step in reversed(STEPS):  # what the targets read, transitively, unless in the base
+        if step.name in targets or (step.name in needed and step.name not in base):
+            needed.update(step.reads)
+    run: list[str] = []
+    carry: list[str] = []
+    dropped: list[str] = []
+    for step in STEPS:
+        upstream_runs = any(r in run for r in step.reads)
+        wanted = step.name in needed or step.wanted(ctx, base)
+        if step.name in targets or (step.name in needed and step.name not in base) or (
+                upstream_runs and wanted):
+            run.append(step.name)
+        elif step.name in base and not upstream_runs:
+            carry.append(step.name)
+        elif step.name in base:
+            dropped.append(step.name)
+    return run, carry, dropped
+
+
+def process(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[str],
+            options: dict[str, Any] | None = None, final_status: str = "completed",
+            generation: Generation | None = None) -> dict[str, Any]:
+    """Make ``targets`` (and whatever they need) in a new generation of ``job``'s run and
+    publish it; returns the published report. ``generation``: one the caller already started
+    writing into (a scan writes views while it captures)."""
+    gen = generation or Generation.start(job.store)
+    job.generation = gen.number
+    store = ProductStore(job.store, gen.dir)
+    ctx = StepContext(store, profile, pm, job.bus, dict(options or {}))
+    ctx.timings.update(ctx.options.pop("timings", {}))
+    prewritten: dict[str, set[str]] = ctx.options.pop("prewritten", {})
+    base = set(gen.base_products())
+    run, carry, dropped = plan(targets, ctx, base)
+    gen.carry(carry)
+    base_report = gen.base_report()
+    report: dict[str, Any] = {"profile": profile.name, "generation": gen.number,
+                              "based_on": gen.base, "command": job.command}
+    for name in carry:
+        report.update({k: base_report[k] for k in sections_of(name) if k in base_report})
+    for name in run:
+        step = next(s for s in STEPS if s.name == name)
+        before = gen.listing() - prewritten.get(name, set())
+        t0 = time.perf_counter()
+        report.update(step.run(ctx))
+        ctx.timings.setdefault(_timing_name(name), time.perf_counter() - t0)
+        gen.record(name, before)
+    timings = dict(base_report.get("timings_s", {})) if carry else {}
+    timings.update({k: round(s, 3) for k, s in ctx.timings.items()})
+    report["timings_s"] = timings
+    if dropped:
+        report["dropped"] = dropped
+        job.bus.warn(f"generation {gen.number}: {', '.join(dropped)} of generation {gen.base} "
+                     "would be stale after this change and were left out; re-make them if "
+                     "needed (e.g. `dotshell mesh RUN`).")
+    report["status"] = final_status
+    if job.command not in ("scan", "resume"):
+        report["reprocessed"] = True
+    job.bus.emit(StepStarted(step="publish"))
+    gen.report = report
+    gen.publish()
+    return report
+
+
+def sections_of(product: str) -> tuple[str, ...]:
+    """The report.json sections a product's step writes."""
+    return {"calibration": ("calibration",), "views": ("views",), "cloud": ("cloud",),
+            "validation": ("validation",), "previews": ("previews",), "mesh": ("mesh",),
+            "normalize": ("normalize",), "exports": ("exports",),
+            "forward": ("forward",)}.get(product, ())
+
+
+def _timing_name(step: str) -> str:
+    return {"views": "reconstruct", "cloud": "merge", "validation": "validate",
+            "exports": "export"}.get(step, step)

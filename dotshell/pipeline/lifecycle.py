@@ -1,0 +1,211 @@
+"""A run's lifecycle: who may write it (a lock), what its recorded state means, and signals.
+
+* :class:`RunLock` — an exclusive ``flock`` on ``<run>/.lock`` held by the one process writing
+  the run (a scan, a re-processing job). A second writer is refused with who holds it. The lock
+  dies with its process, so a run whose manifest says ``running`` but whose lock is free was
+  left by a process that is gone: every command reports it as ``interrupted``.
+* :func:`interrupts` — SIGINT, SIGTERM and SIGHUP raise :class:`Interrupted` in the main
+  thread (the first one only: cleanup is never cut short by a second signal), after calling
+  the stop callbacks registered with :func:`on_interrupt` (the rig's ``stop()``, so a moving
+  stage halts at once, before the stack unwinds). A third signal exits at once; the run is then
+  found ``interrupted`` by the next command.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import os
+import signal
+import socket
+import sys
+import threading
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+from dotshell.errors import RunError
+
+#: Final states; ``running`` is the only other one.
+FINAL_STATES = ("completed", "failed", "aborted", "interrupted")
+LOCK_NAME = ".lock"
+
+
+class Interrupted(KeyboardInterrupt):
+    """The process was asked to stop (Ctrl-C, SIGTERM, SIGHUP): ``signame`` says which."""
+
+    def __init__(self, signame: str = "SIGINT") -> None:
+        super().__init__(signame)
+        self.signame = signame
+
+    @property
+    def reason(self) -> str:
+        what = {"SIGINT": "Ctrl-C (SIGINT)", "SIGTERM": "SIGTERM", "SIGHUP":
+                "SIGHUP (the terminal or SSH session closed)"}.get(self.signame, self.signame)
+        return f"stopped by {what}"
+
+
+def interrupt_reason(exc: BaseException) -> str:
+    return exc.reason if isinstance(exc, Interrupted) else "stopped by Ctrl-C (SIGINT)"
+
+
+# ---- the lock ----------------------------------------------------------------------------------
+
+class RunLock:
+    """Exclusive advisory lock of one run directory (see the module docstring)."""
+
+    def __init__(self, root: Path | str) -> None:
+        self.root = Path(root)
+        self.path = self.root / LOCK_NAME
+        self._fd: int | None = None
+
+    def acquire(self, command: str) -> None:
+        """Take the lock for ``command`` or raise :class:`RunError` naming the holder."""
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            os.close(fd)
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+            raise RunError(f"{self.root} is being written by {describe_holder(read_holder(self.path))}; "
+                           "wait for it to finish (`dotshell status`), or stop it, then try "
+                           "again.") from None
+        info = {"pid": os.getpid(), "host": socket.gethostname(), "command": command,
+                "since": time.strftime("%Y-%m-%dT%H:%M:%S")}
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, json.dumps(info).encode(), 0)
+        self._fd = fd
+
+    def release(self) -> None:
+        if self._fd is not None:
+            try:
+                os.ftruncate(self._fd, 0)
+            finally:
+                fcntl.flock(self._fd, fcntl.LOCK_UN)
+                os.close(self._fd)
+                self._fd = None
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def __enter__(self) -> "RunLock":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.release()
+
+
+def read_holder(path: Path) -> dict[str, Any]:
+    try:
+        return json.loads(Path(path).read_text() or "{}")
+    except (OSError, ValueError):
+        return {}
+
+
+def describe_holder(info: dict[str, Any]) -> str:
+    if not info:
+        return "another process"
+    return (f"`dotshell {info.get('command', '?')}` (pid {info.get('pid', '?')} on "
+            f"{info.get('host', '?')}, since {info.get('since', '?')})")
+
+
+def lock_holder(root: Path | str) -> dict[str, Any] | None:
+    """Who holds ``root``'s lock (``{}`` if unknown), or None if nobody does."""
+    path = Path(root) / LOCK_NAME
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except FileNotFoundError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return read_holder(path)
+    else:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
+def effective_status(root: Path | str, manifest: dict[str, Any]) -> tuple[str, str]:
+    """(status, reason) as it truly is: a ``running`` run whose writer is gone is
+    ``interrupted``."""
+    status = str(manifest.get("status", "unknown"))
+    reason = str(manifest.get("reason") or "")
+    if status == "running" and lock_holder(root) is None:
+        job = manifest.get("job") or {}
+        return "interrupted", (f"the process writing it (`dotshell {job.get('command', '?')}`, "
+                               f"pid {job.get('pid', '?')}) ended without finishing: killed, "
+                               "crashed or the machine stopped")
+    return status, reason
+
+
+# ---- signals -----------------------------------------------------------------------------------
+
+_callbacks: list[Callable[[], None]] = []
+_callbacks_lock = threading.Lock()
+
+
+@contextmanager
+def on_interrupt(callback: Callable[[], None]) -> Iterator[None]:
+    """Call ``callback`` (e.g. ``rig.stop``) as soon as a stop signal arrives, while inside."""
+    with _callbacks_lock:
+        _callbacks.append(callback)
+    try:
+        yield
+    finally:
+        with _callbacks_lock:
+            if callback in _callbacks:
+                _callbacks.remove(callback)
+
+
+def run_stop_callbacks() -> None:
+    """Call every registered stop callback; never raises."""
+    with _callbacks_lock:
+        callbacks = list(_callbacks)
+    for cb in callbacks:
+        try:
+            cb()
+        except Exception:  # stopping must reach every device
+            pass
+
+
+class _Handler:
+    def __init__(self, notify: Callable[[str], None]) -> None:
+        self.count = 0
+        self.notify = notify
+
+    def __call__(self, signum: int, frame: Any) -> None:
+        name = signal.Signals(signum).name
+        self.count += 1
+        if self.count == 1:
+            run_stop_callbacks()
+            raise Interrupted(name)
+        if self.count == 2:
+            self.notify(f"{name}: still stopping — devices are being stopped and frames saved. "
+                        "Send it once more to quit at once (the run is then reported "
+                        "interrupted).")
+            return
+        os._exit(128 + signum)
+
+
+@contextmanager
+def interrupts(notify: Callable[[str], None] | None = None) -> Iterator[None]:
+    """Turn SIGINT, SIGTERM and SIGHUP into one :class:`Interrupted` (main thread only;
+    elsewhere this does nothing)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    handler = _Handler(notify or (lambda text: print(text, file=sys.stderr)))
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        previous[sig] = signal.signal(sig, handler)
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)

@@ -1,0 +1,276 @@
+"""The processing steps of a run, each a small object: its name (= the product it writes), the
+products it reads, and ``run(ctx)`` returning its ``report.json`` sections.
+
+::
+
+    calibration ─► views ─► cloud ─┬─► validation
+                                   ├─► previews
+                                   └─► mesh ─┬─► normalize
+                                             ├─► exports   (also reads cloud)
+                                             └─► forward
+
+Steps read the run's capture (frames, manifest) and earlier products through a
+:class:`~dotshell.pipeline.generations.ProductStore` and write into the job's generation;
+:mod:`dotshell.pipeline.engine` decides which run, in this order, and publishes the result.
+The per-view reconstruction (:func:`reconstruct_one_view`) is the unit a scan runs while the
+next view is captured and a batch schedules on its workers.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from dotshell.errors import ReconstructionError, RunError
+from dotshell.events import EventBus, StepProgress, StepStarted, ViewReconstructed
+from dotshell.geometry.calibration import RigCalibration
+from dotshell.pipeline.pdi import combine, shots_from_manifest
+from dotshell.pipeline.reconstruct import ViewCloud, reconstruct_view
+from dotshell.plugins import PluginManager
+from dotshell.ply import read_ply, write_ply
+from dotshell.profile import Profile
+from dotshell.store import RunStore, atomic_write_text, dumps
+
+
+@dataclass
+class StepContext:
+    """What a step may use. ``store`` reads the capture and writes this generation's products;
+    ``options`` holds the command's choices (node distance, normalizer, calibration file...)."""
+
+    store: RunStore
+    profile: Profile
+    pm: PluginManager
+    bus: EventBus
+    options: dict[str, Any] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+    _calib: RigCalibration | None = None
+
+    @property
+    def calibration(self) -> RigCalibration:
+        """The calibration of this generation (``calibration.json`` in it)."""
+        if self._calib is None:
+            self._calib = RigCalibration.load(self.store.path("calibration.json"))
+        return self._calib
+
+
+@dataclass(frozen=True)
+class Step:
+    name: str
+    reads: tuple[str, ...]
+    run: Callable[[StepContext], dict[str, Any]]
+    #: whether the step belongs in a run made with this profile (when not asked for directly)
+    wanted: Callable[[StepContext, set[str]], bool] = lambda ctx, base: True
+
+
+def make_coding(profile: Profile, pm: PluginManager):
+    c = profile.role("coding")
+    return pm.create("coding", c["backend"], c["settings"], None, profile.source)
+
+
+# ---- calibration ---------------------------------------------------------------------------
+
+def calibration_step(ctx: StepContext) -> dict[str, Any]:
+    """This generation's calibration: the command's ``--calibration`` file (validated before
+    anything is written) or the one the run was captured with."""
+    source = ctx.options.get("calibration_file") or ctx.store.path("..", "..", "calibration.json")
+    calib = RigCalibration.load(source)
+    calib.save(ctx.store.path("calibration.json"))
+    ctx._calib = calib
+    return {"calibration": calib.source}
+
+
+# ---- views ---------------------------------------------------------------------------------
+
+def view_stem(view: int) -> str:
+    return f"view_{view:03d}"
+
+
+def store_view(store: RunStore, vc: ViewCloud, first_frame: np.ndarray | None,
+               profile: Profile, calib: RigCalibration, bus: EventBus) -> dict[str, Any]:
+    """Write one reconstructed view (``views/view_NNN.ply`` + ``.json``; frame and column
+    previews for the profile's preview view) and return its report record."""
+    write_ply(store.path("views", f"{view_stem(vc.view)}.ply"), vc.points)
+    record: dict[str, Any] = {"view": vc.view, "angle_deg": vc.angle_deg, **vc.stats}
+    out = profile.data["outputs"]
+    if out["previews"] and vc.view == out["preview_view"] and vc.correspondence is not None:
+        from dotshell.render import column_map_preview, frame_preview
+
+        pdir = store.path("previews")
+        pdir.mkdir(parents=True, exist_ok=True)
+        previews = {"columns": column_map_preview(vc.correspondence.column,
+                                                  vc.correspondence.valid, calib.projector.width,
+                                                  pdir / f"columns_{view_stem(vc.view)}.png")}
+        if first_frame is not None:
+            previews["frame"] = frame_preview(first_frame, pdir / f"frame_{view_stem(vc.view)}.png")
+        record["previews"] = {k: str(Path(p).relative_to(store.root)) for k, p in previews.items()}
+    atomic_write_text(store.path("views", f"{view_stem(vc.view)}.json"),
+                      dumps({**record, "seconds": {k: round(s, 4) for k, s in vc.seconds.items()}}))
+    bus.emit(ViewReconstructed(view=vc.view, n_points=len(vc.points),
+                               decoded_pixels=int(vc.stats.get("decoded", 0))))
+    return record
+
+
+def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: Profile,
+                         coding: Any, calib: RigCalibration, bus: EventBus,
+                         frames: Sequence[np.ndarray] | None = None) -> dict[str, Any]:
+    """Decode and triangulate one view (frames given, or read from the run) into its
+    products; returns its report record."""
+    manifest = store.manifest
+    if frames is None:
+        frames = store.read_frames(view)
+    shots = shots_from_manifest(manifest)
+    vc = reconstruct_view(view, angle_deg, combine(frames, shots), coding, calib,
+                          profile.data["processing"])
+    return store_view(store, vc, frames[0] if len(frames) else None, profile, calib, bus)
+
+
+def complete_views(store: RunStore) -> list[dict[str, Any]]:
+    return [v for v in store.manifest["views"] if v.get("complete")]
+
+
+def views_step(ctx: StepContext) -> dict[str, Any]:
+    store, manifest = ctx.store, ctx.store.manifest
+    views = manifest["views"]
+    done: dict[int, dict[str, Any]] = ctx.options.get("reconstructed", {})
+    coding = None
+    ctx.bus.emit(StepStarted(step="reconstruct", total=len(views)))
+    for n, v in enumerate(views, 1):
+        if not v.get("complete"):
+            ctx.bus.warn(f"view {v['index'] + 1} of {len(views)} has {v['frames']} of "
+                         f"{len(manifest['frame_names'])} frames; skipped")
+            continue
+        if v["index"] not in done:
+            coding = coding or make_coding(ctx.profile, ctx.pm)
+            done[v["index"]] = reconstruct_one_view(store, v["index"], v["angle_deg"],
+                                                    ctx.profile, coding, ctx.calibration, ctx.bus)
+        ctx.bus.emit(StepProgress(step="reconstruct", done=n, total=len(views)))
+    records = [done[i] for i in sorted(done)]
+    seconds = [read_view_record(store, r["view"]).get("seconds", {}) for r in records]
+    ctx.timings["decode"] = sum(s.get("decode", 0.0) for s in seconds)
+    ctx.timings["triangulate"] = sum(s.get("triangulate", 0.0) for s in seconds)
+    return {"views": records}
+
+
+def read_view_record(store: RunStore, view: int) -> dict[str, Any]:
+    p = store.path("views", f"{view_stem(view)}.json")
+    try:
+        return json.loads(p.read_text())
+    except (OSError, ValueError) as exc:
+        raise RunError(f"{p} is missing or damaged ({exc}); re-process the run with "
+                       "`dotshell reconstruct RUN`.") from None
+
+
+# ---- cloud, validation, previews -----------------------------------------------------------
+
+def stored_views(store: RunStore) -> list[int]:
+    return sorted(int(p.stem.split("_")[1]) for p in store.path("views").glob("view_*.ply"))
+
+
+def cloud_step(ctx: StepContext) -> dict[str, Any]:
+    ctx.bus.emit(StepStarted(step="merge"))
+    views = stored_views(ctx.store)
+    parts = [(v, read_ply(ctx.store.path("views", f"{view_stem(v)}.ply"))[0]) for v in views]
+    n = sum(len(p) for _, p in parts)
+    if n == 0:
+        raise ReconstructionError(
+            f"{ctx.store.run_root}: no view produced points inside the region of interest "
+            f"({len(views)} views reconstructed). Check the previews (is the sample lit and in "
+            "focus?), the calibration and [processing.roi]; report.json's views list the "
+            "pixels lost at each stage.")
+    points = np.concatenate([p for _, p in parts])
+    ids = np.concatenate([np.full(len(p), v) for v, p in parts])
+    write_ply(ctx.store.path("cloud.ply"), points, view=ids)
+    return {"cloud": {"path": "cloud.ply", "points": int(n)}}
+
+
+def load_cloud(store: RunStore) -> np.ndarray:
+    return read_ply(store.path("cloud.ply"))[0]
+
+
+def validation_step(ctx: StepContext) -> dict[str, Any]:
+    from dotshell.pipeline.validate import cylinder_report
+
+    ctx.bus.emit(StepStarted(step="validate"))
+    v = ctx.profile.data["validation"]
+    return {"validation": cylinder_report(load_cloud(ctx.store), ctx.calibration, v,
+                                          ctx.profile.data["processing"]["roi"])}
+
+
+def previews_step(ctx: StepContext) -> dict[str, Any]:
+    from dotshell.render import cloud_previews
+
+    ctx.bus.emit(StepStarted(step="previews"))
+    out = {}
+    for v in stored_views(ctx.store):
+        out.update(read_view_record(ctx.store, v).get("previews") or {})
+    if not out:
+        ctx.bus.warn(f"frame previews skipped: view {ctx.profile.data['outputs']['preview_view']}"
+                     " ([outputs] preview_view) was not reconstructed")
+    out.update(cloud_previews(ctx.store, load_cloud(ctx.store), ctx.profile, ctx.bus))
+    return {"previews": out}
+
+
+# ---- mesh, normalize, exports, forward -----------------------------------------------------
+
+def mesh_step(ctx: StepContext) -> dict[str, Any]:
+    from dotshell.pipeline.mesh import mesh_stage
+
+    return {"mesh": mesh_stage(ctx.store, ctx.profile, ctx.pm, ctx.bus,
+                               ctx.options.get("node_distance_mm"))}
+
+
+def normalize_step(ctx: StepContext) -> dict[str, Any]:
+    from dotshell.pipeline.normalize import normalize_stage
+
+    o = ctx.options
+    return {"normalize": normalize_stage(ctx.store, ctx.profile, ctx.pm, ctx.bus,
+                                         o.get("normalizer"), o.get("min_sin_beta"),
+                                         o.get("max_normal_spread_deg"))}
+
+
+def exports_step(ctx: StepContext) -> dict[str, Any]:
+    out = {}
+    for name, settings in ctx.profile.data["export"].items():
+        ctx.bus.emit(StepStarted(step=f"export {name}"))
+        exporter = ctx.pm.create("exporter", name, settings, None, ctx.profile.source)
+        paths = exporter.export(ctx.store.root)
+        out[name] = [str(Path(p).relative_to(ctx.store.root)) for p in paths]
+    return {"exports": out}
+
+
+def forward_step(ctx: StepContext) -> dict[str, Any]:
+    from dotshell.pipeline.mesh import forward_stage
+
+    o = ctx.options
+    return {"forward": forward_stage(ctx.store, o.get("source_mm"), o.get("mesh_dir", "."))}
+
+
+def _has_transillumination(ctx: StepContext) -> bool:
+    entry = ctx.store.manifest.get("transillumination") or {}
+    return bool(entry.get("views"))
+
+
+STEPS: tuple[Step, ...] = (
+    Step("calibration", (), calibration_step),
+    Step("views", ("calibration",), views_step),
+    Step("cloud", ("views",), cloud_step),
+    Step("validation", ("cloud", "calibration"), validation_step,
+         lambda ctx, base: ctx.profile.data["validation"]["shape"] == "cylinder"),
+    Step("previews", ("cloud", "views"), previews_step,
+         lambda ctx, base: bool(ctx.profile.data["outputs"]["previews"])),
+    Step("mesh", ("cloud", "calibration"), mesh_step,
+         lambda ctx, base: "mesh" in base or bool(ctx.profile.data["mesh"]["after_scan"])),
+    Step("normalize", ("mesh", "calibration"), normalize_step,
+         lambda ctx, base: "normalize" in base or (
+             _has_transillumination(ctx) and bool(ctx.profile.data["mesh"]["after_scan"])
+             and bool(ctx.profile.data["normalize"]["after_scan"]))),
+    Step("exports", ("cloud", "mesh"), exports_step,
+         lambda ctx, base: bool(ctx.profile.data["export"]) and ctx.options.get("export", True)),
+    Step("forward", ("mesh",), forward_step, lambda ctx, base: "forward" in base),
+)
+STEP_BY_NAME = {s.name: s for s in STEPS}
