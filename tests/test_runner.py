@@ -72,6 +72,7 @@ def _pm(plugin=None):
 def _profile(tmp_path, pm, views=3, backend="sim-camera"):
     raw = small_profile_dict(factor=0.2, views=views)
     raw["camera"]["backend"] = backend
+    raw["scan"]["acquisition"] = "show-capture"  # these tests fail and stop single captures
     raw["outputs"] = {"previews": False}
     return load_profile(write_profile(tmp_path / "p.toml", raw), pm)
 
@@ -89,9 +90,7 @@ def test_stop_midway_keeps_frames_marks_aborted_and_reconstructs_complete_views(
                 stop.set()
 
     bus.subscribe(stop_in_view_1)
-    profile = _profile(tmp_path, pm)
-    profile.data["scan"]["acquisition"] = "show-capture"  # a stop lands between two frames
-    result = scan(profile, pm, tmp_path / "runs", bus=bus, stop=stop)
+    result = scan(_profile(tmp_path, pm), pm, tmp_path / "runs", bus=bus, stop=stop)
     assert result.status == "aborted"
     manifest = json.loads((result.run_dir / "manifest.json").read_text())
     assert manifest["status"] == "aborted"

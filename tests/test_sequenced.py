@@ -151,3 +151,31 @@ def test_check_latency_prints_a_settle_ms_covering_the_display(tmp_path):
     settle = float(r.stdout.split("settle_ms = ")[1].split()[0])
     seen = float(r.stdout.split("full pattern is seen ")[1].split()[0])
     assert 40.0 <= seen <= 40.0 + 1000 / 60 + 2 and seen * 1.25 <= settle <= seen * 1.25 + 5
+
+
+def test_sequenced_trigger_timeouts_are_retried_then_named(tmp_path, pm, monkeypatch):
+    from dotshell.errors import DeviceError
+    from dotshell_sim.devices import SimCamera
+
+    real = SimCamera.read_armed
+    failures = {"left": 1}
+
+    def flaky(self, timeout_s):
+        if failures["left"] > 0:
+            failures["left"] -= 1
+            raise DeviceTimeout("sim-camera: 3 of 30 triggered frames arrived")
+        return real(self, timeout_s)
+
+    monkeypatch.setattr(SimCamera, "read_armed", flaky)
+    messages = []
+    bus = EventBus()
+    bus.subscribe(lambda ev: messages.append(getattr(ev, "text", "")))
+    result = scan(_rig(tmp_path, pm, acquisition="sequenced"), pm, tmp_path / "ok", bus=bus)
+    assert result.status == "completed"
+    retried = [m for m in messages if "retrying" in m]
+    assert len(retried) == 1 and retried[0].startswith("view 0, sequence of ")
+    assert "3 of 30 triggered frames" in (result.run_dir / "events.jsonl").read_text()
+    failures["left"] = 99
+    with pytest.raises(DeviceError, match="view 0, sequence of .* failed 3 times; last error: "
+                                          "sim-camera: 3 of 30"):
+        scan(_rig(tmp_path, pm, acquisition="sequenced"), pm, tmp_path / "fail", bus=EventBus())
