@@ -474,9 +474,11 @@ class SimCamera(_Device):
         self._armed = None
 
     def status(self) -> dict[str, Any]:
-        return {**super().status(), "exposure_ms": self.exposure_ms, "frames": self.frames,
-                "resolution": list(self.resolution), "bit_depth": self.bit_depth,
-                "armed": self._armed is not None}
+        out = {**super().status(), "exposure_ms": self.exposure_ms, "frames": self.frames,
+               "resolution": list(self.resolution), "bit_depth": self.bit_depth}
+        if self._armed is not None:
+            out["armed_frames"] = self._armed[0]
+        return out
 
 
 class SimProjector(_Device):
@@ -660,10 +662,13 @@ class SimProjector(_Device):
         self._running_until = -math.inf
 
     def status(self) -> dict[str, Any]:
+        out = {**super().status(), "resolution": list(self.resolution)}
         name, index = self.last_shown
-        return {**super().status(), "resolution": list(self.resolution), "pattern": name,
-                "pattern_index": index,
-                "sequence_patterns": 0 if self._sequence is None else len(self._sequence[0])}
+        if name or index >= 0:
+            out.update(pattern=name, pattern_index=index)
+        if self._sequence is not None:
+            out["sequence_patterns"] = len(self._sequence[0])
+        return out
 
 
 class SimTurntable(_Device):
