@@ -154,3 +154,20 @@ def test_framebuffer_geometry_errors_name_the_fix(tmp_path):
         "device": str(tmp_path / "fb9"), "sysfs_dir": str(sysfs)}, "fb"))
     with pytest.raises(DeviceError, match="ls /dev/fb"):
         fb.connect()
+
+
+def test_the_lightcrafter_profile_flash_holds_its_coding(pm, tmp_path):
+    from conftest import ROOT
+    from dotshell.profile import load_profile
+    from dotshell_projectors.lc4500_pack import main
+
+    profile = ROOT / "profiles" / "sim-metal-cylinder-lightcrafter.toml"
+    prof = load_profile(profile, pm)
+    coding = pm.create("coding", prof.role("coding")["backend"],
+                       prof.role("coding")["settings"], None, prof.source)
+    planes = images.Planes(images.load([ROOT / "profiles" / p for p in
+                                        prof.role("projector")["settings"]["flash_images"]]))
+    where = [planes.locate(p.image) for p in coding.patterns((C.WIDTH, C.HEIGHT))]
+    assert len(where) == 44 and None not in where and where[0] == (0, 0)
+    assert main([str(profile), str(tmp_path)]) == 0
+    assert len(list(tmp_path.glob("lc4500_*.png"))) == 2

@@ -7,14 +7,13 @@ way; the images are put in the projector's flash with TI's LightCrafter 4500 GUI
 build, "Images" list, in the order written); the profile's ``flash_images`` lists the same
 files, from which the driver finds each pattern's image and pattern number (:class:`Planes`).
 
-Command line: ``python -m dotshell_projectors.lc4500_images PROFILE OUT_DIR`` writes the packed
-images of PROFILE's coding at 912 × 1140 as ``OUT_DIR/lc4500_NN.png`` (24-bit RGB).
+Command line: ``python -m dotshell_projectors.lc4500_pack PROFILE OUT_DIR`` (module
+:mod:`dotshell_projectors.lc4500_pack`).
 """
 
 from __future__ import annotations
 
 import hashlib
-import sys
 from pathlib import Path
 from typing import Sequence
 
@@ -87,7 +86,7 @@ def load(paths: Sequence[str | Path]) -> list[np.ndarray]:
         if img is None:
             raise DeviceError(f"LightCrafter 4500: cannot read flash image {p}; list the 24-bit "
                               "images stored in the projector's flash in [projector.settings] "
-                              "flash_images (python -m dotshell_projectors.lc4500_images writes "
+                              "flash_images (python -m dotshell_projectors.lc4500_pack writes "
                               "them).")
         out.append(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
     return out
@@ -101,26 +100,3 @@ def save(images: Sequence[np.ndarray], out_dir: Path) -> list[Path]:
         cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
         paths.append(path)
     return paths
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    from dotshell.plugins import get_plugin_manager
-    from dotshell.profile import load_profile
-
-    args = list(sys.argv[1:] if argv is None else argv)
-    if len(args) != 2:
-        print(__doc__.strip().splitlines()[-2], file=sys.stderr)
-        return 2
-    pm = get_plugin_manager()
-    profile = load_profile(args[0], pm)
-    c = profile.role("coding")
-    coding = pm.create("coding", c["backend"], c["settings"], None, profile.source)
-    patterns = [p.image for p in coding.patterns((WIDTH, HEIGHT))]
-    paths = save(pack(patterns), Path(args[1]))
-    print(f"{len(patterns)} patterns in {len(paths)} images:")
-    print("flash_images = [" + ", ".join(f'"{p}"' for p in paths) + "]")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -36,7 +36,7 @@ NAME = "LightCrafter 4500"
 SETTINGS_SCHEMA: dict[str, Setting] = {
     "flash_images": Setting("list[str]", [], "the 24-bit images stored in the projector's "
                             "flash, in flash order (relative to the profile); written by python "
-                            "-m dotshell_projectors.lc4500_images"),
+                            "-m dotshell_projectors.lc4500_pack"),
     "serial_number": Setting("str", "", "USB serial number of the projector to open; empty = "
                              "the only one connected"),
     "led": Setting("str", "white", "LEDs lit for the patterns",
@@ -212,7 +212,7 @@ class LightCrafter4500:
             raise DeviceError(
                 f"{NAME}: pattern {what} is not among the {24 * self.planes.count} bit planes "
                 "of flash_images; the projector displays only patterns stored in its flash. "
-                "Write this coding's images with python -m dotshell_projectors.lc4500_images, "
+                "Write this coding's images with python -m dotshell_projectors.lc4500_pack, "
                 "put them in the projector's flash with TI's LightCrafter 4500 GUI and list them "
                 "in flash_images.")
         return where
