@@ -367,6 +367,7 @@ def build_parser() -> argparse.ArgumentParser:
     from dotshell.cli_normalize import add_normalize_parser
 
     add_normalize_parser(sub, _pm)
+    from dotshell.cli_devices import add_device_parsers; add_device_parsers(sub, _pm)  # noqa: E702
 
     def session_args(sp):
         sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

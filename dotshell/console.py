@@ -322,6 +322,12 @@ class Session:
             stage.move_to(float(degrees))
             return float(stage.position)
 
+    def home(self, role: str = "stage") -> float | None:
+        """Home the stage (or ``role``): find its reference position; the angle afterwards."""
+        with self._lock:
+            self._device(role, f"home the {role}")
+            return self.rig.home(role)  # type: ignore[union-attr]
+
     def jog(self, degrees: float) -> float:
         """Rotate the stage by ``degrees`` (relative); returns the angle reached."""
         with self._lock:
@@ -547,7 +553,7 @@ class Session:
             "session": self, "np": np, "dotshell": dotshell, "Run": Run,
             "load": self.load, "set": self.set, "connect": self.connect,
             "disconnect": self.disconnect, "status": self.status, "move_to": self.move_to,
-            "jog": self.jog, "set_analyzer": self.set_analyzer,
+            "jog": self.jog, "home": self.home, "set_analyzer": self.set_analyzer,
             "set_exposure": self.set_exposure, "patterns": self.patterns,
             "project": self.project, "snap": self.snap, "decode": self.decode,
             "scan": self.scan, "pause": self.pause, "resume": self.resume,

@@ -17,6 +17,7 @@ from typing import Any
 
 from dotshell.calibration.schema import CALIBRATE_SCHEMA
 from dotshell.errors import ProfileError
+from dotshell.handles import TIMEOUT_DEFAULTS_S
 from dotshell.mesh_schema import MESH_SCHEMA
 from dotshell.plugins import PluginManager
 from dotshell.settings import REQUIRED, Setting, validate_settings
@@ -33,16 +34,41 @@ def _role(required: bool) -> Setting:
     }, help="backend filling this role")
 
 
+def _device_role(required: bool, homing: bool = False) -> Setting:
+    """A device role's section: the backend, its settings, and how the rig treats the device."""
+    schema = {
+        "backend": Setting("str", help="name of the backend (see `dotshell plugins`)"),
+        "settings": Setting("table", default={}, help="the backend's own settings"),
+        "timeouts": Setting("table", default={}, help="seconds each device call may take before "
+                            "it fails with a DeviceTimeout (docs/devices.md)", schema={
+            name: Setting("float", None, f"{name}() (default {s:g} s)" if name != "other" else
+                          f"any other call (default {s:g} s)", "s", min=0.001)
+            for name, s in TIMEOUT_DEFAULTS_S.items()}),
+        "reconnect": Setting("bool", default=True, help="reopen the device once when it is "
+                             "lost (unplugged, powered off) before the step fails"),
+        "reconnect_wait_s": Setting("float", default=10.0, min=0.0, unit="s",
+                                    help="how long to keep trying to reopen a lost device"),
+    }
+    if homing:
+        schema["home"] = Setting("str", default="never", choices=HOME_CHOICES,
+                                 help="when to find the reference position: never, on_connect "
+                                      "(every connect and reconnect) or before_scan")
+    return Setting("table", default=REQUIRED if required else None, schema=schema,
+                   help="backend filling this role")
+
+
+HOME_CHOICES = ("never", "on_connect", "before_scan")
+
 SCHEMA: dict[str, Setting] = {
     "profile": Setting("table", schema={
         "name": Setting("str", help="short name, used in run directory names"),
         "description": Setting("str", default="", help="one line for humans"),
     }),
-    "camera": _role(True),
-    "projector": _role(True),
-    "stage": _role(True),
-    "analyzer": _role(False),
-    "light_source": _role(False),
+    "camera": _device_role(True),
+    "projector": _device_role(True),
+    "stage": _device_role(True, homing=True),
+    "analyzer": _device_role(False, homing=True),
+    "light_source": _device_role(False),
     "coding": _role(True),
     "surface_mesher": _role(False),
     "volume_mesher": _role(False),

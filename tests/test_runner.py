@@ -51,6 +51,9 @@ class FlakyCameraPlugin:
             def status(self):
                 return self.inner.status()
 
+            def ground_truth_calibration(self):  # capabilities are read from the class
+                return self.inner.ground_truth_calibration()
+
             def capture(self):
                 plugin.calls += 1
                 if plugin.calls in plugin.fail_on:

@@ -1,11 +1,17 @@
 """The acquisition runner: moves the stage, shows each pattern, captures and stores frames.
 
 The runner owns the loop, events, retries and abort; the devices own the hardware. A
-:class:`~dotshell.errors.DeviceError` from a capture is a recoverable per-step failure, retried
-``scan.retries`` times before the scan fails. Frames go to a writer thread (PNG encoding
-overlaps the next capture) through a small bounded queue; a view is reported captured only when
-all its frames are on disk, and every exit path — done, stopped, failed, Ctrl-C — drains the
-queue first, so nothing captured is lost.
+:class:`~dotshell.errors.DeviceError` from a move or a capture is a recoverable per-step
+failure, retried ``scan.retries`` times before the scan fails (a lost device has already been
+reconnected once by the rig, and a stopped one is never retried). Frames go to a writer thread
+(PNG encoding overlaps the next capture) through a small bounded queue; a view is reported
+captured only when all its frames are on disk, and every exit path — done, stopped, failed,
+Ctrl-C — drains the queue first, so nothing captured is lost.
+
+Setting the ``stop`` event (abort) stops moving devices at once (:meth:`Rig.stop`, from a small
+watcher thread), as does Ctrl-C. Per view the run records the angle the stage read back and the
+camera's frame metadata; at start the devices' identity and status (manifest ``devices``) and
+their log lines (``events.jsonl``).
 """
 
 from __future__ import annotations
@@ -19,9 +25,12 @@ from typing import Any, Callable, TypeVar
 import numpy as np
 
 from dotshell.coding import PatternFrame
-from dotshell.devices import ExposureControl, accepted_kwargs
-from dotshell.errors import DeviceError, ProfileError, RunError
-from dotshell.events import EventBus, FrameCaptured, ScanPaused, ScanResumed, ViewCaptured
+from dotshell.devices import (AngleReadback, ExposureControl, FrameInfoSource, accepted_kwargs,
+                              implements)
+from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, ProfileError,
+                             RunError)
+from dotshell.events import (EventBus, FrameCaptured, Message, ScanPaused, ScanResumed,
+                             ViewCaptured)
 from dotshell.pipeline.pdi import Shot, plan_shots
 from dotshell.pipeline.sequenced import SequencedCapture, uses_sequenced
 from dotshell.rig import Rig
@@ -33,14 +42,17 @@ T = TypeVar("T")
 
 def with_retries(action: Callable[[], T], retries: int, what: str, bus: EventBus) -> T:
     """``action()``, tried again up to ``retries`` times when it raises DeviceError (a warning
-    naming ``what`` per retry); the last failure is a DeviceError naming ``what``."""
+    naming ``what`` per retry); the last failure is a DeviceError naming ``what``. A lost
+    device (already reconnected once by the rig) and a stopped one are not retried."""
     attempts = retries + 1
     for attempt in range(1, attempts + 1):
         try:
             return action()
+        except (DeviceLostError, DeviceStopped):
+            raise
         except DeviceError as exc:
             if attempt == attempts:
-                raise DeviceError(f"{what}: capture failed {attempts} times; last error: "
+                raise DeviceError(f"{what}: failed {attempts} times; last error: "
                                   f"{exc}") from None
             bus.warn(f"{what}: {exc} — retrying ({attempt}/{attempts - 1})")
     raise AssertionError("unreachable")
@@ -112,20 +124,49 @@ class Acquisition:
         self.running = running  # cleared = pause before the next frame; None = never pause
         self.seconds = 0.0
         self._analyzer_deg: float | None = None
+        self._device_lines: queue.SimpleQueue = queue.SimpleQueue()
+        self._unlisten = rig.listen(lambda *line: self._device_lines.put(line))
+        for line in rig.messages:  # logged while connecting, before this run listened
+            self._device_lines.put(line)
+        rig.where = {"run": str(store.root)}
+        store.update_manifest(devices=rig.describe())
+        self._closed = threading.Event()
+        threading.Thread(target=self._stop_watch, name="dotshell-stop-watch", daemon=True).start()
         self.writer = FrameWriter(store)
-        if isinstance(rig.camera, ExposureControl):
+        if implements(rig.camera, ExposureControl):
             rig.camera.set_exposure(scan["exposure_ms"])
         for line in refused_controls(rig):
             bus.warn(line)
         self._show_kwargs = accepted_kwargs(rig.projector.show, ("name", "index"))
         self.sequenced = (SequencedCapture(rig, patterns, self.shots, scan, bus, with_retries)
                           if uses_sequenced(rig, scan) else None)
+        for role, policy in rig.policies.items():
+            if policy.home == "before_scan":
+                self.bus.info(f"homing the {role} before the scan")
+                rig.home(role)
+        self.flush_device_log()
 
     def _set_analyzer(self, degrees: float) -> None:
         if degrees != self._analyzer_deg:
             self._analyzer_deg = None  # unknown until the move succeeds
             self.rig.analyzer.set_angle(degrees)
             self._analyzer_deg = degrees
+
+    def _stop_watch(self) -> None:
+        """Stop moving devices as soon as the scan is asked to stop (abort from any thread)."""
+        while not self._closed.is_set():
+            if self.stop.wait(0.05):
+                self.rig.stop()
+                return
+
+    def flush_device_log(self) -> None:
+        """Publish the devices' log lines (from any thread) on the bus, from this thread."""
+        while True:
+            try:
+                level, text, when = self._device_lines.get_nowait()
+            except queue.Empty:
+                return
+            self.bus.emit(Message(level=level, text=text, time=when))
 
     def _capture(self, shot: Shot, view: int) -> np.ndarray:
         pattern = self.patterns[shot.pattern]
@@ -146,6 +187,16 @@ class Acquisition:
         return with_retries(attempt, self.scan["retries"], f"view {view}, frame {shot.name!r}",
                             self.bus)
 
+    def _move(self, view: int, angle_deg: float) -> dict[str, Any]:
+        """Move the stage for a view (retried like captures); what the stage read back."""
+        self.rig.where.update(view=view, angle_deg=angle_deg)
+        with_retries(lambda: self.rig.stage.move_to(angle_deg), self.scan["retries"],
+                     f"view {view}: stage move to {angle_deg:g}°", self.bus)
+        reached: dict[str, Any] = {}
+        if implements(self.rig.stage, AngleReadback):
+            reached["angle_read_deg"] = float(self.rig.stage.read_angle())
+        return reached
+
     def _wait_if_paused(self, view: int, index: int) -> bool:
         """Block while ``running`` is cleared (a pause between frames); False if stopped
         meanwhile. Pause time is not counted in the acquisition time."""
@@ -165,27 +216,73 @@ class Acquisition:
         """Capture all frames of one view; None if the scan was stopped midway (frames taken
         so far stay on disk and the view is marked incomplete)."""
         t0 = time.perf_counter()
-        self.rig.stage.move_to(angle_deg)
         frames: list[np.ndarray] = []
+        infos: list[dict[str, Any]] = []
+        reached: dict[str, Any] = {}
+        frame_info = implements(self.rig.camera, FrameInfoSource)
         try:
+            reached = self._move(view, angle_deg)
+            self.flush_device_log()
             for i, shot in enumerate(self.shots):
                 captured = self.sequenced is not None and self.sequenced.pending()
                 if (self.stop.is_set() and not captured) or not self._wait_if_paused(view, i):
                     return None
-                frame = (self.sequenced.frame(view, i, self._set_analyzer) if self.sequenced
-                         else self._capture(shot, view))
+                if self.sequenced is not None:
+                    frame = self.sequenced.frame(view, i, self._set_analyzer)
+                    info = self.sequenced.infos[i].to_dict()
+                else:
+                    frame = self._capture(shot, view)
+                    info = self.rig.camera.last_frame_info().to_dict() if frame_info else None
+                if info is not None:
+                    infos.append({"index": i, "name": shot.name, **info})
                 self.writer.put(view, i, shot.name, frame)
                 frames.append(frame)
+                self.flush_device_log()
                 self.bus.emit(FrameCaptured(view=view, index=i, name=shot.name))
+        except DeviceStopped as exc:
+            self.bus.warn(f"view {view}: {exc}")
+            self.stop.set()
+            return None
+        except KeyboardInterrupt:
+            self.rig.stop()
+            raise
         finally:
             self.writer.queue.join()  # every frame taken is on disk before we go on
             complete = len(frames) == len(self.shots)
             self.store.mark_view(view, len(frames), complete)
+            self._record_view(view, reached, infos)
+            self.flush_device_log()
             self.seconds += time.perf_counter() - t0
         self.writer.check()
         self.bus.emit(ViewCaptured(view=view, angle_deg=angle_deg, n_frames=len(frames)))
         return frames
 
+    def _record_view(self, view: int, reached: dict[str, Any],
+                     infos: list[dict[str, Any]]) -> None:
+        """The angle read back (manifest) and the frames' metadata (``frame_info.json``)."""
+        if infos:
+            record_frame_info(self.store, view, infos)
+        if reached or infos:
+            m = self.store.manifest
+            m["views"][view].update(reached)
+            if infos:
+                m["views"][view]["frame_info"] = frame_info_path(view)
+            self.store.write_json("manifest.json", m)
+
     def close(self) -> None:
-        """Stop the writer thread (after it wrote everything queued)."""
+        """Stop the writer thread (after it wrote everything queued) and the stop watcher."""
+        self._closed.set()
+        self._unlisten()
+        self.flush_device_log()
         self.writer.close()
+
+
+def frame_info_path(view: int) -> str:
+    """Where a view's frame metadata goes, relative to the run."""
+    return f"frames/view_{view:03d}/frame_info.json"
+
+
+def record_frame_info(store: RunStore, view: int, infos: list[dict[str, Any]]) -> Path:
+    """Write one view's frame metadata (one dict per frame: index, name, timestamp_s,
+    frame_id, exposure_ms, ...) next to its frames."""
+    return store.write_json(frame_info_path(view), infos)

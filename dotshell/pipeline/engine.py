@@ -22,7 +22,8 @@ from typing import Any, Callable, Iterable
 from dotshell import __version__
 from dotshell.errors import DotshellError, RunError
 from dotshell.events import EventBus, StepStarted
-from dotshell.pipeline.generations import Generation, ProductStore, current_number
+from dotshell.pipeline.generations import (Generation, ProductStore, current_number,
+                                           published, remove_unpublished)
 from dotshell.pipeline.lifecycle import Interrupted, RunLock, effective_status
 from dotshell.pipeline.steps import STEPS, StepContext
 from dotshell.plugins import PluginManager
@@ -58,9 +59,9 @@ class RunJob:
             if self.create is None and manifest["status"] == "running":  # its writer is gone
                 self._history({"command": (manifest.get("job") or {}).get("command", "?"),
                                "status": "interrupted", "reason": self.previous[1]})
-            for p in self.store.clean_orphans():
+            for p in [*self.store.clean_orphans(), *remove_unpublished(self.store.root)]:
                 self.bus.info(f"removed {p.relative_to(self.store.root)}, left by an "
-                              "interrupted write")
+                              "interrupted job")
             self.started = time.time()
             self.store.update_manifest(status="running", reason="", job={
                 "command": self.command, "pid": os.getpid(), "host": socket.gethostname(),
@@ -85,6 +86,9 @@ class RunJob:
                 if cur is not None:
                     self.reason += (f" (nothing published: generation {cur} is unchanged and "
                                     "still the run's products)")
+            if self.generation is not None and not published(self.store.root, self.generation):
+                remove_unpublished(self.store.root, only=self.generation)
+                self.generation = None
             self._history({"command": self.command, "status": self.status,
                            "reason": self.reason, "generation": self.generation})
             self.store.update_manifest(**self.run_state(), job=None)

@@ -168,6 +168,24 @@ class Generation:
         link_top_level(self.run.root, self.dir)
 
 
+def published(root: Path, number: int) -> bool:
+    """Whether generation ``number`` was ever published (it has its ``products.json``)."""
+    return (Path(root) / GEN_DIR / f"{number:03d}" / PRODUCTS_FILE).is_file()
+
+
+def remove_unpublished(root: Path, only: int | None = None) -> list[Path]:
+    """Delete generations a failed or killed job left half-written (never published); call
+    only while holding the run's lock. Returns what was removed."""
+    cur = current_number(root)
+    gone = []
+    for n in generation_numbers(root):
+        if (only is None or n == only) and n != cur and not published(root, n):
+            d = Path(root) / GEN_DIR / f"{n:03d}"
+            shutil.rmtree(d)
+            gone.append(d)
+    return gone
+
+
 def point_current(root: Path, number: int) -> None:
     tmp = Path(root) / f".{CURRENT}.{os.getpid()}.tmp"
     if tmp.is_symlink() or tmp.exists():

@@ -28,7 +28,7 @@ from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.generations import Generation, ProductStore
 from dotshell.pipeline.lifecycle import on_interrupt
 from dotshell.pipeline.pdi import plan_shots
-from dotshell.pipeline.steps import make_coding, reconstruct_one_view
+from dotshell.pipeline.steps import make_coding, reconstruct_one_view, view_angle
 from dotshell.pipeline.transillum import TransilluminationCapture
 from dotshell.plugins import PluginManager
 from dotshell.profile import Profile, validate_profile
@@ -190,6 +190,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
     store, bus = job.store, job.bus
     resuming = job.command == "resume"
     gen = Generation.start(store)
+    job.generation = gen.number
     products = ProductStore(store, gen.dir)
     with (Rig(profile, pm) if rig is None else _kept_open(rig)) as rig, on_interrupt(rig.stop):
         if resuming:
@@ -225,7 +226,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
                 if trans is not None and trans.covers(view):
                     trans.run_view(view)
                 if fringes:
-                    pipeline.submit(view, angle, frames)
+                    pipeline.submit(view, view_angle(store.manifest["views"][view]), frames)
             reconstructed = pipeline.results()
         finally:
             acq.close()

@@ -129,6 +129,12 @@ def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: 
     return store_view(store, vc, frames[0] if len(frames) else None, profile, calib, bus)
 
 
+def view_angle(view: dict[str, Any]) -> float:
+    """The stage angle a view was captured at (degrees): the one read back from the stage
+    when it could tell, else the one commanded."""
+    return float(view.get("angle_read_deg", view["angle_deg"]))
+
+
 def complete_views(store: RunStore) -> list[dict[str, Any]]:
     return [v for v in store.manifest["views"] if v.get("complete")]
 
@@ -146,7 +152,7 @@ def views_step(ctx: StepContext) -> dict[str, Any]:
             continue
         if v["index"] not in done:
             coding = coding or make_coding(ctx.profile, ctx.pm)
-            done[v["index"]] = reconstruct_one_view(store, v["index"], v["angle_deg"],
+            done[v["index"]] = reconstruct_one_view(store, v["index"], view_angle(v),
                                                     ctx.profile, coding, ctx.calibration, ctx.bus)
         ctx.bus.emit(StepProgress(step="reconstruct", done=n, total=len(views)))
     records = [done[i] for i in sorted(done)]

@@ -171,6 +171,11 @@ TURNTABLE_SCHEMA: dict[str, Setting] = {
                           schema=_BACKGROUND_SCHEMA),
 }
 
+CAMERA_SCHEMA["turntable"] = Setting(
+    "table", None, "mixed rigs: the sample, plate and rotation axis the camera sees when the "
+    "rig's [stage] is a real stage (e.g. on its emulator) instead of sim-turntable; the sample "
+    "turns to the angle that stage reports (read back)", schema=TURNTABLE_SCHEMA)
+
 ANALYZER_SCHEMA: dict[str, Setting] = {
     "initial_deg": Setting("float", 0.0, "analyzer angle after connect, relative to the "
                            "projector's polarizer (0 = parallel)", "deg"),
@@ -690,6 +695,10 @@ class SimTurntable(_Device):
         self.scene = build_scene(s["scene"], s["plate"], s["background"])
         self.target_key: str | None = None  # the calibration target on the stage, if any
         self._angle = 0.0
+        self.follow: Any = None  # mixed rigs: () -> the real stage's angle (degrees)
+        if world.stage is not None:
+            raise DeviceError(f"{self.name}: this rig has both [stage] backend = "
+                              "\"sim-turntable\" and [camera.settings.turntable]; keep one.")
         world.stage = self
 
     def place_target(self, board: dict | None, pose: dict | None) -> None:
@@ -719,10 +728,10 @@ class SimTurntable(_Device):
 
     @property
     def position(self) -> float:
-        return self._angle
+        return float(self.follow()) if self.follow is not None else self._angle
 
     def status(self) -> dict[str, Any]:
-        return {**super().status(), "angle_deg": self._angle}
+        return {**super().status(), "angle_deg": self.position}
 
 
 class SimAnalyzer(_Device):
@@ -879,7 +888,26 @@ def _factory(cls, schema, backend: str):
     return factory
 
 
-make_camera = _factory(SimCamera, CAMERA_SCHEMA, "sim-camera")
+_make_camera = _factory(SimCamera, CAMERA_SCHEMA, "sim-camera")
+
+
+def make_camera(settings: dict | None = None, context: RigContext | None = None) -> SimCamera:
+    """The sim camera; with a ``turntable`` setting (mixed rigs) also the simulated sample on
+    whatever stage the rig has, turning to that stage's reported angle."""
+    camera = _make_camera(settings, context)
+    if camera.settings["turntable"] is not None:
+        table = validate_settings(TURNTABLE_SCHEMA, camera.settings["turntable"], "sim-camera",
+                                  "camera.settings.turntable")
+        SimTurntable(table, camera.world).follow = lambda: _rig_stage_angle(context)
+    return camera
+
+
+def _rig_stage_angle(context: RigContext | None) -> float:
+    stage = context.device("stage") if context is not None else None
+    if stage is None:
+        raise DeviceError("sim-camera: [camera.settings.turntable] follows the rig's stage, but "
+                          "this rig has none; add a [stage] section.")
+    return float(stage.position)
 make_projector = _factory(SimProjector, PROJECTOR_SCHEMA, "sim-projector")
 make_turntable = _factory(SimTurntable, TURNTABLE_SCHEMA, "sim-turntable")
 make_analyzer = _factory(SimAnalyzer, ANALYZER_SCHEMA, "sim-analyzer")
