@@ -81,7 +81,7 @@ def test_period_rule_and_rejected_setup_name_the_validation_bit(lc):
 
 def test_unknown_pattern_names_the_fix(lc):
     dev, _, _ = lc
-    with pytest.raises(DeviceError, match="lc4500_images"):
+    with pytest.raises(DeviceError, match="lc4500_pack"):
         dev.show(np.full((C.HEIGHT, C.WIDTH), 128, np.uint8), "grey", 0)
 
 

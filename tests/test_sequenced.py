@@ -41,12 +41,14 @@ def test_a_capture_before_the_display_settled_sees_a_blend(tmp_path, pm):
         proj.show(np.full((h, w), 255, np.uint8))
         time.sleep(0.5)
         white = cam.expected_electrons()
-        proj.show(np.zeros((h, w), np.uint8))
         clock = cam.world.clock
         t0 = clock.now()
-        early = cam.expected_electrons(t0)            # exposure 20 ms, black after 30: white
-        mixed = cam.expected_electrons(t0 + 0.02)     # half of it white, half black
-        late = cam.expected_electrons(t0 + 0.05)
+        proj.show(np.zeros((h, w), np.uint8))
+        t_black = proj.timeline.segments[-1].start_s   # when the panel turns black
+        assert t_black - t0 >= 0.030
+        early = cam.expected_electrons(t_black - 0.025)  # 20 ms exposure ending before: white
+        mixed = cam.expected_electrons(t_black - 0.010)  # half of it white, half black
+        late = cam.expected_electrons(t_black)
         lit = white > 4 * late + 100
         ratio = (mixed[lit] - late[lit]) / (white[lit] - late[lit])
         assert np.allclose(early[lit], white[lit])
@@ -120,7 +122,7 @@ def test_sequenced_asked_of_devices_that_cannot(tmp_path, pm):
     from dotshell.pipeline.sequenced import uses_sequenced
 
     rig = Rig(prof, pm)
-    with pytest.raises(ProfileError, match="the camera \\(OpenCVCamera\\) lacks arm"):
+    with pytest.raises(ProfileError, match="the camera \\(opencv\\) lacks arm"):
         uses_sequenced(rig, prof.data["scan"])
 
 

@@ -46,7 +46,8 @@ def sequenced_capable(rig: Any) -> list[str]:
                                 ("camera", rig.camera, devices.TriggeredCamera)):
         missing = devices.missing_members(dev, protocol)
         if missing:
-            why.append(f"the {role} ({type(dev).__name__}) lacks {', '.join(missing)}")
+            backend = rig.profile.role(role)["backend"]
+            why.append(f"the {role} ({backend}) lacks {', '.join(missing)}")
     return why
 
 
