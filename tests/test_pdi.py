@@ -111,7 +111,7 @@ def test_agar_with_pdi_meets_bound_and_beats_plain_thresholding(agar_runs):
 def test_pdi_run_stores_both_analyzer_frames_and_reprocesses(agar_runs):
     runs, pm = agar_runs
     run = runs["sim-agar-cylinder"].run_dir
-    names = sorted(p.name for p in (run / "frames" / "view_000").iterdir())
+    names = sorted(p.name for p in (run / "frames" / "view_000").glob("*.png"))
     assert "000_white.par.png" in names and any(n.endswith("_white.perp.png") for n in names)
     assert len(names) == 2 * 34
     again = reconstruct_run(run, pm)
