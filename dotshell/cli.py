@@ -105,6 +105,9 @@ def _print_report(report: dict[str, Any], run_dir: Path) -> None:
         out.print(t)
     elif "validation" in report:
         out.print(f"validation: {escape(str(report['validation']))}")
+    losses = pixel_losses(report.get("views") or [])
+    if losses:
+        out.print("pixels: " + ", ".join(f"{k} {v:.1f} %" for k, v in losses))
     cloud = report.get("cloud", {})
     out.print(f"cloud: {cloud.get('points', 0)} points → {run_dir / 'cloud.ply'}")
     for name, rel in (report.get("previews") or {}).items():
@@ -114,6 +117,23 @@ def _print_report(report: dict[str, Any], run_dir: Path) -> None:
 
         print_section(report["normalize"], run_dir)
     out.print(f"run: {run_dir}  (status: {report.get('status', '?')})")
+
+
+#: Where a camera pixel can be lost on the way to a point, in pipeline order.
+LOSS_KEYS = ("shadow", "low_contrast", "uncertain", "out_of_range", "low_modulation",
+             "phase_inconsistent", "grazing", "row_rejected", "speckle", "outside_roi")
+
+
+def pixel_losses(views: list[dict[str, Any]]) -> list[tuple[str, float]]:
+    """(reason, share of all pixels in %) over the views: decoded and every loss, in order."""
+    from dotshell.pipeline.steps import pixel_totals
+
+    totals = pixel_totals(views)
+    pixels = totals.get("pixels", 0)
+    if not pixels:
+        return []
+    keys = ("decoded", *LOSS_KEYS, "points")
+    return [(k, 100.0 * totals[k] / pixels) for k in keys if totals.get(k)]
 
 
 def _scan_outcome(result) -> int:
@@ -338,11 +358,13 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("run", nargs="?", help="run directory")
     sp.add_argument("--calibration", metavar="FILE", help="use this calibration instead")
     from dotshell.cli_calibration import add_captures_args, add_calibrate_parser
+    from dotshell.cli_decode import add_decode_parser
 
     add_captures_args(sp)
     sp.set_defaults(func=cmd_reconstruct)
 
     add_calibrate_parser(sub, profile_args)
+    add_decode_parser(sub)
 
     sp = sub.add_parser("validate", help="compare the accuracy of runs (Table 1, CSV, PNG plot)")
     sp.add_argument("runs", nargs="+", help="run directories")

@@ -116,15 +116,15 @@ SCHEMA: dict[str, Setting] = {
             "z_max_mm": Setting("float", default=200.0, unit="mm", help="drop points above"),
         }, default={}),
         "row_tolerance_px": Setting("float", default=1.5, min=0.1, unit="px",
-                                    help="max |decoded − predicted| projector row "
-                                         "(column+row codings)"),
+                                    help="max reprojection error of a point from the "
+                                         "decoded column and row (column+row codings)"),
         "max_depth_jump_mm": Setting("float", default=0.5, min=0.0, unit="mm",
                                      help="speckle filter: drop points whose depth differs from "
                                           "the median of their 5x5 camera neighbourhood by more "
                                           "(0 = off)"),
         "min_ray_angle_deg": Setting("float", default=5.0, min=0.0, max=89.0, unit="deg",
-                                     help="drop points whose camera ray meets the column plane "
-                                          "more grazing than this"),
+                                     help="drop points whose camera ray meets the projector "
+                                          "ray (columns only: the column plane) at less"),
     }, default={}),
     "validation": Setting("table", schema={
         "shape": Setting("str", default="none", choices=("none", "cylinder"),

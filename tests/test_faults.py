@@ -70,7 +70,28 @@ def _out_not_writable(tmp: Path) -> list[str]:
     return ["scan", str(tiny_profile(tmp)), "--out", "/sys/dotshell-runs"]
 
 
+def _unmeasured_axis(tmp: Path) -> list[str]:
+    from dotshell.plugins import PluginManager
+    from dotshell.profile import load_profile
+    from dotshell.rig import Rig
+
+    prof = tiny_profile(tmp)
+    pm = PluginManager()
+    pm.load_entry_points()
+    calib = Rig(load_profile(prof, pm), pm).calibration().to_dict()
+    calib["turntable"]["measured"] = False
+    (tmp / "cal.json").write_text(json.dumps(calib))
+    return ["scan", str(prof), "--out", str(tmp / "runs"), "--calibration", str(tmp / "cal.json")]
+
+
 CASES = [
+    Case("calibration without a measured axis", _unmeasured_axis,
+         ("no measured turntable axis", "dotshell calibrate", "scan.views=1")),
+    Case("every point outside the region of interest",
+         lambda tmp: ["scan", str(tiny_profile(tmp, processing__roi__radius_mm=0.01)), "--out",
+                      str(tmp / "runs")],
+         ("were triangulated but no point is left", "outside the region of interest",
+          "[processing.roi]")),
     _profile_case("nan exposure", ("[scan.exposure_ms] = nan", "finite"),
                   scan__exposure_ms=float("nan")),
     _profile_case("inf settle", ("[scan.settle_ms] = inf", "finite"), scan__settle_ms=float("inf")),

@@ -26,12 +26,11 @@ import cv2
 import numpy as np
 
 from dotshell.errors import CalibrationError
-from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.calibration import (PLACEHOLDER_AXIS_DIRECTION, PLACEHOLDER_AXIS_POINT,
+                                           RigCalibration)
 from dotshell.geometry.lens import Lens
 
 OPENCV_SUFFIXES = (".xml", ".yml", ".yaml")
-PLACEHOLDER_AXIS_POINT = (0.0, 0.0, 1000.0)
-PLACEHOLDER_AXIS_DIRECTION = (0.0, -1.0, 0.0)
 _RMS_KEYS = {"cam_error": "camera", "proj_error": "projector", "stereo_error": "stereo"}
 
 
@@ -93,11 +92,12 @@ def read_opencv_calibration(path: Path | str) -> RigCalibration:
     finally:
         fs.release()
     source = where
-    if point is None or direction is None:
+    measured = point is not None and direction is not None
+    if not measured:
         point, direction = PLACEHOLDER_AXIS_POINT, PLACEHOLDER_AXIS_DIRECTION
         source = f"{where} (no turntable axis: placeholder)"
     return RigCalibration(camera, projector, R, T, point, direction, source=source,
-                          rms=rms or None)
+                          rms=rms or None, axis_measured=measured)
 
 
 def write_opencv_calibration(calib: RigCalibration, path: Path | str) -> Path:
@@ -116,8 +116,9 @@ def write_opencv_calibration(calib: RigCalibration, path: Path | str) -> Path:
         fs.write("kp", calib.projector.dist.reshape(5, 1))
         fs.write("Rp", calib.R)
         fs.write("Tp", calib.T.reshape(3, 1))
-        fs.write("axis_point", calib.axis_point.reshape(3, 1))
-        fs.write("axis_direction", calib.axis_direction.reshape(3, 1))
+        if calib.axis_measured:
+            fs.write("axis_point", calib.axis_point.reshape(3, 1))
+            fs.write("axis_direction", calib.axis_direction.reshape(3, 1))
         for key, name in _RMS_KEYS.items():
             value = (calib.rms or {}).get(name)
             if isinstance(value, (int, float)):

@@ -13,6 +13,7 @@ from dotshell.errors import CalibrationError
 from dotshell.events import EventBus
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.engine import RunJob, process
+from dotshell.pipeline.steps import require_turntable_axis
 from dotshell.plugins import PluginManager
 from dotshell.store import RunStore
 
@@ -49,6 +50,7 @@ def check_calibration_for_run(path: str | Path, store: RunStore) -> RigCalibrati
             f"{path}: its camera is {calib.camera.size[0]}x{calib.camera.size[1]} px but the run's "
             f"frames are {captured.camera.size[0]}x{captured.camera.size[1]} px; give the "
             "calibration of the camera at the resolution the run was captured with.")
+    require_turntable_axis(calib, [v["angle_deg"] for v in store.manifest["views"]], str(path))
     if calib.projector.size != captured.projector.size:
         raise CalibrationError(
             f"{path}: its projector is {calib.projector.size[0]}x{calib.projector.size[1]} px "

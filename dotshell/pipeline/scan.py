@@ -28,7 +28,8 @@ from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.generations import Generation, ProductStore
 from dotshell.pipeline.lifecycle import on_interrupt
 from dotshell.pipeline.pdi import plan_shots
-from dotshell.pipeline.steps import make_coding, reconstruct_one_view, view_angle
+from dotshell.pipeline.steps import (make_coding, reconstruct_one_view,
+                                     require_turntable_axis, view_angle)
 from dotshell.pipeline.transillum import TransilluminationCapture
 from dotshell.plugins import PluginManager
 from dotshell.profile import Profile, validate_profile
@@ -197,6 +198,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
             calib = RigCalibration.load(store.path("calibration.json"))
         else:
             calib = rig.calibration(calibration_file)
+            require_turntable_axis(calib, profile.angles_deg(), profile.source)
             calib.save(store.path("calibration.json"))
         patterns = coding.patterns(rig.projector.resolution)
         shots = plan_shots(patterns, profile.data["scan"])

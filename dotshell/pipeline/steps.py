@@ -26,7 +26,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from dotshell.errors import ReconstructionError, RunError
+from dotshell.errors import CalibrationError, ReconstructionError, RunError
 from dotshell.events import EventBus, StepProgress, StepStarted, ViewReconstructed
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.pdi import combine, shots_from_manifest
@@ -82,6 +82,18 @@ def calibration_step(ctx: StepContext) -> dict[str, Any]:
     calib.save(ctx.store.path("calibration.json"))
     ctx._calib = calib
     return {"calibration": calib.source}
+
+
+def require_turntable_axis(calib: RigCalibration, angles_deg: Sequence[float],
+                           where: str) -> None:
+    """Views at several stage angles are merged about the turntable axis: refuse a calibration
+    whose axis was never measured (an OpenCV file, a solve without turntable frames)."""
+    if not calib.axis_measured and len({round(a, 6) for a in angles_deg}) > 1:
+        raise CalibrationError(
+            f"{where}: calibration {calib.source} has no measured turntable axis, but the "
+            f"views are at {len(set(angles_deg))} stage angles and are merged about it. Solve "
+            "the axis with `dotshell calibrate` and turntable frames, or scan one view "
+            "(--set scan.views=1).")
 
 
 # ---- views ---------------------------------------------------------------------------------
@@ -183,15 +195,39 @@ def cloud_step(ctx: StepContext) -> dict[str, Any]:
     parts = [(v, read_ply(ctx.store.path("views", f"{view_stem(v)}.ply"))[0]) for v in views]
     n = sum(len(p) for _, p in parts)
     if n == 0:
-        raise ReconstructionError(
-            f"{ctx.store.run_root}: no view produced points inside the region of interest "
-            f"({len(views)} views reconstructed). Check the previews (is the sample lit and in "
-            "focus?), the calibration and [processing.roi]; report.json's views list the "
-            "pixels lost at each stage.")
+        raise _no_points(ctx, views)
     points = np.concatenate([p for _, p in parts])
     ids = np.concatenate([np.full(len(p), v) for v, p in parts])
     write_ply(ctx.store.path("cloud.ply"), points, view=ids)
     return {"cloud": {"path": "cloud.ply", "points": int(n)}}
+
+
+def pixel_totals(records: Sequence[dict[str, Any]]) -> dict[str, int]:
+    """Per-reason pixel counts summed over views (ints only)."""
+    totals: dict[str, int] = {}
+    for r in records:
+        for k, v in r.items():
+            if isinstance(v, int) and not isinstance(v, bool) and k != "view":
+                totals[k] = totals.get(k, 0) + v
+    return totals
+
+
+def _no_points(ctx: StepContext, views: list[int]) -> ReconstructionError:
+    """Why a run gave no point: the decoder's or triangulation's largest loss and its fix, or
+    the region of interest when points were made but all fell outside it."""
+    from dotshell.pipeline.reconstruct import no_points_error
+
+    where = f"{ctx.store.run_root} ({len(views)} views reconstructed)"
+    totals = pixel_totals([read_view_record(ctx.store, v) for v in views])
+    if totals.get("triangulated", 0) == 0:
+        has_rows = totals.get("refined_row", 0) > 0 or totals.get("row_rejected", 0) > 0
+        return no_points_error(where, totals, ctx.calibration, has_rows,
+                               ctx.profile.data["processing"]["min_ray_angle_deg"])
+    return ReconstructionError(
+        f"{where}: {totals['triangulated']} pixels were triangulated but no point is left: "
+        f"{totals.get('speckle', 0)} removed as speckle, {totals.get('outside_roi', 0)} outside "
+        "the region of interest. Check [processing.roi] (radius_mm, z_min_mm, z_max_mm) against "
+        "the sample's size and the calibration's turntable axis.")
 
 
 def load_cloud(store: RunStore) -> np.ndarray:
