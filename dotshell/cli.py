@@ -390,6 +390,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_normalize_parser(sub, _pm)
     from dotshell.cli_devices import add_device_parsers; add_device_parsers(sub, _pm)  # noqa: E702
+    from dotshell.cli_frames import add_frames_parser; add_frames_parser(sub)  # noqa: E702
 
     def session_args(sp):
         sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -414,6 +415,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from dotshell.pipeline.lifecycle import interrupt_reason, interrupts
+    from dotshell.runtime import configure_process
 
     argv = list(sys.argv[1:] if argv is None else argv)
     head = argv[:argv.index("--")] if "--" in argv else argv  # --debug anywhere before `--`
@@ -421,6 +423,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = [a for a in head if a != "--debug"] + argv[len(head):]
     args = build_parser().parse_args(argv)
     args.debug = args.debug or debug
+    configure_process()  # BLAS on one thread, large blocks unmapped when freed
     try:
         with interrupts(notify=lambda text: err.print(f"[yellow]{escape(text)}[/]")):
             return args.func(args)
@@ -432,8 +435,9 @@ def main(argv: list[str] | None = None) -> int:
                   "continues a scan).")
         return 130
     except MemoryError as exc:
-        return _fail(args, exc, "out of memory. Scan at a lower resolution (--set "
-                     "camera.settings.width=...), fewer views, or on a machine with more memory.", 2)
+        return _fail(args, exc, "out of memory. Lower the camera or projector resolution "
+                     "(e.g. --set camera.settings.width=... --set camera.settings.height=...), "
+                     "scan fewer views, or use a machine with more memory.", 2)
     except OSError as exc:
         return _fail(args, exc, os_error_message(exc), 2)
     except Exception as exc:  # a bug: one paragraph, the traceback with --debug
@@ -462,7 +466,10 @@ def os_error_message(exc: OSError) -> str:
         errno.EACCES: "write somewhere you may write (--out) or fix the directory's permissions",
         errno.EPERM: "write somewhere you may write (--out) or check the directory's owner and "
                      "permissions",
-        errno.EROFS: "write to another drive (--out)",
+        errno.EROFS: "write to another drive (--out), or copy a run there (cp -a) to "
+                     "process it",
+        errno.EFBIG: "the file is larger than this process may write (`ulimit -f`) or than the "
+                     "file system allows: raise the limit or write to another drive (--out)",
         errno.ENOENT: "check the path",
         errno.ENOTDIR: "a part of the path is a file: give a directory",
         errno.EISDIR: "give a file, not a directory",

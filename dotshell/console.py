@@ -104,7 +104,8 @@ class Run:
         """Frames on disk over all views."""
         return sum(v["frames"] for v in self.manifest.get("views", []))
 
-    def frames(self, view: int) -> list[np.ndarray]:
+    def frames(self, view: int) -> np.ndarray:
+        """The frames of a view, (frames, height, width) in capture order, as captured."""
         from dotshell.store import RunStore
 
         return RunStore(self.root).read_frames(view)
@@ -514,15 +515,13 @@ class Session:
         elif isinstance(ev, ScanFinished):
             self._live["run_dir"] = ev.run_dir
         elif isinstance(ev, ViewCaptured) and self._live.get("run_dir"):
-            import cv2
-
             from dotshell.render import frame_preview
             from dotshell.store import RunStore
 
             store = RunStore(Path(self._live["run_dir"]))
-            names = self._live.setdefault("names", store.manifest["frame_names"])
-            frame = cv2.imread(str(store.frame_path(ev.view, 0, names[0])), cv2.IMREAD_UNCHANGED)
-            if frame is None:
+            try:
+                frame = store.frames(ev.view).read_one(0)
+            except RunError:
                 return
             store.path("previews").mkdir(exist_ok=True)
             path = frame_preview(frame, store.path("previews", "latest_frame.png"))

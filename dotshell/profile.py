@@ -273,6 +273,9 @@ def load_profile(path: str | Path, pm: PluginManager, overrides: list[str] | Non
         PluginError: a backend name no installed plugin provides.
     """
     path = Path(path)
+    if path.is_dir():
+        raise ProfileError(f"profile {path} is a directory; give a profile TOML file in it, "
+                           f"e.g. one of {sorted(p.name for p in path.glob('*.toml')) or 'none'}.")
     if not path.is_file():
         near = sorted(p.name for p in path.parent.glob("*.toml")) if path.parent.is_dir() else []
         hint = f" Profiles in {path.parent}: {', '.join(near)}." if near else ""

@@ -25,6 +25,7 @@ from dotshell.events import EventBus
 from dotshell.pipeline.scan import scan
 from dotshell.plugins import PluginManager
 from dotshell.profile import load_profile
+from dotshell.store import RunStore
 from dotshell_sim.bench import scale_profile
 
 BACKEND = {"grbl": "grbl", "zaber": "zaber", "apt": "thorlabs-apt"}
@@ -274,7 +275,8 @@ def test_plugin_bug_is_a_named_fault_with_exit_2_and_the_run_kept(tmp_path, caps
     m = manifest(run)
     assert m["status"] == "failed" and m["views"][0]["complete"]
     assert "plugin 'faulty' (role camera, backend buggy-camera) raised IndexError" in m["reason"]
-    assert len(list((run / "frames").rglob("*.png"))) == 40
+    store = RunStore.open(run)
+    assert sum(store.frames(v["index"]).count() for v in m["views"]) == 40
 
 
 def test_session_connect_reopens_a_lost_stage_and_homes_on_request(tmp_path, dotshell_pm,

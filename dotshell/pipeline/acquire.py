@@ -4,9 +4,9 @@ The runner owns the loop, events, retries and abort; the devices own the hardwar
 :class:`~dotshell.errors.DeviceError` from a move or a capture is a recoverable per-step
 failure, retried ``scan.retries`` times before the scan fails (a lost device has already been
 reconnected once by the rig, and a stopped one is never retried). Frames go to a writer thread
-(PNG encoding overlaps the next capture) through a small bounded queue; a view is reported
-captured only when all its frames are on disk, and every exit path — done, stopped, failed,
-Ctrl-C — drains the queue first, so nothing captured is lost.
+(writing overlaps the next capture) through a small bounded queue; a view is reported captured
+only when all its frames are on disk (synced once per view), and every exit path — done,
+stopped, failed, Ctrl-C — drains the queue first, so nothing captured is lost.
 
 Setting the ``stop`` event (abort) stops moving devices at once (:meth:`Rig.stop`, from a small
 watcher thread), as does Ctrl-C. Per view the run records the angle the stage read back and the
@@ -31,6 +31,9 @@ from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, Profil
                              RunError)
 from dotshell.events import (EventBus, FrameCaptured, Message, ScanPaused, ScanResumed,
                              ViewCaptured)
+from dotshell.frames import FrameStore
+from dotshell.framecheck import FrameSpec
+from dotshell.pipeline.lifecycle import signals_deferred
 from dotshell.pipeline.pdi import Shot, plan_shots
 from dotshell.pipeline.sequenced import SequencedCapture, uses_sequenced
 from dotshell.rig import Rig
@@ -58,13 +61,29 @@ def with_retries(action: Callable[[], T], retries: int, what: str, bus: EventBus
     raise AssertionError("unreachable")
 
 
+def check_frame(rig: Rig, spec: FrameSpec, frame: object, what: str) -> np.ndarray:
+    """A frame just captured, checked against the run's frames (:mod:`dotshell.framecheck`)."""
+    backend = rig.profile.role("camera")["backend"]
+    return spec.check(frame, f"{what} from the camera ({backend})",
+                      "Fix the camera's settings or its plugin; frames already written are "
+                      "kept.")
+
+
 class FrameWriter:
-    """Writes frames to a :class:`RunStore` on a background thread, in order."""
+    """Writes captured images to a :class:`RunStore` on a background thread, in order.
+
+    Fringe frames are appended to their view's frame store (:mod:`dotshell.frames`) as they
+    arrive and synced to the disk once per view, by :meth:`end_view`; other images
+    (:meth:`put_path`) are written atomically one by one.
+    """
 
     def __init__(self, store: RunStore, depth: int = 4) -> None:
         self.store = store
         self.queue: queue.Queue = queue.Queue(maxsize=depth)
         self.error: BaseException | None = None
+        self._views: dict[int, FrameStore] = {}  # views being written
+        #: fringe frames written per view: what a view's count in the manifest may say
+        self.written: dict[int, int] = {}
         self.thread = threading.Thread(target=self._run, name="dotshell-frame-writer", daemon=True)
         self.thread.start()
 
@@ -74,34 +93,72 @@ class FrameWriter:
             try:
                 if item is None:
                     return
-                if self.error is None:
-                    self.store.write_image(*item)
+                if self.error is None or item[0] == "end":
+                    self._write(*item)
             except OSError as exc:  # disk full, permissions, unplugged drive
-                self.error = RunError(f"could not write {item[2]} to {self.store.root}: {exc}. "
-                                      "Free disk space or scan with --out on another drive; "
-                                      "frames already written are kept.")
+                self.error = self.error or RunError(
+                    f"could not write {item[-1]} to {self.store.root}: {exc}. Free disk space "
+                    "or scan with --out on another drive; frames already written are kept.")
             except BaseException as exc:  # reported to the runner on its next call
-                self.error = exc
+                self.error = self.error or exc
             finally:
                 self.queue.task_done()
 
+    def _write(self, kind: str, *args: Any) -> None:
+        if kind == "frame":
+            view, index, image, _ = args
+            if view not in self._views:
+                self._views[view] = self.store.frames(view)
+            self.store.check_room(self._views[view].path)
+            self._views[view].append(index, image)
+            self.written[view] = self.written.get(view, 0) + 1
+        elif kind == "image":
+            self.store.write_image(*args)
+        elif kind == "sync":
+            for frames in self._views.values():
+                frames.sync()
+        elif kind == "end":  # one view, or all (None)
+            for view in [args[0]] if args[0] is not None else list(self._views):
+                frames = self._views.pop(view, None)
+                if frames is not None:
+                    frames.close()
+
     def put(self, view: int, index: int, name: str, image: np.ndarray) -> None:
         """Queue a fringe frame of a view."""
-        self.put_path(self.store.frame_path(view, index, name), image,
-                      f"frame {name!r} of view {view}")
+        self.check()
+        with signals_deferred():  # a put cut short by Ctrl-C would leave the writer asleep
+            self.queue.put(("frame", view, index, image, f"frame {name!r} of view {view}"))
 
     def put_path(self, path: Path, image: np.ndarray, label: str) -> None:
         """Queue any captured image for ``path`` in the run; ``label`` names it in errors."""
         self.check()
-        self.queue.put((path, image, label))
+        with signals_deferred():
+            self.queue.put(("image", path, image, label))
+
+    def sync(self) -> None:
+        """Return when everything queued is written and the frames of open views are synced."""
+        with signals_deferred():
+            self.queue.put(("sync", "the frames of the open views"))
+        self.queue.join()
+
+    def end_view(self, view: int) -> None:
+        """Return when every frame queued for ``view`` is written and synced to the disk (one
+        fsync per view); the view's file is then complete."""
+        with signals_deferred():
+            self.queue.put(("end", view, f"the frames of view {view}"))
+        self.queue.join()
 
     def check(self) -> None:
         if self.error is not None:
             raise self.error
 
     def close(self) -> None:
+        """Finish every view still open and stop the thread."""
+        with signals_deferred():
+            self.queue.put(("end", None, "the frames of the open views"))
         self.queue.join()
-        self.queue.put(None)
+        with signals_deferred():
+            self.queue.put(None)
         self.thread.join()
 
 
@@ -133,6 +190,7 @@ class Acquisition:
         self._closed = threading.Event()
         threading.Thread(target=self._stop_watch, name="dotshell-stop-watch", daemon=True).start()
         self.writer = FrameWriter(store)
+        self.spec = FrameSpec.of_camera(rig.camera)
         if implements(rig.camera, ExposureControl):
             rig.camera.set_exposure(scan["exposure_ms"])
         for line in refused_controls(rig):
@@ -184,8 +242,9 @@ class Acquisition:
                 self._analyzer_deg = None  # unknown after a failure: set it again
                 raise
 
-        return with_retries(attempt, self.scan["retries"], f"view {view}, frame {shot.name!r}",
-                            self.bus)
+        what = f"view {view}, frame {shot.name!r}"
+        return check_frame(self.rig, self.spec,
+                           with_retries(attempt, self.scan["retries"], what, self.bus), what)
 
     def _move(self, view: int, angle_deg: float) -> dict[str, Any]:
         """Move the stage for a view (retried like captures); what the stage read back."""
@@ -202,7 +261,7 @@ class Acquisition:
         meanwhile. Pause time is not counted in the acquisition time."""
         if self.running is None or self.running.is_set():
             return True
-        self.writer.queue.join()  # frames taken before the pause are on disk while we wait
+        self.writer.sync()  # frames taken before the pause are on disk while we wait
         self.bus.emit(ScanPaused(view=view, index=index))
         t0 = time.perf_counter()
         while not self.running.wait(0.05):
@@ -228,7 +287,9 @@ class Acquisition:
                 if (self.stop.is_set() and not captured) or not self._wait_if_paused(view, i):
                     return None
                 if self.sequenced is not None:
-                    frame = self.sequenced.frame(view, i, self._set_analyzer)
+                    frame = check_frame(self.rig, self.spec,
+                                        self.sequenced.frame(view, i, self._set_analyzer),
+                                        f"view {view}, frame {shot.name!r}")
                     info = self.sequenced.infos[i].to_dict()
                 else:
                     frame = self._capture(shot, view)
@@ -247,9 +308,9 @@ class Acquisition:
             self.rig.stop()
             raise
         finally:
-            self.writer.queue.join()  # every frame taken is on disk before we go on
-            complete = len(frames) == len(self.shots)
-            self.store.mark_view(view, len(frames), complete)
+            self.writer.end_view(view)  # every frame taken is on disk before we go on
+            written = self.writer.written.get(view, 0)  # on disk, not merely captured
+            self.store.mark_view(view, written, written == len(self.shots))
             self._record_view(view, reached, infos)
             self.flush_device_log()
             self.seconds += time.perf_counter() - t0

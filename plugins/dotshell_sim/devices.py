@@ -268,20 +268,34 @@ class SimWorld:
         """The renderer for this world's geometry. Renderers are pure functions of the
         geometry, so worlds with identical settings (e.g. many test rigs from one profile)
         share one, with its cached camera rays and views."""
-        cam = self.camera
         projector, stage = self.require("sim-camera")
-        calib = self.calibration()
-        s = cam.settings
-        key = json.dumps([calib.to_dict(), stage.settings["scene"], stage.settings["plate"],
-                          stage.settings["background"], s["supersample"], s["ambient"],
-                          projector.ref_mm, stage.target_key], sort_keys=True)
-        return cached(_RENDERERS, key, lambda: Renderer(
-            calib, stage.scene, supersample=s["supersample"], ambient=s["ambient"],
+        s = self.camera.settings
+        return cached(_RENDERERS, self._renderer_key(), lambda: Renderer(
+            self.calibration(), stage.scene, supersample=s["supersample"], ambient=s["ambient"],
             projector_ref_mm=projector.ref_mm), _MAX_RENDERERS)
 
+    def _renderer_key(self) -> str:
+        projector, stage = self.require("sim-camera")
+        s = self.camera.settings
+        return json.dumps([self.calibration().to_dict(), stage.settings["scene"],
+                           stage.settings["plate"], stage.settings["background"],
+                           s["supersample"], s["ambient"], projector.ref_mm, stage.target_key],
+                          sort_keys=True)
 
-#: Renderers shared across worlds, by geometry (a full-resolution renderer with two cached
-#: views holds ~0.3 GB).
+    def release_renderer(self) -> None:
+        """Free the shared renderer's cached views and rays: a closed rig's views are rarely
+        asked for again, and at full resolution they hold ~0.2 GB (a scan's merge, validation
+        and previews run after the rig is closed)."""
+        try:
+            renderer = _RENDERERS.get(self._renderer_key())
+        except DeviceError:  # not a complete rig: no renderer was made
+            return
+        if renderer is not None:
+            renderer.release()
+
+
+#: Renderers shared across worlds, by geometry (a full-resolution renderer with its cached
+#: view and rays holds ~0.2 GB; a closed camera releases them).
 _RENDERERS: OrderedDict[str, Renderer] = OrderedDict()
 _MAX_RENDERERS = 2
 
@@ -370,6 +384,10 @@ class SimCamera(_Device):
 
     def ground_truth_calibration(self) -> RigCalibration:
         return self.world.calibration(self.name)
+
+    def close(self) -> None:
+        super().close()
+        self.world.release_renderer()
 
     def expected_electrons(self, start_s: float | None = None) -> np.ndarray:
         """Noise-free signal (H, W) float32 in electrons of an exposure starting at clock time
