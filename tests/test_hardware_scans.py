@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from conftest import ROOT, small_profile_dict, write_profile
+from dotshell.store import RunStore
 from dotshell.events import EventBus, Message
 from dotshell.pipeline.scan import scan
 from dotshell.profile import load_profile
@@ -42,8 +43,7 @@ def lightcrafter_profile(views: int = 6, **scan_keys) -> dict:
 
 
 def _frames(run: Path, view: int) -> list[np.ndarray]:
-    return [cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-            for p in sorted((run / "frames" / f"view_{view:03d}").glob("*.png"))]
+    return list(RunStore.open(run).read_frames(view))
 
 
 def _run(tmp_path: Path, pm, raw: dict, name: str, bus: EventBus | None = None):

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from conftest import small_profile_dict, write_profile, write_test_profile
+from dotshell.store import RunStore
 from dotshell.devices import SequencePattern
 from dotshell.errors import CalibrationError, DeviceTimeout, ProfileError
 from dotshell.events import EventBus
@@ -108,8 +109,10 @@ def test_sequenced_pdi_scan_takes_two_runs_per_view(tmp_path, pm):
                         pm)
     result = scan(prof, pm, tmp_path / "runs", bus=EventBus())
     assert result.status == "completed"
-    frames = result.run_dir / "frames" / "view_000"
-    perp, par = len(list(frames.glob("*.perp.png"))), len(list(frames.glob("*.par.png")))
+    store = RunStore.open(result.run_dir)
+    names = store.manifest["frame_names"][:store.frames(0).count()]
+    perp = sum(n.endswith(".perp") for n in names)
+    par = sum(n.endswith(".par") for n in names)
     assert perp == par > 20 and result.report["validation"]["mean_rel_error_pct"] < 1.0
 
 
