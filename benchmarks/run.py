@@ -11,7 +11,9 @@
    opencv-python-headless); a plain numpy integer decoder (:mod:`numpy_gray`).
 4. The end-to-end demo scan in a subprocess (wall time by stage, peak memory, accuracy), then
    ``reconstruct`` of that run in another (wall time, peak memory).
-5. An idle ``dotshell tui`` attached to its rig server after a 4-view scan: resident memory and
+5. Acquisition rate of show/settle/capture vs hardware-sequenced on the simulator's time model
+   (``acquisition_rate.py``): frames per second, seconds per 42-frame view, their ratio.
+6. An idle ``dotshell tui`` attached to its rig server after a 4-view scan: resident memory and
    CPU; peer: a bare Textual app on the same pseudo-terminal (``bench_tui.py``).
 
 Every figure is printed beside the baseline recorded in ``benchmarks/baseline.json`` (the figures
@@ -39,6 +41,7 @@ import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+import acquisition_rate
 import decoders
 import frame_io
 from bench_profile import ROOT, load_bench_profile
@@ -261,6 +264,8 @@ def main() -> None:
                                                    Path(results["scan"]["run_dir"]),
                                                    args.quick, work)
             print_reconstruct_run(results["reconstruct_run"], baseline)
+        results["acquisition_rate"] = acquisition_rate.measure(pm, work / "acquisition")
+        acquisition_rate.print_rates(results["acquisition_rate"])
         if not args.skip_tui:
             from bench_tui import print_tui, run_tui_bench
 

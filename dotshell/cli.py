@@ -254,12 +254,23 @@ def cmd_check(args: argparse.Namespace) -> int:
             info = pm.backend(role, sec["backend"])
             out.print(f"  {role:<13} {sec['backend']:<16} from {info.distribution}")
     out.print(f"  views         {len(profile.angles_deg())}")
-    if args.connect:
+    if args.connect or args.latency:
+        from dotshell.rig_checks import check_resolutions, measure_latency, refused_controls
+
         with Rig(profile, pm) as rig:
             for role, status in rig.status().items():
                 out.print(f"  [green]connected[/] {role:<13} {escape(str(status))}")
             cal = rig.calibration(args.calibration)
             out.print(f"  calibration   {cal.source}: baseline {cal.baseline_mm:.2f} mm")
+            check_resolutions(rig, cal, str(profile.source))
+            for line in refused_controls(rig):
+                out.print(f"  [yellow]warning[/] {escape(line)}")
+            if args.latency:
+                lat = measure_latency(rig, profile.data["scan"]["exposure_ms"])
+                out.print(f"  display latency: the full pattern is seen {lat.shortest_ms:.0f} ms "
+                          f"after show() ({len(lat.trials)} trials, step "
+                          f"{lat.contrast_dn:.0f} DN)")
+                out.print(f"settle_ms = {lat.settle_ms:g}")
         out.print("[green]all devices opened and closed[/]")
     return 0
 
@@ -358,7 +369,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("check", help="validate a profile (and open every device with --connect)")
     profile_args(sp)
-    sp.add_argument("--connect", action="store_true", help="connect and close every device")
+    sp.add_argument("--connect", action="store_true", help="connect and close every device; "
+                    "check the calibration against the devices' resolutions")
+    sp.add_argument("--latency", action="store_true", help="with the devices connected, "
+                    "measure the display latency and print a settle_ms for the profile")
     sp.set_defaults(func=cmd_check)
 
     sp = sub.add_parser("plugins", help="list backends by role and plugin load errors")

@@ -92,9 +92,11 @@ def test_tui_under_a_pty_starts_its_server_draws_takes_keys_and_quits(profile, t
     term = PtyScreen(tui_command(profile, tmp_path), tmp_path)
     try:
         term.wait_for("sim-turntable")
-        term.wait_for("Quit")
         assert "1 Rig" in term.screen.display[1] + term.screen.display[2]  # the tab bar
-        assert "Quit" in term.screen.display[ROWS - 1]  # the footer on the last row
+        t0 = time.monotonic()  # the footer on the last row (drawn after the panes)
+        while "Quit" not in term.screen.display[ROWS - 1] and time.monotonic() - t0 < 10:
+            term.pump()
+        assert "Quit" in term.screen.display[ROWS - 1], "\n".join(term.screen.display)
         term.child.send("c")
         term.wait_for("connected")
         term.child.send("]")  # jog by +5°
