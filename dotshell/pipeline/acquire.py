@@ -308,10 +308,11 @@ class Acquisition:
             self.rig.stop()
             raise
         finally:
-            self.writer.end_view(view)  # every frame taken is on disk before we go on
-            written = self.writer.written.get(view, 0)  # on disk, not merely captured
-            self.store.mark_view(view, written, written == len(self.shots))
-            self._record_view(view, reached, infos)
+            with signals_deferred():  # a stop arriving now is raised once the view is recorded
+                self.writer.end_view(view)  # every frame taken is on disk before we go on
+                written = self.writer.written.get(view, 0)  # on disk, not merely captured
+                self.store.mark_view(view, written, written == len(self.shots))
+                self._record_view(view, reached, infos)
             self.flush_device_log()
             self.seconds += time.perf_counter() - t0
         self.writer.check()
