@@ -13,6 +13,10 @@
    opencv-python-headless); a plain numpy integer decoder (:mod:`numpy_gray`).
 4. The end-to-end demo scan in a subprocess (wall time by stage, peak memory, accuracy), then
    ``reconstruct`` of that run in another (wall time, peak memory).
+5. Acquisition rate of show/settle/capture vs hardware-sequenced on the simulator's time model
+   (``acquisition_rate.py``): frames per second, seconds per 42-frame view, their ratio.
+6. An idle ``dotshell tui`` attached to its rig server after a 4-view scan: resident memory and
+   CPU; peer: a bare Textual app on the same pseudo-terminal (``bench_tui.py``).
 
 Every figure is printed beside the baseline recorded in ``benchmarks/baseline.json`` (the figures
 before issue 16, same machine). Results go to ``bench-results/latest.json``
@@ -38,6 +42,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+import acquisition_rate
 import decoders
 import frame_io
 from bench_profile import ROOT, load_bench_profile
@@ -237,6 +242,7 @@ def main() -> None:
                     help="camera 320x256, projector 256x192, 2 views (tests the harness)")
     ap.add_argument("--repeats", type=int, default=5, help="repeats of each timing (min, median)")
     ap.add_argument("--skip-scan", action="store_true", help="sections 1 to 3 only")
+    ap.add_argument("--skip-tui", action="store_true", help="without the idle-TUI section")
     args = ap.parse_args()
     configure_process()  # as the dotshell command runs
     pm = get_plugin_manager()
@@ -272,6 +278,13 @@ def main() -> None:
                                                    Path(results["scan"]["run_dir"]),
                                                    args.quick, work)
             print_reconstruct_run(results["reconstruct_run"], baseline)
+        results["acquisition_rate"] = acquisition_rate.measure(pm, work / "acquisition")
+        acquisition_rate.print_rates(results["acquisition_rate"])
+        if not args.skip_tui:
+            from bench_tui import print_tui, run_tui_bench
+
+            results["tui"] = run_tui_bench(args.quick)
+            print_tui(results["tui"])
     results["machine"]["loadavg_1min_end"] = os.getloadavg()[0]
     print(f"\n1-min load average at end {os.getloadavg()[0]:.2f} (other work on the machine "
           "skews every figure above; the sides of each comparison ran interleaved)")

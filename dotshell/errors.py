@@ -53,3 +53,8 @@ class DeviceStopped(DeviceError):
 class PluginFault(DotshellError):
     """Plugin code raised something other than a :class:`DotshellError`; the message names the
     plugin, role, backend and what was being done."""
+
+
+class FrameError(DotshellError):
+    """A frame (from the camera or from a run's files) is not what the run's frames are: its
+    size, dtype, bit depth or channels differ (see :mod:`dotshell.framecheck`)."""

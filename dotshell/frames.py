@@ -25,16 +25,18 @@ zarr halve the size (42-55 %) but take 0.3-0.6 s to read and 1-2 s to write on 2
 
 from __future__ import annotations
 
+import io
 import os
 from pathlib import Path
-from typing import BinaryIO, ClassVar, Sequence
+from typing import BinaryIO, Callable, ClassVar, Sequence
 
 import cv2
 import numpy as np
 import tifffile
 
 from dotshell import tiffpages
-from dotshell.errors import RunError
+from dotshell.errors import FrameError, RunError
+from dotshell.framecheck import FrameSpec, dtype_for
 
 TIFF_STACK = "tiff-stack/1"
 PNG_FILES = "png/1"
@@ -91,9 +93,29 @@ class FrameStore:
         """Frame ``index`` of the sequence, as captured."""
         raise NotImplementedError
 
-    def read_all(self) -> np.ndarray:
-        """All frames of the view, (frames, height, width) in capture order, as captured."""
+    def read_all(self, spec: FrameSpec | None = None, fix: str = "") -> np.ndarray:
+        """All frames of the view, (frames, height, width) in capture order, as captured. With
+        a ``spec`` every frame is checked against it (:class:`~dotshell.errors.FrameError`
+        naming the frame, then ``fix``); without, frames must agree with the first."""
         raise NotImplementedError
+
+    def _refuse(self, frame: np.ndarray, label: str, expect: np.ndarray | None,
+                spec: FrameSpec | None, fix: str) -> None:
+        """Raise for a frame that is not like ``expect`` (the first frame) or ``spec``."""
+        if spec is not None:
+            spec.check(frame, label, fix)
+        elif expect is not None and (frame.shape != expect.shape or frame.dtype != expect.dtype):
+            raise FrameError(f"{label} is {frame.dtype} {frame.shape} where the view's first "
+                             f"frame is {expect.dtype} {expect.shape}; a view is captured by "
+                             f"one camera setting. {fix}".rstrip())
+
+    def _check_values(self, out: np.ndarray, spec: FrameSpec | None, fix: str,
+                      label: Callable[[int], str]) -> None:
+        """One pass over the stack for values past the spec's bit depth (then the frame named)."""
+        if spec is None or not out.size or int(out.max()) < 1 << spec.bit_depth:
+            return
+        for i in range(len(out)):
+            spec.check(out[i], label(i), fix)
 
     def append(self, index: int, image: np.ndarray) -> None:
         """Write frame ``index`` (the next in the sequence); on disk (not yet synced) when this
@@ -116,6 +138,36 @@ class FrameStore:
             raise RunError(f"view {self.view} has {len(self.names)} frames in its sequence; "
                            f"there is no frame {index}.")
         return self.names[index]
+
+
+class _WriteThrough:
+    """The stack's open file as tifffile sees it: without a file number, so pages are written
+    with ``write()`` (a full disk raises ``OSError(ENOSPC)``) instead of numpy's ``tofile``,
+    which reports a short write as "N requested and M written" with no error number."""
+
+    def __init__(self, f: BinaryIO) -> None:
+        self._f = f
+
+    def fileno(self) -> int:
+        raise io.UnsupportedOperation("fileno")
+
+    def write(self, data: bytes) -> int:
+        return self._f.write(data)
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._f.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._f.tell()
+
+    def flush(self) -> None:
+        self._f.flush()
+
+    def seekable(self) -> bool:
+        return True
+
+    def writable(self) -> bool:
+        return True
 
 
 class TiffFrameStore(FrameStore):
@@ -149,19 +201,28 @@ class TiffFrameStore(FrameStore):
             tiffpages.read_into(f, pages[index], out)
             return out
 
-    def read_all(self) -> np.ndarray:
+    def read_all(self, spec: FrameSpec | None = None, fix: str = "") -> np.ndarray:
         with self._open_read() as f:
             pages = self._pages(f)
             if len(pages) < len(self.names):
                 raise self._missing(f"frame {len(pages)} ({self.names[len(pages)]!r})")
             first = pages[0]
-            if any(p.shape != first.shape or p.dtype != first.dtype for p in pages):
-                raise RunError(f"{self.path}: the frames of view {self.view} differ in size or "
-                               "bit depth; a view is captured by one camera setting.")
-            out = np.empty((len(self.names), *first.shape), first.dtype.newbyteorder("="))
+            shape, dtype = first.shape, first.dtype.newbyteorder("=")
+            if spec is not None:
+                shape, dtype = (spec.height, spec.width), np.dtype(dtype_for(spec.bit_depth))
+            for i, p in enumerate(pages[:len(self.names)]):
+                if p.shape != shape or p.dtype.newbyteorder("=") != dtype:
+                    odd = np.empty(p.shape, p.dtype.newbyteorder("="))
+                    tiffpages.read_into(f, p, odd)
+                    self._refuse(odd, self._label(i), np.empty(shape, dtype), spec, fix)
+            out = np.empty((len(self.names), *shape), dtype)
             for i in range(len(self.names)):
                 tiffpages.read_into(f, pages[i], out[i])
-            return out
+        self._check_values(out, spec, fix, self._label)
+        return out
+
+    def _label(self, index: int) -> str:
+        return f"frame {self.names[index]!r} (page {index}) of {self.path}"
 
     def _open_read(self) -> BinaryIO:
         try:
@@ -194,7 +255,7 @@ class TiffFrameStore(FrameStore):
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._file = open(self.path, "wb")
             big = image.nbytes * len(self.names) > _TIFF_LIMIT_BYTES
-            self._tiff = tifffile.TiffWriter(self._file, bigtiff=big)
+            self._tiff = tifffile.TiffWriter(_WriteThrough(self._file), bigtiff=big)
         self._tiff.write(image, contiguous=False, metadata=None, description=name,
                          software="dotshell")
         self._file.flush()  # in the OS's hands: a crash of this process keeps the frame
@@ -238,12 +299,17 @@ class PngFrameStore(FrameStore):
             raise self._missing(self.frame_path(index).name)
         return img
 
-    def read_all(self) -> np.ndarray:
-        first = self.read_one(0)
-        out = np.empty((len(self.names), *first.shape), first.dtype)
-        out[0] = first
-        for i in range(1, len(self.names)):
-            out[i] = self.read_one(i)
+    def read_all(self, spec: FrameSpec | None = None, fix: str = "") -> np.ndarray:
+        out: np.ndarray | None = None
+        for i in range(len(self.names)):
+            frame = self.read_one(i)
+            self._refuse(frame, str(self.frame_path(i)), None if out is None else out[0],
+                         spec, fix)
+            if out is None:
+                out = np.empty((len(self.names), *frame.shape), frame.dtype)
+            out[i] = frame
+        assert out is not None, "a view has at least one frame"
+        self._check_values(out, spec, fix, lambda i: str(self.frame_path(i)))
         return out
 
 

@@ -234,7 +234,7 @@ class DeviceHandle:
             raise self._lost
         if job.error is None:
             return job.result
-        if isinstance(job.error, DotshellError):
+        if isinstance(job.error, (DotshellError, MemoryError)):  # not a bug of the plugin
             raise job.error
         if isinstance(job.error, Exception):
             raise self._fault(f"{method}()", job.error) from job.error

@@ -69,7 +69,7 @@ class Rig:
         context.log.listen(self._device_message)
         try:
             dev = pm.create(role, backend, section["settings"], context, profile_source)
-        except DotshellError:
+        except (DotshellError, MemoryError):  # MemoryError: the machine's, not the plugin's
             raise
         except Exception as exc:
             raise PluginFault(f"plugin {info.plugin!r} (role {role}, backend {backend}) raised "

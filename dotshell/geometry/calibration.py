@@ -177,11 +177,16 @@ class RigCalibration:
     @classmethod
     def load(cls, path: Path) -> "RigCalibration":
         path = Path(path)
+        if path.is_dir():
+            raise CalibrationError(f"calibration file {path} is a directory, not a file. Give "
+                                   "the path of a calibration.json written by dotshell.")
         if not path.is_file():
             raise CalibrationError(f"calibration file {path} does not exist. Give the path of a "
                                    "calibration.json written by dotshell.")
         try:
             data = json.loads(path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise CalibrationError(f"calibration file {path} is not valid JSON ({exc}).") from None
+            raise CalibrationError(f"calibration file {path} is not valid JSON ({exc}). Write it "
+                                   "again with `dotshell calibrate`, or restore it from a "
+                                   "backup.") from None
         return cls.from_dict(data, where=str(path))

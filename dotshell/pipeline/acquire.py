@@ -25,14 +25,19 @@ from typing import Any, Callable, TypeVar
 import numpy as np
 
 from dotshell.coding import PatternFrame
-from dotshell.devices import AngleReadback, ExposureControl, FrameInfoSource, implements
+from dotshell.devices import (AngleReadback, ExposureControl, FrameInfoSource, accepted_kwargs,
+                              implements)
 from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, ProfileError,
                              RunError)
 from dotshell.events import (EventBus, FrameCaptured, Message, ScanPaused, ScanResumed,
                              ViewCaptured)
 from dotshell.frames import FrameStore
+from dotshell.framecheck import FrameSpec
+from dotshell.pipeline.lifecycle import signals_deferred
 from dotshell.pipeline.pdi import Shot, plan_shots
+from dotshell.pipeline.sequenced import SequencedCapture, uses_sequenced
 from dotshell.rig import Rig
+from dotshell.rig_checks import refused_controls
 from dotshell.store import RunStore
 
 T = TypeVar("T")
@@ -56,6 +61,14 @@ def with_retries(action: Callable[[], T], retries: int, what: str, bus: EventBus
     raise AssertionError("unreachable")
 
 
+def check_frame(rig: Rig, spec: FrameSpec, frame: object, what: str) -> np.ndarray:
+    """A frame just captured, checked against the run's frames (:mod:`dotshell.framecheck`)."""
+    backend = rig.profile.role("camera")["backend"]
+    return spec.check(frame, f"{what} from the camera ({backend})",
+                      "Fix the camera's settings or its plugin; frames already written are "
+                      "kept.")
+
+
 class FrameWriter:
     """Writes captured images to a :class:`RunStore` on a background thread, in order.
 
@@ -69,6 +82,8 @@ class FrameWriter:
         self.queue: queue.Queue = queue.Queue(maxsize=depth)
         self.error: BaseException | None = None
         self._views: dict[int, FrameStore] = {}  # views being written
+        #: fringe frames written per view: what a view's count in the manifest may say
+        self.written: dict[int, int] = {}
         self.thread = threading.Thread(target=self._run, name="dotshell-frame-writer", daemon=True)
         self.thread.start()
 
@@ -94,7 +109,9 @@ class FrameWriter:
             view, index, image, _ = args
             if view not in self._views:
                 self._views[view] = self.store.frames(view)
+            self.store.check_room(self._views[view].path)
             self._views[view].append(index, image)
+            self.written[view] = self.written.get(view, 0) + 1
         elif kind == "image":
             self.store.write_image(*args)
         elif kind == "sync":
@@ -109,22 +126,26 @@ class FrameWriter:
     def put(self, view: int, index: int, name: str, image: np.ndarray) -> None:
         """Queue a fringe frame of a view."""
         self.check()
-        self.queue.put(("frame", view, index, image, f"frame {name!r} of view {view}"))
+        with signals_deferred():  # a put cut short by Ctrl-C would leave the writer asleep
+            self.queue.put(("frame", view, index, image, f"frame {name!r} of view {view}"))
 
     def put_path(self, path: Path, image: np.ndarray, label: str) -> None:
         """Queue any captured image for ``path`` in the run; ``label`` names it in errors."""
         self.check()
-        self.queue.put(("image", path, image, label))
+        with signals_deferred():
+            self.queue.put(("image", path, image, label))
 
     def sync(self) -> None:
         """Return when everything queued is written and the frames of open views are synced."""
-        self.queue.put(("sync", "the frames of the open views"))
+        with signals_deferred():
+            self.queue.put(("sync", "the frames of the open views"))
         self.queue.join()
 
     def end_view(self, view: int) -> None:
         """Return when every frame queued for ``view`` is written and synced to the disk (one
         fsync per view); the view's file is then complete."""
-        self.queue.put(("end", view, f"the frames of view {view}"))
+        with signals_deferred():
+            self.queue.put(("end", view, f"the frames of view {view}"))
         self.queue.join()
 
     def check(self) -> None:
@@ -133,9 +154,11 @@ class FrameWriter:
 
     def close(self) -> None:
         """Finish every view still open and stop the thread."""
-        self.queue.put(("end", None, "the frames of the open views"))
+        with signals_deferred():
+            self.queue.put(("end", None, "the frames of the open views"))
         self.queue.join()
-        self.queue.put(None)
+        with signals_deferred():
+            self.queue.put(None)
         self.thread.join()
 
 
@@ -167,13 +190,25 @@ class Acquisition:
         self._closed = threading.Event()
         threading.Thread(target=self._stop_watch, name="dotshell-stop-watch", daemon=True).start()
         self.writer = FrameWriter(store)
+        self.spec = FrameSpec.of_camera(rig.camera)
         if implements(rig.camera, ExposureControl):
             rig.camera.set_exposure(scan["exposure_ms"])
+        for line in refused_controls(rig):
+            bus.warn(line)
+        self._show_kwargs = accepted_kwargs(rig.projector.show, ("name", "index"))
+        self.sequenced = (SequencedCapture(rig, patterns, self.shots, scan, bus, with_retries)
+                          if uses_sequenced(rig, scan) else None)
         for role, policy in rig.policies.items():
             if policy.home == "before_scan":
                 self.bus.info(f"homing the {role} before the scan")
                 rig.home(role)
         self.flush_device_log()
+
+    def _set_analyzer(self, degrees: float) -> None:
+        if degrees != self._analyzer_deg:
+            self._analyzer_deg = None  # unknown until the move succeeds
+            self.rig.analyzer.set_angle(degrees)
+            self._analyzer_deg = degrees
 
     def _stop_watch(self) -> None:
         """Stop moving devices as soon as the scan is asked to stop (abort from any thread)."""
@@ -196,10 +231,10 @@ class Acquisition:
 
         def attempt() -> np.ndarray:
             try:
-                if shot.analyzer_deg is not None and shot.analyzer_deg != self._analyzer_deg:
-                    self.rig.analyzer.set_angle(shot.analyzer_deg)
-                    self._analyzer_deg = shot.analyzer_deg
-                self.rig.projector.show(pattern.image)
+                if shot.analyzer_deg is not None:
+                    self._set_analyzer(shot.analyzer_deg)
+                ident = {"name": pattern.name, "index": shot.pattern}
+                self.rig.projector.show(pattern.image, **{k: ident[k] for k in self._show_kwargs})
                 if self.scan["settle_ms"] > 0:
                     time.sleep(self.scan["settle_ms"] / 1000.0)
                 return self.rig.camera.capture()
@@ -207,8 +242,9 @@ class Acquisition:
                 self._analyzer_deg = None  # unknown after a failure: set it again
                 raise
 
-        return with_retries(attempt, self.scan["retries"], f"view {view}, frame {shot.name!r}",
-                            self.bus)
+        what = f"view {view}, frame {shot.name!r}"
+        return check_frame(self.rig, self.spec,
+                           with_retries(attempt, self.scan["retries"], what, self.bus), what)
 
     def _move(self, view: int, angle_deg: float) -> dict[str, Any]:
         """Move the stage for a view (retried like captures); what the stage read back."""
@@ -247,12 +283,19 @@ class Acquisition:
             reached = self._move(view, angle_deg)
             self.flush_device_log()
             for i, shot in enumerate(self.shots):
-                if self.stop.is_set() or not self._wait_if_paused(view, i):
+                captured = self.sequenced is not None and self.sequenced.pending()
+                if (self.stop.is_set() and not captured) or not self._wait_if_paused(view, i):
                     return None
-                frame = self._capture(shot, view)
-                if frame_info:
-                    infos.append({"index": i, "name": shot.name,
-                                  **self.rig.camera.last_frame_info().to_dict()})
+                if self.sequenced is not None:
+                    frame = check_frame(self.rig, self.spec,
+                                        self.sequenced.frame(view, i, self._set_analyzer),
+                                        f"view {view}, frame {shot.name!r}")
+                    info = self.sequenced.infos[i].to_dict()
+                else:
+                    frame = self._capture(shot, view)
+                    info = self.rig.camera.last_frame_info().to_dict() if frame_info else None
+                if info is not None:
+                    infos.append({"index": i, "name": shot.name, **info})
                 self.writer.put(view, i, shot.name, frame)
                 frames.append(frame)
                 self.flush_device_log()
@@ -265,10 +308,11 @@ class Acquisition:
             self.rig.stop()
             raise
         finally:
-            self.writer.end_view(view)  # every frame taken is on disk before we go on
-            complete = len(frames) == len(self.shots)
-            self.store.mark_view(view, len(frames), complete)
-            self._record_view(view, reached, infos)
+            with signals_deferred():  # a stop arriving now is raised once the view is recorded
+                self.writer.end_view(view)  # every frame taken is on disk before we go on
+                written = self.writer.written.get(view, 0)  # on disk, not merely captured
+                self.store.mark_view(view, written, written == len(self.shots))
+                self._record_view(view, reached, infos)
             self.flush_device_log()
             self.seconds += time.perf_counter() - t0
         self.writer.check()

@@ -116,8 +116,9 @@ def load_layout(name_or_path: str | Path) -> Layout:
     where = str(path)
     try:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise RunError(f"{where}: not valid TOML ({exc}).") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise RunError(f"{where}: not valid TOML ({exc}). Fix the layout file at that "
+                       "place.") from None
     return layout_from_dict(raw, where)
 
 
@@ -133,13 +134,36 @@ def layout_from_dict(raw: dict[str, Any], where: str) -> Layout:
                        "(white and black are needed to find shadows).")
     if "white" not in order or "black" not in order:
         raise RunError(f"{where}: [layout] order must contain 'white' and 'black' frames.")
-    if "{index" not in lay["files"]:
-        raise RunError(f"{where}: [layout] files = {lay['files']!r} needs an {{index}} field, "
-                       "e.g. frameSeq_{index:02d}.bmp.")
+    _check_files_pattern(lay["files"], where)
     return Layout(where, lay["name"], lay["description"], lay["coding"], lay["files"],
                   lay["first_index"], (lay["projector_width"], lay["projector_height"]), order,
                   lay["inverse"], lay["msb_first"], lay["drop_low_bits"], lay["centred"],
                   lay["bright_is_one"], dict(data["decoder"]))
+
+
+def _check_files_pattern(files: str, where: str) -> None:
+    """``files`` has the one field ``{index}`` (with an integer format, if any), so every
+    frame's name can be made from it."""
+    import string
+
+    def refuse(what: str) -> RunError:
+        return RunError(f"{where}: [layout] files = {files!r} is not a file-name pattern: "
+                        f"{what}. Use only {{index}}, e.g. frameSeq_{{index:02d}}.bmp (a brace "
+                        "that is part of the name is written twice).")
+
+    try:
+        fields = [f for _, f, _, _ in string.Formatter().parse(files) if f is not None]
+    except ValueError as exc:
+        raise refuse(str(exc)) from None
+    others = sorted({f"{{{f}}}" for f in fields if f != "index"})
+    if others:
+        raise refuse(f"{', '.join(others)} {'is' if len(others) == 1 else 'are'} not {{index}}")
+    if not fields:
+        raise refuse("it needs an {index} field")
+    try:
+        files.format(index=0)
+    except (ValueError, TypeError) as exc:
+        raise refuse(f"{{index}} cannot be formatted ({exc})") from None
 
 
 def capture_order(layout: Layout, coding_names: list[str]) -> list[str]:
@@ -281,6 +305,11 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
 
     layout = load_layout(layout_file)
     calib = load_any_calibration(calibration)
+    ref_points = None
+    if reference is not None:  # checked before anything is written
+        from dotshell.geometry.cloud_compare import load_reference_cloud
+
+        ref_points = load_reference_cloud(reference)
     if tuple(calib.projector.size) != layout.projector_size:
         raise CalibrationError(
             f"the calibration's projector is {calib.projector.width}x{calib.projector.height} px "
@@ -313,11 +342,11 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
         "calibration": calib.source, "frame": "camera (mm)",
         "decode": corr.stats, **stats, "cloud": {"path": "cloud.ply", "points": int(len(points))},
     }
-    if reference is not None:
-        from dotshell.geometry.cloud_compare import compare_clouds, load_reference_cloud
+    if ref_points is not None:
+        from dotshell.geometry.cloud_compare import compare_clouds
 
         report["reference"] = {"path": str(reference), **compare_clouds(
-            points, load_reference_cloud(reference), coverage_radius_mm)}
+            points, ref_points, coverage_radius_mm)}
     t4 = time.perf_counter()
     if previews:
         report["previews"] = _previews(store, frames[0], corr, calib, points, layout.name, report)

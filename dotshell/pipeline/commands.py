@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable
 
-from dotshell.errors import CalibrationError
+from dotshell.errors import CalibrationError, RunError
 from dotshell.events import EventBus
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.engine import RunJob, process
@@ -81,6 +81,9 @@ def normalize_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None =
                   max_normal_spread_deg: float | None = None) -> dict[str, Any]:
     """``dotshell normalize RUN``: normalize the trans-illumination frames on the run's surface
     into a new generation; returns the ``normalize`` report section."""
+    from dotshell.pipeline.normalize import transillumination_entry
+
+    transillumination_entry(RunStore.open(Path(run_dir)))  # before anything is made
     options = {"normalizer": normalizer, "min_sin_beta": min_sin_beta,
                "max_normal_spread_deg": max_normal_spread_deg}
     return reprocess(run_dir, pm, "normalize", ["normalize"], bus, options)["normalize"]
@@ -95,5 +98,8 @@ def forward_run(run_dir: Path | str, pm: PluginManager | None = None,
         from dotshell.plugins import get_plugin_manager
 
         pm = get_plugin_manager()
+    if Path(mesh_dir).is_absolute() or ".." in Path(mesh_dir).parts:
+        raise RunError(f"--mesh-dir {mesh_dir!r} leads outside the run's products; give a mesh "
+                       "directory inside the run, e.g. '.' or 'meshes/2mm'.")
     options = {"source_mm": source_mm, "mesh_dir": mesh_dir}
     return reprocess(run_dir, pm, "forward", ["forward"], bus, options)["forward"]

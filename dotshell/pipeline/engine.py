@@ -59,6 +59,7 @@ class RunJob:
             if self.create is None and manifest["status"] == "running":  # its writer is gone
                 self._history({"command": (manifest.get("job") or {}).get("command", "?"),
                                "status": "interrupted", "reason": self.previous[1]})
+            self.store.reserve_space()
             for p in [*self.store.clean_orphans(), *remove_unpublished(self.store.root)]:
                 self.bus.info(f"removed {p.relative_to(self.store.root)}, left by an "
                               "interrupted job")
@@ -67,6 +68,7 @@ class RunJob:
                 "command": self.command, "pid": os.getpid(), "host": socket.gethostname(),
                 "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "dotshell": __version__})
         except BaseException:
+            self.store.release_reserve()
             self.lock.release()
             raise
         return self
@@ -93,6 +95,7 @@ class RunJob:
                            "reason": self.reason, "generation": self.generation})
             self.store.update_manifest(**self.run_state(), job=None)
         finally:
+            self.store.release_reserve()
             self.lock.release()
 
     @property
@@ -174,6 +177,10 @@ def process(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
     writing into (a scan writes views while it captures)."""
     gen = generation or Generation.start(job.store)
     job.generation = gen.number
+    if gen.missing_base is not None:
+        job.bus.warn(f"{job.store.root}/current points to gen/{gen.missing_base:03d}, which is "
+                     f"missing (deleted?); generation {gen.number} makes every product again "
+                     "from the frames.")
     store = ProductStore(job.store, gen.dir)
     ctx = StepContext(store, profile, pm, job.bus, dict(options or {}))
     ctx.timings.update(ctx.options.pop("timings", {}))

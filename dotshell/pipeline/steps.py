@@ -28,6 +28,7 @@ import numpy as np
 
 from dotshell.errors import CalibrationError, ReconstructionError, RunError
 from dotshell.events import EventBus, StepProgress, StepStarted, ViewReconstructed
+from dotshell.framecheck import FrameSpec
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.pdi import combine, shots_from_manifest
 from dotshell.pipeline.reconstruct import ViewCloud, reconstruct_view
@@ -134,11 +135,25 @@ def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: 
     products; returns its report record."""
     manifest = store.manifest
     if frames is None:
-        frames = store.read_frames(view)
+        frames = stored_frames(store, view, calib)
     shots = shots_from_manifest(manifest)
     vc = reconstruct_view(view, angle_deg, combine(frames, shots), coding, calib,
                           profile.data["processing"])
     return store_view(store, vc, frames[0] if len(frames) else None, profile, calib, bus)
+
+
+def stored_frames(store: RunStore, view: int, calib: RigCalibration) -> np.ndarray:
+    """A view's frames from the run's files, each checked against the run's frames (the
+    manifest's ``camera``; for runs made before it was recorded, the calibration's camera size
+    and the depth of the view's first frame)."""
+    recorded = store.manifest.get("camera")
+    if recorded is not None:
+        spec = FrameSpec.from_dict(recorded)
+    else:
+        first = store.frames(view).read_one(0)
+        spec = FrameSpec(*calib.camera.size, 8 if first.dtype == np.uint8 else 16)
+    return store.read_frames(view, spec, "Restore the run's frames from a backup, or "
+                             "re-capture the view.")
 
 
 def view_angle(view: dict[str, Any]) -> float:
@@ -155,6 +170,11 @@ def views_step(ctx: StepContext) -> dict[str, Any]:
     store, manifest = ctx.store, ctx.store.manifest
     views = manifest["views"]
     done: dict[int, dict[str, Any]] = ctx.options.get("reconstructed", {})
+    if not any(v.get("complete") for v in views):
+        raise ReconstructionError(
+            f"no view of {store.run_root} is completely captured ({len(views)} views, "
+            f"{sum(v['frames'] for v in views)} frames on disk): there is nothing to "
+            f"reconstruct. Capture the missing views with `dotshell resume {store.run_root}`.")
     coding = None
     ctx.bus.emit(StepStarted(step="reconstruct", total=len(views)))
     for n, v in enumerate(views, 1):
