@@ -26,10 +26,10 @@ The point lies on the camera ray through the pixel.
   above or below the camera: decode rows then).
 
 Speed (docs/performance.md): the point solves are compiled loops (numba) over the pixels, split
-across the cores (:mod:`dotshell.parallel`); camera rays come from a grid computed once per camera (a lookup table of every
-pixel's undistorted ray), the projector's distortion is undone per point by OpenCV's
-fixed-point iteration run to convergence (a few steps; measured faster than a lookup table of
-the projector's pixels, whose scattered reads miss the cache), and
+across the cores (:mod:`dotshell.parallel`); camera rays come from a grid computed once per
+camera (a lookup table of every pixel's undistorted ray), the projector's distortion is undone
+per point by OpenCV's fixed-point iteration run to convergence (a few steps; measured faster
+than a lookup table of the projector's pixels, whose scattered reads miss the cache), and
 :func:`triangulate_image` triangulates a decoded image in place, without gathering its pixels,
 optionally moving the points into another frame (the sample's) on the way.
 """
@@ -358,7 +358,8 @@ def _solve_image(valid, column, row, has_rows, iterations, rays, start, affine, 
                 s = np.nan
             px, py, pz = s * x, s * y, s * z
             for k in range(3):
-                pts[i, k] = affine[k, 0] * px + affine[k, 1] * py + affine[k, 2] * pz + affine[k, 3]
+                pts[i, k] = (affine[k, 0] * px + affine[k, 1] * py + affine[k, 2] * pz
+                             + affine[k, 3])
             depth[i] = pz
             pixels[i, 0] = xx
             pixels[i, 1] = yy

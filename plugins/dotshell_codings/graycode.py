@@ -54,7 +54,6 @@ import numpy as np
 from dotshell.coding import Correspondence, PatternFrame, label_reasons
 from dotshell.settings import Setting
 from dotshell.parallel import split
-from dotshell_codings import kernels
 from dotshell_codings.robust import full_scale, noise_sigma
 
 SETTINGS_SCHEMA: dict[str, Setting] = {
@@ -387,8 +386,8 @@ class GrayCode:
                              np.empty((len(axes), h, w), np.uint32), np.empty((h, w), np.float32),
                              np.empty((h, w), bool), np.empty((h, w), bool))
         f32 = np.float32
-        split(kernels.classify, h, stack, self.inverse,
-              kernels.ROBUST if robust else kernels.CONTRAST,
+        k = _kernels()
+        split(k.classify, h, stack, self.inverse, k.ROBUST if robust else k.CONTRAST,
               np.array([ax.nb for ax in axes], np.int64), sep, high,
               f32(self.shadow_threshold * full), f32(m), f32(self.min_contrast),
               f32(self.min_contrast * (1.0 if self.inverse else 0.5)),
@@ -439,18 +438,18 @@ class GrayCode:
             h, w = valid.shape
             shape = (h - 1, w) if transpose else (h, w - 1)
             pos, val = np.empty(shape, np.float32), np.empty(shape, np.float32)
-            split(kernels.anchors, shape[0], stack, self.inverse, rng, d.code, valid,
+            split(_kernels().anchors, shape[0], stack, self.inverse, rng, d.code, valid,
                   transpose, ax.nb, ax.block, ax.offset, d.first_pair,
                   -1 if anchor is None else anchor, pos, val)
             fine = np.empty(valid.shape, np.float32)
             ok = np.empty(valid.shape, bool)
             if transpose:
-                blocks = -(-w // kernels.COLUMN_BLOCK)
-                split(kernels.interpolate_down, blocks, d.code, valid, pos, val, ax.block,
+                blocks = -(-w // _kernels().COLUMN_BLOCK)
+                split(_kernels().interpolate_down, blocks, d.code, valid, pos, val, ax.block,
                       ax.offset, span, fine, ok, np.empty((h, w), np.int32),
                       np.empty((h, w), np.int32), min_chunk=1)
             else:
-                split(kernels.interpolate, h, d.code, valid, pos, val, ax.block, ax.offset,
+                split(_kernels().interpolate, h, d.code, valid, pos, val, ax.block, ax.offset,
                       span, fine, ok)
             return fine, ok
 
@@ -464,6 +463,14 @@ class GrayCode:
             np.copyto(fine, fine2, where=more)
             ok |= more
         return fine, ok
+
+
+def _kernels() -> Any:
+    """:mod:`dotshell_codings.kernels`, imported at the first decode: numba's import costs
+    ~0.5 s and ~110 MiB, which commands that load the plugins without decoding don't pay."""
+    from dotshell_codings import kernels
+
+    return kernels
 
 
 def as_stack(frames: Sequence[np.ndarray]) -> np.ndarray:
@@ -529,15 +536,15 @@ def _decode_axis(ax: _Axis, first: int, gray: np.ndarray, weak: np.ndarray,
     code = np.empty(shape, np.int32)
     integer = np.empty(shape, np.float32)
     bad, tolerated, oor = (np.empty(shape, bool) for _ in range(3))
-    split(kernels.assemble, shape[0], gray, weak, shadow, ax.nb, ax.block, ax.offset, ax.size,
-          code, integer, bad, tolerated, oor)
+    split(_kernels().assemble, shape[0], gray, weak, shadow, ax.nb, ax.block, ax.offset,
+          ax.size, code, integer, bad, tolerated, oor)
     return AxisDecode(ax, first, code, integer, bad, tolerated, oor)
 
 
 def stripes_cross_columns(code: np.ndarray, valid: np.ndarray) -> bool:
     """True when the decoded code changes more often down the camera columns than along the
     camera rows, i.e. the stripes lie closer to the image rows (refine along the columns)."""
-    along_rows, along_cols = kernels.changes(code, valid)
+    along_rows, along_cols = _kernels().changes(code, valid)
     return along_cols > along_rows
 
 

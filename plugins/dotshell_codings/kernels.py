@@ -1,4 +1,4 @@
-"""Compiled per-pixel loops of the binary codings' decoder (numba; parallel over image lines).
+"""Compiled per-pixel loops of the binary codings' decoder (numba; split by rows across cores).
 
 The decoder of :mod:`dotshell_codings.graycode` runs in three passes over a view, each a loop
 compiled here, with no image-sized temporary per bit:
@@ -10,13 +10,14 @@ compiled here, with no image-sized temporary per bit:
   float32 exactly as numpy evaluated it before (NEP 50: Python scalars cast to float32);
 * :func:`assemble` turns the words into the coarse code (gray → binary, the one-weak-bit edge
   tolerance with its 4-neighbour check, out-of-range test);
-* :func:`refine` computes the sub-pixel stripe-edge coordinates line by line, reading the
-  pattern/inverse frames only at the stripe edges.
+* :func:`anchors` finds the sub-pixel stripe edges between adjacent valid pixels, reading the
+  pattern/inverse frames only there, and :func:`interpolate` / :func:`interpolate_down` place
+  every pixel between its anchors along the camera rows / columns.
 
-Why numba (docs/performance.md, "Decoder"): numpy needs a full-size temporary per operation
-and per bit (the decoder made ~40 passes over 1.3 M-pixel arrays per bit pair), OpenCV has no
-kernel for the robust rule or the edge-anchored interpolation, and threads running numpy
-release the GIL only inside each small operation. Compiled loops touch each frame pixel once,
+Why numba (docs/performance.md, "Decode and triangulation"): numpy needs a full-size
+temporary per operation and per bit (the decoder made ~40 passes over 1.3 M-pixel arrays per
+bit pair), OpenCV has no kernel for the robust rule or the edge-anchored interpolation, and
+threads running numpy release the GIL only inside each small operation. Compiled loops touch each frame pixel once,
 keep the per-pixel state in registers; each takes a range of rows (``start``, ``stop``) and
 releases the GIL, and :func:`dotshell.parallel.split` runs the ranges on the cores
 (``cache=True`` keeps the compiled code in ``__pycache__``).
@@ -32,13 +33,17 @@ _OPTS = dict(nogil=True, cache=True, error_model="numpy")
 #: helpers called per pixel are inlined: a compiled call passing arrays pays reference counting
 _INNER = dict(nogil=True, cache=True, error_model="numpy", inline="always")
 
+#: classification rules of :func:`classify`
 CONTRAST, ROBUST = 0, 1
 
 
 @numba.njit(**_OPTS)
-def classify(stack, inverse, mode, axis_bits, sep, high, shadow_thr, m, min_contrast,
-             contrast_scale, one_minus_b, lg_scale, b_level, value, weak, rng, shadow,
-             no_direct, start, stop):
+def classify(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarray,
+             sep: np.ndarray, high: np.ndarray, shadow_thr: np.float32, m: np.float32,
+             min_contrast: np.float32, contrast_scale: np.float32, one_minus_b: np.float32,
+             lg_scale: np.float32, b_level: np.float32, value: np.ndarray, weak: np.ndarray,
+             rng: np.ndarray, shadow: np.ndarray, no_direct: np.ndarray, start: int,
+             stop: int) -> None:
     """Decide every projected bit of every pixel.
 
     Args:
@@ -241,8 +246,9 @@ def _on_edge(value, weak, y, x, bit):
 
 
 @numba.njit(**_OPTS)
-def assemble(value, weak, shadow, nb, block, offset, size, code, integer, bad, tolerated, oor,
-             start, stop):
+def assemble(value: np.ndarray, weak: np.ndarray, shadow: np.ndarray, nb: int, block: int,
+             offset: int, size: int, code: np.ndarray, integer: np.ndarray, bad: np.ndarray,
+             tolerated: np.ndarray, oor: np.ndarray, start: int, stop: int) -> None:
     """Coarse code of one axis from its packed Gray bits (see ``graycode._decode_axis``'s rule:
     one weak bit is tolerated on its own stripe edge, where it moves the code by one step).
 
@@ -282,7 +288,7 @@ def assemble(value, weak, shadow, nb, block, offset, size, code, integer, bad, t
 
 
 @numba.njit(**_OPTS)
-def changes(code, valid):
+def changes(code: np.ndarray, valid: np.ndarray) -> tuple[int, int]:
     """(code changes along the camera rows, down the camera columns) between valid pixels."""
     H, W = code.shape
     along_rows = 0
@@ -353,8 +359,9 @@ def _anchor(stack, inverse, rng, code, valid, y0, x0, y1, x1, s, nb, block, offs
 
 
 @numba.njit(**_OPTS)
-def anchors(stack, inverse, rng, code, valid, down, nb, block, offset, first_pair, anchor_bit,
-            pos, val, start, stop):
+def anchors(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndarray,
+            valid: np.ndarray, down: bool, nb: int, block: int, offset: int, first_pair: int,
+            anchor_bit: int, pos: np.ndarray, val: np.ndarray, start: int, stop: int) -> None:
     """Stripe-edge anchors between horizontally adjacent pixels, (H, W − 1) outputs (``down``:
     vertically adjacent, (H − 1, W)): position along the scan line and projector coordinate,
     NaN where there is none. Rows are read along memory in both cases."""
@@ -383,7 +390,9 @@ def _interpolate(i, c, pl, vl, pr, vr, block, offset, max_span):
 
 
 @numba.njit(**_OPTS)
-def interpolate(code, valid, pos, val, block, offset, max_span, fine, ok, start, stop):
+def interpolate(code: np.ndarray, valid: np.ndarray, pos: np.ndarray, val: np.ndarray,
+                block: int, offset: int, max_span: int, fine: np.ndarray, ok: np.ndarray,
+                start: int, stop: int) -> None:
     """Sub-pixel coordinates along the lines of line-major (H, W) ``code`` and ``valid`` from
     the (H, W − 1) anchors between their samples (:func:`anchors`): a valid sample between two
     anchors of its run of valid samples (at most ``max_span`` blocks apart, its own block
@@ -424,8 +433,9 @@ COLUMN_BLOCK = 64
 
 
 @numba.njit(**_OPTS)
-def interpolate_down(code, valid, pos, val, block, offset, max_span, fine, ok, left, last_bad,
-                     start, stop):
+def interpolate_down(code: np.ndarray, valid: np.ndarray, pos: np.ndarray, val: np.ndarray,
+                     block: int, offset: int, max_span: int, fine: np.ndarray, ok: np.ndarray,
+                     left: np.ndarray, last_bad: np.ndarray, start: int, stop: int) -> None:
     """:func:`interpolate` along the camera columns, from (H − 1, W) anchors, without
     transposing: blocks ``start`` to ``stop`` of :data:`COLUMN_BLOCK` columns are scanned row
     by row, so that every read runs along memory (``left``, ``last_bad``: (H, W) int32
@@ -470,7 +480,7 @@ def interpolate_down(code, valid, pos, val, block, offset, max_span, fine, ok, l
 
 
 @numba.njit(**_OPTS)
-def difference_histogram(image):
+def difference_histogram(image: np.ndarray) -> tuple[int, np.ndarray]:
     """(lowest value, counts) of the differences of horizontally adjacent pixels of an integer
     image (``counts[i]`` = how often the difference ``lowest + i`` occurs)."""
     H, W = image.shape

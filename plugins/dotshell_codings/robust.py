@@ -24,8 +24,6 @@ from typing import Sequence
 
 import numpy as np
 
-from dotshell_codings.kernels import difference_histogram
-
 #: percentile of the white frame taken as full scale for float frames (PDI differences)
 FLOAT_FULL_SCALE_PERCENTILE = 99.5
 
@@ -75,6 +73,8 @@ def noise_sigma(black: np.ndarray) -> float:
 def _noise_sigma_integer(black: np.ndarray) -> float:
     if black.shape[1] < 2 or black.shape[0] == 0:
         return 0.0
+    from dotshell_codings.kernels import difference_histogram  # numba, at first use
+
     low, counts = difference_histogram(black)
     values = np.nonzero(counts)[0]
     counts = counts[values]
