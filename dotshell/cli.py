@@ -353,6 +353,9 @@ def build_parser() -> argparse.ArgumentParser:
     from dotshell.cli_normalize import add_normalize_parser
 
     add_normalize_parser(sub, _pm)
+    from dotshell.cli_batch import add_batch_parser
+
+    add_batch_parser(sub, _pm)
 
     def session_args(sp):
         sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

@@ -1,0 +1,226 @@
+"""Study batches on Dask: results identical to the single-run commands, failures isolated to
+their run, a killed batch finished by running it again, workers checked at start."""
+
+import json
+import logging
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from conftest import ROOT, small_profile_dict, write_profile
+from dotshell.errors import RunError
+from dotshell.events import EventBus
+from dotshell.pipeline.batch import (BatchError, BatchRunFinished, RunOutcome, batch_key,
+                                     find_runs, is_finished, run_batch)
+from dotshell.pipeline.lifecycle import effective_status
+from dotshell.plugins import PluginManager
+from dotshell.store import RunStore
+
+N_RUNS = 4
+
+
+def _pm() -> PluginManager:
+    pm = PluginManager()
+    pm.load_entry_points()
+    return pm
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """One local Dask cluster (2 worker processes, 1 thread each) for the whole module."""
+    from distributed import LocalCluster
+
+    c = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                     silence_logs=logging.ERROR)
+    yield c.scheduler_address
+    c.close()
+
+
+@pytest.fixture(scope="module")
+def study(tmp_path_factory):
+    """Four different reduced runs (noise seeds 1-4, two or three views), as captured."""
+    from dotshell.pipeline.scan import scan
+    from dotshell.profile import load_profile
+
+    tmp = tmp_path_factory.mktemp("study")
+    pm = _pm()
+    for i in range(N_RUNS):
+        raw = small_profile_dict(factor=0.125, views=2 + i % 2)
+        raw["profile"]["name"] = f"mouse-{i + 1}"
+        raw["camera"]["settings"].update(supersample=1, seed=i + 1)
+        raw["outputs"] = {"previews": False}
+        prof = write_profile(tmp / f"p{i}.toml", raw)
+        assert scan(load_profile(prof, pm), pm, tmp / "captured").status == "completed"
+    return tmp / "captured"
+
+
+def copy_study(study: Path, dest: Path) -> list[Path]:
+    subprocess.run(["cp", "-a", str(study), str(dest)], check=True)
+    return sorted(p for p in dest.iterdir() if p.is_dir())
+
+
+@pytest.fixture(scope="module")
+def serial(study, tmp_path_factory):
+    """The single-run commands' results: `dotshell reconstruct RUN` on each run, with and
+    without a new calibration file (the runs' own, copied)."""
+    from dotshell.pipeline.scan import reconstruct_run
+
+    tmp = tmp_path_factory.mktemp("serial")
+    pm = _pm()
+    calib = tmp / "new-calibration.json"
+    calib.write_bytes((next(study.iterdir()) / "calibration.json").read_bytes())
+    plain = copy_study(study, tmp / "plain")
+    recal = copy_study(study, tmp / "recal")
+    for run in plain:
+        reconstruct_run(run, pm)
+    for run in recal:
+        reconstruct_run(run, pm, calibration_file=str(calib))
+    return {"plain": plain, "recal": recal, "calibration": calib}
+
+
+def products(run: Path, renumbered: bool = False) -> dict[str, bytes]:
+    """The published generation's files; reports and view records without their timings
+    (``renumbered``: and without the generation's number, for a run a killed batch left an
+    unpublished generation in)."""
+    gen = (run / "current").resolve()
+    out = {}
+    for p in sorted(gen.rglob("*")):
+        if not p.is_file():
+            continue
+        data = p.read_bytes()
+        if p.name in ("report.json", "products.json") or p.parent.name == "views" and \
+                p.suffix == ".json":
+            d = json.loads(data)
+            d.pop("timings_s", None)
+            d.pop("seconds", None)
+            if renumbered:
+                d.pop("generation", None)
+            data = json.dumps(d).encode()
+        out[str(p.relative_to(gen))] = data
+    return out
+
+
+def assert_same_products(a: list[Path], b: list[Path], renumbered: bool = False) -> None:
+    for x, y in zip(a, b, strict=True):
+        px, py = products(x, renumbered), products(y, renumbered)
+        assert sorted(px) == sorted(py), x.name
+        assert [k for k in px if px[k] != py[k]] == [], x.name
+
+
+def test_a_batch_on_two_workers_gives_the_serial_commands_bytes(cluster, study, serial,
+                                                                 tmp_path):
+    runs = copy_study(study, tmp_path / "study")
+    events = []
+    bus = EventBus()
+    bus.subscribe(events.append)
+    outcomes = run_batch("reconstruct", [str(tmp_path / "study")], _pm(),
+                         {"calibration_file": str(serial["calibration"])}, scheduler=cluster,
+                         bus=bus)
+    assert [o.status for o in outcomes] == ["completed"] * N_RUNS, [o.reason for o in outcomes]
+    assert_same_products(runs, serial["recal"])
+    clouds = {(r / "cloud.ply").read_bytes() for r in runs}
+    assert len(clouds) == N_RUNS  # four different runs, none mixed up with another
+    kinds = [t.kind for t in outcomes[1].tasks]
+    assert sorted(kinds) == ["head", "tail", "view", "view", "view"]
+    assert len({t.worker for o in outcomes for t in o.tasks}) == 2  # both workers were used
+    assert all(t.read_bytes > 0 for o in outcomes for t in o.tasks if t.kind == "view")
+    for run in runs:
+        m = json.loads((run / "manifest.json").read_text())
+        assert m["status"] == "completed" and m["jobs"][-1]["batch"].startswith("reconstruct:")
+        logged = [json.loads(line)["event"] for line in (run / "events.jsonl").open()]
+        assert logged.count("ViewReconstructed") == 2 * len(m["views"])  # scan + batch
+    assert sum(isinstance(e, BatchRunFinished) for e in events) == N_RUNS
+
+
+def test_a_damaged_frame_fails_its_run_alone_with_the_message(cluster, study, serial,
+                                                              tmp_path, capsys):
+    from dotshell.cli import main
+
+    runs = copy_study(study, tmp_path / "study")
+    damaged = runs[2]
+    frame = max((damaged / "frames" / "view_001").iterdir(), key=lambda p: p.stat().st_size)
+    frame.write_bytes(b"not an image")
+    code = main(["batch", "reconstruct", str(tmp_path / "study" / "*"), "--scheduler",
+                 cluster, "--out", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert code == 1 and "1 of 4 runs failed" in err and "Traceback" not in err
+    rows = (tmp_path / "batch.csv").read_text().splitlines()
+    assert rows[0].startswith("run,status,generation,views,points,mean_rel_error_pct")
+    assert [r.split(",")[1] for r in rows[1:]] == ["completed", "completed", "failed",
+                                                   "completed"]
+    assert (tmp_path / "batch.png").stat().st_size > 10_000
+    m = json.loads((damaged / "manifest.json").read_text())
+    assert m["status"] == "completed"  # a failed re-processing keeps the run as it was
+    assert m["jobs"][-1]["status"] == "failed" and frame.name in m["jobs"][-1]["reason"]
+    assert (damaged / "current").resolve().name == "001"
+    alone = tmp_path / "alone"  # the single-run command on the same damage says the same
+    subprocess.run(["cp", "-a", str(damaged), str(alone)], check=True)
+    assert main(["reconstruct", str(alone)]) == 2
+    reason = json.loads((alone / "manifest.json").read_text())["jobs"][-1]["reason"]
+    assert reason.replace(str(alone), str(damaged)) == m["jobs"][-1]["reason"]
+    others = [r for r in runs if r != damaged]
+    assert_same_products(others, [s for s in serial["plain"] if s.name != damaged.name])
+
+
+def _batch_process(runs: Path, scheduler: str, out: Path) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "dotshell.cli", "batch", "reconstruct",
+                             str(runs), "--scheduler", scheduler, "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+
+
+def test_a_killed_batch_is_finished_by_running_it_again(cluster, study, serial, tmp_path):
+    runs = copy_study(study, tmp_path / "study")
+    key = batch_key("reconstruct", {})
+    proc = _batch_process(tmp_path / "study", cluster, tmp_path)
+    t0 = time.time()
+    while not any(is_finished(RunStore(r), key) for r in runs):
+        assert proc.poll() is None, proc.communicate()
+        assert time.time() - t0 < 300, "no run finished"
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate()
+    finished = [r for r in runs if is_finished(RunStore(r), key)]
+    assert 1 <= len(finished) < N_RUNS
+    states = {r.name: effective_status(r, RunStore(r).manifest)[0] for r in runs}
+    assert "running" not in states.values()  # a dead client's runs are never reported running
+
+    outcomes = run_batch("reconstruct", [str(tmp_path / "study")], _pm(), scheduler=cluster)
+    by_run = {o.run.name: o for o in outcomes}
+    assert sorted(r.name for r in finished) == sorted(
+        n for n, o in by_run.items() if o.status == "skipped")
+    assert all(o.status == "completed" for n, o in by_run.items()
+               if n not in {r.name for r in finished})
+    for r in runs:
+        jobs = json.loads((r / "manifest.json").read_text())["jobs"]
+        batch_jobs = [j for j in jobs if j.get("batch") == key and j["status"] == "completed"]
+        assert len(batch_jobs) == 1, (r.name, jobs)  # each run was processed exactly once
+        if states[r.name] == "interrupted":
+            assert any(j["status"] == "interrupted" for j in jobs), (r.name, states, jobs)
+    assert_same_products(runs, serial["plain"], renumbered=True)
+
+
+def test_workers_with_another_dotshell_version_are_refused(cluster, study, monkeypatch):
+    import dotshell.pipeline.batch_tasks as tasks
+
+    before = (next(study.iterdir()) / "manifest.json").read_bytes()
+    monkeypatch.setattr(tasks, "__version__", "0.0.1-elsewhere")  # this process only
+    with pytest.raises(BatchError, match=r"dotshell \S+ \(here 0\.0\.1-elsewhere\)"):
+        run_batch("validate", [str(study)], _pm(), scheduler=cluster)
+    assert (next(study.iterdir()) / "manifest.json").read_bytes() == before
+
+
+def test_runs_are_found_by_directory_study_and_glob(study, tmp_path):
+    runs = sorted(p for p in study.iterdir())
+    assert find_runs([str(study)]) == runs
+    assert find_runs([str(study / "*mouse-2"), str(runs[1]), str(runs[0])]) == [runs[1],
+                                                                                   runs[0]]
+    with pytest.raises(RunError, match="matches no run directory"):
+        find_runs([str(study / "*nothing*")])
+    with pytest.raises(RunError, match="not a dotshell run directory"):
+        find_runs([str(study / "p0.toml")])
+    with pytest.raises(RunError, match="neither a run directory nor a study"):
+        find_runs([str(tmp_path)])
