@@ -5,6 +5,9 @@
    (``.venv-bench-contrib``, created on first use; opencv-contrib conflicts with the project's
    opencv-python-headless).
 3. End-to-end demo scan in a subprocess: wall time by stage, peak memory, accuracy.
+4. A study of 12 copies of that scan re-processed serially vs by ``dotshell batch`` on a
+   2-worker local Dask cluster, and a model of the scaling to N workers
+   (:mod:`batch_bench`).
 
 Prints the figures and writes them to ``bench-results/latest.json`` (``latest-quick.json``
 with ``--quick``, so a harness test never replaces the full figures). ``--quick`` scales the
@@ -30,6 +33,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from batch_bench import bench_batch, print_batch
 from bench_profile import ROOT, load_bench_profile
 from dotshell.coding import Correspondence, PatternCoding
 from dotshell.devices import ExposureControl
@@ -269,6 +273,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5, help="reconstruct_view runs (median)")
     ap.add_argument("--sample", type=int, default=20000, help="pixels decoded by the peer")
     ap.add_argument("--skip-scan", action="store_true", help="sections 1 and 2 only")
+    ap.add_argument("--skip-batch", action="store_true", help="no section 4 (the study batch)")
     args = ap.parse_args()
     pm = get_plugin_manager()
     profile = load_bench_profile(pm, args.quick)
@@ -290,6 +295,10 @@ def main() -> None:
         if not args.skip_scan:
             results["scan"] = run_scan(args.quick, work)
             print_scan(results["scan"])
+            if not args.skip_batch:
+                (scanned,) = [p for p in (work / "runs").iterdir() if p.is_dir()]
+                results["batch"] = bench_batch(scanned, work, args.quick)
+                print_batch(results["batch"])
     results["machine"]["loadavg_1min_end"] = os.getloadavg()[0]
     print(f"\n1-min load average at end {os.getloadavg()[0]:.2f} (other work on the machine "
           "skews every figure above; peer and dotshell ran back to back)")

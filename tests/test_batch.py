@@ -14,7 +14,7 @@ import pytest
 from conftest import ROOT, small_profile_dict, write_profile
 from dotshell.errors import RunError
 from dotshell.events import EventBus
-from dotshell.pipeline.batch import (BatchError, BatchRunFinished, RunOutcome, batch_key,
+from dotshell.pipeline.batch import (BatchError, BatchRunFinished, batch_key,
                                      find_runs, is_finished, run_batch)
 from dotshell.pipeline.lifecycle import effective_status
 from dotshell.plugins import PluginManager
@@ -82,6 +82,15 @@ def serial(study, tmp_path_factory):
     return {"plain": plain, "recal": recal, "calibration": calib}
 
 
+def _without_timings(d):
+    """A report (or view record) without its seconds, at any depth (meshes have their own)."""
+    if isinstance(d, dict):
+        return {k: _without_timings(v) for k, v in d.items() if k not in ("timings_s", "seconds")}
+    if isinstance(d, list):
+        return [_without_timings(v) for v in d]
+    return d
+
+
 def products(run: Path, renumbered: bool = False) -> dict[str, bytes]:
     """The published generation's files; reports and view records without their timings
     (``renumbered``: and without the generation's number, for a run a killed batch left an
@@ -94,9 +103,7 @@ def products(run: Path, renumbered: bool = False) -> dict[str, bytes]:
         data = p.read_bytes()
         if p.name in ("report.json", "products.json") or p.parent.name == "views" and \
                 p.suffix == ".json":
-            d = json.loads(data)
-            d.pop("timings_s", None)
-            d.pop("seconds", None)
+            d = _without_timings(json.loads(data))
             if renumbered:
                 d.pop("generation", None)
             data = json.dumps(d).encode()
@@ -172,7 +179,8 @@ def _batch_process(runs: Path, scheduler: str, out: Path) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
 
 
-def test_a_killed_batch_is_finished_by_running_it_again(cluster, study, serial, tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
+def test_a_stopped_batch_is_finished_by_running_it_again(cluster, study, serial, tmp_path, sig):
     runs = copy_study(study, tmp_path / "study")
     key = batch_key("reconstruct", {})
     proc = _batch_process(tmp_path / "study", cluster, tmp_path)
@@ -181,19 +189,27 @@ def test_a_killed_batch_is_finished_by_running_it_again(cluster, study, serial, 
         assert proc.poll() is None, proc.communicate()
         assert time.time() - t0 < 300, "no run finished"
         time.sleep(0.02)
-    proc.send_signal(signal.SIGKILL)
-    proc.communicate()
+    proc.send_signal(sig)
+    _, err = proc.communicate()
     finished = [r for r in runs if is_finished(RunStore(r), key)]
     assert 1 <= len(finished) < N_RUNS
     states = {r.name: effective_status(r, RunStore(r).manifest)[0] for r in runs}
     assert "running" not in states.values()  # a dead client's runs are never reported running
+    stopped = [r for r in runs if r not in finished]
+    if sig == signal.SIGKILL:  # the runs it was writing are found interrupted
+        assert all(states[r.name] == "interrupted" for r in stopped), states
+    else:  # a clean stop: recorded aborted with the signal, the runs as they were
+        assert proc.returncode == 130 and "Run the same command again" in err, err
+        assert all(states[r.name] == "completed" for r in stopped), states
+        for r in stopped:
+            last = json.loads((r / "manifest.json").read_text())["jobs"][-1]
+            assert last["status"] == "aborted" and "SIGTERM" in last["reason"], last
 
     outcomes = run_batch("reconstruct", [str(tmp_path / "study")], _pm(), scheduler=cluster)
     by_run = {o.run.name: o for o in outcomes}
     assert sorted(r.name for r in finished) == sorted(
         n for n, o in by_run.items() if o.status == "skipped")
-    assert all(o.status == "completed" for n, o in by_run.items()
-               if n not in {r.name for r in finished})
+    assert all(by_run[r.name].status == "completed" for r in stopped)
     for r in runs:
         jobs = json.loads((r / "manifest.json").read_text())["jobs"]
         batch_jobs = [j for j in jobs if j.get("batch") == key and j["status"] == "completed"]
@@ -224,3 +240,28 @@ def test_runs_are_found_by_directory_study_and_glob(study, tmp_path):
         find_runs([str(study / "p0.toml")])
     with pytest.raises(RunError, match="neither a run directory nor a study"):
         find_runs([str(tmp_path)])
+
+
+def _without_meshio_stamp(products_: dict[str, bytes]) -> dict[str, bytes]:
+    """meshio writes its creation time into the header comment of surface.ply."""
+    import re
+
+    return {k: re.sub(rb"comment Created by meshio[^\n]*\n", b"", v) if k.endswith(".ply")
+            else v for k, v in products_.items()}
+
+
+@pytest.mark.slow
+def test_a_batch_mesh_gives_the_mesh_commands_bytes(cluster, study, tmp_path):
+    from dotshell.pipeline.commands import mesh_run
+
+    runs = copy_study(study, tmp_path / "batch")[:2]
+    alone = copy_study(study, tmp_path / "serial")[:2]
+    for run in alone:
+        mesh_run(run, _pm())
+    outcomes = run_batch("mesh", [str(r) for r in runs], _pm(), {"export": True},
+                         scheduler=cluster)
+    assert [o.status for o in outcomes] == ["completed"] * 2, [o.reason for o in outcomes]
+    for a, b in zip(runs, alone):
+        pa, pb = _without_meshio_stamp(products(a)), _without_meshio_stamp(products(b))
+        assert "volume.vtu" in pa and sorted(pa) == sorted(pb)
+        assert [k for k in pa if pa[k] != pb[k]] == [], a.name

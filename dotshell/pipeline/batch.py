@@ -264,6 +264,7 @@ class StudyBatch:
         self._done = 0
         self._total = 0
         self._token = uuid.uuid4().hex[:8]  # task keys unique to this batch
+        self._version = ""
 
     @property
     def targets(self) -> tuple[str, ...]:
@@ -276,6 +277,7 @@ class StudyBatch:
         time (default: twice the workers; each open run holds its lock); returns one outcome
         per run, in the study's order."""
         workers = check_workers(client, self.runs)
+        self._version = identity()["dotshell"]
         todo = deque(r for r in self.runs if self.redo or not self._skip(r))
         self.bus.emit(BatchStarted(command=self.command.name, runs=len(self.runs),
                                    skipped=len(self.runs) - len(todo), cluster=cluster,
@@ -317,11 +319,9 @@ class StudyBatch:
                 if root in active:
                     self._collect(root, active, future)
         except BaseException as exc:  # Ctrl-C, SIGTERM, a lost scheduler: close every open job
-            for root, run in active.items():
+            for run in active.values():
                 client.cancel(run.futures)
-                run.job.close(exc)
-                self._finish(RunOutcome(root, run.job.status or "aborted", run.job.reason,
-                                        tasks=run.outcomes))
+                self._close(run.job, exc, run.outcomes)
             raise
 
     def _start(self, client: Any, root: Path) -> _ActiveRun | None:
@@ -329,7 +329,7 @@ class StudyBatch:
         alone (None)."""
         from dotshell.pipeline.scan import load_run_profile
 
-        store = RunStore.open(root)
+        store = RunStore(root)  # a run gone since the batch started fails below, alone
         bus = EventBus()
         bus.subscribe(lambda ev: store.append_event(ev.to_dict()))
         try:
@@ -338,14 +338,14 @@ class StudyBatch:
                 check_calibration_for_run(self.calibration, store)
             job = RunJob(store, self.command.name, bus, batch=self.key).open()
         except Exception as exc:  # checked before anything is written: the run is unchanged
+            store.close()
             self._finish(RunOutcome(root, *outcome_of(exc)))
             return None
         try:
             work = prepare(job, profile, self.pm, self.targets, self.options)
             futures = self._submit(client, work, store, self.runs.index(root))
         except BaseException as exc:
-            job.close(exc)
-            self._finish(RunOutcome(root, job.status or "failed", job.reason))
+            self._close(job, exc)
             if not isinstance(exc, Exception):
                 raise
             return None
@@ -355,7 +355,7 @@ class StudyBatch:
         """The run's tasks: head (steps before the views), one per complete view, tail (the
         views' gathering and every step after). Earlier runs get higher priority, so runs
         finish in the study's order and a killed batch leaves few half-done."""
-        version = identity()["dotshell"]
+        version = self._version
         steps = work.steps
         split = steps.index("views") if "views" in steps else len(steps)
         head_names, tail_names = steps[:split], steps[split:]
@@ -387,9 +387,7 @@ class StudyBatch:
             for f in run.futures:
                 f.cancel()
             self._total -= len(run.futures) - len(run.outcomes) - 1  # never to be done
-            run.job.close(exc)
-            self._finish(RunOutcome(root, run.job.status or "failed", run.job.reason,
-                                    tasks=run.outcomes))
+            self._close(run.job, exc, run.outcomes)
             return
         outcome: TaskOutcome = future.result()
         for ev in outcome.events:
@@ -404,17 +402,24 @@ class StudyBatch:
             parts = [o.value for o in run.outcomes if o.kind in ("head", "tail")]
             report = publish(run.job, run.work, parts)
         except BaseException as exc:
-            run.job.close(exc)
-            self._finish(RunOutcome(root, run.job.status or "failed", run.job.reason,
-                                    tasks=run.outcomes))
+            self._close(run.job, exc, run.outcomes)
             if not isinstance(exc, Exception):
                 raise
             return
-        run.job.close()
         for o in run.outcomes:
             o.value, o.events = None, []
-        self._finish(RunOutcome(root, run.job.status or "completed", run.job.reason, report,
-                                wall_s=_job_seconds(run.job), tasks=run.outcomes))
+        self._close(run.job, None, run.outcomes, report)
+
+    def _close(self, job: RunJob, exc: BaseException | None,
+               tasks: list[TaskOutcome] | None = None,
+               report: dict[str, Any] | None = None) -> None:
+        """End ``job`` (``exc``: what ended it), release the run and record its outcome."""
+        try:
+            job.close(exc)
+        finally:
+            job.store.close()
+        self._finish(RunOutcome(job.store.root, job.status or "failed", job.reason,
+                                report or {}, _job_seconds(job), tasks or []))
 
     def _finish(self, outcome: RunOutcome) -> None:
         self.outcomes[outcome.run] = outcome

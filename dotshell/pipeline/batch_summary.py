@@ -3,13 +3,11 @@ written as ``batch.csv`` and plotted as ``batch.png``, like ``dotshell validate`
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 from typing import Any
 
 from dotshell.pipeline.batch import RunOutcome, summary_of
-from dotshell.pipeline.compare import write_csv
-from dotshell.store import atomic_write_bytes
+from dotshell.pipeline.compare import save_figure, write_csv
 
 COLUMNS = ("run", "status", "generation", "views", "points", "mean_rel_error_pct",
            "std_rel_error_pct", "rms_radius_error_mm", "coverage_pct", "compute_s", "wall_s",
@@ -58,12 +56,7 @@ def write_plot(rows: list[dict[str, Any]], path: Path) -> Path:
     bottom.set_xticks(x)
     bottom.set_xticklabels([f"{r['run']} ({r['status']})" for r in rows], rotation=60,
                            ha="right", fontsize=7)
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=100)
-    plt.close(fig)
-    atomic_write_bytes(path, buf.getvalue())
-    return path
+    return save_figure(fig, path)
 
 
 def write_study_table(outcomes: list[RunOutcome], out_dir: Path | str

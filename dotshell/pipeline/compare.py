@@ -96,6 +96,13 @@ def write_plot(stores: list[RunStore], rows: list[dict[str, Any]], path: Path,
         bottom.set_ylabel("relative error [%]")
         bottom.set_xlabel("height z [mm]")
         bottom.legend(fontsize=8)
+    return save_figure(fig, path)
+
+
+def save_figure(fig: Any, path: Path) -> Path:
+    """Write a matplotlib figure as a PNG (atomically) and close it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)

@@ -10,6 +10,9 @@ except that a successful one makes a fully captured run ``completed``. :func:`pr
 :mod:`dotshell.pipeline.steps` that the targets need into a new generation and publishes it
 (:mod:`dotshell.pipeline.generations`); products the job does not change are carried over,
 products that would be stale are dropped, so a published generation is always consistent.
+:func:`process` is three parts that may run in different processes: :func:`prepare` (plan and
+carry over, under the job's lock), :func:`run_steps` (the steps, e.g. on a batch's workers, which
+need no lock: only the job writes its generation) and :func:`publish` (by the job's process).
 """
 
 from __future__ import annotations
@@ -97,7 +100,9 @@ class RunJob:
                 self.status = "completed"
             if self.status != "completed" and not self.captures:
                 cur = current_number(self.store.root)
-                if cur is not None:
+                if cur is not None and cur == self.generation:  # stopped after publishing
+                    self.reason += f" (after its generation {cur} was published)"
+                elif cur is not None:
                     self.reason += (f" (nothing published: generation {cur} is unchanged and "
                                     "still the run's products)")
             self._history({"command": self.command, "status": self.status,
@@ -191,7 +196,6 @@ class JobWork:
     :func:`run_steps` executes (some of) its steps, :func:`publish` publishes the result."""
 
     run_root: Path
-    command: str
     generation: int
     base: int | None
     steps: list[str]
@@ -232,8 +236,8 @@ def prepare(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
     for name in carry:
         report.update({k: base_report[k] for k in sections_of(name) if k in base_report})
     timings = dict(base_report.get("timings_s", {})) if carry else {}
-    return JobWork(job.store.root, job.command, gen.number, gen.base, run, dropped, options,
-                   report, dict(gen.files), timings)
+    return JobWork(job.store.root, gen.number, gen.base, run, dropped, options, report,
+                   dict(gen.files), timings)
 
 
 def run_steps(work: JobWork, profile: Profile, pm: PluginManager, bus: EventBus,
