@@ -23,6 +23,7 @@ test: $(STAMP)
 ## bench: speed and memory figures against peers measured in the same run
 bench: $(STAMP)
 	$(PY) benchmarks/run.py
+	$(PY) benchmarks/devices.py
 
 ## validate: full-resolution accuracy checks, then the codings x PDI table (docs/light-model.md)
 validate: $(STAMP)

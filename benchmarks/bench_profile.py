@@ -14,6 +14,7 @@ PROFILE_PATH = ROOT / "profiles" / "sim-metal-cylinder.toml"
 #: ``--quick``: camera and projector pixel grids × this factor (320×256 / 256×192), 2 views.
 QUICK_SCALE = 0.25
 QUICK_VIEWS = 2
+SIM_CAPTURE_TIMEOUT_S = 900
 
 
 def load_bench_profile(pm: PluginManager, quick: bool) -> Profile:
@@ -23,6 +24,10 @@ def load_bench_profile(pm: PluginManager, quick: bool) -> Profile:
     smaller pixel grids, blur kept constant in mm).
     """
     raw = tomllib.loads(PROFILE_PATH.read_text(encoding="utf-8"))
+    # the simulator renders a view at its first frame: tens of seconds at full resolution on a
+    # busy machine, past the default capture timeout (30 s) that guards real cameras
+    raw = apply_overrides(raw, [f"camera.timeouts.capture={SIM_CAPTURE_TIMEOUT_S}"],
+                          str(PROFILE_PATH))
     if quick:
         from dotshell_sim.bench import scale_profile
 

@@ -1,18 +1,25 @@
-"""dotshell benchmarks (``make bench``): speed and memory against a peer measured in the same run.
+"""dotshell benchmarks (``make bench``): speed and memory against peers measured in the same run.
 
-1. Decode + triangulation of one view (simulated reference bench, full resolution by default).
-2. Peer: OpenCV contrib's ``GrayCodePattern.getProjPixel`` on the same frames, in its own venv
+1. Frame I/O of one view: the PNG files runs used to write against the TIFF stack they write now
+   (:mod:`frame_io`).
+2. ``reconstruct_view`` of one view (simulated reference bench, full resolution by default):
+   decode and triangulate, with BLAS on one thread (as the ``dotshell`` command runs it) and on
+   every core, interleaved.
+3. Decoders on the same frames, interleaved (:mod:`decoders`): dotshell's; OpenCV contrib's
+   ``GrayCodePattern.getProjPixel`` on every lit pixel in raster order, in its own venv
    (``.venv-bench-contrib``, created on first use; opencv-contrib conflicts with the project's
-   opencv-python-headless).
-3. End-to-end demo scan in a subprocess: wall time by stage, peak memory, accuracy.
-4. A study of 12 copies of that scan re-processed serially vs by ``dotshell batch`` on a
-   2-worker local Dask cluster, and a model of the scaling to N workers
-   (:mod:`batch_bench`).
+   opencv-python-headless); a plain numpy integer decoder (:mod:`numpy_gray`).
+4. The end-to-end demo scan in a subprocess (wall time by stage, peak memory, accuracy), then
+   ``reconstruct`` of that run in another (wall time, peak memory).
+5. A study of 12 copies of that scan re-processed serially vs by ``dotshell batch`` on a
+   2-worker local Dask cluster, and a model of the scaling to N workers (:mod:`batch_bench`;
+   ``--skip-batch`` leaves it out).
 
-Prints the figures and writes them to ``bench-results/latest.json`` (``latest-quick.json``
-with ``--quick``, so a harness test never replaces the full figures). ``--quick`` scales the
-bench down (camera 320×256, projector 256×192, 2 views) to test the harness. Nothing here
-asserts a speed.
+Every figure is printed beside the baseline recorded in ``benchmarks/baseline.json`` (the figures
+before issue 16, same machine). Results go to ``bench-results/latest.json``
+(``latest-quick.json`` with ``--quick``, so a harness check never replaces the full figures).
+``--quick`` scales the bench down (camera 320×256, projector 256×192, 2 views) to test the
+harness. Nothing here asserts a speed.
 """
 
 from __future__ import annotations
@@ -21,7 +28,6 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -32,52 +38,52 @@ from typing import Any
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
-from batch_bench import bench_batch, print_batch
+import batch_bench
+import decoders
+import frame_io
 from bench_profile import ROOT, load_bench_profile
-from dotshell.coding import Correspondence, PatternCoding
+from dotshell.runtime import configure_process
+from dotshell.coding import PatternCoding
 from dotshell.devices import ExposureControl
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.reconstruct import reconstruct_view
 from dotshell.plugins import PluginManager, get_plugin_manager
 from dotshell.profile import Profile
 from dotshell.rig import Rig
-from dotshell_codings.graycode import code_offset
 
 BENCH_DIR = Path(__file__).resolve().parent
 CONTRIB_VENV = ROOT / ".venv-bench-contrib"
 RESULTS = ROOT / "bench-results" / "latest.json"  # --quick writes latest-quick.json
+BASELINE = BENCH_DIR / "baseline.json"
 
 
 @dataclass
 class RenderedView:
-    """One view's frames as written to and read back from PNG, with what decodes them."""
+    """One view's frames (frames, height, width) as captured, with what decodes them."""
 
     angle_deg: float
     names: list[str]
-    paths: list[Path]
-    frames: list[np.ndarray]
+    frames: np.ndarray
     coding: PatternCoding
     calib: RigCalibration
     projector_size: tuple[int, int]
     bit_depth: int
     render_s: float
-    write_s: float
 
 
-# ---- 1. one view, dotshell ------------------------------------------------------------------
-
-def render_view(profile: Profile, pm: PluginManager, frame_dir: Path) -> RenderedView:
-    """Render view 0 with the simulator and save its frames as PNGs in ``frame_dir``.
-
-    ``render_s`` is the simulator time (stage move + show + capture, seconds); ``write_s`` the
-    PNG encoding and writing time (seconds). Frames are read back so both decoders see exactly
-    the bytes on disk.
-    """
+def make_coding(profile: Profile, pm: PluginManager, **overrides: Any) -> PatternCoding:
     c = profile.role("coding")
-    coding = pm.create("coding", c["backend"], c["settings"], None, profile.source)
+    return pm.create("coding", c["backend"], {**c["settings"], **overrides}, None,
+                     profile.source)
+
+
+def render_view(profile: Profile, pm: PluginManager) -> RenderedView:
+    """Render view 0 with the simulator; ``render_s`` is the simulator time (stage move + show
+    + capture, seconds)."""
+    coding = make_coding(profile, pm)
     angle = profile.angles_deg()[0]
-    captured, write_s, paths = [], 0.0, []
     with Rig(profile, pm) as rig:
         calib = rig.calibration()
         if isinstance(rig.camera, ExposureControl):
@@ -85,40 +91,114 @@ def render_view(profile: Profile, pm: PluginManager, frame_dir: Path) -> Rendere
         patterns = coding.patterns(rig.projector.resolution)
         t0 = time.perf_counter()
         rig.stage.move_to(angle)
+        captured = []
         for p in patterns:
             rig.projector.show(p.image)
             captured.append(rig.camera.capture())
         render_s = time.perf_counter() - t0
         projector_size, bit_depth = tuple(rig.projector.resolution), int(rig.camera.bit_depth)
-    for i, (p, img) in enumerate(zip(patterns, captured)):
-        t0 = time.perf_counter()
-        path = frame_dir / f"{i:03d}_{p.name}.png"
-        cv2.imwrite(str(path), img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
-        write_s += time.perf_counter() - t0
-        paths.append(path)
-    frames = [cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in paths]
-    return RenderedView(angle, [p.name for p in patterns], paths, frames, coding, calib,
-                        projector_size, bit_depth, render_s, write_s)
+    return RenderedView(angle, [p.name for p in patterns], np.stack(captured), coding, calib,
+                        projector_size, bit_depth, render_s)
 
 
-def time_dotshell(view: RenderedView, processing: dict[str, Any], repeats: int
-                  ) -> tuple[dict[str, Any], Correspondence]:
-    """Median decode / triangulate / total seconds of ``reconstruct_view`` over ``repeats``
-    runs (frames already in memory), with the last run's correspondence."""
-    runs = []
-    for _ in range(repeats):
-        vc = reconstruct_view(0, view.angle_deg, view.frames, view.coding, view.calib, processing)
-        runs.append(vc.seconds)
-    med = {k: statistics.median(r[k] for r in runs) for k in ("decode", "triangulate")}
+# ---- 2. reconstruct_view --------------------------------------------------------------------
+
+def time_reconstruct(view: RenderedView, processing: dict[str, Any], repeats: int
+                     ) -> dict[str, Any]:
+    """Decode / triangulate seconds of ``reconstruct_view`` (min and median of ``repeats``),
+    BLAS on one thread and on every core, alternated."""
+    runs: dict[str, list[dict[str, float]]] = {"blas_1": [], "blas_all": []}
+    for r in range(repeats):
+        for key in (("blas_1", "blas_all") if r % 2 == 0 else ("blas_all", "blas_1")):
+            with threadpool_limits(1 if key == "blas_1" else os.cpu_count(), "blas"):
+                vc = reconstruct_view(0, view.angle_deg, view.frames, view.coding,
+                                      view.calib, processing)
+            runs[key].append(vc.seconds)
+    out: dict[str, Any] = {}
+    for key, rs in runs.items():
+        for stage in ("decode", "triangulate"):
+            out[f"{stage}_{key}"] = frame_io.min_median([r[stage] for r in rs])
+        out[f"total_{key}"] = frame_io.min_median([r["decode"] + r["triangulate"] for r in rs])
     h, w = view.frames[0].shape
-    return {"decode_s": med["decode"], "triangulate_s": med["triangulate"],
-            "total_s": statistics.median(r["decode"] + r["triangulate"] for r in runs),
-            "repeats": repeats, "decoded_px": int(vc.correspondence.valid.sum()),
-            "points": int(len(vc.points)), "camera_px": [w, h], "frames": len(view.frames),
-            "render_s": view.render_s, "png_write_s": view.write_s}, vc.correspondence
+    out.update(repeats=repeats, decoded_px=int(vc.correspondence.valid.sum()),
+               points=int(len(vc.points)), camera_px=[w, h], frames=len(view.frames),
+               render_s=view.render_s)
+    return out
 
 
-# ---- 2. the OpenCV peer ---------------------------------------------------------------------
+def _vs(now_s: float, before_ms: float | None) -> str:
+    if not before_ms:
+        return ""
+    return f"   baseline {before_ms:7.1f} ms ({before_ms / (now_s * 1e3):.1f}x)"
+
+
+def print_reconstruct(d: dict[str, Any], baseline: dict[str, Any]) -> None:
+    w, h = d["camera_px"]
+    print(f"\n== 2. reconstruct_view of one view ({w}x{h} px, {d['frames']} frames, frames in "
+          f"memory; min / median of {d['repeats']}, ms) ==")
+    print(f"  simulator render of the view: {d['render_s']:.1f} s (not timed below)")
+    print(f"  {'':16s} {'BLAS 1 thread (dotshell)':>26s} {'BLAS all cores':>22s}")
+    for stage in ("decode", "triangulate", "total"):
+        one, every = d[f"{stage}_blas_1"], d[f"{stage}_blas_all"]
+        print(f"  {stage:16s} {one['min'] * 1e3:12.1f} / {one['median'] * 1e3:9.1f}"
+              f"   {every['min'] * 1e3:9.1f} / {every['median'] * 1e3:9.1f}"
+              + _vs(one["median"], baseline.get(f"{stage}_ms")))
+    print(f"  {d['decoded_px']} px decoded, {d['points']} points in the ROI")
+
+
+# ---- 4. end-to-end scan and reconstruct --------------------------------------------------------
+
+def run_child(mode: str, path: Path, quick: bool, work: Path) -> dict[str, Any]:
+    """Run ``scan_child.py`` (a fresh process) and return its figures: wall seconds, peak RSS
+    (MiB, the child's own ``getrusage`` maximum) and the run's report."""
+    result = work / f"{mode}_result.json"
+    cmd = [sys.executable, str(BENCH_DIR / "scan_child.py"), mode, str(path), str(result)]
+    t0 = time.perf_counter()
+    subprocess.run(cmd + (["--quick"] if quick else []), check=True)
+    out = json.loads(result.read_text())
+    out["process_wall_s"] = time.perf_counter() - t0
+    return out
+
+
+STAGES = ("acquire", "decode", "triangulate", "merge", "validate", "previews")
+
+
+def print_scan(s: dict[str, Any], baseline: dict[str, Any]) -> None:
+    rep, (w, h) = s["report"], s["camera"]
+    t = rep.get("timings_s", {})
+    print(f"\n== 4. end-to-end demo scan ({s['views']} views, camera {w}x{h} px; "
+          f"status {s['status']}) ==")
+    print(f"  wall {s['wall_s']:.1f} s in scan(); process incl. start-up "
+          f"{s['process_wall_s']:.1f} s")
+    for k in [*STAGES, *(k for k in t if k not in STAGES)]:
+        label = "acquire (render+stage+write)" if k == "acquire" else k
+        print(f"  {label:28s} {t.get(k, float('nan')):8.2f} s")
+    other = s["wall_s"] - sum(t.get(k, 0.0) for k in t)
+    print(f"  {'other (set-up, PLY, report)':28s} {other:8.2f} s")
+    before = baseline.get("scan_peak_rss_mib")
+    print(f"  peak RSS of the scan process {s['peak_rss_mib']:.0f} MiB (getrusage ru_maxrss)"
+          + (f"; baseline {before:.0f} MiB" if before else ""))
+    v = rep.get("validation", {})
+    print(f"  points {rep.get('cloud', {}).get('points')}; radius error "
+          f"mean {v.get('mean_rel_error_pct', float('nan')):.3f} % "
+          f"std {v.get('std_rel_error_pct', float('nan')):.3f} %; "
+          f"coverage {v.get('coverage_pct', float('nan')):.1f} %")
+
+
+def print_reconstruct_run(r: dict[str, Any], baseline: dict[str, Any]) -> None:
+    t = r["report"].get("timings_s", {})
+    before = {k: baseline.get(k) for k in ("reconstruct_wall_s", "reconstruct_peak_rss_mib")}
+    print(f"\n== 5. reconstruct of that run from its frames on disk ({r['views']} views) ==")
+    print(f"  wall {r['wall_s']:.1f} s in reconstruct_run()"
+          + (f" (baseline {before['reconstruct_wall_s']:.1f} s)"
+             if before["reconstruct_wall_s"] else "")
+          + "; " + ", ".join(f"{k} {v:.2f} s" for k, v in t.items()))
+    print(f"  peak RSS {r['peak_rss_mib']:.0f} MiB"
+          + (f" (baseline {before['reconstruct_peak_rss_mib']:.0f} MiB)"
+             if before["reconstruct_peak_rss_mib"] else ""))
+
+
+# ---- main -----------------------------------------------------------------------------------
 
 def ensure_contrib_venv() -> Path:
     """Python of ``.venv-bench-contrib`` with numpy + opencv-contrib-python-headless; created
@@ -135,173 +215,62 @@ def ensure_contrib_venv() -> Path:
     return py
 
 
-def opencv_order(names: list[str]) -> list[int]:
-    """Indices of our frames in OpenCV's order: each column bit's pattern and inverse (MSB
-    first), the same for rows, then white and black. Ours: white, black, then the pairs; both
-    codes light the stripe where the Gray bit is 1 in the non-inverse pattern."""
-    pairs = [i for i, n in enumerate(names) if n.startswith("col_")] + \
-            [i for i, n in enumerate(names) if n.startswith("row_")]
-    return pairs + [names.index("white"), names.index("black")]
+def load_baseline(quick: bool) -> dict[str, Any]:
+    """The recorded figures before issue 16 (empty for ``--quick``: they are full-resolution)."""
+    if quick or not BASELINE.is_file():
+        return {}
+    return json.loads(BASELINE.read_text())
 
-
-def run_peer(py: Path, view: RenderedView, work: Path, sample: int, seed: int) -> dict[str, Any]:
-    """Decode ``sample`` random pixels with getProjPixel in the contrib venv; arrays + seconds."""
-    job = {"frames": [str(view.paths[i]) for i in opencv_order(view.names)],
-           "projector": list(view.projector_size), "shift": max(0, view.bit_depth - 8),
-           "sample": sample, "seed": seed, "white_threshold": 5, "black_threshold": 40}
-    (work / "peer_job.json").write_text(json.dumps(job))
-    out = work / "peer_out.npz"
-    subprocess.run([str(py), str(BENCH_DIR / "peer_opencv.py"), str(work / "peer_job.json"),
-                    str(out)], check=True)
-    with np.load(out) as z:
-        return {k: z[k] for k in z.files}
-
-
-def peer_figures(peer: dict[str, Any], corr: Correspondence, view: RenderedView,
-                 dotshell_decode_s: float) -> dict[str, Any]:
-    """Peer time scaled to the full image and column agreement with dotshell on the sample.
-
-    OpenCV decodes the raw code value, dotshell the centred one: OpenCV column − ``col_offset``
-    is compared with round(dotshell column). Rows are not compared (row offset ≠ 0 and OpenCV
-    flags decoded rows past its height as errors)."""
-    col_offset = code_offset(view.projector_size[0])
-    h, w = view.frames[0].shape
-    camera_px = w * h
-    xs, ys, n = peer["xs"], peer["ys"], len(peer["xs"])
-    seconds = float(peer["seconds"])
-    full_s = seconds * camera_px / n
-    ok_cv = ~peer["error"] & peer["lit"]
-    err_lit = peer["error"] & peer["lit"]
-    row_past = peer["row"] >= view.projector_size[1]
-    ok_ds = corr.valid[ys, xs]
-    both = ok_cv & ok_ds
-    ours = np.rint(corr.column[ys, xs][both]).astype(np.int64)
-    theirs = peer["col"][both].astype(np.int64) - col_offset
-    return {"opencv_version": str(peer["cv2_version"]), "sample_px": n,
-            "scale": camera_px / n, "sample_s": seconds, "per_px_us": seconds / n * 1e6,
-            "full_image_s": full_s, "lit_only_s": full_s * float(peer["lit"].mean()),
-            "ratio_vs_dotshell_decode": full_s / dotshell_decode_s,
-            "opencv_decoded": int(ok_cv.sum()), "dotshell_decoded": int(ok_ds.sum()),
-            "both_decoded": int(both.sum()),
-            "opencv_errors_row_past_height": int((err_lit & row_past).sum()),
-            "opencv_errors_other": int((err_lit & ~row_past).sum()),
-            "opencv_shadow_dotshell_decoded": int((~peer["lit"] & ok_ds).sum()),
-            "column_equal_pct": 100.0 * float((ours == theirs).mean()) if both.any() else None,
-            "column_within_1_pct": (100.0 * float((abs(ours - theirs) <= 1).mean())
-                                    if both.any() else None)}
-
-
-# ---- 3. end-to-end scan -------------------------------------------------------------------------
-
-def run_scan(quick: bool, work: Path) -> dict[str, Any]:
-    """Run ``scan_child.py`` (a fresh process) and return its figures: wall seconds, peak RSS
-    (MiB, the child's own ``getrusage`` maximum) and the scan report."""
-    result = work / "scan_result.json"
-    cmd = [sys.executable, str(BENCH_DIR / "scan_child.py"), str(work / "runs"), str(result)]
-    t0 = time.perf_counter()
-    subprocess.run(cmd + (["--quick"] if quick else []), check=True)
-    out = json.loads(result.read_text())
-    out["process_wall_s"] = time.perf_counter() - t0
-    return out
-
-
-# ---- printing -------------------------------------------------------------------------------
-
-def print_view(d: dict[str, Any]) -> None:
-    w, h = d["camera_px"]
-    print(f"\n== 1. one view, dotshell reconstruct_view ({w}x{h} px, {d['frames']} frames, "
-          f"median of {d['repeats']}) ==")
-    print(f"  simulator render {d['render_s']:.2f} s, PNG write {d['png_write_s']:.2f} s "
-          "(not part of the timing below)")
-    print(f"  decode        {d['decode_s'] * 1e3:9.1f} ms")
-    print(f"  triangulate   {d['triangulate_s'] * 1e3:9.1f} ms")
-    print(f"  total         {d['total_s'] * 1e3:9.1f} ms   "
-          f"({d['decoded_px']} px decoded, {d['points']} points in the ROI)")
-
-
-def print_peer(p: dict[str, Any], decode_s: float) -> None:
-    print(f"\n== 2. peer: OpenCV {p['opencv_version']} structured_light.GrayCodePattern"
-          ".getProjPixel (same frames, 8 bit) ==")
-    print(f"  timed on {p['sample_px']} random pixels (seed 0): {p['sample_s']:.2f} s "
-          f"= {p['per_px_us']:.1f} us/px (one Python call per pixel, as the API is used)")
-    print(f"  scaled x{p['scale']:.1f} to the full image: {p['full_image_s']:.1f} s "
-          f"(lit pixels only, as OpenCV's decode() would call it: {p['lit_only_s']:.1f} s)")
-    print(f"  ratio peer full image / dotshell decode ({decode_s * 1e3:.0f} ms): "
-          f"{p['ratio_vs_dotshell_decode']:.0f}x")
-    print(f"  sample decoded: OpenCV {p['opencv_decoded']}, dotshell {p['dotshell_decoded']}, "
-          f"both {p['both_decoded']}")
-    print(f"  OpenCV errors on lit pixels: {p['opencv_errors_row_past_height']} with the decoded "
-          f"row past its height (our row code is centred), {p['opencv_errors_other']} other "
-          "(a pattern/inverse pair < 5 DN apart, or column past its width); OpenCV shadow (white − black ≤ 40 DN) where "
-          f"dotshell decodes: {p['opencv_shadow_dotshell_decoded']}")
-    if p["column_equal_pct"] is not None:
-        print(f"  columns only: OpenCV column == round(dotshell column) on "
-              f"{p['column_equal_pct']:.2f} % of both-decoded pixels "
-              f"(within ±1: {p['column_within_1_pct']:.2f} %)")
-
-
-STAGES = ("acquire", "decode", "triangulate", "merge", "validate", "previews")
-
-
-def print_scan(s: dict[str, Any]) -> None:
-    rep, (w, h) = s["report"], s["camera"]
-    t = rep.get("timings_s", {})
-    print(f"\n== 3. end-to-end demo scan ({s['views']} views, camera {w}x{h} px; "
-          f"status {s['status']}) ==")
-    print(f"  wall {s['wall_s']:.1f} s in scan(); process incl. start-up "
-          f"{s['process_wall_s']:.1f} s")
-    for k in [*STAGES, *(k for k in t if k not in STAGES)]:
-        label = "acquire (render+stage+PNG)" if k == "acquire" else k
-        print(f"  {label:28s} {t.get(k, float('nan')):8.2f} s")
-    other = s["wall_s"] - sum(t.get(k, 0.0) for k in t)
-    print(f"  {'other (set-up, PLY, report)':28s} {other:8.2f} s")
-    print(f"  peak RSS of the scan process {s['peak_rss_mib']:.0f} MiB "
-          "(getrusage ru_maxrss, self and its children)")
-    v = rep.get("validation", {})
-    print(f"  points {rep.get('cloud', {}).get('points')}; radius error "
-          f"mean {v.get('mean_rel_error_pct', float('nan')):.3f} % "
-          f"std {v.get('std_rel_error_pct', float('nan')):.3f} %; "
-          f"coverage {v.get('coverage_pct', float('nan')):.1f} %")
-
-
-# ---- main -----------------------------------------------------------------------------------
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true",
                     help="camera 320x256, projector 256x192, 2 views (tests the harness)")
-    ap.add_argument("--repeats", type=int, default=5, help="reconstruct_view runs (median)")
-    ap.add_argument("--sample", type=int, default=20000, help="pixels decoded by the peer")
-    ap.add_argument("--skip-scan", action="store_true", help="sections 1 and 2 only")
-    ap.add_argument("--skip-batch", action="store_true", help="no section 4 (the study batch)")
+    ap.add_argument("--repeats", type=int, default=5, help="repeats of each timing (min, median)")
+    ap.add_argument("--skip-scan", action="store_true", help="sections 1 to 3 only")
+    ap.add_argument("--skip-batch", action="store_true",
+                    help="no section 6 (12 runs serially vs a 2-worker Dask cluster)")
     args = ap.parse_args()
+    configure_process()  # as the dotshell command runs
     pm = get_plugin_manager()
     profile = load_bench_profile(pm, args.quick)
+    baseline = load_baseline(args.quick)
     results: dict[str, Any] = {"quick": args.quick, "machine": {
         "python": platform.python_version(), "cpus": os.cpu_count(),
         "numpy": np.__version__, "opencv": cv2.__version__,
         "loadavg_1min_start": os.getloadavg()[0]}}
     print(f"dotshell bench ({'quick' if args.quick else 'full resolution'}); {os.cpu_count()} "
           f"cores, 1-min load average at start {os.getloadavg()[0]:.2f}")
+    if baseline:
+        print(f"baseline: {baseline['recorded']}")
     with tempfile.TemporaryDirectory(prefix="dotshell-bench-") as tmp:
         work = Path(tmp)
-        (work / "frames").mkdir()
-        view = render_view(profile, pm, work / "frames")
-        results["view"], corr = time_dotshell(view, profile.data["processing"], args.repeats)
-        print_view(results["view"])
-        peer = run_peer(ensure_contrib_venv(), view, work, args.sample, seed=0)
-        results["peer_opencv"] = peer_figures(peer, corr, view, results["view"]["decode_s"])
-        print_peer(results["peer_opencv"], results["view"]["decode_s"])
+        view = render_view(profile, pm)
+        results["frame_io"] = frame_io.measure(view.frames, view.names, work, args.repeats)
+        frame_io.print_frame_io(results["frame_io"])
+        results["reconstruct_view"] = time_reconstruct(view, profile.data["processing"],
+                                                       args.repeats)
+        print_reconstruct(results["reconstruct_view"], baseline)
+        peer = decoders.OpenCVPeer(ensure_contrib_venv(), view.frames, view.names,
+                                   view.projector_size, view.bit_depth, work)
+        integer = make_coding(profile, pm, subpixel=False)
+        results["decoders"] = decoders.compare(view, integer, peer, args.repeats)
+        decoders.print_decoders(results["decoders"], baseline)
+        del view, peer
         if not args.skip_scan:
-            results["scan"] = run_scan(args.quick, work)
-            print_scan(results["scan"])
+            results["scan"] = run_child("scan", work / "runs", args.quick, work)
+            print_scan(results["scan"], baseline)
+            results["reconstruct_run"] = run_child("reconstruct",
+                                                   Path(results["scan"]["run_dir"]),
+                                                   args.quick, work)
+            print_reconstruct_run(results["reconstruct_run"], baseline)
             if not args.skip_batch:
-                (scanned,) = [p for p in (work / "runs").iterdir() if p.is_dir()]
-                results["batch"] = bench_batch(scanned, work, args.quick)
-                print_batch(results["batch"])
+                results["batch"] = batch_bench.bench_batch(Path(results["scan"]["run_dir"]),
+                                                           work, args.quick)
+                batch_bench.print_batch(results["batch"])
     results["machine"]["loadavg_1min_end"] = os.getloadavg()[0]
     print(f"\n1-min load average at end {os.getloadavg()[0]:.2f} (other work on the machine "
-          "skews every figure above; peer and dotshell ran back to back)")
+          "skews every figure above; the sides of each comparison ran interleaved)")
     out = RESULTS.with_name("latest-quick.json") if args.quick else RESULTS
     out.parent.mkdir(exist_ok=True)
     out.write_text(json.dumps(results, indent=2, default=str))

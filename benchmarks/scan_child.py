@@ -1,7 +1,13 @@
-"""Run one end-to-end demo scan in its own process and write its figures as JSON.
+"""Run one end-to-end demo scan, or re-process a run, in its own process and write its figures
+as JSON — so that the peak resident memory belongs to that work alone.
 
-Usage: ``python benchmarks/scan_child.py OUT_DIR RESULT_JSON [--quick]``. Run by ``run.py`` as
-a subprocess so that the peak resident memory belongs to the scan alone.
+Usage (run by ``run.py``)::
+
+    python benchmarks/scan_child.py scan OUT_DIR RESULT_JSON [--quick]
+    python benchmarks/scan_child.py reconstruct RUN_DIR RESULT_JSON
+
+BLAS runs on one thread and the heap is set up as in the ``dotshell`` command
+(:func:`dotshell.runtime.configure_process`).
 """
 
 from __future__ import annotations
@@ -13,8 +19,9 @@ import time
 from pathlib import Path
 
 from bench_profile import load_bench_profile
+from dotshell.runtime import configure_process
 from dotshell.plugins import get_plugin_manager
-from dotshell.pipeline.scan import scan
+from dotshell.pipeline.scan import reconstruct_run, scan
 
 
 def peak_rss_mib() -> float:
@@ -24,18 +31,22 @@ def peak_rss_mib() -> float:
     return kib / 1024.0
 
 
-def main(out_dir: str, result_path: str, quick: bool) -> None:
+def main(mode: str, path: str, result_path: str, quick: bool) -> None:
+    configure_process()
     pm = get_plugin_manager()
     profile = load_bench_profile(pm, quick)
     t0 = time.perf_counter()
-    result = scan(profile, pm, Path(out_dir))
+    if mode == "scan":
+        result = scan(profile, pm, Path(path))
+    else:
+        result = reconstruct_run(path, pm)
     wall = time.perf_counter() - t0
     cam = profile.role("camera")["settings"]
     out = {"status": result.status, "wall_s": wall, "peak_rss_mib": peak_rss_mib(),
-           "views": len(profile.angles_deg()), "camera": [cam["width"], cam["height"]],
-           "report": result.report}
+           "run_dir": str(result.run_dir), "views": len(profile.angles_deg()),
+           "camera": [cam["width"], cam["height"]], "report": result.report}
     Path(result_path).write_text(json.dumps(out, default=str))
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2], "--quick" in sys.argv[3:])
+    main(sys.argv[1], sys.argv[2], sys.argv[3], "--quick" in sys.argv[4:])

@@ -1,8 +1,12 @@
-"""What a plugin hands the core for each backend it provides."""
+"""What a plugin hands the core for each backend it provides, and what the core hands a device."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Mapping
 
 from dotshell.settings import Setting
@@ -21,19 +25,95 @@ ROLES: dict[str, str] = {
     "exporter": "dotshell_exporters",
 }
 
+logging.getLogger("dotshell.devices").addHandler(logging.NullHandler())  # front ends show them
+
+#: ``listener(level, text, unix_time)`` receives a device's log lines.
+LogListener = Callable[[str, str, float], None]
+
+
+class DeviceLog:
+    """A device's log: ``info`` / ``warn`` lines that reach the run's ``events.jsonl`` and the
+    front ends while a scan runs (and Python's ``logging`` always). Thread-safe; never raises.
+
+    Args:
+        who: how lines are prefixed, e.g. ``"stage (grbl)"``.
+    """
+
+    def __init__(self, who: str = "device") -> None:
+        self.who = who
+        self._listeners: list[LogListener] = []
+        self._lock = threading.Lock()
+        self._logger = logging.getLogger("dotshell.devices")
+
+    def listen(self, listener: LogListener) -> Callable[[], None]:
+        """Call ``listener(level, text, time)`` for every line; returns the unsubscribe."""
+        with self._lock:
+            self._listeners.append(listener)
+
+        def unsubscribe() -> None:
+            with self._lock:
+                if listener in self._listeners:
+                    self._listeners.remove(listener)
+
+        return unsubscribe
+
+    def info(self, text: str) -> None:
+        self._emit("info", text)
+
+    def warn(self, text: str) -> None:
+        self._emit("warning", text)
+
+    def _emit(self, level: str, text: str) -> None:
+        line = f"{self.who}: {text}"
+        self._logger.log(logging.WARNING if level == "warning" else logging.INFO, line)
+        with self._lock:
+            listeners = list(self._listeners)
+        now = time.time()
+        for fn in listeners:
+            try:
+                fn(level, line, now)
+            except Exception:  # a front end's problem must not break the device
+                pass
+
 
 @dataclass
 class RigContext:
-    """Passed to every device factory of one rig.
+    """Passed to every device factory of one rig (one context per device; ``shared`` and the
+    peers are common to the rig's devices).
 
     Attributes:
         shared: scratch space shared by the devices of this rig (e.g. one serial bus serving a
             stage and an analyzer, or the simulator's world). Key it by your plugin name.
         base_dir: directory of the profile, for resolving relative paths in settings.
+        role: the role this device fills (``""`` outside a rig, e.g. in a bare test).
+        backend: the backend name the profile chose.
+        log: the device's log — ``context.log.warn("limit switch touched")`` reaches the run's
+            ``events.jsonl`` and the front ends.
     """
 
     shared: dict[str, Any] = field(default_factory=dict)
     base_dir: str = "."
+    role: str = ""
+    backend: str = ""
+    log: DeviceLog = field(default_factory=DeviceLog)
+    peers: dict[str, Any] = field(default_factory=dict, repr=False)
+    deadline: float = field(default=math.inf, repr=False)
+
+    def device(self, role: str) -> Any | None:
+        """The rig's device for another ``role`` (as the rig hands it out: calls serialised),
+        or None. E.g. a simulated camera reads the angle of whatever stage the rig has."""
+        return self.peers.get(role)
+
+    def time_left(self) -> float:
+        """Seconds left before the rig's timeout for the call in progress (``inf`` outside a
+        rig call). Drivers that wait for motion use it to fail with their own, more precise
+        :class:`~dotshell.errors.DeviceTimeout` before the rig's backstop does."""
+        return self.deadline - time.monotonic()
+
+    def for_device(self, role: str, backend: str) -> "RigContext":
+        """A context for one device of this rig: same ``shared`` and peers, its own log."""
+        return replace(self, role=role, backend=backend, log=DeviceLog(f"{role} ({backend})"),
+                       deadline=math.inf)
 
 
 @dataclass(frozen=True)
@@ -47,9 +127,12 @@ class Backend:
             ``settings`` has been validated against ``settings_schema`` with defaults filled in.
         settings_schema: the keys of the profile's ``[ROLE.settings]`` table.
         summary: one line for ``dotshell plugins``.
+        usb_ids: ``"vid:pid"`` (lower-case hex) of the USB devices this backend drives, so
+            ``dotshell ports`` can say which backend fits a plugged-in device.
     """
 
     name: str
     factory: Callable[..., Any]
     settings_schema: Mapping[str, Setting] = field(default_factory=dict)
     summary: str = ""
+    usb_ids: tuple[str, ...] = ()

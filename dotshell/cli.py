@@ -105,6 +105,9 @@ def _print_report(report: dict[str, Any], run_dir: Path) -> None:
         out.print(t)
     elif "validation" in report:
         out.print(f"validation: {escape(str(report['validation']))}")
+    losses = pixel_losses(report.get("views") or [])
+    if losses:
+        out.print("pixels: " + ", ".join(f"{k} {v:.1f} %" for k, v in losses))
     cloud = report.get("cloud", {})
     out.print(f"cloud: {cloud.get('points', 0)} points → {run_dir / 'cloud.ply'}")
     for name, rel in (report.get("previews") or {}).items():
@@ -114,6 +117,23 @@ def _print_report(report: dict[str, Any], run_dir: Path) -> None:
 
         print_section(report["normalize"], run_dir)
     out.print(f"run: {run_dir}  (status: {report.get('status', '?')})")
+
+
+#: Where a camera pixel can be lost on the way to a point, in pipeline order.
+LOSS_KEYS = ("shadow", "low_contrast", "uncertain", "out_of_range", "low_modulation",
+             "phase_inconsistent", "grazing", "row_rejected", "speckle", "outside_roi")
+
+
+def pixel_losses(views: list[dict[str, Any]]) -> list[tuple[str, float]]:
+    """(reason, share of all pixels in %) over the views: decoded and every loss, in order."""
+    from dotshell.pipeline.steps import pixel_totals
+
+    totals = pixel_totals(views)
+    pixels = totals.get("pixels", 0)
+    if not pixels:
+        return []
+    keys = ("decoded", *LOSS_KEYS, "points")
+    return [(k, 100.0 * totals[k] / pixels) for k in keys if totals.get(k)]
 
 
 def _scan_outcome(result) -> int:
@@ -327,11 +347,13 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("run", nargs="?", help="run directory")
     sp.add_argument("--calibration", metavar="FILE", help="use this calibration instead")
     from dotshell.cli_calibration import add_captures_args, add_calibrate_parser
+    from dotshell.cli_decode import add_decode_parser
 
     add_captures_args(sp)
     sp.set_defaults(func=cmd_reconstruct)
 
     add_calibrate_parser(sub, profile_args)
+    add_decode_parser(sub)
 
     sp = sub.add_parser("validate", help="compare the accuracy of runs (Table 1, CSV, PNG plot)")
     sp.add_argument("runs", nargs="+", help="run directories")
@@ -353,6 +375,8 @@ def build_parser() -> argparse.ArgumentParser:
     from dotshell.cli_normalize import add_normalize_parser
 
     add_normalize_parser(sub, _pm)
+    from dotshell.cli_devices import add_device_parsers; add_device_parsers(sub, _pm)  # noqa: E702
+    from dotshell.cli_frames import add_frames_parser; add_frames_parser(sub)  # noqa: E702
     from dotshell.cli_batch import add_batch_parser
 
     add_batch_parser(sub, _pm)
@@ -380,6 +404,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from dotshell.pipeline.lifecycle import interrupt_reason, interrupts
+    from dotshell.runtime import configure_process
 
     argv = list(sys.argv[1:] if argv is None else argv)
     head = argv[:argv.index("--")] if "--" in argv else argv  # --debug anywhere before `--`
@@ -387,6 +412,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = [a for a in head if a != "--debug"] + argv[len(head):]
     args = build_parser().parse_args(argv)
     args.debug = args.debug or debug
+    configure_process()  # BLAS on one thread, large blocks unmapped when freed
     try:
         with interrupts(notify=lambda text: err.print(f"[yellow]{escape(text)}[/]")):
             return args.func(args)
@@ -398,8 +424,9 @@ def main(argv: list[str] | None = None) -> int:
                   "continues a scan).")
         return 130
     except MemoryError as exc:
-        return _fail(args, exc, "out of memory. Scan at a lower resolution (--set "
-                     "camera.settings.width=...), fewer views, or on a machine with more memory.", 2)
+        return _fail(args, exc, "out of memory. Lower the camera or projector resolution "
+                     "(e.g. --set camera.settings.width=... --set camera.settings.height=...), "
+                     "scan fewer views, or use a machine with more memory.", 2)
     except OSError as exc:
         return _fail(args, exc, os_error_message(exc), 2)
     except Exception as exc:  # a bug: one paragraph, the traceback with --debug
@@ -428,7 +455,10 @@ def os_error_message(exc: OSError) -> str:
         errno.EACCES: "write somewhere you may write (--out) or fix the directory's permissions",
         errno.EPERM: "write somewhere you may write (--out) or check the directory's owner and "
                      "permissions",
-        errno.EROFS: "write to another drive (--out)",
+        errno.EROFS: "write to another drive (--out), or copy a run there (cp -a) to "
+                     "process it",
+        errno.EFBIG: "the file is larger than this process may write (`ulimit -f`) or than the "
+                     "file system allows: raise the limit or write to another drive (--out)",
         errno.ENOENT: "check the path",
         errno.ENOTDIR: "a part of the path is a file: give a directory",
         errno.EISDIR: "give a file, not a directory",

@@ -12,15 +12,15 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from dotshell.cli_decode import add_layout_arg, pixel_counts
+
 
 def add_captures_args(sp: argparse.ArgumentParser) -> None:
     """Options of ``dotshell reconstruct`` for captures made elsewhere."""
     sp.add_argument("--captures", metavar="DIR",
                     help="reconstruct the image sequence in DIR (made by another rig or program) "
                          "instead of a run; needs --calibration and --layout")
-    sp.add_argument("--layout", metavar="LAYOUT",
-                    help="layout TOML of the sequence, or a shipped one: slstudio-graycode, "
-                         "opencv-graycode")
+    add_layout_arg(sp)
     sp.add_argument("--reference", metavar="FILE",
                     help="reference cloud (.ply, or .mat with xyz) to measure the result against")
     sp.add_argument("--coverage-radius", type=float, default=1.0, metavar="MM",
@@ -40,10 +40,9 @@ def reconstruct_captures_command(args: argparse.Namespace, pm, out: Console) -> 
     res = reconstruct_captures(args.captures, args.calibration, args.layout, pm, args.out,
                                reference=args.reference, coverage_radius_mm=args.coverage_radius)
     r = res.report
-    d = r["decode"]
-    out.print(f"decoded {d.get('decoded', 0)} of {d.get('pixels', 0)} pixels "
-              f"(shadow {d.get('shadow', 0)}, low contrast {d.get('low_contrast', 0)}); "
-              f"{r['cloud']['points']} points (camera frame, mm)")
+    out.print(pixel_counts({**r["decode"], "grazing": r.get("grazing", 0),
+                            "row_rejected": r.get("row_rejected", 0)}))
+    out.print(f"{r['cloud']['points']} points (camera frame, mm)")
     ref = r.get("reference")
     if ref:
         t = Table(title=escape(f"against {ref['path']} ({ref['reference_points']} points)"))
@@ -68,25 +67,86 @@ def reconstruct_captures_command(args: argparse.Namespace, pm, out: Console) -> 
     return 0
 
 
-def add_calibrate_parser(sub, profile_args) -> None:
+def add_calibrate_parser(sub, profile_args=None) -> None:
+    """``dotshell calibrate``; its own arguments (the profile is optional with --solve and
+    --captures, so the shared ``profile_args`` are not used)."""
     sp = sub.add_parser("calibrate", help="capture the calibration target and solve camera, "
-                        "projector, their pose and the turntable axis")
-    profile_args(sp)
+                        "projector, their pose and the turntable axis; or solve pose folders "
+                        "captured anywhere (--captures)")
+    sp.add_argument("profile", nargs="?",
+                    help="profile TOML: its [calibrate] settings and, to capture, its devices "
+                         "(optional with --solve and --captures: defaults then)")
+    sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a setting (TOML value), e.g. --set calibrate.min_poses=5")
     sp.add_argument("--out", default="runs", help="parent directory of the calibration run")
     sp.add_argument("--solve", metavar="RUN",
                     help="solve an existing calibration run (its frames on disk) instead of "
                          "capturing")
+    sp.add_argument("--captures", nargs="+", metavar="DIR",
+                    help="pose folders captured anywhere, one pose's whole sequence each "
+                         "(needs --layout, and --board/--square without a profile)")
+    add_layout_arg(sp, "the pose folders' sequence")
+    sp.add_argument("--board", metavar="COLSxROWS",
+                    help="target squares across x down (not inner corners), e.g. 15x11")
+    sp.add_argument("--square", type=float, metavar="MM", help="side of a square (mm)")
+    sp.add_argument("--target", choices=("checkerboard", "charuco"),
+                    help="printed target (default: checkerboard)")
+    sp.add_argument("--marker", type=float, metavar="MM", help="ChArUco marker side (mm)")
+    sp.add_argument("--dictionary", metavar="NAME",
+                    help="ChArUco ArUco dictionary (default DICT_4X4_50)")
+    sp.add_argument("--turntable", metavar="DIR",
+                    help="white frames of the board on the stage, one per stage angle (name "
+                         "order); solves the turntable axis (optional)")
+    sp.add_argument("--turntable-angles", nargs="+", type=float, metavar="DEG",
+                    help="stage angle of each --turntable image (degrees)")
+    sp.add_argument("--board-height", type=float, metavar="MM",
+                    help="height of the board centre above the stage plate for --turntable")
     sp.set_defaults(func=cmd_calibrate)
 
 
+def calibrate_settings(args: argparse.Namespace, pm):
+    """([calibrate] settings, profile or None): the profile's section with --set applied, or
+    the defaults with --set applied; then the board options."""
+    from dotshell.calibration.schema import CALIBRATE_SCHEMA
+    from dotshell.errors import ProfileError
+    from dotshell.profile import apply_overrides, load_profile
+    from dotshell.settings import validate_settings
+
+    profile = None
+    if args.profile:
+        profile = load_profile(args.profile, pm, args.set)
+        settings = dict(profile.data["calibrate"])
+    else:
+        raw = apply_overrides({}, args.set, "--set")
+        other = [k for k in raw if k != "calibrate"]
+        if other:
+            raise ProfileError(f"--set {other[0]}.…: without a profile only calibrate.KEY=VALUE "
+                               "settings apply.")
+        settings = validate_settings(CALIBRATE_SCHEMA, raw.get("calibrate", {}), "--set")
+    if args.board:
+        try:
+            cols, rows = (int(x) for x in args.board.lower().split("x"))
+        except ValueError:
+            raise ProfileError(f"--board {args.board!r}: give squares across x down, e.g. "
+                               "15x11.") from None
+        settings.update(columns=cols, rows=rows)
+    for key, value in (("square_mm", args.square), ("target", args.target),
+                       ("marker_mm", args.marker), ("dictionary", args.dictionary)):
+        if value is not None:
+            settings[key] = value
+    return validate_settings(CALIBRATE_SCHEMA, settings, "calibrate"), profile
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    from dotshell.calibration.board import Board
+    from dotshell.calibration.captures import TurntableFrames, calibrate_captures
     from dotshell.calibration.procedure import capture, solve
     from dotshell.cli import ScanProgress, _pm, err, out
+    from dotshell.errors import CalibrationError
     from dotshell.events import EventBus
-    from dotshell.profile import load_profile
 
     pm = _pm(args)
-    profile = load_profile(args.profile, pm, args.set)
+    settings, profile = calibrate_settings(args, pm)
     bus = EventBus()
     view = ScanProgress(err)
     bus.subscribe(view)
@@ -95,12 +155,49 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
         input(f"{message}\nPress Enter when the board is in place... ")
 
     with view.progress:
-        run = Path(args.solve) if args.solve else capture(profile, pm, args.out, bus, ask)
-        result = solve(run, profile.data["calibrate"], pm, bus)
+        if args.captures:
+            if not args.layout:
+                raise CalibrationError("calibrate --captures needs --layout LAYOUT (the order the "
+                                       "pose folders' frames were captured in).")
+            if not (args.board or profile) or not (args.square or profile):
+                raise CalibrationError("calibrate --captures needs the target: --board COLSxROWS "
+                                       "--square MM (or a profile's [calibrate]).")
+            turntable = None
+            if args.turntable:
+                if not args.turntable_angles or args.board_height is None:
+                    raise CalibrationError("--turntable needs --turntable-angles DEG ... (one per "
+                                           "image) and --board-height MM.")
+                turntable = TurntableFrames(Path(args.turntable), tuple(args.turntable_angles),
+                                            args.board_height)
+            result = calibrate_captures(args.captures, args.layout, Board.from_settings(settings),
+                                        pm, settings, args.out, turntable, bus)
+        elif args.solve:
+            result = solve(Path(args.solve), settings, pm, bus)
+        elif profile is None:
+            raise CalibrationError("dotshell calibrate needs a PROFILE to capture with, or "
+                                   "--solve RUN, or --captures DIR ... --layout LAYOUT.")
+        else:
+            result = solve(capture(profile, pm, args.out, bus, ask), settings, pm, bus)
+    print_coding(result.report["coding"], profile, out)
     print_calibration(result.report, result.calibration, out)
+    run = result.run_dir
     out.print(f"calibration: {run / 'calibration.json'} (and calibration.yml for OpenCV)")
-    out.print(f"use it: dotshell scan {args.profile} --calibration {run / 'calibration.json'}")
+    if profile is not None:
+        out.print(f"use it: dotshell scan {args.profile} --calibration {run / 'calibration.json'}")
     return 0
+
+
+def print_coding(coding: dict[str, Any], profile, out: Console) -> None:
+    """Which coding decoded the frames: capture.json's, the one they were captured with."""
+    settings = ", ".join(f"{k}={v}" for k, v in sorted(coding["settings"].items()))
+    layout = f", frames in layout {coding['layout']!r}" if coding.get("layout") else ""
+    out.print(f"decoded with {coding['backend']} ({escape(settings)}){layout}: the coding "
+              "recorded in capture.json, the one the frames were captured with")
+    if profile is not None:
+        mine = profile.role("coding")
+        if mine["backend"] != coding["backend"]:
+            out.print(f"[yellow]note:[/] the profile's [coding] ({mine['backend']}) is not used "
+                      "for these frames")
 
 
 def print_calibration(report: dict[str, Any], calib, out: Console) -> None:
@@ -122,8 +219,12 @@ def print_calibration(report: dict[str, Any], calib, out: Console) -> None:
                   f"±{c['cy']:.2f} px, fx ±{c['fx']:.2f} px; projector cx ±{p['cx']:.2f}, cy "
                   f"±{p['cy']:.2f} px, fx ±{p['fx']:.2f} px; baseline ±{sig['baseline_mm']:.3f} mm")
     d, p = calib.axis_direction, calib.axis_point
-    out.print(f"turntable axis: direction ({d[0]:.5f}, {d[1]:.5f}, {d[2]:.5f}), plate point "
-              f"({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) mm, RMS {rms['turntable']:.3f} px")
+    if calib.axis_measured:
+        out.print(f"turntable axis: direction ({d[0]:.5f}, {d[1]:.5f}, {d[2]:.5f}), plate point "
+                  f"({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}) mm, RMS {rms['turntable']:.3f} px")
+    else:
+        out.print("turntable axis: not calibrated (no turntable frames); the calibration serves "
+                  "single-view reconstruction, not turntable scans")
     for what, left in report["left_out"].items():
         for name, why in left.items():
             out.print(f"[yellow]left out of the {what} solve:[/] {name}: {escape(why)}")
@@ -144,9 +245,11 @@ def print_calibration(report: dict[str, Any], calib, out: Console) -> None:
                 g["pass"][f"{which}_principal_point"])
         row("baseline", f"{g['baseline_pct']:+.4f} %", "0.2 %", g["pass"]["baseline"])
         gt.add_row("rotation", f"{g['rotation_deg']:.4f}°", "", "")
-        row("axis direction", f"{g['axis_direction_deg']:.4f}°", "0.1°", g["pass"]["axis_direction"])
-        row("axis position (⊥ distance)", f"{g['axis_point_mm']:.4f} mm", "0.1 mm",
-            g["pass"]["axis_point"])
+        if "axis_direction" in g["pass"]:
+            row("axis direction", f"{g['axis_direction_deg']:.4f}°", "0.1°",
+                g["pass"]["axis_direction"])
+            row("axis position (⊥ distance)", f"{g['axis_point_mm']:.4f} mm", "0.1 mm",
+                g["pass"]["axis_point"])
         if "axis_plate_offset" in g["pass"]:
             row("plate point along the axis", f"{g['axis_plate_offset_mm']:+.4f} mm", "0.1 mm",
                 g["pass"]["axis_plate_offset"])

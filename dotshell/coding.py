@@ -33,12 +33,28 @@ class Correspondence:
         valid: bool (H, W); True where ``column`` (and ``row`` when present) can be used.
         stats: pixel counts by outcome, e.g. ``{"decoded": n, "shadow": n,
             "low_contrast": n, "uncertain": n}`` — reported in the run's report.
+        reason: uint8 (H, W) why each pixel is not decoded, an index into ``reason_names``
+            (0 = ``"decoded"``), or ``None`` when the coding does not say (see
+            :func:`label_reasons`).
+        reason_names: the names of the ``reason`` codes, in code order.
     """
 
     column: np.ndarray
     row: np.ndarray | None
     valid: np.ndarray
     stats: dict[str, int] = field(default_factory=dict)
+    reason: np.ndarray | None = None
+    reason_names: tuple[str, ...] = ("decoded",)
+
+
+def label_reasons(valid: np.ndarray, reasons: dict[str, np.ndarray]
+                  ) -> tuple[np.ndarray, tuple[str, ...]]:
+    """A uint8 reason map (0 where ``valid``, k where the k-th mask of ``reasons`` holds;
+    a pixel in several masks gets the first) and its names ``("decoded", *reasons)``."""
+    label = np.zeros(valid.shape, np.uint8)
+    for code, mask in reversed(list(enumerate(reasons.values(), start=1))):
+        label[mask & ~valid] = code
+    return label, ("decoded", *reasons)
 
 
 @runtime_checkable

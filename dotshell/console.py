@@ -104,7 +104,8 @@ class Run:
         """Frames on disk over all views."""
         return sum(v["frames"] for v in self.manifest.get("views", []))
 
-    def frames(self, view: int) -> list[np.ndarray]:
+    def frames(self, view: int) -> np.ndarray:
+        """The frames of a view, (frames, height, width) in capture order, as captured."""
         from dotshell.store import RunStore
 
         return RunStore(self.root).read_frames(view)
@@ -322,6 +323,12 @@ class Session:
             stage.move_to(float(degrees))
             return float(stage.position)
 
+    def home(self, role: str = "stage") -> float | None:
+        """Home the stage (or ``role``): find its reference position; the angle afterwards."""
+        with self._lock:
+            self._device(role, f"home the {role}")
+            return self.rig.home(role)  # type: ignore[union-attr]
+
     def jog(self, degrees: float) -> float:
         """Rotate the stage by ``degrees`` (relative); returns the angle reached."""
         with self._lock:
@@ -508,15 +515,13 @@ class Session:
         elif isinstance(ev, ScanFinished):
             self._live["run_dir"] = ev.run_dir
         elif isinstance(ev, ViewCaptured) and self._live.get("run_dir"):
-            import cv2
-
             from dotshell.render import frame_preview
             from dotshell.store import RunStore
 
             store = RunStore(Path(self._live["run_dir"]))
-            names = self._live.setdefault("names", store.manifest["frame_names"])
-            frame = cv2.imread(str(store.frame_path(ev.view, 0, names[0])), cv2.IMREAD_UNCHANGED)
-            if frame is None:
+            try:
+                frame = store.frames(ev.view).read_one(0)
+            except RunError:
                 return
             store.path("previews").mkdir(exist_ok=True)
             path = frame_preview(frame, store.path("previews", "latest_frame.png"))
@@ -547,7 +552,7 @@ class Session:
             "session": self, "np": np, "dotshell": dotshell, "Run": Run,
             "load": self.load, "set": self.set, "connect": self.connect,
             "disconnect": self.disconnect, "status": self.status, "move_to": self.move_to,
-            "jog": self.jog, "set_analyzer": self.set_analyzer,
+            "jog": self.jog, "home": self.home, "set_analyzer": self.set_analyzer,
             "set_exposure": self.set_exposure, "patterns": self.patterns,
             "project": self.project, "snap": self.snap, "decode": self.decode,
             "scan": self.scan, "pause": self.pause, "resume": self.resume,

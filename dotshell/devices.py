@@ -312,8 +312,11 @@ def _is_property(protocol: type, name: str) -> bool:
 
 def missing_members(obj: Any, protocol: type) -> list[str]:
     """The members of ``protocol`` that ``obj`` lacks, found on its class (or set on the
-    instance), without calling any property. A proxy class with ``__getattr__`` is asked for
-    the protocol's methods (never its properties) by name."""
+    instance), without calling any property. A rig's device handle is looked through to the
+    driver behind it; another proxy class with ``__getattr__`` is asked for the protocol's
+    methods (never its properties) by name."""
+    if getattr(type(obj), "_wraps_device", False):
+        obj = vars(obj)["_device"]
     cls = type(obj)
     inst = getattr(obj, "__dict__", {})
     proxy = any("__getattr__" in vars(k) for k in cls.__mro__ if k is not object)

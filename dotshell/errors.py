@@ -45,6 +45,16 @@ class DeviceTimeout(DeviceError):
     """A device did not answer within its timeout; recoverable like any DeviceError."""
 
 
+class DeviceStopped(DeviceError):
+    """A device call ended because :meth:`dotshell.rig.Rig.stop` stopped the device (abort,
+    Ctrl-C, SIGTERM, SIGHUP). Never retried; the runner ends the scan as ``aborted``."""
+
+
 class PluginFault(DotshellError):
     """Plugin code raised something other than a :class:`DotshellError`; the message names the
     plugin, role, backend and what was being done."""
+
+
+class FrameError(DotshellError):
+    """A frame (from the camera or from a run's files) is not what the run's frames are: its
+    size, dtype, bit depth or channels differ (see :mod:`dotshell.framecheck`)."""

@@ -10,6 +10,8 @@ import time
 from dataclasses import asdict, dataclass, field
 from typing import Any, Callable
 
+from dotshell.errors import DotshellError
+
 
 @dataclass(frozen=True)
 class Event:
@@ -118,8 +120,9 @@ class EventBus:
             except Exception as exc:
                 if isinstance(event, Message) and event.level == "warning":
                     continue  # avoid loops
-                self.emit(Message(level="warning",
-                                  text=f"event subscriber {fn!r} failed: {type(exc).__name__}: {exc}"))
+                text = str(exc) if isinstance(exc, DotshellError) else (
+                    f"event subscriber {fn!r} failed: {type(exc).__name__}: {exc}")
+                self.emit(Message(level="warning", text=text))
 
     def info(self, text: str) -> None:
         self.emit(Message(level="info", text=text))

@@ -18,6 +18,7 @@ Both raise :class:`MeshError` (a :class:`~dotshell.errors.DotshellError`) on bad
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any, Protocol
 
 import numpy as np
@@ -54,8 +55,9 @@ class TetMesh:
         self.nodes = np.asarray(self.nodes, np.float64).reshape(-1, 3)
         self.tets = np.asarray(self.tets, np.int64).reshape(-1, 4)
 
-    @property
+    @cached_property
     def boundary_faces(self) -> np.ndarray:
+        """Outward faces used by one tetrahedron (computed once: ``tets`` is not changed)."""
         return boundary_faces(self.tets)
 
     @property
@@ -151,7 +153,12 @@ def boundary_faces(tets: np.ndarray) -> np.ndarray:
     # faces opposite to node 3, 2, 1, 0, each ordered to face outward of a positive tet
     faces = tets[:, [0, 2, 1, 0, 1, 3, 1, 2, 3, 0, 3, 2]].reshape(-1, 3)
     key = np.sort(faces, axis=1)
-    _, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    n = int(key.max()) + 1 if len(key) else 0
+    if n < 1 << 21:  # one int64 per face: a 1-D unique, ~100x faster than unique(axis=0)
+        key = (key[:, 0] * n + key[:, 1]) * n + key[:, 2]
+        _, inv, count = np.unique(key, return_inverse=True, return_counts=True)
+    else:
+        _, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     return faces[count[inv.ravel()] == 1]
 
 
@@ -219,9 +226,14 @@ def element_containing(mesh: TetMesh, point_mm: np.ndarray) -> tuple[int, np.nda
     Raises:
         MeshError: the point is outside the mesh.
     """
-    p = mesh.nodes[mesh.tets]
+    point = np.asarray(point_mm, float).reshape(3)
+    a, b, c, d = (mesh.nodes[mesh.tets[:, i]] for i in range(4))
+    lo = np.minimum(np.minimum(a, b), np.minimum(c, d))
+    hi = np.maximum(np.maximum(a, b), np.maximum(c, d))
+    near = np.flatnonzero(((lo <= point + 1e-6) & (hi >= point - 1e-6)).all(axis=1))
+    p = mesh.nodes[mesh.tets[near]]  # the tetrahedra whose bounding box holds the point
     T = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=2)
-    rhs = np.asarray(point_mm, float)[None, :] - p[:, 0]
+    rhs = point[None, :] - p[:, 0]
     ok = np.abs(np.linalg.det(T)) > 1e-12
     lam = np.full((len(p), 3), -1.0)
     lam[ok] = np.linalg.solve(T[ok], rhs[ok][..., None])[..., 0]
@@ -231,4 +243,4 @@ def element_containing(mesh: TetMesh, point_mm: np.ndarray) -> tuple[int, np.nda
         raise MeshError(f"point {np.round(point_mm, 3).tolist()} mm is outside the mesh; give a "
                         "source position inside the volume (sample frame, mm).")
     k = int(inside[0])
-    return k, w[k]
+    return int(near[k]), w[k]

@@ -12,9 +12,10 @@ Exporters and the forward solver read these; they never re-run a mesher.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +23,7 @@ import numpy as np
 
 from dotshell.errors import RunError
 from dotshell.fem import TetMesh, TriangleSurface
-from dotshell.store import atomic_write_text
+from dotshell.store import atomic_write_text, temp_beside
 
 OPTICS = ("mua_per_mm", "musp_per_mm", "refractive_index")
 
@@ -32,7 +33,7 @@ def _atomic_meshio(path: Path, mesh, file_format: str, **kwargs) -> Path:
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = temp_beside(path)  # the umask decides its permissions
     os.close(fd)
     try:
         meshio.write(tmp, mesh, file_format=file_format, **kwargs)
@@ -51,11 +52,25 @@ def _read_meshio(path: Path, what: str):
     if not path.is_file():
         raise RunError(f"{path} is missing: {what}. Run `dotshell mesh RUN` first (or set "
                        "[mesh] after_scan = true in the profile).")
-    try:
-        return meshio.read(path)
-    except Exception as exc:  # meshio raises many types for a damaged file
-        raise RunError(f"{path} cannot be read ({type(exc).__name__}: {exc}); re-run "
-                       "`dotshell mesh RUN`.") from None
+    if path.suffix.lower() == ".ply" and not _whole_ply_header(path):
+        raise RunError(f"{path} cannot be read (no complete PLY header: 'ply' ... "
+                       "'end_header'); re-run `dotshell mesh RUN`.")
+    said = io.StringIO()
+    try:  # meshio prints its reasons and calls sys.exit(1) for some damaged files
+        with contextlib.redirect_stdout(said), contextlib.redirect_stderr(said):
+            return meshio.read(path)
+    except (Exception, SystemExit) as exc:  # many types for a damaged file
+        why = " ".join(said.getvalue().split()) or f"{type(exc).__name__}: {exc}"
+        raise RunError(f"{path} cannot be read ({why}); re-run `dotshell mesh RUN`.") from None
+
+
+def _whole_ply_header(path: Path) -> bool:
+    """A 'ply' line and an 'end_header' line: meshio's PLY reader loops for ever at the end of
+    a file whose header never ends."""
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    lines = [ln.strip() for ln in head.split(b"\n")]
+    return bool(lines) and lines[0] == b"ply" and b"end_header" in lines
 
 
 def write_surface(path: Path, surface: TriangleSurface) -> Path:
@@ -65,11 +80,25 @@ def write_surface(path: Path, surface: TriangleSurface) -> Path:
     return _atomic_meshio(path, mesh, "ply", binary=True)
 
 
+def _check_cells(path: Path, points: np.ndarray, cells: np.ndarray | None, kind: str,
+                 corners: int) -> None:
+    """Finite 3-D points and ``kind`` cells of ``corners`` valid point indices, or RunError."""
+    why = ""
+    if cells is None or len(cells) == 0:
+        why = f"it holds no {kind}"
+    elif points.ndim != 2 or points.shape[1] != 3 or not np.isfinite(points).all():
+        why = "its points are not finite 3-D coordinates"
+    elif cells.ndim != 2 or cells.shape[1] != corners or cells.min() < 0 or \
+            cells.max() >= len(points):
+        why = f"its {kind} refer to points that do not exist"
+    if why:
+        raise RunError(f"{path} is damaged: {why}; re-run `dotshell mesh RUN`.")
+
+
 def read_surface(path: Path) -> TriangleSurface:
     m = _read_meshio(path, "the closed surface")
     tri = m.cells_dict.get("triangle")
-    if tri is None:
-        raise RunError(f"{path} holds no triangles.")
+    _check_cells(Path(path), np.asarray(m.points), tri, "triangles", 3)
     return TriangleSurface(m.points, tri)
 
 
@@ -86,9 +115,13 @@ def write_volume(path: Path, mesh: TetMesh) -> Path:
 def read_volume(path: Path) -> TetMesh:
     m = _read_meshio(path, "the tetrahedral volume mesh")
     tets = m.cells_dict.get("tetra")
-    if tets is None:
-        raise RunError(f"{path} holds no tetrahedra.")
+    _check_cells(Path(path), np.asarray(m.points), tets, "tetrahedra", 4)
     pd = {k: np.asarray(v) for k, v in m.point_data.items() if k != "boundary"}
+    bad = [k for k, v in pd.items() if len(v) != len(m.points)
+           or (np.issubdtype(v.dtype, np.number) and not np.isfinite(v).all())]
+    if bad:
+        raise RunError(f"{path} is damaged: its node data {bad} do not give one finite value "
+                       "per node; re-run `dotshell mesh RUN`.")
     return TetMesh(m.points, tets, pd)
 
 
@@ -156,6 +189,15 @@ def read_optodes(path: Path) -> Optodes:
         return Optodes()
     try:
         d = json.loads(path.read_text())
-        return Optodes(d["sources_mm"], d["detectors_mm"], d["links"])
-    except (json.JSONDecodeError, KeyError, ValueError) as exc:
-        raise RunError(f"{path} is not a valid optodes file ({exc}).") from None
+        o = Optodes(d["sources_mm"], d["detectors_mm"], d["links"])
+    except (ValueError, KeyError, TypeError, IndexError) as exc:  # JSON and shape errors
+        raise RunError(f"{path} is not a valid optodes file ({type(exc).__name__}: {exc}); "
+                       "make it again with `dotshell mesh RUN`.") from None
+    n_s, n_d = len(o.sources_mm), len(o.detectors_mm)
+    if not (np.isfinite(o.sources_mm).all() and np.isfinite(o.detectors_mm).all()) or (
+            len(o.links) and ((o.links < 0).any() or (o.links[:, 0] >= n_s).any()
+                              or (o.links[:, 1] >= n_d).any())):
+        raise RunError(f"{path} is not a valid optodes file (non-finite positions or links to "
+                       f"optodes that do not exist: {n_s} sources, {n_d} detectors); make it "
+                       "again with `dotshell mesh RUN`.")
+    return o

@@ -190,12 +190,13 @@ class PluginManager:
         info = self.backend(role, name, where)
         clean = validate_settings(info.backend.settings_schema, settings, where, f"{role}.settings")
         try:
-            return info.backend.factory(settings=clean, context=context)
-        except DotshellError:
+            obj = info.backend.factory(settings=clean, context=context)
+        except (DotshellError, MemoryError):
             raise
         except Exception as exc:  # plugin code: name it, never a traceback
             raise PluginFault(plugin_fault(info, "creating the device" if role in DEVICE_ROLES
                                            else f"creating the {role}", exc)) from exc
+        return obj if role in DEVICE_ROLES else PluginObject(obj, info)
 
     # ---- workflow hooks ---------------------------------------------------------------------
 
@@ -236,6 +237,39 @@ def _schema_ok(schema: Any) -> bool:
 def _describe(value: Any) -> str:
     text = repr(value)
     return text if len(text) <= 80 else text[:77] + "..."
+
+
+class PluginObject:
+    """A coding, mesher, normalizer or exporter as the pipeline uses it: every method call
+    that raises something other than a :class:`DotshellError` (or ``MemoryError``) becomes a
+    :class:`PluginFault` naming the plugin, role, backend and method. (Devices get the same
+    from the rig.) Attributes and ``isinstance`` checks against protocols pass through."""
+
+    def __init__(self, obj: Any, info: BackendInfo) -> None:
+        object.__setattr__(self, "_obj", obj)
+        object.__setattr__(self, "_info", info)
+
+    def __getattr__(self, name: str) -> Any:
+        value = getattr(self._obj, name)
+        if not callable(value):
+            return value
+        info = self._info
+
+        def call(*args: Any, **kwargs: Any) -> Any:
+            try:
+                return value(*args, **kwargs)
+            except (DotshellError, MemoryError):
+                raise
+            except Exception as exc:  # plugin code: name it, never a traceback
+                raise PluginFault(plugin_fault(info, f"{name}()", exc)) from exc
+
+        return call
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        setattr(self._obj, name, value)
+
+    def __repr__(self) -> str:
+        return repr(self._obj)
 
 
 def plugin_fault(info: BackendInfo, doing: str, exc: BaseException) -> str:

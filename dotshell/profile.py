@@ -17,6 +17,7 @@ from typing import Any
 
 from dotshell.calibration.schema import CALIBRATE_SCHEMA
 from dotshell.errors import ProfileError
+from dotshell.handles import TIMEOUT_DEFAULTS_S
 from dotshell.mesh_schema import MESH_SCHEMA
 from dotshell.plugins import PluginManager
 from dotshell.settings import REQUIRED, Setting, validate_settings
@@ -33,16 +34,41 @@ def _role(required: bool) -> Setting:
     }, help="backend filling this role")
 
 
+def _device_role(required: bool, homing: bool = False) -> Setting:
+    """A device role's section: the backend, its settings, and how the rig treats the device."""
+    schema = {
+        "backend": Setting("str", help="name of the backend (see `dotshell plugins`)"),
+        "settings": Setting("table", default={}, help="the backend's own settings"),
+        "timeouts": Setting("table", default={}, help="seconds each device call may take before "
+                            "it fails with a DeviceTimeout (docs/devices.md)", schema={
+            name: Setting("float", None, f"{name}() (default {s:g} s)" if name != "other" else
+                          f"any other call (default {s:g} s)", "s", min=0.001)
+            for name, s in TIMEOUT_DEFAULTS_S.items()}),
+        "reconnect": Setting("bool", default=True, help="reopen the device once when it is "
+                             "lost (unplugged, powered off) before the step fails"),
+        "reconnect_wait_s": Setting("float", default=10.0, min=0.0, unit="s",
+                                    help="how long to keep trying to reopen a lost device"),
+    }
+    if homing:
+        schema["home"] = Setting("str", default="never", choices=HOME_CHOICES,
+                                 help="when to find the reference position: never, on_connect "
+                                      "(every connect and reconnect) or before_scan")
+    return Setting("table", default=REQUIRED if required else None, schema=schema,
+                   help="backend filling this role")
+
+
+HOME_CHOICES = ("never", "on_connect", "before_scan")
+
 SCHEMA: dict[str, Setting] = {
     "profile": Setting("table", schema={
         "name": Setting("str", help="short name, used in run directory names"),
         "description": Setting("str", default="", help="one line for humans"),
     }),
-    "camera": _role(True),
-    "projector": _role(True),
-    "stage": _role(True),
-    "analyzer": _role(False),
-    "light_source": _role(False),
+    "camera": _device_role(True),
+    "projector": _device_role(True),
+    "stage": _device_role(True, homing=True),
+    "analyzer": _device_role(False, homing=True),
+    "light_source": _device_role(False),
     "coding": _role(True),
     "surface_mesher": _role(False),
     "volume_mesher": _role(False),
@@ -81,15 +107,15 @@ SCHEMA: dict[str, Setting] = {
             "z_max_mm": Setting("float", default=200.0, unit="mm", help="drop points above"),
         }, default={}),
         "row_tolerance_px": Setting("float", default=1.5, min=0.1, unit="px",
-                                    help="max |decoded − predicted| projector row "
-                                         "(column+row codings)"),
+                                    help="max reprojection error of a point from the "
+                                         "decoded column and row (column+row codings)"),
         "max_depth_jump_mm": Setting("float", default=0.5, min=0.0, unit="mm",
                                      help="speckle filter: drop points whose depth differs from "
                                           "the median of their 5x5 camera neighbourhood by more "
                                           "(0 = off)"),
         "min_ray_angle_deg": Setting("float", default=5.0, min=0.0, max=89.0, unit="deg",
-                                     help="drop points whose camera ray meets the column plane "
-                                          "more grazing than this"),
+                                     help="drop points whose camera ray meets the projector "
+                                          "ray (columns only: the column plane) at less"),
     }, default={}),
     "validation": Setting("table", schema={
         "shape": Setting("str", default="none", choices=("none", "cylinder"),
@@ -238,6 +264,9 @@ def load_profile(path: str | Path, pm: PluginManager, overrides: list[str] | Non
         PluginError: a backend name no installed plugin provides.
     """
     path = Path(path)
+    if path.is_dir():
+        raise ProfileError(f"profile {path} is a directory; give a profile TOML file in it, "
+                           f"e.g. one of {sorted(p.name for p in path.glob('*.toml')) or 'none'}.")
     if not path.is_file():
         near = sorted(p.name for p in path.parent.glob("*.toml")) if path.parent.is_dir() else []
         hint = f" Profiles in {path.parent}: {', '.join(near)}." if near else ""

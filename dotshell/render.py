@@ -15,11 +15,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from dotshell.store import FILE_MODE, atomic_write_bytes
+from dotshell.store import atomic_write_bytes
 
 
 #: points drawn in a cloud preview (a fixed-seed random subset of larger clouds)
-PREVIEW_POINTS = 1_000_000
+PREVIEW_POINTS = 300_000  # fills a 900 px image; VTK holds ~250 bytes a point (1 M: +180 MB)
 
 
 def _write_png(path: Path, image: np.ndarray) -> Path:
@@ -96,8 +96,7 @@ def screenshot(plotter, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}-{threading.get_ident()}.tmp.png")
     try:
-        plotter.screenshot(str(tmp))
-        os.chmod(tmp, FILE_MODE)
+        plotter.screenshot(str(tmp))  # created as any file: the umask decides its mode
         os.replace(tmp, path)
     finally:
         if tmp.exists():

@@ -146,9 +146,18 @@ def validate_settings(schema: Mapping[str, Setting], data: Mapping[str, Any] | N
 
 
 def describe(schema: Mapping[str, Setting]) -> list[tuple[str, str, str, str]]:
-    """Rows of (key, kind, default, help) for docs and ``dotshell plugins --settings``."""
+    """Rows of (key, kind, default, help) for docs and ``dotshell plugins --settings``: the
+    kind with its unit and limits (``float [deg] 0..360``), the help with the choices."""
     rows = []
     for name, s in schema.items():
         default = "(required)" if s.required else repr(s.default)
-        rows.append((name, s.kind + (f" [{s.unit}]" if s.unit else ""), default, s.help))
+        kind = s.kind + (f" [{s.unit}]" if s.unit else "")
+        if s.min is not None and s.max is not None:
+            kind += f" {s.min:g}..{s.max:g}"
+        elif s.min is not None or s.max is not None:
+            kind += f" ≥ {s.min:g}" if s.min is not None else f" ≤ {s.max:g}"
+        text = s.help
+        if s.choices is not None:
+            text += f" (choices: {', '.join(map(str, s.choices))})"
+        rows.append((name, kind, default, text))
     return rows

@@ -1,22 +1,24 @@
 """RunStore: one scan's run directory. Every file is written to a temporary name and renamed
-(atomic on POSIX), frames are written losslessly (PNG, 8 or 16 bit) as they arrive, and
-``events.jsonl`` is appended and flushed per event — a crash loses nothing already written.
+(atomic on POSIX), frames are written losslessly (:mod:`dotshell.frames`, 8 or 16 bit) as they
+arrive, and ``events.jsonl`` is appended and flushed per event — a crash loses nothing already
+written.
 
 Layout (see ``docs/run-directory.md``)::
 
     <run>/profile.toml  calibration.json  manifest.json  events.jsonl  report.json
-    <run>/frames/view_000/000_white.png ...
+    <run>/frames/view_000.tif ...   (runs before frame_format "tiff-stack/1": view_000/*.png)
     <run>/views/view_000.ply   <run>/cloud.ply   <run>/previews/*.png
 """
 
 from __future__ import annotations
 
+import errno
 import json
+import math
 import os
 import platform
 import re
-import tempfile
-
+import secrets
 from datetime import datetime
 from pathlib import Path
 from typing import Any
@@ -26,37 +28,51 @@ import numpy as np
 import tomli_w
 
 from dotshell.errors import RunError
+from dotshell.framecheck import FrameSpec
+from dotshell.frames import CURRENT_FORMAT, FrameStore, check_image, open_frames
 
 RUN_FORMAT = "dotshell-run/1"
 
 
-def _process_umask() -> int:
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-#: Mode of the files dotshell writes: what the user's umask allows (lab groups can read runs);
-#: ``mkstemp`` alone would make every file 0600.
-FILE_MODE = 0o666 & ~_process_umask()
 TMP_SUFFIX = ".tmp"
+#: A run's reserve: space held back so the manifest can still be written when the disk fills
+#: up (deleted by the first manifest write that meets a full disk, and at the end of each job).
+RESERVE = ".reserve"
+RESERVE_BYTES = 256 * 1024
+FULL = (errno.ENOSPC, errno.EDQUOT)
+
+
+def temp_beside(path: Path) -> tuple[int, Path]:
+    """A new, empty temporary file ``.NAME.XXXXXXXX.tmp`` beside ``path``, open for writing.
+    Created with mode 0666 so the process's umask decides its permissions, as for any file the
+    user makes (``mkstemp`` would make every file 0600: a lab group could not read runs)."""
+    path = Path(path)
+    for _ in range(100):
+        tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}{TMP_SUFFIX}")
+        try:
+            return os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o666), tmp
+        except FileExistsError:
+            continue
+    raise FileExistsError(errno.EEXIST, "no free temporary name", str(path))
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same directory and a rename."""
+    """Write ``data`` to ``path`` via a temporary file in the same directory and a rename. A
+    failure names ``path`` (not the temporary file) and leaves ``path`` as it was."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=TMP_SUFFIX)
+    fd, tmp = temp_beside(path)
     try:
-        os.fchmod(fd, FILE_MODE)
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.errno is not None:
+            raise OSError(exc.errno, exc.strerror, str(path)) from None
         raise
 
 
@@ -98,10 +114,15 @@ _MANIFEST_KEYS = {"status": str, "frame_names": list, "views": list}
 _VIEW_KEYS = {"index": int, "angle_deg": (int, float), "frames": int, "complete": bool}
 
 
+def _number(v: Any, integer: bool = False) -> bool:
+    """A finite number (an int when ``integer``), not a bool."""
+    kinds = int if integer else (int, float)
+    return isinstance(v, kinds) and not isinstance(v, bool) and math.isfinite(v)
+
+
 def check_manifest(m: Any, path: Path) -> dict[str, Any]:
-    """``m`` if it has the keys and types every command relies on; a :class:`RunError` naming
-    the first problem otherwise."""
-    import math
+    """``m`` if it has the keys, types and counts every command relies on; a
+    :class:`RunError` naming the first problem otherwise."""
 
     def bad(what: str) -> RunError:
         return RunError(f"{path} is damaged: {what}. It is written by dotshell only; restore it "
@@ -112,6 +133,9 @@ def check_manifest(m: Any, path: Path) -> dict[str, Any]:
     for key, kind in _MANIFEST_KEYS.items():
         if not isinstance(m.get(key), kind):
             raise bad(f"'{key}' is missing or not a {kind.__name__}")
+    if not all(isinstance(n, str) and n for n in m["frame_names"]):
+        raise bad("frame_names must be non-empty strings")
+    n_names = len(m["frame_names"])
     for i, v in enumerate(m["views"]):
         if not isinstance(v, dict):
             raise bad(f"views[{i}] is not an object")
@@ -121,9 +145,74 @@ def check_manifest(m: Any, path: Path) -> dict[str, Any]:
                 raise bad(f"views[{i}].{key} is missing or of the wrong type")
         if not math.isfinite(v["angle_deg"]) or v["index"] != i:
             raise bad(f"views[{i}] has index {v['index']} / angle {v['angle_deg']}")
-    if not all(isinstance(n, str) and n for n in m["frame_names"]):
-        raise bad("frame_names must be non-empty strings")
+        if "angle_read_deg" in v and not _number(v["angle_read_deg"]):
+            raise bad(f"views[{i}].angle_read_deg = {v['angle_read_deg']!r} is not a finite "
+                      "number of degrees")
+        if not 0 <= v["frames"] <= n_names or (v["complete"] and v["frames"] != n_names):
+            raise bad(f"views[{i}] counts {v['frames']} frames "
+                      f"({'complete' if v['complete'] else 'incomplete'}) of a sequence of "
+                      f"{n_names}")
+    if "shots" in m:
+        _check_shots(m["shots"], m["frame_names"], bad)
+    _check_camera_entry(m.get("camera"), bad)
+    _check_trans_entry(m.get("transillumination"), bad)
     return m
+
+
+def _check_shots(shots: Any, names: list[str], bad) -> None:
+    """``shots``: per frame of the sequence, its ``name``, ``pattern`` index and analyzer angle
+    (degrees or null); every pattern shot once, or twice (PDI)."""
+    if not isinstance(shots, list) or len(shots) != len(names):
+        raise bad(f"'shots' must list the {len(names)} frames of frame_names")
+    for i, (shot, name) in enumerate(zip(shots, names)):
+        if not (isinstance(shot, dict) and shot.get("name") == name
+                and _number(shot.get("pattern"), True) and 0 <= shot["pattern"] < len(names)
+                and "analyzer_deg" in shot
+                and (shot["analyzer_deg"] is None or _number(shot["analyzer_deg"]))):
+            raise bad(f"shots[{i}] is not {{name: {name!r}, pattern: N, analyzer_deg: degrees "
+                      "or null}")
+    counts = [0] * (max(s["pattern"] for s in shots) + 1) if shots else []
+    for s in shots:
+        counts[s["pattern"]] += 1
+    if any(c not in (1, 2) for c in counts):
+        raise bad("'shots' must take every pattern once (or twice, with PDI)")
+
+
+def _check_camera_entry(cam: Any, bad) -> None:
+    """``camera``: what the run's frames are (``width``, ``height`` px, ``bit_depth``)."""
+    if cam is None:
+        return
+    if not isinstance(cam, dict):
+        raise bad("'camera' is not an object")
+    for key in ("width", "height"):
+        if not (_number(cam.get(key), True) and cam[key] > 0):
+            raise bad(f"camera.{key} = {cam.get(key)!r} is not a positive integer")
+    if not (_number(cam.get("bit_depth"), True) and 1 <= cam["bit_depth"] <= 16):
+        raise bad(f"camera.bit_depth = {cam.get('bit_depth')!r} is not 1..16")
+
+
+def _check_trans_entry(t: Any, bad) -> None:
+    if t is None:
+        return
+    if not isinstance(t, dict):
+        raise bad("'transillumination' is not an object")
+    if not (_number(t.get("exposure_ms")) and t["exposure_ms"] > 0):
+        raise bad(f"transillumination.exposure_ms = {t.get('exposure_ms')!r} is not a positive "
+                  "number of ms")
+    if not (_number(t.get("camera_bit_depth"), True) and 1 <= t["camera_bit_depth"] <= 16):
+        raise bad(f"transillumination.camera_bit_depth = {t.get('camera_bit_depth')!r} is not "
+                  "1..16")
+    targets, views = t.get("targets_mm"), t.get("views")
+    if not isinstance(targets, list) or not targets or not all(
+            x is None or (isinstance(x, list) and len(x) == 2 and all(map(_number, x)))
+            for x in targets):
+        raise bad("transillumination.targets_mm must be a list of [lateral, height] mm or null")
+    if not isinstance(views, dict) or not all(
+            isinstance(k, str) and k.isdigit() and isinstance(v, list)
+            and all(isinstance(n, str) and n for n in v) for k, v in views.items()):
+        raise bad("transillumination.views must map view numbers to lists of frame names")
+    if t.get("flat_field") is not None and not isinstance(t["flat_field"], str):
+        raise bad("transillumination.flat_field must be a path in the run or null")
 
 
 class RunStore:
@@ -131,7 +220,8 @@ class RunStore:
 
     def __init__(self, root: Path) -> None:
         self.root = Path(root)
-        self._events = None
+        self._events: Any = None  # the open log; False once it cannot be written
+        self._reserve_used = False
 
     # ---- creation ---------------------------------------------------------------------------
 
@@ -184,9 +274,39 @@ class RunStore:
         return gone
 
     def write_json(self, name: str, obj: Any) -> Path:
+        """Write a JSON file of the run atomically. On a full disk the run's reserve is given
+        up once so the manifest can still say what is true (frames counted, the failure)."""
         p = self.path(name)
-        atomic_write_text(p, dumps(obj))
+        text = dumps(obj)
+        try:
+            atomic_write_text(p, text)
+        except OSError as exc:
+            if exc.errno not in FULL or not self.release_reserve():
+                raise
+            atomic_write_text(p, text)
         return p
+
+    def reserve_space(self) -> None:
+        """Hold :data:`RESERVE_BYTES` back in the run (see :data:`RESERVE`); a disk already too
+        full for it is met later, by the writes themselves."""
+        p = self.path(RESERVE)
+        if p.is_file():
+            return
+        try:
+            atomic_write_bytes(p, bytes(RESERVE_BYTES))
+        except OSError as exc:
+            if exc.errno not in (*FULL, errno.EFBIG):  # no room (or a size limit): go without
+                raise
+
+    def release_reserve(self) -> bool:
+        """Give the reserve back to the file system; whether there was one. From then on this
+        store writes no more images (:meth:`write_image`): the space is the manifest's."""
+        try:
+            os.unlink(self.path(RESERVE))
+        except FileNotFoundError:
+            return False
+        self._reserve_used = True
+        return True
 
     def read_json(self, name: str) -> Any:
         p = self.path(name)
@@ -194,8 +314,9 @@ class RunStore:
             return json.loads(p.read_text())
         except FileNotFoundError:
             raise RunError(f"{p} is missing from the run.") from None
-        except json.JSONDecodeError as exc:
-            raise RunError(f"{p} is not valid JSON ({exc}).") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise RunError(f"{p} is not valid JSON ({exc}); it is written by dotshell only: "
+                           "restore it from a backup.") from None
 
     def write_profile(self, data: dict[str, Any]) -> Path:
         p = self.path("profile.toml")
@@ -212,6 +333,7 @@ class RunStore:
             "created": datetime.now().isoformat(timespec="seconds"),
             "status": "running",
             "versions": versions(),
+            "frame_format": CURRENT_FORMAT,
             "frame_names": frame_names,
             "views": [{"index": i, "angle_deg": a, "frames": 0, "complete": False}
                       for i, a in enumerate(angles_deg)],
@@ -251,20 +373,22 @@ class RunStore:
 
     # ---- frames -----------------------------------------------------------------------------
 
-    def frame_path(self, view: int, index: int, name: str) -> Path:
-        return self.path("frames", f"view_{view:03d}", f"{index:03d}_{name}.png")
+    def frames(self, view: int) -> FrameStore:
+        """The stored frames of a view (to read, or to append to as they arrive)."""
+        return open_frames(self.run_root, view, self.manifest)
 
-    def write_frame(self, view: int, index: int, name: str, image: np.ndarray) -> Path:
-        """Write one captured frame losslessly (PNG; uint8 or uint16)."""
-        return self.write_image(self.frame_path(view, index, name), image,
-                                f"frame {name} of view {view}")
+    def check_room(self, path: Path) -> None:
+        """Raise ``OSError(ENOSPC)`` for ``path`` once the run's reserve was used: the space
+        left is the manifest's, no more images are written."""
+        if self._reserve_used:
+            raise OSError(errno.ENOSPC, "No space left on device (the run's reserve was used "
+                          "to record the run's state)", str(path))
 
     def write_image(self, path: Path, image: np.ndarray, label: str) -> Path:
         """Write a captured image losslessly (PNG; 2-D uint8 or uint16) at ``path`` inside the
         run; ``label`` names it in errors."""
-        if image.dtype not in (np.uint8, np.uint16) or image.ndim != 2:
-            raise RunError(f"{label} is {image.dtype} {image.shape}; cameras must return 2-D "
-                           "uint8 or uint16 images.")
+        check_image(image, label)
+        self.check_room(path)
         ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, 1])
         if not ok:
             raise RunError(f"could not encode {label} as PNG.")
@@ -275,7 +399,8 @@ class RunStore:
         """A stored image as written; ``why`` says what cannot be done without it."""
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if img is None:
-            raise RunError(f"{path} is missing or unreadable; {why}.")
+            raise RunError(f"{path} is missing or unreadable; {why}. Restore it from a backup "
+                           "of the run.")
         return img
 
     def trans_path(self, name: str, view: int | None = None) -> Path:
@@ -285,31 +410,59 @@ class RunStore:
             return self.path("transillumination", f"{name}.png")
         return self.path("transillumination", f"view_{view:03d}", f"{name}.png")
 
-    def read_frames(self, view: int) -> list[np.ndarray]:
-        """All frames of a view in capture order, as written."""
-        names = self.manifest["frame_names"]
-        return [self.read_image(self.frame_path(view, i, name),
-                                f"view {view} cannot be reconstructed")
-                for i, name in enumerate(names)]
+    def read_frames(self, view: int, spec: FrameSpec | None = None,
+                    fix: str = "") -> np.ndarray:
+        """All frames of a view in capture order, as written: (frames, height, width); with a
+        ``spec``, each checked against it (see :meth:`FrameStore.read_all`)."""
+        return self.frames(view).read_all(spec, fix)
 
     # ---- events -----------------------------------------------------------------------------
 
     def append_event(self, record: dict[str, Any]) -> None:
-        """Append one JSON line to ``events.jsonl`` and flush it."""
-        if self._events is None:
-            self._events = open(self.path("events.jsonl"), "a", encoding="utf-8")
-        self._events.write(json.dumps(record, default=_json_default) + "\n")
-        self._events.flush()
+        """Append one JSON line to ``events.jsonl`` and flush it. A line cut short by a writer
+        that was killed is ended first, so it never swallows the next event. Once the log
+        cannot be written (a full disk), events are dropped after one error saying so."""
+        if self._events is False:
+            return
+        try:
+            if self._events is None:
+                self._events = open(self.path("events.jsonl"), "a+b")
+                if self._events.tell() > 0:
+                    self._events.seek(-1, os.SEEK_END)
+                    if self._events.read(1) != b"\n":
+                        self._events.write(b"\n")
+            line = json.dumps(record, default=_json_default) + "\n"
+            self._events.write(line.encode("utf-8"))
+            self._events.flush()
+        except OSError as exc:
+            self.close()
+            self._events = False
+            raise RunError(f"{self.path('events.jsonl')} cannot be appended ({exc.strerror}); "
+                           "the run's event log misses the events from here on (the manifest "
+                           "and frames are still written).") from None
 
     def close(self) -> None:
-        if self._events is not None:
-            self._events.close()
-            self._events = None
+        if self._events:
+            try:
+                self._events.close()
+            except OSError:
+                pass
+        self._events = None
 
     def events(self) -> list[dict[str, Any]]:
+        """The event log's records; a line that is not a JSON object (cut short by a killed
+        writer, or damaged) is skipped."""
         p = self.path("events.jsonl")
         if not p.is_file():
             return []
-        return [json.loads(line) for line in p.read_text().splitlines() if line.strip()]
+        out = []
+        for line in p.read_bytes().splitlines():
+            try:
+                record = json.loads(line)
+            except ValueError:  # UnicodeDecodeError included
+                continue
+            if isinstance(record, dict):
+                out.append(record)
+        return out
 
 

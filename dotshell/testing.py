@@ -1,24 +1,347 @@
 """pytest helpers for plugin authors, registered as a pytest11 plugin (available in any test
-suite once dotshell is installed).
+suite once dotshell is installed): the device conformance kit and a serial-emulator fixture.
 
 Fixtures:
     dotshell_pm: a fresh :class:`~dotshell.plugins.PluginManager` with all installed entry
         points loaded (load errors in ``dotshell_pm.load_errors``).
+    serial_emulator: ``serial_emulator("grbl", **options)`` starts that emulator (from the
+        ``dotshell_emulators`` entry-point group) on a real pseudo-terminal behind a stable link
+        in the test's temporary directory and stops it after the test; ``emu.port`` is what the
+        driver's ``port`` setting names.
 
 Functions:
-    assert_backend_conforms(pm, role, name, settings=None): validate ``settings`` against the
-        backend's schema, build it, and check that it satisfies the role's protocol.
+    assert_device_conforms(pm, role, name, settings, ...): the behavioural checks of
+        :func:`check_device` (one line in a driver's test suite); fails naming every broken rule.
+    assert_backend_conforms(pm, role, name, settings=None): the same for device roles; codings
+        and exporters get their interface checked.
+
+Rules (names appear in failures; docs/devices.md explains each):
+    ``protocol-members``, ``properties-hardware-free``, ``status-cheap``, ``connect-close-twice``,
+    ``call-before-connect``, ``failed-connect``, ``close-after-failed-connect``,
+    ``raises-device-errors``, ``capture-shape``, ``capture-dtype``, ``capture-bit-depth``,
+    ``show-pattern``, ``show-rejects-bad-pattern``, ``move-reaches-angle``, ``rejects-bad-angle``,
+    ``set-angle``, ``set-on-off``, ``stop-when-idle``, ``stop-returns-fast``,
+    ``stop-interrupts-move``, ``home``, ``read-angle``, ``identity``, ``frame-info``,
+    ``set-exposure``.
 """
 
 from __future__ import annotations
 
-from typing import Any
+import json
+import math
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator
 
+import numpy as np
 import pytest
 
+from dotshell import devices as dv
 from dotshell.backends import RigContext
 from dotshell.coding import PatternCoding
+from dotshell.errors import DeviceError, DotshellError
 from dotshell.plugins import PluginManager
+
+#: How long ``status()`` may take (seconds): front ends poll it about once a second.
+STATUS_BUDGET_S = 0.5
+#: How long ``stop()`` itself may take (seconds).
+STOP_RETURN_S = 0.2
+
+
+@dataclass(frozen=True)
+class RuleResult:
+    """One conformance rule checked on one backend."""
+
+    rule: str
+    passed: bool
+    detail: str = ""
+
+    def __str__(self) -> str:
+        return f"{'ok  ' if self.passed else 'FAIL'} {self.rule}" + (
+            f": {self.detail}" if self.detail else "")
+
+
+class _Checker:
+    def __init__(self, label: str) -> None:
+        self.label = label
+        self.results: list[RuleResult] = []
+
+    def rule(self, name: str, step: str, fn: Callable[[], Any], any_error: bool = False) -> Any:
+        """Run ``fn`` for rule ``name``; assertion failures fail the rule, exceptions other
+        than DotshellError fail ``raises-device-errors`` (``any_error``: fail ``name``, for
+        steps that must not raise at all)."""
+        try:
+            value = fn()
+        except AssertionError as exc:
+            self.results.append(RuleResult(name, False, str(exc) or step))
+            return None
+        except DotshellError as exc:
+            self.results.append(RuleResult(name, False, f"{step} raised {type(exc).__name__}: "
+                                                        f"{exc}"))
+            return None
+        except Exception as exc:
+            if any_error:
+                self.results.append(RuleResult(name, False, f"{step} raised "
+                                                            f"{type(exc).__name__}: {exc}"))
+                return None
+            self.results.append(RuleResult(
+                "raises-device-errors", False, f"{step} raised {type(exc).__name__}: {exc}; "
+                "drivers must raise dotshell.errors.DeviceError (with a fix) for device "
+                "failures"))
+            return None
+        self.results.append(RuleResult(name, True))
+        return value
+
+    def fail(self, name: str, detail: str) -> None:
+        self.results.append(RuleResult(name, False, detail))
+
+
+def _expect_device_error(step: str, fn: Callable[[], Any]) -> None:
+    try:
+        fn()
+    except DeviceError:
+        return
+    except DotshellError as exc:
+        raise AssertionError(f"{step} raised {type(exc).__name__}, not a DeviceError") from None
+    raise AssertionError(f"{step} did not raise DeviceError")
+
+
+def _timed_status(dev: Any, when: str) -> None:
+    t0 = time.perf_counter()
+    st = dev.status()
+    took = time.perf_counter() - t0
+    assert isinstance(st, dict), f"status() {when} returned {type(st).__name__}, not a dict"
+    try:
+        json.dumps(st)
+    except (TypeError, ValueError) as exc:
+        raise AssertionError(f"status() {when} is not JSON-serialisable ({exc})") from None
+    assert took <= STATUS_BUDGET_S, (f"status() {when} took {took:.2f} s (> {STATUS_BUDGET_S} s); "
+                                     "it must be cheap: report what the driver knows")
+
+
+def _properties(role: str) -> list[str]:
+    proto = dv.ROLE_PROTOCOLS[role]
+    return [n for k in proto.__mro__ for n, v in vars(k).items() if isinstance(v, property)]
+
+
+def check_device(pm: PluginManager, role: str, name: str, settings: dict[str, Any] | None = None,
+                 *, context: RigContext | None = None,
+                 failing_settings: dict[str, Any] | None = None, move_deg: float = 180.0,
+                 stop_within_s: float = 2.0, angle_tolerance_deg: float = 0.05) -> list[RuleResult]:
+    """Run the behavioural conformance rules on backend ``name`` of device ``role``.
+
+    Args:
+        settings: settings that reach a working device (e.g. an emulator's port).
+        context: the rig context to build in (e.g. one whose sim world has the peers a camera
+            needs); default a fresh one.
+        failing_settings: settings whose ``connect()`` must fail (e.g. a port that does not
+            exist), for ``failed-connect`` and ``close-after-failed-connect``.
+        move_deg: how far the stop test moves a stage or analyzer (degrees).
+        stop_within_s: how long a stopped move may take to return (seconds).
+        angle_tolerance_deg: how close ``position`` must come to a commanded angle.
+    """
+    ctx = context or RigContext()
+    c = _Checker(f"{role} backend {name!r}")
+    dev = pm.create(role, name, settings, ctx.for_device(role, name), "conformance")
+    missing = dv.missing_members(dev, dv.ROLE_PROTOCOLS[role])
+    if missing:
+        c.fail("protocol-members", f"{type(dev).__name__} lacks {', '.join(missing)} of the "
+                                   f"{role} protocol (checked on the class)")
+        return c.results
+    c.results.append(RuleResult("protocol-members", True))
+    c.rule("properties-hardware-free", "reading the properties before connect()",
+           lambda: [getattr(dev, p) for p in _properties(role)])
+    c.rule("status-cheap", "status() before connect()", lambda: _timed_status(dev, "before "
+                                                                                "connect()"))
+    main = _main_call(role, dev)
+    c.rule("call-before-connect", f"{main[0]} before connect()",
+           lambda: _expect_device_error(f"{main[0]} before connect()", main[1]))
+    if failing_settings is not None:
+        bad = pm.create(role, name, failing_settings, ctx.for_device(role, name), "conformance")
+        c.rule("failed-connect", "connect() with failing settings",
+               lambda: _expect_device_error("connect() with failing settings", bad.connect))
+        c.rule("close-after-failed-connect", "close() after a failed connect()", bad.close,
+               any_error=True)
+    if not c.rule("connect-close-twice", "connect/close/connect/close/close",
+                  lambda: (dev.connect(), dev.close(), dev.connect(), dev.close(), dev.close())
+                  ) and c.results[-1].passed is False:
+        return c.results
+    dev.connect()
+    try:
+        c.rule("status-cheap", "status() while connected",
+               lambda: _timed_status(dev, "while connected"))
+        _check_role(c, role, dev, angle_tolerance_deg)
+        _check_capabilities(c, role, dev, move_deg, stop_within_s, angle_tolerance_deg)
+    finally:
+        dev.close()
+    c.rule("status-cheap", "status() after close()", lambda: _timed_status(dev, "after close()"))
+    if dv.implements(dev, dv.Stoppable):
+        c.rule("stop-when-idle", "stop() after close()", dev.stop, any_error=True)
+    return _merge(c.results)
+
+
+def _merge(results: list[RuleResult]) -> list[RuleResult]:
+    """One result per rule: failed if any check of it failed (first failure's detail)."""
+    out: dict[str, RuleResult] = {}
+    for r in results:
+        if r.rule not in out or (out[r.rule].passed and not r.passed):
+            out[r.rule] = r
+    return list(out.values())
+
+
+def _main_call(role: str, dev: Any) -> tuple[str, Callable[[], Any]]:
+    if role == "camera":
+        return "capture()", dev.capture
+    if role == "projector":
+        return "show()", lambda: dev.show(np.zeros((8, 8), np.uint8))
+    if role == "stage":
+        return "move_to(10)", lambda: dev.move_to(10.0)
+    if role == "analyzer":
+        return "set_angle(10)", lambda: dev.set_angle(10.0)
+    return "set(True)", lambda: dev.set(True)
+
+
+def _check_role(c: _Checker, role: str, dev: Any, tol: float) -> None:
+    if role == "camera":
+        _check_camera(c, dev)
+    elif role == "projector":
+        w, h = dev.resolution
+        c.rule("show-pattern", f"show(a black {h}x{w} uint8 pattern)",
+               lambda: dev.show(np.zeros((h, w), np.uint8)))
+        c.rule("show-rejects-bad-pattern", "show(a float (3, 3, 3) array)",
+               lambda: _expect_device_error("show(a float (3, 3, 3) array)",
+                                            lambda: dev.show(np.zeros((3, 3, 3)))))
+    elif role == "stage":
+        def reach() -> None:
+            dev.move_to(30.0)
+            pos = float(dev.position)
+            assert abs(pos - 30.0) <= tol, (f"after move_to(30) position is {pos:g}°, not within "
+                                            f"{tol:g}° of 30°")
+
+        c.rule("move-reaches-angle", "move_to(30)", reach)
+        c.rule("rejects-bad-angle", "move_to(nan)", lambda: _expect_device_error(
+            "move_to(nan)", lambda: dev.move_to(math.nan)))
+    elif role == "analyzer":
+        c.rule("set-angle", "set_angle(90)", lambda: dev.set_angle(90.0))
+        c.rule("rejects-bad-angle", "set_angle(nan)", lambda: _expect_device_error(
+            "set_angle(nan)", lambda: dev.set_angle(math.nan)))
+    else:
+        c.rule("set-on-off", "set(True); set(False)", lambda: (dev.set(True), dev.set(False)))
+
+
+def _check_camera(c: _Checker, dev: Any) -> None:
+    frame = c.rule("capture-shape", "capture()", dev.capture)
+    if frame is None and not c.results[-1].passed:
+        return
+    w, h = dev.resolution
+    bits = int(dev.bit_depth)
+    want = np.uint8 if bits <= 8 else np.uint16
+
+    def shape() -> None:
+        assert isinstance(frame, np.ndarray), f"capture() returned {type(frame).__name__}"
+        assert frame.shape == (h, w), (f"capture() returned shape {frame.shape}, but resolution "
+                                       f"is {w}x{h} → expected ({h}, {w})")
+
+    def dtype() -> None:
+        assert isinstance(frame, np.ndarray) and frame.dtype == want, (
+            f"capture() returned {getattr(frame, 'dtype', type(frame).__name__)}, but bit_depth "
+            f"{bits} needs {np.dtype(want).name}")
+
+    def depth() -> None:
+        assert isinstance(frame, np.ndarray) and frame.size and int(frame.max()) < 2 ** bits, (
+            f"capture() has values up to {frame.max() if frame.size else 'none'}, above the "
+            f"{bits}-bit range 0..{2 ** bits - 1}")
+
+    c.results.pop()  # capture-shape is decided below
+    c.rule("capture-shape", "capture()", shape)
+    c.rule("capture-dtype", "capture()", dtype)
+    c.rule("capture-bit-depth", "capture()", depth)
+
+
+def _check_capabilities(c: _Checker, role: str, dev: Any, move_deg: float, stop_within_s: float,
+                        tol: float) -> None:
+    moves = role in ("stage", "analyzer")
+    if dv.implements(dev, dv.Stoppable):
+        c.rule("stop-when-idle", "stop() while nothing moves", dev.stop, any_error=True)
+        if moves:
+            _check_stop(c, role, dev, move_deg, stop_within_s)
+    if dv.implements(dev, dv.Homing):
+        def home() -> None:
+            dev.home()
+            pos = getattr(dev, "position", 0.0)
+            if role == "stage":
+                assert abs(float(pos)) <= tol, f"after home() position is {pos:g}°, not 0°"
+
+        c.rule("home", "home()", home)
+    if dv.implements(dev, dv.AngleReadback) and moves:
+        def read() -> None:
+            (dev.move_to if role == "stage" else dev.set_angle)(45.0)
+            got = float(dev.read_angle())
+            assert abs(got - 45.0) <= tol, f"read_angle() after moving to 45° is {got:g}°"
+
+        c.rule("read-angle", "read_angle()", read)
+    if dv.implements(dev, dv.Identified):
+        c.rule("identity", "identity()", lambda: _is(dev.identity(), dv.DeviceIdentity,
+                                                     "identity()"))
+    if dv.implements(dev, dv.FrameInfoSource) and role == "camera":
+        c.rule("frame-info", "last_frame_info() after capture()",
+               lambda: (dev.capture(), _is(dev.last_frame_info(), dv.FrameInfo,
+                                           "last_frame_info()")))
+    if dv.implements(dev, dv.ExposureControl):
+        c.rule("set-exposure", "set_exposure(10); set_exposure(-1)", lambda: (
+            dev.set_exposure(10.0), _expect_device_error("set_exposure(-1)",
+                                                         lambda: dev.set_exposure(-1.0))))
+
+
+def _is(value: Any, kind: type, what: str) -> None:
+    assert isinstance(value, kind), f"{what} returned {type(value).__name__}, not {kind.__name__}"
+
+
+def _check_stop(c: _Checker, role: str, dev: Any, move_deg: float, within_s: float) -> None:
+    move = dev.move_to if role == "stage" else dev.set_angle
+    start = float(getattr(dev, "position", 0.0) or 0.0)
+    done = threading.Event()
+    outcome: list[BaseException | None] = []
+
+    def run() -> None:
+        try:
+            move(start + move_deg)
+            outcome.append(None)
+        except BaseException as exc:  # judged below
+            outcome.append(exc)
+        done.set()
+
+    threading.Thread(target=run, daemon=True).start()
+    time.sleep(0.1)
+    t0 = time.perf_counter()
+    c.rule("stop-returns-fast", "stop() during a move", dev.stop, any_error=True)
+    took = time.perf_counter() - t0
+    if took > STOP_RETURN_S:
+        c.fail("stop-returns-fast", f"stop() took {took:.2f} s (> {STOP_RETURN_S} s); send the "
+                                    "stop command and return — the moving call finishes the stop")
+    if not done.wait(within_s):
+        c.fail("stop-interrupts-move", f"the move was still running {within_s:g} s after "
+                                       "stop(); the waiting call must notice the stop and return")
+        done.wait(30.0)
+        return
+    exc = outcome[0] if outcome else None
+    if exc is not None and not isinstance(exc, DeviceError):
+        c.fail("raises-device-errors", f"the stopped move raised {type(exc).__name__}: {exc}")
+    else:
+        c.results.append(RuleResult("stop-interrupts-move", True))
+
+
+def assert_device_conforms(pm: PluginManager, role: str, name: str,
+                           settings: dict[str, Any] | None = None, **options: Any) -> None:
+    """Fail (naming every broken rule) unless backend ``name`` passes :func:`check_device`."""
+    results = check_device(pm, role, name, settings, **options)
+    failed = [r for r in results if not r.passed]
+    if failed:
+        raise AssertionError(f"{role} backend {name!r} breaks the device contract "
+                             "(docs/devices.md):\n" + "\n".join(
+                                 f"  rule {r.rule!r}: {r.detail}" for r in failed))
 
 
 @pytest.fixture
@@ -28,22 +351,34 @@ def dotshell_pm() -> PluginManager:
     return pm
 
 
+@pytest.fixture
+def serial_emulator(tmp_path: Path) -> Iterator[Callable[..., Any]]:
+    """A factory: ``serial_emulator("zaber", speed_deg_s=90)`` → a started emulator."""
+    from dotshell.cli_devices import emulator_class
+
+    started: list[Any] = []
+
+    def start(name: str, **options: Any) -> Any:
+        emu = emulator_class(name)(link=tmp_path / f"tty-{name}-{len(started)}", **options)
+        started.append(emu.start())
+        return emu
+
+    yield start
+    for emu in started:
+        emu.close()
+
+
 def assert_backend_conforms(pm: PluginManager, role: str, name: str,
-                            settings: dict[str, Any] | None = None) -> Any:
-    """Build backend ``name`` for ``role`` and assert it satisfies the role's protocol."""
-    from dotshell.rig import PROTOCOLS
-
+                            settings: dict[str, Any] | None = None, **options: Any) -> Any:
+    """Device roles: :func:`assert_device_conforms`. Codings: a :class:`PatternCoding`.
+    Exporters: an ``export(run_dir)`` method. Returns the built object (devices: a fresh one,
+    not connected)."""
+    if role in dv.ROLE_PROTOCOLS:
+        assert_device_conforms(pm, role, name, settings, **options)
+        return pm.create(role, name, settings, RigContext(), "test")
+    obj = pm.create(role, name, settings, None, "test")
     if role == "coding":
-        obj = pm.create(role, name, settings, None, "test")
         assert isinstance(obj, PatternCoding), f"{name} is not a PatternCoding"
-    elif role in PROTOCOLS:
-        obj = pm.create(role, name, settings, RigContext(), "test")
-        from dotshell.devices import missing_members
-
-        missing = missing_members(obj, PROTOCOLS[role])
-        assert not missing, f"{name} lacks {missing} of the {role} protocol"
-    else:
-        obj = pm.create(role, name, settings, None, "test")
-        if role == "exporter":
-            assert callable(getattr(obj, "export", None)), f"{name} has no export(run_dir)"
+    elif role == "exporter":
+        assert callable(getattr(obj, "export", None)), f"{name} has no export(run_dir)"
     return obj

@@ -134,10 +134,13 @@ def test_mismatched_image_size_is_named(small_capture, tmp_path):
 
 
 def test_cli_solves_a_capture_and_prints_truth(small_capture, capsys):
-    prof, run = small_capture
-    code = main(["calibrate", prof.source, "--solve", str(run)])
-    text = capsys.readouterr().out
+    """--solve needs no profile (the [calibrate] defaults) and says which coding decoded the
+    frames: capture.json's, the one they were captured with."""
+    _, run = small_capture
+    code = main(["calibrate", "--solve", str(run)])
+    text = " ".join(capsys.readouterr().out.split())
     assert code == 0
+    assert "decoded with graycode (axes=both" in text and "recorded in capture.json" in text
     assert "Against the simulator's ground truth" in text and "axis direction" in text
     assert "turntable axis: direction" in text
 

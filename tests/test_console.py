@@ -16,6 +16,7 @@ from dotshell.events import (EventBus, FrameCaptured, ScanFinished, ScanPaused, 
                              ScanStarted, ViewCaptured, ViewReconstructed)
 from dotshell.pipeline.scan import scan
 from dotshell.profile import load_profile
+from dotshell.store import RunStore
 from dotshell.tui.interpreter import Interpreter, wants_more
 from dotshell.tui.progress import ScanTracker, format_seconds
 
@@ -53,7 +54,8 @@ def test_scan_pauses_between_frames_and_resumes_to_completion(tmp_path, pm):
     paused = next(e for e in events if isinstance(e, ScanPaused))
     assert (paused.view, paused.index) == (1, 3)
     run_dir = next(e for e in events if isinstance(e, ScanStarted)).run_dir
-    on_disk = sum(1 for _ in (Run(run_dir).root / "frames").rglob("*.png"))
+    store = RunStore.open(run_dir)
+    on_disk = sum(store.frames(v).count() for v in range(len(store.manifest["views"])))
     assert on_disk == frames_at_pause  # everything before the pause is written
     running.set()
     worker.join(60)

@@ -446,6 +446,43 @@ def test_timing_1280x1024_uint16(capsys):
         print(f"\n[graycode] decode 42 x 1280x1024 uint16: {t * 1000:.0f} ms")
 
 
+
+def _turned(xs: np.ndarray, ys: np.ndarray):
+    """The synthetic camera turned 45°: stripes of both axes run diagonally in the image."""
+    c = np.cos(np.deg2rad(45.0))
+    return camera_mapping(c * (xs + ys) - 30.0, c * (ys - xs) + 160.0)
+
+
+@pytest.mark.parametrize("turn", ["transposed", "diagonal"])
+def test_refinement_independent_of_stripe_orientation(scene, turn):
+    """Columns and rows refine as well when the stripes lie across the image (a projector
+    turned 90°, above the camera, or at 45°) as in the usual layout."""
+    g, frames, u, v, _, _ = scene
+    base = g.decode(frames, PROJ)
+    if turn == "transposed":  # the same frames seen through a camera turned 90°
+        frames_t = [np.ascontiguousarray(f.T) for f in frames]
+        u_t, v_t = u.T, v.T
+    else:
+        frames_t, u_t, v_t = render(g, ss=8, cam=(320, 320), mapping=_turned)
+    c = g.decode(frames_t, PROJ)
+    m, ec, er = errors(c, u_t, v_t)
+    _, ec0, er0 = errors(base, u, v)
+    for what in ("refined_column", "refined_row"):
+        assert c.stats[what] > 0.95 * c.stats["decoded"]
+    assert rms(ec) < max(0.1, 1.3 * rms(ec0)) and rms(er) < max(0.1, 1.3 * rms(er0))
+
+
+def test_reason_map_matches_the_counts(scene):
+    g, frames, *_ = scene
+    for coding in (g, make(classification="contrast")):
+        c = coding.decode(frames, PROJ)
+        assert c.reason.shape == c.valid.shape and c.reason_names[0] == "decoded"
+        assert np.array_equal(c.reason == 0, c.valid)
+        counts = np.bincount(c.reason.ravel(), minlength=len(c.reason_names))
+        for code, name in enumerate(c.reason_names):
+            assert counts[code] == c.stats[name], name
+
+
 if __name__ == "__main__":
     g = make()
     for label, kw, rkw in [("default 0.7 proj px/cam px", {}, {}),

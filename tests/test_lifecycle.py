@@ -16,6 +16,7 @@ import pytest
 
 from conftest import ROOT, small_profile_dict, write_profile
 from dotshell.errors import RunError
+from dotshell.frames import TiffFrameStore
 from dotshell.pipeline.engine import RunJob
 from dotshell.pipeline.lifecycle import effective_status
 from dotshell.ply import read_ply
@@ -100,7 +101,8 @@ def _wait_for_frames(out: Path, n: int, timeout: float = 120.0) -> Path:
     t0 = time.time()
     while time.time() - t0 < timeout:
         for run in runs_in(out):
-            if len(list((run / "frames").rglob("*.png"))) >= n:
+            if sum(TiffFrameStore(run, int(p.stem[5:]), []).count()
+                   for p in (run / "frames").glob("view_???.tif")) >= n:
                 return run
         time.sleep(0.05)
     raise AssertionError(f"no run reached {n} frames in {timeout} s")
@@ -118,8 +120,8 @@ def test_a_stop_signal_marks_the_run_aborted_with_the_signal(tmp_path, sig, name
     m = manifest(run)
     assert m["status"] == "aborted" and named in m["reason"], m
     assert "Traceback" not in err and "resume" in err
-    assert all(v["frames"] == len(list((run / "frames" / f"view_{v['index']:03d}").glob("*.png")))
-               for v in m["views"] if (run / "frames" / f"view_{v['index']:03d}").is_dir())
+    store = RunStore.open(run)
+    assert all(v["frames"] == store.frames(v["index"]).count() for v in m["views"])
 
 
 def test_a_second_ctrl_c_while_stopping_does_not_leave_the_run_running(tmp_path):
@@ -223,7 +225,9 @@ def test_reprocessing_with_a_bad_calibration_changes_nothing(reference, tmp_path
     assert (copy / "current").resolve().name == "002"
     after = checksums(copy)
     kept = [k for k in before if k.startswith(("gen/001/", "frames/")) or k == "calibration.json"]
-    assert len(kept) > 20 and all(after[k] == before[k] for k in kept)  # generation 1 untouched
+    stacks = [k for k in kept if k.startswith("frames/") and k.endswith(".tif")]
+    assert len(stacks) == 3 and len(kept) > 10  # one frame stack per view, generation 1's files
+    assert all(after[k] == before[k] for k in kept)  # frames and generation 1 untouched
 
 
 def test_a_failed_reprocess_publishes_nothing_and_keeps_the_run_state(reference, tmp_path):

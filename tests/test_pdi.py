@@ -12,6 +12,7 @@ from dotshell.pipeline.pdi import Shot, combine, plan_shots
 from dotshell.pipeline.scan import reconstruct_run, scan
 from dotshell.plugins import PluginManager
 from dotshell.profile import load_profile
+from dotshell.store import RunStore
 from dotshell_sim.bench import build_rig, scale_profile
 from dotshell_sim.subsurface import Scattering, dipole_profile, gaussian_mixture
 
@@ -111,9 +112,9 @@ def test_agar_with_pdi_meets_bound_and_beats_plain_thresholding(agar_runs):
 def test_pdi_run_stores_both_analyzer_frames_and_reprocesses(agar_runs):
     runs, pm = agar_runs
     run = runs["sim-agar-cylinder"].run_dir
-    names = sorted(p.name for p in (run / "frames" / "view_000").iterdir())
-    assert "000_white.par.png" in names and any(n.endswith("_white.perp.png") for n in names)
-    assert len(names) == 2 * 34
+    names = RunStore.open(run).manifest["frame_names"]
+    assert names[0] == "white.par" and names[34] == "white.perp" and len(names) == 2 * 34
+    assert RunStore.open(run).frames(0).count() == 2 * 34
     again = reconstruct_run(run, pm)
     assert again.report["cloud"]["points"] == runs["sim-agar-cylinder"].report["cloud"]["points"]
 

@@ -17,6 +17,7 @@ from dotshell.pipeline.scan import reconstruct_run, scan
 from dotshell.plugins import PluginManager
 from dotshell.profile import load_profile
 from dotshell.ply import read_ply
+from dotshell.store import RunStore
 
 
 class FlakyCameraPlugin:
@@ -50,6 +51,9 @@ class FlakyCameraPlugin:
 
             def status(self):
                 return self.inner.status()
+
+            def ground_truth_calibration(self):  # capabilities are read from the class
+                return self.inner.ground_truth_calibration()
 
             def capture(self):
                 plugin.calls += 1
@@ -95,7 +99,7 @@ def test_stop_midway_keeps_frames_marks_aborted_and_reconstructs_complete_views(
     assert manifest["status"] == "aborted"
     assert [v["complete"] for v in manifest["views"]] == [True, False, False]
     assert manifest["views"][1]["frames"] == 6
-    assert len(list((result.run_dir / "frames" / "view_001").glob("*.png"))) == 6
+    assert RunStore.open(result.run_dir).frames(1).count() == 6  # the stopped view's frames
     assert result.report["cloud"]["points"] > 0  # view 0 was processed
     again = reconstruct_run(result.run_dir, pm)
     assert [v["view"] for v in again.report["views"]] == [0]
@@ -125,7 +129,9 @@ def test_persistent_device_error_fails_run_and_keeps_frames(tmp_path):
     manifest = json.loads((run / "manifest.json").read_text())
     assert manifest["status"] == "failed"
     assert manifest["views"][0]["complete"] and manifest["views"][1]["frames"] == 10
-    assert len(list(run.rglob("*.png"))) == manifest["views"][0]["frames"] + 10
+    store = RunStore.open(run)
+    assert store.frames(0).count() == manifest["views"][0]["frames"]
+    assert store.frames(1).count() == 10 and store.frames(2).count() == 0
 
 
 def test_third_party_plugin_installed_with_pip_is_discovered_and_used(tmp_path, monkeypatch):
@@ -151,21 +157,23 @@ def test_third_party_plugin_installed_with_pip_is_discovered_and_used(tmp_path, 
 
 def test_disk_write_failure_stops_scan_with_clear_error(tmp_path, monkeypatch):
     from dotshell.errors import RunError
-    from dotshell.store import RunStore
+    from dotshell.frames import TiffFrameStore
 
-    real = RunStore.write_image
+    real = TiffFrameStore.append
     count = {"n": 0}
 
-    def failing(self, path, image, label):
+    def failing(self, index, image):
         count["n"] += 1
-        if count["n"] > 20:
+        if count["n"] > 40:  # 34 frames a view: in the middle of view 1
             raise OSError(28, "No space left on device")
-        return real(self, path, image, label)
+        return real(self, index, image)
 
-    monkeypatch.setattr(RunStore, "write_image", failing)
+    monkeypatch.setattr(TiffFrameStore, "append", failing)
     pm = _pm()
     with pytest.raises(RunError, match="could not write frame .* No space left on device"):
         scan(_profile(tmp_path, pm), pm, tmp_path / "runs")
     [run] = list((tmp_path / "runs").iterdir())
-    assert len(list(run.rglob("*.png"))) == 20
+    store = RunStore.open(run)
+    assert [store.frames(v).count() for v in range(3)] == [34, 6, 0]
+    assert store.frames(1).read_one(5).shape == store.frames(0).read_one(0).shape  # readable
     assert json.loads((run / "manifest.json").read_text())["status"] == "failed"

@@ -5,6 +5,7 @@ import shutil
 
 import cv2
 import numpy as np
+import tifffile
 
 from dotshell.events import FrameCaptured, ScanFinished, ScanStarted, ViewReconstructed
 from dotshell.pipeline.scan import reconstruct_run
@@ -23,10 +24,13 @@ def test_scan_writes_complete_run_directory(small_scan):
     assert manifest["status"] == "completed" and len(manifest["views"]) == 6
     assert all(v["complete"] and v["frames"] == len(manifest["frame_names"]) == 34
                for v in manifest["views"])  # 256x192 projector: 8+8 bits, inverses, white, black
-    assert len(list((run / "frames").rglob("*.png"))) == 6 * 34
+    assert manifest["frame_format"] == "tiff-stack/1"
+    assert sorted(p.name for p in (run / "frames").glob("*.tif")) == [f"view_{i:03d}.tif" for i in range(6)]
     assert sorted(p.name for p in (run / "views").glob("*.ply")) == [f"view_{i:03d}.ply" for i in range(6)]
     assert (run / "current").resolve() == (run / "gen" / "001").resolve()
-    frame = cv2.imread(str(run / "frames/view_000/000_white.png"), cv2.IMREAD_UNCHANGED)
+    with tifffile.TiffFile(run / "frames/view_000.tif") as tif:  # any TIFF reader sees the stack
+        assert [p.description for p in tif.pages] == manifest["frame_names"]
+        frame = tif.pages[0].asarray()
     assert frame.dtype == np.uint16 and frame.shape == (256, 320) and frame.max() <= 4095
 
 

@@ -12,16 +12,18 @@ def test_frames_roundtrip_losslessly_and_manifest_tracks_views(tmp_path):
     store.init_manifest("p", [0.0, 180.0], ["white", "black"])
     rng = np.random.default_rng(0)
     f16 = rng.integers(0, 4096, (12, 17), dtype=np.uint16)
-    f8 = rng.integers(0, 256, (12, 17), dtype=np.uint8)
-    store.write_frame(1, 0, "white", f16)
-    store.write_frame(1, 1, "black", f8)
+    frames = store.frames(1)
+    frames.append(0, f16)
+    frames.append(1, f16 // 3)
+    frames.close()
     store.mark_view(1, 2, True)
     back = store.read_frames(1)
-    assert back[0].dtype == np.uint16 and np.array_equal(back[0], f16)
-    assert np.array_equal(back[1], f8)
+    assert back.dtype == np.uint16 and back.shape == (2, 12, 17)
+    assert np.array_equal(back[0], f16) and np.array_equal(back[1], f16 // 3)
     m = RunStore.open(store.root).manifest
     assert m["views"][1] == {"index": 1, "angle_deg": 180.0, "frames": 2, "complete": True}
     assert "numpy" in m["versions"] and m["status"] == "running"
+    assert m["frame_format"] == "tiff-stack/1"
     assert not list(store.root.rglob("*.tmp"))
 
 
@@ -40,10 +42,10 @@ def test_missing_frame_and_non_run_are_clear_errors(tmp_path):
         RunStore.open(tmp_path)
     store = RunStore.create(tmp_path, "p")
     store.init_manifest("p", [0.0], ["white"])
-    with pytest.raises(RunError, match="000_white.png is missing"):
+    with pytest.raises(RunError, match="the frame stack of view 0 is missing"):
         store.read_frames(0)
     with pytest.raises(RunError, match="2-D uint8 or uint16"):
-        store.write_frame(0, 0, "white", np.zeros((4, 4), np.float32))
+        store.frames(0).append(0, np.zeros((4, 4), np.float32))
 
 
 def test_ply_roundtrip(tmp_path):

@@ -1,15 +1,19 @@
 """The calibration procedure: capture the target at the profile's poses into a calibration run
-directory, then solve camera, projector, camera–projector pose and turntable axis from the
-frames on disk (so a capture can be solved again, or frames made by hand can be solved).
+directory — or gather pose folders captured anywhere (:func:`calibrate_captures`) — then solve
+camera, projector, camera–projector pose and (when turntable frames are given) the turntable axis
+from the frames on disk, so a capture can be solved again.
 
 Run directory::
 
     <out>/<time>_calibrate-<profile>/
         profile.toml  capture.json  frames/pose_00/000_white.png ...  frames/turntable_00/...
         calibration.json  calibration.yml  calibration-report.json  [ground_truth.json]
+        [calibration-refused.json]   a solve out of bounds: its figures (nothing else written)
 
-``capture.json`` lists the board, the coding (backend and settings), the camera and projector
-sizes and, per pose, its name, kind (``free`` or ``turntable``), stage angle and frame files.
+``capture.json`` (format ``dotshell-calibration-capture/1``, documented in
+docs/calibration.md) lists the board, the ONE coding that decodes the frames (backend and
+settings), optionally the layout the frames were captured in, the camera and projector sizes
+and, per pose, its name, kind (``free`` or ``turntable``), stage angle and frame files.
 """
 
 from __future__ import annotations
@@ -29,7 +33,8 @@ from dotshell.calibration.solve import (OutlierRule, PoseData, calibrate_lens, c
                                         projector_corners, turntable_axis)
 from dotshell.errors import CalibrationError
 from dotshell.events import EventBus, StepProgress, StepStarted
-from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.calibration import (PLACEHOLDER_AXIS_DIRECTION, PLACEHOLDER_AXIS_POINT,
+                                           RigCalibration)
 
 CAPTURE_FORMAT = "dotshell-calibration-capture/1"
 #: The issue's acceptance limits for a calibration against the simulator's ground truth.
@@ -165,7 +170,8 @@ def capture(profile, pm, out_dir: Path | str = "runs", bus: EventBus | None = No
 
 # ---- solving from disk ------------------------------------------------------------------------
 
-def _read(run: Path, rel: str) -> np.ndarray:
+def read_image(run: Path, rel: str) -> np.ndarray:
+    """A calibration frame, ``rel`` relative to ``run`` (or absolute), as written."""
     img = cv2.imread(str(run / rel), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise CalibrationError(f"{run / rel}: missing or not an image; the calibration capture "
@@ -196,22 +202,85 @@ class CalibrationResult:
     run_dir: Path
 
 
+def read_capture(run: Path) -> dict[str, Any]:
+    """A calibration run's ``capture.json``, checked for the keys the solve needs."""
+    path = run / "capture.json"
+    try:
+        cap = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise CalibrationError(f"{run}: no capture.json; give a directory written by `dotshell "
+                               "calibrate` (the format is in docs/calibration.md).") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise CalibrationError(f"{path}: not valid JSON ({exc}).") from None
+    if cap.get("format") != CAPTURE_FORMAT:
+        raise CalibrationError(f"{path}: format is {cap.get('format')!r}, expected "
+                               f"{CAPTURE_FORMAT!r} (docs/calibration.md).")
+    missing = [k for k in ("board", "coding", "camera_size", "projector_size", "poses")
+               if k not in cap]
+    if missing:
+        raise CalibrationError(f"{path}: missing {', '.join(missing)} (docs/calibration.md "
+                               "lists every key).")
+    return cap
+
+
+class PoseFrames:
+    """Reads a pose's frames in the order of capture.json's coding: as listed when capture.json
+    has no ``layout``, else reordered and their polarity undone as the layout says."""
+
+    def __init__(self, run: Path, cap: dict[str, Any], pm) -> None:
+        from dotshell.pipeline.captures import capture_order, coding_frame_names, layout_from_dict
+
+        where = str(run / "capture.json")
+        self.run = run
+        self.backend = cap["coding"]["backend"]
+        self.settings = dict(cap["coding"]["settings"])
+        self.coding = pm.create("coding", self.backend, self.settings, None, where)
+        self.names = coding_frame_names(self.coding, tuple(cap["projector_size"]))
+        self.layout = (layout_from_dict(cap["layout"], f"{where} [layout]")
+                       if cap.get("layout") else None)
+        self.order = capture_order(self.layout, self.names) if self.layout else self.names
+        self.camera_size = tuple(cap["camera_size"])
+
+    def white(self, pose: dict) -> str:
+        """The file of the pose's white frame (where the target is detected)."""
+        files = pose["frames"]
+        return files[self.order.index("white")] if len(files) == len(self.order) else files[0]
+
+    def __call__(self, pose: dict) -> list[np.ndarray]:
+        from dotshell.pipeline.captures import to_coding_frames
+
+        files = pose["frames"]
+        if len(files) != len(self.order):
+            raise CalibrationError(
+                f"{self.run / 'capture.json'}: pose {pose['name']} lists {len(files)} frames but "
+                f"the coding {self.backend!r} decodes {len(self.order)} ({', '.join(self.order[:4])}"
+                " …); list the pose's whole sequence.")
+        frames = [read_image(self.run, rel) for rel in files]
+        _check_sizes(self.run, pose, frames, self.camera_size)
+        if self.layout is None:
+            return frames
+        return to_coding_frames(dict(zip(self.order, frames)), self.layout, self.names)
+
+    def describe(self) -> dict[str, Any]:
+        return {"backend": self.backend, "settings": self.settings, "from": "capture.json",
+                **({"layout": self.layout.name} if self.layout else {})}
+
+
 def solve(run_dir: Path | str, settings: dict[str, Any], pm,
           bus: EventBus | None = None) -> CalibrationResult:
-    """Solve a captured calibration run (see the module docstring) and write its results."""
+    """Solve a captured calibration run (see the module docstring) and write its results, or
+    refuse it (:class:`CalibrationError` with the figures) when a solve is out of bounds.
+
+    The frames are decoded with capture.json's coding — the one they were captured with —
+    whatever a profile says; the report's ``coding`` names it."""
     run = Path(run_dir)
     bus = bus or EventBus()
-    try:
-        cap = json.loads((run / "capture.json").read_text())
-    except FileNotFoundError:
-        raise CalibrationError(f"{run}: no capture.json; give a directory written by "
-                               "`dotshell calibrate`.") from None
+    cap = read_capture(run)
     board = Board(**cap["board"])
     cam_size = tuple(cap["camera_size"])
     proj_size = tuple(cap["projector_size"])
     rule = OutlierRule(settings["min_poses"], settings["outlier_factor"], settings["max_rms_px"])
-    coding = pm.create("coding", cap["coding"]["backend"], cap["coding"]["settings"], None,
-                       str(run / "capture.json"))
+    frames_of = PoseFrames(run, cap, pm)
     objp = board.object_points()
     t0 = time.perf_counter()
     free = [p for p in cap["poses"] if p["kind"] == "free"]
@@ -220,22 +289,22 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
     cam_poses, proj_poses, left_out, poses_report = [], [], {}, {}
     for pose in free:
         name = pose["name"]
-        frames = [_read(run, rel) for rel in pose["frames"]]
-        _check_sizes(run, pose, frames, cam_size)
+        frames = frames_of(pose)
+        white = frames_of.white(pose)
         det = detect(frames[0], board)
-        rep: dict[str, Any] = {"image": pose["frames"][0]}
+        rep: dict[str, Any] = {"image": white}
         poses_report[name] = rep
         if det is None:
-            left_out[name] = f"target not found in {pose['frames'][0]}"
+            left_out[name] = f"target not found in {white}"
             continue
         rep["corners"] = int(len(det.ids))
         rep["sharpness_px"] = det.sharpness_px
         if det.sharpness_px > settings["max_blur_px"]:
             left_out[name] = (f"blurred: edges {det.sharpness_px:.1f} px wide > max_blur_px "
-                              f"{settings['max_blur_px']:g} in {pose['frames'][0]}")
+                              f"{settings['max_blur_px']:g} in {white}")
             continue
         cam_poses.append(PoseData(name, objp[det.ids], det.pixels))
-        corr = coding.decode(frames, proj_size)
+        corr = frames_of.coding.decode(frames, proj_size)
         if corr.row is None:
             raise CalibrationError("projector calibration needs a coding that decodes projector "
                                    "rows too (gray code with axes = \"both\").")
@@ -250,7 +319,7 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
         bus.emit(StepProgress(step="detect and decode", done=len(poses_report),
                               total=len(cap["poses"])))
     if not cam_poses:
-        names = ", ".join(p["frames"][0] for p in free) or "(no free poses)"
+        names = ", ".join(frames_of.white(p) for p in free) or "(no free poses)"
         raise CalibrationError(
             f"{run}: the {board.kind} ({board.columns}x{board.rows} squares) was not found in "
             f"any image: {names}. Check [calibrate] target, columns and rows (squares, not inner "
@@ -268,22 +337,32 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
                           stereo.camera, stereo.projector, stereo.R, stereo.T, cam.rvecs,
                           cam.tvecs, settings["distortion"])
     t2 = time.perf_counter()
-    axis = solve_turntable(run, turn, board, joint.camera, cam_size, settings)
+    axis = solve_turntable(run, turn, board, joint.camera, cam_size, settings) if turn else None
     t3 = time.perf_counter()
-    rms = {"camera": cam.rms_px, "projector": proj.rms_px, "stereo": joint.rms_px,
-           "turntable": axis.rms_px}
-    calib = RigCalibration(joint.camera, joint.projector, joint.R, joint.T, axis.point,
-                           axis.direction, source=f"dotshell calibrate ({run})", rms=rms)
+    rms = {"camera": cam.rms_px, "projector": proj.rms_px, "stereo": joint.rms_px}
+    if axis is not None:
+        rms["turntable"] = axis.rms_px
+        calib = RigCalibration(joint.camera, joint.projector, joint.R, joint.T, axis.point,
+                               axis.direction, source=f"dotshell calibrate ({run})", rms=rms)
+    else:
+        calib = RigCalibration(joint.camera, joint.projector, joint.R, joint.T,
+                               PLACEHOLDER_AXIS_POINT, PLACEHOLDER_AXIS_DIRECTION,
+                               source=f"dotshell calibrate ({run}; no turntable axis)", rms=rms,
+                               axis_measured=False)
     for name, rep in poses_report.items():
         rep["camera_rms_px"] = cam.per_pose_rms_px.get(name)
         rep["projector_rms_px"] = proj.per_pose_rms_px.get(name)
         rep["stereo_rms_px"] = joint.per_pose_rms_px.get(name)
-    for name, e in axis.per_pose_rms_px.items():
-        poses_report.setdefault(name, {})["turntable_rms_px"] = e
+    if axis is not None:
+        for name, e in axis.per_pose_rms_px.items():
+            poses_report.setdefault(name, {})["turntable_rms_px"] = e
     report: dict[str, Any] = {
+        "coding": frames_of.describe(),
         "rms_px": rms,
+        "turntable": (f"axis solved from {len(axis.per_pose_rms_px)} stage angles" if axis
+                      else "not calibrated: no turntable frames (placeholder axis)"),
         "left_out": {"camera": cam.left_out, "projector": proj.left_out,
-                     "turntable": axis.left_out},
+                     "turntable": axis.left_out if axis else {}},
         "poses": poses_report,
         "sigma": joint.sigma,
         "timings_s": {"detect_decode": round(t1 - t0, 3), "solve": round(t2 - t1, 3),
@@ -292,13 +371,60 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
     truth_path = run / "ground_truth.json"
     if truth_path.is_file():
         report["ground_truth"] = compare_to_truth(calib, RigCalibration.load(truth_path))
+    _publish(run, calib, report, out_of_bounds(calib, joint.sigma, axis, settings))
+    return CalibrationResult(calib, report, run)
+
+
+def out_of_bounds(calib: RigCalibration, sigma: dict[str, Any], axis: "_Axis | None",
+                  settings: dict[str, Any]) -> list[str]:
+    """Every figure of a solve beyond ``max_rms_px`` / ``max_sigma_pct``, each as a sentence
+    that names it, its value, the bound and what would fix it."""
+    max_rms, max_pct = settings["max_rms_px"], settings["max_sigma_pct"]
+    out = []
+    for name, value in (calib.rms or {}).items():
+        if value > max_rms:
+            per = ""
+            if name == "turntable" and axis is not None:
+                per = " (" + ", ".join(f"{n} {e:.2f} px" for n, e in axis.per_pose_rms_px.items()) + ")"
+            fix = ("the stage angles do not match the images, or the board moved on the stage; "
+                   "leave the turntable frames out to calibrate camera and projector alone"
+                   if name == "turntable" else
+                   "the images do not fit one lens (a pose moved during its sequence, or the "
+                   "board is not flat)")
+            out.append(f"{'turntable axis' if name == 'turntable' else name} RMS {value:.3f} px "
+                       f"> max_rms_px {max_rms:g} px{per}: {fix}")
+    for which, lens in (("camera", calib.camera), ("projector", calib.projector)):
+        s = sigma[which]
+        for key, ref in (("fx", lens.K[0, 0]), ("fy", lens.K[1, 1]), ("cx", lens.K[0, 0]),
+                         ("cy", lens.K[1, 1])):
+            pct = 100 * s[key] / ref
+            if pct > max_pct:
+                out.append(f"{which} {key} one-sigma {s[key]:.2f} px = {pct:.3f} % of the focal "
+                           f"length > max_sigma_pct {max_pct:g} %: add poses that tilt the board "
+                           "further and fill the field")
+    pct = 100 * sigma["baseline_mm"] / calib.baseline_mm
+    if pct > max_pct:
+        out.append(f"baseline one-sigma {sigma['baseline_mm']:.3f} mm = {pct:.3f} % > "
+                   f"max_sigma_pct {max_pct:g} %: add poses spread over the field and in depth")
+    return out
+
+
+def _publish(run: Path, calib: RigCalibration, report: dict[str, Any], refused: list[str]) -> None:
+    """Write the calibration and its report, or — when refused — only calibration-refused.json
+    with the figures, and raise."""
     from dotshell.geometry.opencv_io import write_opencv_calibration
     from dotshell.store import atomic_write_text, dumps
 
+    if refused:
+        report["refused"] = refused
+        atomic_write_text(run / "calibration-refused.json", dumps(report))
+        raise CalibrationError(
+            f"{run}: calibration refused, no calibration.json written: " + "; ".join(refused)
+            + f". Every figure is in {run / 'calibration-refused.json'}.")
     calib.save(run / "calibration.json")
     write_opencv_calibration(calib, run / "calibration.yml")
     atomic_write_text(run / "calibration-report.json", dumps(report))
-    return CalibrationResult(calib, report, run)
+    (run / "calibration-refused.json").unlink(missing_ok=True)
 
 
 @dataclass
@@ -316,7 +442,7 @@ def solve_turntable(run: Path, poses: list[dict], board: Board, camera, cam_size
     left_out: dict[str, str] = {}
     dets = []
     for pose in poses:
-        img = _read(run, pose["frames"][0])
+        img = read_image(run, pose["frames"][0])
         _check_sizes(run, {"frames": pose["frames"][:1]}, [img], cam_size)
         det = detect(img, board)
         if det is None:
@@ -378,9 +504,10 @@ def compare_to_truth(calib: RigCalibration, truth: RigCalibration) -> dict[str, 
         "projector": lens(calib.projector, truth.projector),
         "baseline_pct": 100 * (calib.baseline_mm / truth.baseline_mm - 1),
         "rotation_deg": float(np.degrees(np.arccos(cos))),
-        "axis_direction_deg": float(np.degrees(np.arccos(cosd))),
-        **axis_position_errors(calib, truth),
     }
+    if calib.axis_measured:
+        out["axis_direction_deg"] = float(np.degrees(np.arccos(cosd)))
+        out.update(axis_position_errors(calib, truth))
     out = json.loads(json.dumps(out, default=float))
     out["pass"] = passes(out)
     return out
@@ -422,8 +549,9 @@ def passes(err: dict[str, Any]) -> dict[str, bool]:
         res[f"{which}_focal"] = max(abs(e["fx_pct"]), abs(e["fy_pct"])) <= a["focal_pct"]
         res[f"{which}_principal_point"] = max(abs(e["cx_px"]), abs(e["cy_px"])) <= a["principal_px"]
     res["baseline"] = abs(err["baseline_pct"]) <= a["baseline_pct"]
-    res["axis_direction"] = err["axis_direction_deg"] <= a["axis_direction_deg"]
-    res["axis_point"] = err["axis_point_mm"] <= a["axis_point_mm"]
+    if "axis_direction_deg" in err:  # the axis was calibrated
+        res["axis_direction"] = err["axis_direction_deg"] <= a["axis_direction_deg"]
+        res["axis_point"] = err["axis_point_mm"] <= a["axis_point_mm"]
     if "axis_plate_offset_mm" in err:  # the plate point's slide along the axis, same limit
         res["axis_plate_offset"] = abs(err["axis_plate_offset_mm"]) <= a["axis_point_mm"]
     return res

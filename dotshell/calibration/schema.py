@@ -19,13 +19,21 @@ CALIBRATE_SCHEMA: dict[str, Setting] = {
                            help="camera exposure for the target frames"),
     "distortion": Setting("str", default="k1", choices=("k1", "k1k2", "k1k2k3", "full"),
                           help="distortion terms solved for: k1 | k1 k2 | k1 k2 k3 | k1 k2 p1 p2 k3 (narrow fields of view: k1)"),
-    "min_poses": Setting("int", default=6, min=3,
-                         help="fewest good poses a solve accepts"),
+    "min_poses": Setting("int", default=4, min=3,
+                         help="fewest good poses a solve accepts (a solve from few poses is "
+                              "still refused when its uncertainty exceeds max_sigma_pct)"),
     "outlier_factor": Setting("float", default=3.0, min=1.0,
                               help="a pose whose RMS exceeds this many times the median "
                                    "(and max_rms_px / 4) is left out"),
     "max_rms_px": Setting("float", default=1.0, min=0.01, unit="px",
-                          help="a pose whose reprojection RMS exceeds this is left out"),
+                          help="a pose whose reprojection RMS exceeds this is left out; a "
+                               "solve (camera, projector, joint, turntable axis) whose RMS "
+                               "exceeds it is refused and nothing is written"),
+    "max_sigma_pct": Setting("float", default=1.0, min=0.0001, unit="%",
+                             help="a solve is refused (nothing written) when the one-sigma "
+                                  "uncertainty of a focal length or of the baseline exceeds "
+                                  "this share of its value, or that of a principal point this "
+                                  "share of the focal length"),
     "max_blur_px": Setting("float", default=6.0, min=0.5, unit="px",
                            help="checkerboard edges wider than this (10–90 % rise) mark the "
                                 "pose blurred"),

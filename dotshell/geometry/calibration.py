@@ -22,6 +22,9 @@ from dotshell.errors import CalibrationError
 from dotshell.geometry.lens import Lens
 
 FORMAT = "dotshell-calibration/1"
+#: The turntable axis of a calibration that has none (see ``RigCalibration.axis_measured``).
+PLACEHOLDER_AXIS_POINT = (0.0, 0.0, 1000.0)
+PLACEHOLDER_AXIS_DIRECTION = (0.0, -1.0, 0.0)
 
 
 def rot_z(degrees: float) -> np.ndarray:
@@ -44,6 +47,10 @@ class RigCalibration:
         axis_direction: unit direction of the turntable axis, camera frame, plate → sample.
         source: where this calibration came from (``"ground-truth"``, a file path, ...).
         rms: RMS errors of the solve by name (pixels), empty for ground truth.
+        axis_measured: False when the rig's turntable axis was not calibrated (no turntable
+            frames, an OpenCV file without one): ``axis_point`` / ``axis_direction`` are then a
+            placeholder (the camera's −y axis through (0, 0, 1000) mm) that single-view,
+            camera-frame reconstruction ignores and turntable scans must not use.
     """
 
     camera: Lens
@@ -54,6 +61,7 @@ class RigCalibration:
     axis_direction: np.ndarray
     source: str = "ground-truth"
     rms: dict | None = None
+    axis_measured: bool = True
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "R", np.asarray(self.R, float).reshape(3, 3))
@@ -109,6 +117,7 @@ class RigCalibration:
             "turntable": {
                 "axis_point": self.axis_point.tolist(),
                 "axis_direction": self.axis_direction.tolist(),
+                "measured": self.axis_measured,
             },
             "rms": self.rms or {},
         }
@@ -130,6 +139,7 @@ class RigCalibration:
                 axis_point=d["turntable"]["axis_point"],
                 axis_direction=d["turntable"]["axis_direction"],
                 source=d.get("source", where), rms=d.get("rms") or None,
+                axis_measured=bool(d["turntable"].get("measured", True)),
             )
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise CalibrationError(
@@ -167,11 +177,16 @@ class RigCalibration:
     @classmethod
     def load(cls, path: Path) -> "RigCalibration":
         path = Path(path)
+        if path.is_dir():
+            raise CalibrationError(f"calibration file {path} is a directory, not a file. Give "
+                                   "the path of a calibration.json written by dotshell.")
         if not path.is_file():
             raise CalibrationError(f"calibration file {path} does not exist. Give the path of a "
                                    "calibration.json written by dotshell.")
         try:
             data = json.loads(path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise CalibrationError(f"calibration file {path} is not valid JSON ({exc}).") from None
+            raise CalibrationError(f"calibration file {path} is not valid JSON ({exc}). Write it "
+                                   "again with `dotshell calibrate`, or restore it from a "
+                                   "backup.") from None
         return cls.from_dict(data, where=str(path))

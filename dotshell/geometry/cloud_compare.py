@@ -26,6 +26,10 @@ import numpy as np
 from dotshell.errors import ReconstructionError
 
 
+#: Fewest reference points a comparison can use: the local normals need neighbours.
+MIN_REFERENCE_POINTS = 12
+
+
 def load_reference_cloud(path: Path | str, key: str = "xyz") -> np.ndarray:
     """Reference points (N, 3) in mm from a ``.ply`` or ``.mat`` file."""
     path = Path(path)
@@ -34,7 +38,7 @@ def load_reference_cloud(path: Path | str, key: str = "xyz") -> np.ndarray:
     if path.suffix.lower() == ".ply":
         from dotshell.ply import read_ply
 
-        pts, _ = read_ply(path)
+        pts, _ = read_ply(path, finite=False)  # clouds made elsewhere mark holes with NaN
     elif path.suffix.lower() == ".mat":
         import scipy.io
 
@@ -54,8 +58,12 @@ def load_reference_cloud(path: Path | str, key: str = "xyz") -> np.ndarray:
         raise ReconstructionError(f"{path}: {key} has shape {pts.shape}; expected (..., 3).")
     pts = pts.reshape(-1, 3)
     keep = np.isfinite(pts).all(axis=1) & (np.abs(pts).sum(axis=1) > 0)
-    if not keep.any():
-        raise ReconstructionError(f"{path}: the reference cloud has no points.")
+    if keep.sum() < MIN_REFERENCE_POINTS:
+        n = int(keep.sum())
+        raise ReconstructionError(
+            f"{path}: the reference cloud has {n} point{'' if n == 1 else 's'} (finite, not at "
+            f"the origin); comparing needs at least {MIN_REFERENCE_POINTS} (each reference "
+            "point's surface normal comes from its neighbours). Give the whole reference cloud.")
     return pts[keep]
 
 

@@ -26,12 +26,11 @@ import cv2
 import numpy as np
 
 from dotshell.errors import CalibrationError
-from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.calibration import (PLACEHOLDER_AXIS_DIRECTION, PLACEHOLDER_AXIS_POINT,
+                                           RigCalibration)
 from dotshell.geometry.lens import Lens
 
 OPENCV_SUFFIXES = (".xml", ".yml", ".yaml")
-PLACEHOLDER_AXIS_POINT = (0.0, 0.0, 1000.0)
-PLACEHOLDER_AXIS_DIRECTION = (0.0, -1.0, 0.0)
 _RMS_KEYS = {"cam_error": "camera", "proj_error": "projector", "stereo_error": "stereo"}
 
 
@@ -49,11 +48,27 @@ def _matrix(fs: cv2.FileStorage, key: str, shape: tuple[int, ...], where: str,
                                    "Kc, kc, Kp, kp, Rp, Tp, frameWidth, frameHeight, screenResX "
                                    "and screenResY.")
         return None
+    if not _whole_matrix(node):  # OpenCV's mat() overruns memory on a malformed matrix node
+        raise CalibrationError(f"{where}: {key!r} is not a whole opencv-matrix (rows, cols, dt "
+                               "and rows x cols numbers in data); save the file again with "
+                               "cv::FileStorage.")
     m = node.mat()
     if m is None or m.size != int(np.prod(shape)):
         raise CalibrationError(f"{where}: {key!r} must be a {'x'.join(map(str, shape))} matrix, "
                                f"found {None if m is None else m.shape}.")
     return np.asarray(m, np.float64).reshape(shape)
+
+
+def _whole_matrix(node: cv2.FileNode) -> bool:
+    """``node`` is an opencv-matrix whose data has rows x cols numbers of one known type."""
+    if not node.isMap():
+        return False
+    rows, cols, dt, data = (node.getNode(k) for k in ("rows", "cols", "dt", "data"))
+    if not (rows.isInt() and cols.isInt() and dt.isString() and data.isSeq()):
+        return False
+    n = int(rows.real()) * int(cols.real())
+    return (dt.string() in ("d", "f", "i", "u", "s", "w", "c") and 0 < n <= 16 and data.size() == n
+            and all(data.at(i).isReal() or data.at(i).isInt() for i in range(n)))
 
 
 def _int(fs: cv2.FileStorage, key: str, where: str) -> int:
@@ -72,8 +87,10 @@ def read_opencv_calibration(path: Path | str) -> RigCalibration:
         raise CalibrationError(f"calibration file {path} does not exist.")
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as exc:
-        raise CalibrationError(f"{where}: not a readable OpenCV FileStorage file ({exc.err}).") from None
+    except (cv2.error, SystemError, UnicodeDecodeError) as exc:  # OpenCV's parser errors
+        why = exc.err if isinstance(exc, cv2.error) else exc.__cause__ or exc
+        raise CalibrationError(f"{where}: not a readable OpenCV FileStorage file ({why}). Save "
+                               "it again with cv::FileStorage, or give a calibration.json.") from None
     if not fs.isOpened():
         raise CalibrationError(f"{where}: not a readable OpenCV FileStorage file.")
     try:
@@ -90,14 +107,25 @@ def read_opencv_calibration(path: Path | str) -> RigCalibration:
             node = fs.getNode(key)
             if not node.empty():
                 rms[name] = float(node.real())
+    except (cv2.error, SystemError, UnicodeDecodeError) as exc:  # a node of the wrong kind
+        why = exc.err if isinstance(exc, cv2.error) else exc.__cause__ or exc
+        raise CalibrationError(f"{where}: an entry is not what an OpenCV calibration holds "
+                               f"({why}). Save it again with cv::FileStorage, or give a "
+                               "calibration.json.") from None
     finally:
         fs.release()
     source = where
-    if point is None or direction is None:
+    measured = point is not None and direction is not None
+    if not measured:
         point, direction = PLACEHOLDER_AXIS_POINT, PLACEHOLDER_AXIS_DIRECTION
         source = f"{where} (no turntable axis: placeholder)"
-    return RigCalibration(camera, projector, R, T, point, direction, source=source,
-                          rms=rms or None)
+    calib = RigCalibration(camera, projector, R, T, point, direction, source=source,
+                           rms=rms or None, axis_measured=measured)
+    problem = calib.problem()
+    if problem:
+        raise CalibrationError(f"{where}: {problem}. Re-solve the calibration or restore the "
+                               "file.")
+    return calib
 
 
 def write_opencv_calibration(calib: RigCalibration, path: Path | str) -> Path:
@@ -116,8 +144,9 @@ def write_opencv_calibration(calib: RigCalibration, path: Path | str) -> Path:
         fs.write("kp", calib.projector.dist.reshape(5, 1))
         fs.write("Rp", calib.R)
         fs.write("Tp", calib.T.reshape(3, 1))
-        fs.write("axis_point", calib.axis_point.reshape(3, 1))
-        fs.write("axis_direction", calib.axis_direction.reshape(3, 1))
+        if calib.axis_measured:
+            fs.write("axis_point", calib.axis_point.reshape(3, 1))
+            fs.write("axis_direction", calib.axis_direction.reshape(3, 1))
         for key, name in _RMS_KEYS.items():
             value = (calib.rms or {}).get(name)
             if isinstance(value, (int, float)):

@@ -22,10 +22,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from dotshell.errors import CalibrationError, ReconstructionError, RunError
+from dotshell.errors import CalibrationError, RunError
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.opencv_io import load_any_calibration
-from dotshell.pipeline.reconstruct import triangulate_correspondence
+from dotshell.pipeline.reconstruct import no_points_error, triangulate_correspondence
 from dotshell.settings import Setting, validate_settings
 
 SHIPPED_LAYOUTS = Path(__file__).resolve().parents[2] / "layouts"
@@ -85,6 +85,17 @@ class Layout:
     def file_name(self, position: int) -> str:
         return self.files.format(index=self.first_index + position)
 
+    def as_dict(self) -> dict[str, Any]:
+        """The layout's TOML tables (``layout``, ``decoder``), as :func:`layout_from_dict`
+        reads them."""
+        return {"layout": {
+            "name": self.name, "description": self.description, "coding": self.coding,
+            "files": self.files, "first_index": self.first_index,
+            "projector_width": self.projector_size[0], "projector_height": self.projector_size[1],
+            "order": list(self.order), "inverse": self.inverse, "msb_first": self.msb_first,
+            "drop_low_bits": self.drop_low_bits, "centred": self.centred,
+            "bright_is_one": self.bright_is_one}, "decoder": dict(self.decoder)}
+
 
 def resolve_layout_path(name_or_path: str | Path) -> Path:
     """A layout file path; a bare name (``slstudio-graycode``) means a shipped layout."""
@@ -105,8 +116,14 @@ def load_layout(name_or_path: str | Path) -> Layout:
     where = str(path)
     try:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
-    except tomllib.TOMLDecodeError as exc:
-        raise RunError(f"{where}: not valid TOML ({exc}).") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise RunError(f"{where}: not valid TOML ({exc}). Fix the layout file at that "
+                       "place.") from None
+    return layout_from_dict(raw, where)
+
+
+def layout_from_dict(raw: dict[str, Any], where: str) -> Layout:
+    """A layout from its parsed TOML tables (``layout``, ``decoder``), validated."""
     data = validate_settings(LAYOUT_SCHEMA, raw, where)
     lay = data["layout"]
     order = tuple(lay["order"])
@@ -117,13 +134,36 @@ def load_layout(name_or_path: str | Path) -> Layout:
                        "(white and black are needed to find shadows).")
     if "white" not in order or "black" not in order:
         raise RunError(f"{where}: [layout] order must contain 'white' and 'black' frames.")
-    if "{index" not in lay["files"]:
-        raise RunError(f"{where}: [layout] files = {lay['files']!r} needs an {{index}} field, "
-                       "e.g. frameSeq_{index:02d}.bmp.")
+    _check_files_pattern(lay["files"], where)
     return Layout(where, lay["name"], lay["description"], lay["coding"], lay["files"],
                   lay["first_index"], (lay["projector_width"], lay["projector_height"]), order,
                   lay["inverse"], lay["msb_first"], lay["drop_low_bits"], lay["centred"],
                   lay["bright_is_one"], dict(data["decoder"]))
+
+
+def _check_files_pattern(files: str, where: str) -> None:
+    """``files`` has the one field ``{index}`` (with an integer format, if any), so every
+    frame's name can be made from it."""
+    import string
+
+    def refuse(what: str) -> RunError:
+        return RunError(f"{where}: [layout] files = {files!r} is not a file-name pattern: "
+                        f"{what}. Use only {{index}}, e.g. frameSeq_{{index:02d}}.bmp (a brace "
+                        "that is part of the name is written twice).")
+
+    try:
+        fields = [f for _, f, _, _ in string.Formatter().parse(files) if f is not None]
+    except ValueError as exc:
+        raise refuse(str(exc)) from None
+    others = sorted({f"{{{f}}}" for f in fields if f != "index"})
+    if others:
+        raise refuse(f"{', '.join(others)} {'is' if len(others) == 1 else 'are'} not {{index}}")
+    if not fields:
+        raise refuse("it needs an {index} field")
+    try:
+        files.format(index=0)
+    except (ValueError, TypeError) as exc:
+        raise refuse(f"{{index}} cannot be formatted ({exc})") from None
 
 
 def capture_order(layout: Layout, coding_names: list[str]) -> list[str]:
@@ -157,12 +197,12 @@ def _read_gray(path: Path) -> np.ndarray:
     return img
 
 
-def read_captures(directory: Path, layout: Layout, coding_names: list[str]) -> dict[str, np.ndarray]:
-    """The frames of ``directory`` by coding frame name; checks count, names and sizes."""
+def sequence_files(directory: Path, layout: Layout, order: list[str]) -> list[Path]:
+    """The files of the sequence in ``directory``, in capture order; a missing frame or a file
+    matching the layout's pattern that the layout does not expect is an error naming them."""
     directory = Path(directory)
     if not directory.is_dir():
         raise RunError(f"captures directory {directory} does not exist.")
-    order = capture_order(layout, coding_names)
     rx = _glob_pattern(layout.files)
     present = sorted(p.name for p in directory.iterdir() if rx.match(p.name))
     expected = [layout.file_name(i) for i in range(len(order))]
@@ -176,7 +216,15 @@ def read_captures(directory: Path, layout: Layout, coding_names: list[str]) -> d
             + (f"; missing: {', '.join(missing[:6])}{' …' if len(missing) > 6 else ''}" if missing else "")
             + (f"; not in the layout: {', '.join(extra[:6])}{' …' if len(extra) > 6 else ''}" if extra else "")
             + ". Check the layout's order, inverse, drop_low_bits and projector size.")
-    frames = {name: _read_gray(directory / fn) for name, fn in zip(order, expected)}
+    return [directory / fn for fn in expected]
+
+
+def read_captures(directory: Path, layout: Layout, coding_names: list[str]) -> dict[str, np.ndarray]:
+    """The frames of ``directory`` by coding frame name; checks count, names and sizes."""
+    order = capture_order(layout, coding_names)
+    files = sequence_files(directory, layout, order)
+    expected = [f.name for f in files]
+    frames = {name: _read_gray(f) for name, f in zip(order, files)}
     shapes = {fn: frames[name].shape for name, fn in zip(order, expected)}
     first = shapes[expected[0]]
     odd = [f"{fn} ({s[1]}x{s[0]})" for fn, s in shapes.items() if s != first]
@@ -209,6 +257,44 @@ class CapturesResult:
     report: dict[str, Any]
 
 
+@dataclass
+class CaptureSequence:
+    """One capture sequence read through its layout: the coding that decodes it and its frames
+    in the coding's order (bit 1 = lit)."""
+
+    layout: Layout
+    coding: Any
+    frames: list[np.ndarray]
+
+    @property
+    def camera_size(self) -> tuple[int, int]:
+        h, w = self.frames[0].shape[:2]
+        return (w, h)
+
+
+def coding_frame_names(coding, projector_size: tuple[int, int]) -> list[str]:
+    """The coding's frame names in its own order, without rendering the patterns."""
+    if hasattr(coding, "frame_names"):
+        return list(coding.frame_names(projector_size))
+    return [f.name for f in coding.patterns(projector_size)]
+
+
+def layout_coding(layout: Layout, pm, axes: str | None = None):
+    """The coding backend the layout names, set up to decode its frames."""
+    settings = layout.coding_settings()
+    if axes is not None:
+        settings["axes"] = axes
+    return pm.create("coding", layout.coding, settings, None, layout.source)
+
+
+def read_sequence(captures: Path | str, layout: Layout, pm) -> CaptureSequence:
+    """Read a capture directory through its layout (see :func:`read_captures`)."""
+    coding = layout_coding(layout, pm)
+    names = coding_frame_names(coding, layout.projector_size)
+    frames = to_coding_frames(read_captures(Path(captures), layout, names), layout, names)
+    return CaptureSequence(layout, coding, frames)
+
+
 def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_file: Path | str,
                          pm, out_dir: Path | str = "runs", reference: Path | str | None = None,
                          processing: dict[str, Any] | None = None, previews: bool = True,
@@ -219,32 +305,35 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
 
     layout = load_layout(layout_file)
     calib = load_any_calibration(calibration)
+    ref_points = None
+    if reference is not None:  # checked before anything is written
+        from dotshell.geometry.cloud_compare import load_reference_cloud
+
+        ref_points = load_reference_cloud(reference)
     if tuple(calib.projector.size) != layout.projector_size:
         raise CalibrationError(
             f"the calibration's projector is {calib.projector.width}x{calib.projector.height} px "
             f"but layout {layout.name!r} says {layout.projector_size[0]}x"
             f"{layout.projector_size[1]} px; set projector_width/height in {layout.source} to "
             "the projector the frames were made with.")
-    coding = pm.create("coding", layout.coding, layout.coding_settings(), None, layout.source)
-    names = (list(coding.frame_names(layout.projector_size)) if hasattr(coding, "frame_names")
-             else [f.name for f in coding.patterns(layout.projector_size)])
     t0 = time.perf_counter()
-    frames = to_coding_frames(read_captures(Path(captures), layout, names), layout, names)
-    h, w = frames[0].shape
-    if (w, h) != calib.camera.size:
+    seq = read_sequence(captures, layout, pm)
+    frames = seq.frames
+    if seq.camera_size != calib.camera.size:
+        w, h = seq.camera_size
         raise CalibrationError(
             f"{captures}: frames are {w}x{h} px but the calibration's camera "
             f"({calibration}) is {calib.camera.width}x{calib.camera.height} px; use the "
             "calibration of the camera that took these frames.")
     t1 = time.perf_counter()
-    corr = coding.decode(frames, layout.projector_size)
+    corr = seq.coding.decode(frames, layout.projector_size)
     t2 = time.perf_counter()
     proc = {"min_ray_angle_deg": 5.0, "row_tolerance_px": 1.5, **(processing or {})}
     _, points, stats = triangulate_correspondence(corr, calib, proc)
     t3 = time.perf_counter()
     if len(points) == 0:
-        raise ReconstructionError(f"{captures}: no pixel decoded into a point ({corr.stats}). "
-                                  "Check the layout (order, polarity) and the decoder thresholds.")
+        raise no_points_error(str(captures), {**corr.stats, **stats}, calib, corr.row is not None,
+                              proc["min_ray_angle_deg"])
     store = RunStore.create(Path(out_dir), f"captures-{layout.name}")
     write_ply(store.path("cloud.ply"), points)
     calib.save(store.path("calibration.json"))
@@ -253,11 +342,11 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
         "calibration": calib.source, "frame": "camera (mm)",
         "decode": corr.stats, **stats, "cloud": {"path": "cloud.ply", "points": int(len(points))},
     }
-    if reference is not None:
-        from dotshell.geometry.cloud_compare import compare_clouds, load_reference_cloud
+    if ref_points is not None:
+        from dotshell.geometry.cloud_compare import compare_clouds
 
         report["reference"] = {"path": str(reference), **compare_clouds(
-            points, load_reference_cloud(reference), coverage_radius_mm)}
+            points, ref_points, coverage_radius_mm)}
     t4 = time.perf_counter()
     if previews:
         report["previews"] = _previews(store, frames[0], corr, calib, points, layout.name, report)

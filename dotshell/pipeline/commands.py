@@ -9,10 +9,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable
 
-from dotshell.errors import CalibrationError
+from dotshell.errors import CalibrationError, RunError
 from dotshell.events import EventBus
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.engine import RunJob, process
+from dotshell.pipeline.steps import require_turntable_axis
 from dotshell.plugins import PluginManager
 from dotshell.store import RunStore
 
@@ -49,6 +50,7 @@ def check_calibration_for_run(path: str | Path, store: RunStore) -> RigCalibrati
             f"{path}: its camera is {calib.camera.size[0]}x{calib.camera.size[1]} px but the run's "
             f"frames are {captured.camera.size[0]}x{captured.camera.size[1]} px; give the "
             "calibration of the camera at the resolution the run was captured with.")
+    require_turntable_axis(calib, [v["angle_deg"] for v in store.manifest["views"]], str(path))
     if calib.projector.size != captured.projector.size:
         raise CalibrationError(
             f"{path}: its projector is {calib.projector.size[0]}x{calib.projector.size[1]} px "
@@ -79,6 +81,9 @@ def normalize_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None =
                   max_normal_spread_deg: float | None = None) -> dict[str, Any]:
     """``dotshell normalize RUN``: normalize the trans-illumination frames on the run's surface
     into a new generation; returns the ``normalize`` report section."""
+    from dotshell.pipeline.normalize import transillumination_entry
+
+    transillumination_entry(RunStore.open(Path(run_dir)))  # before anything is made
     options = {"normalizer": normalizer, "min_sin_beta": min_sin_beta,
                "max_normal_spread_deg": max_normal_spread_deg}
     return reprocess(run_dir, pm, "normalize", ["normalize"], bus, options)["normalize"]
@@ -93,5 +98,8 @@ def forward_run(run_dir: Path | str, pm: PluginManager | None = None,
         from dotshell.plugins import get_plugin_manager
 
         pm = get_plugin_manager()
+    if Path(mesh_dir).is_absolute() or ".." in Path(mesh_dir).parts:
+        raise RunError(f"--mesh-dir {mesh_dir!r} leads outside the run's products; give a mesh "
+                       "directory inside the run, e.g. '.' or 'meshes/2mm'.")
     options = {"source_mm": source_mm, "mesh_dir": mesh_dir}
     return reprocess(run_dir, pm, "forward", ["forward"], bus, options)["forward"]

@@ -27,7 +27,8 @@ from typing import Any, Callable, Iterable
 from dotshell import __version__
 from dotshell.errors import DotshellError, RunError
 from dotshell.events import EventBus, StepStarted
-from dotshell.pipeline.generations import Generation, ProductStore, current_number
+from dotshell.pipeline.generations import (Generation, ProductStore, current_number,
+                                           published, remove_unpublished)
 from dotshell.pipeline.lifecycle import Interrupted, RunLock, effective_status
 from dotshell.pipeline.steps import STEP_BY_NAME, STEPS, StepContext
 from dotshell.plugins import PluginManager
@@ -73,15 +74,17 @@ class RunJob:
             if self.create is None and manifest["status"] == "running":  # its writer is gone
                 self._history({"command": (manifest.get("job") or {}).get("command", "?"),
                                "status": "interrupted", "reason": self.previous[1]})
-            for p in self.store.clean_orphans():
+            self.store.reserve_space()
+            for p in [*self.store.clean_orphans(), *remove_unpublished(self.store.root)]:
                 self.bus.info(f"removed {p.relative_to(self.store.root)}, left by an "
-                              "interrupted write")
+                              "interrupted job")
             self.started = time.time()
             self.store.update_manifest(status="running", reason="", job={
                 "command": self.command, "pid": os.getpid(), "host": socket.gethostname(),
                 "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "dotshell": __version__,
                 **self._batch_entry()})
         except BaseException:
+            self.store.release_reserve()
             self.lock.release()
             raise
         return self
@@ -105,10 +108,14 @@ class RunJob:
                 elif cur is not None:
                     self.reason += (f" (nothing published: generation {cur} is unchanged and "
                                     "still the run's products)")
+            if self.generation is not None and not published(self.store.root, self.generation):
+                remove_unpublished(self.store.root, only=self.generation)
+                self.generation = None
             self._history({"command": self.command, "status": self.status,
                            "reason": self.reason, "generation": self.generation,
                            **self._batch_entry()}, **self.run_state(), job=None)
         finally:
+            self.store.release_reserve()
             self.lock.release()
 
     @property
@@ -226,6 +233,10 @@ def prepare(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
     Runs in the process that holds the run's lock."""
     gen = generation or Generation.start(job.store)
     job.generation = gen.number
+    if gen.missing_base is not None:
+        job.bus.warn(f"{job.store.root}/current points to gen/{gen.missing_base:03d}, which is "
+                     f"missing (deleted?); generation {gen.number} makes every product again "
+                     "from the frames.")
     options = dict(options or {})
     ctx = StepContext(ProductStore(job.store, gen.dir), profile, pm, job.bus, options)
     run, carry, dropped = plan(targets, ctx, set(gen.base_products()))

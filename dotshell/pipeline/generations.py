@@ -87,14 +87,20 @@ class Generation:
         self.dir = run.path(GEN_DIR, f"{number:03d}")
         self.files: dict[str, list[str]] = {}
         self.report: dict[str, Any] = {}
+        #: the published generation, when its directory is missing (deleted)
+        self.missing_base: int | None = None
 
     @classmethod
     def start(cls, run: RunStore) -> "Generation":
         """A new, empty generation after the highest existing one, based on the published one."""
         adopt_legacy_products(run)
         base = current_number(run.root)
+        missing = None
+        if base is not None and not run.path(GEN_DIR, f"{base:03d}").is_dir():
+            missing, base = base, None  # deleted: everything is made again from the frames
         number = max(generation_numbers(run.root), default=0) + 1
         gen = cls(run, number, base)
+        gen.missing_base = missing
         gen.dir.mkdir(parents=True)
         return gen
 
@@ -168,6 +174,24 @@ class Generation:
         link_top_level(self.run.root, self.dir)
 
 
+def published(root: Path, number: int) -> bool:
+    """Whether generation ``number`` was ever published (it has its ``products.json``)."""
+    return (Path(root) / GEN_DIR / f"{number:03d}" / PRODUCTS_FILE).is_file()
+
+
+def remove_unpublished(root: Path, only: int | None = None) -> list[Path]:
+    """Delete generations a failed or killed job left half-written (never published); call
+    only while holding the run's lock. Returns what was removed."""
+    cur = current_number(root)
+    gone = []
+    for n in generation_numbers(root):
+        if (only is None or n == only) and n != cur and not published(root, n):
+            d = Path(root) / GEN_DIR / f"{n:03d}"
+            shutil.rmtree(d)
+            gone.append(d)
+    return gone
+
+
 def point_current(root: Path, number: int) -> None:
     tmp = Path(root) / f".{CURRENT}.{os.getpid()}.tmp"
     if tmp.is_symlink() or tmp.exists():
@@ -198,6 +222,8 @@ def adopt_legacy_products(run: RunStore) -> None:
         raise RunError(f"{cur} is a directory, not a symbolic link: the run was copied without "
                        "keeping its links (copy runs with `cp -a` or `rsync -a`). Copy it again "
                        "from the original, or re-process the frames in a new run.")
+    if cur.is_symlink():  # a run with generations (or adopted already): other files are not
+        return            # products (a user's notes stay where they are)
     legacy = [p for p in root.iterdir()
               if p.name not in CAPTURE_ITEMS and not p.name.startswith(".")
               and not p.is_symlink()]

@@ -63,7 +63,14 @@ class RunLock:
 
     def acquire(self, command: str) -> None:
         """Take the lock for ``command`` or raise :class:`RunError` naming the holder."""
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        except OSError as exc:
+            if exc.errno not in (errno.EROFS, errno.EACCES, errno.EPERM):
+                raise
+            raise RunError(f"{self.root} cannot be written ({exc.strerror}): a command that "
+                           "processes a run writes its results into it. Copy the run somewhere "
+                           "writable (`cp -a RUN DEST`) and run the command on the copy.") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
@@ -71,8 +78,8 @@ class RunLock:
             if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                 raise
             raise RunError(f"{self.root} is being written by {describe_holder(read_holder(self.path))}; "
-                           "wait for it to finish (`dotshell status`), or stop it, then try "
-                           "again.") from None
+                           "wait for it to finish (`dotshell inspect RUN` shows it), or stop it, "
+                           "then try again.") from None
         info = {"pid": os.getpid(), "host": socket.gethostname(), "command": command,
                 "since": time.strftime("%Y-%m-%dT%H:%M:%S")}
         os.ftruncate(fd, 0)
@@ -174,6 +181,30 @@ def run_stop_callbacks() -> None:
             pass
 
 
+class _Deferral(threading.local):
+    depth = 0
+    pending: str | None = None
+
+
+_deferral = _Deferral()
+
+
+@contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Inside, a stop signal does not raise :class:`Interrupted` at once but when the block
+    ends: for queue and condition operations of the main thread that an exception raised in
+    their middle would corrupt (a ``Condition.notify`` cut short loses the wake-up of a waiting
+    thread, e.g. the frame writer, and the process then hangs for ever)."""
+    _deferral.depth += 1
+    try:
+        yield
+    finally:
+        _deferral.depth -= 1
+        if _deferral.depth == 0 and _deferral.pending is not None:
+            name, _deferral.pending = _deferral.pending, None
+            raise Interrupted(name)
+
+
 class _Handler:
     def __init__(self, notify: Callable[[str], None]) -> None:
         self.count = 0
@@ -184,6 +215,9 @@ class _Handler:
         self.count += 1
         if self.count == 1:
             run_stop_callbacks()
+            if _deferral.depth:  # raised when the protected block ends
+                _deferral.pending = name
+                return
             raise Interrupted(name)
         if self.count == 2:
             self.notify(f"{name}: still stopping — devices are being stopped and frames saved. "

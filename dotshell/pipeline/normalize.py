@@ -25,6 +25,7 @@ from dotshell.devices import TransilluminationTruth
 from dotshell.errors import CalibrationError, DotshellError, RunError
 from dotshell.events import EventBus, StepProgress, StepStarted
 from dotshell.fem import TriangleSurface
+from dotshell.framecheck import FrameSpec
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.surface_map import (OK, NodeLight, SurfaceView, mask_counts,
                                            node_intensities, normal_spread_deg, view_surface)
@@ -69,7 +70,7 @@ def normalizers(profile: Profile, pm: PluginManager, override: str | None) -> di
                                      "normalizer.settings")
         if settings.get("refractive_index") == 0.0:  # documented: 0 = the sample's [mesh.optics]
             settings["refractive_index"] = profile.data["mesh"]["optics"]["refractive_index"]
-        out[name] = info.backend.factory(settings, None)
+        out[name] = pm.create("normalizer", name, settings, None, profile.source)
     return out
 
 
@@ -144,6 +145,25 @@ def _check_size(img: np.ndarray, calib: RigCalibration, path: Path) -> None:
                        "belong to this calibration.")
 
 
+def transillumination_entry(store: RunStore) -> dict[str, Any]:
+    """The manifest's ``transillumination`` section, or a :class:`RunError` if the run has no
+    trans-illumination frames."""
+    entry = store.manifest.get("transillumination")
+    if not entry or not entry.get("views"):
+        raise RunError(f"{store.run_root} has no trans-illumination frames: there is nothing "
+                       "to normalize. Scan with [transillumination] enabled = true (and a "
+                       "[light_source]), see docs/transillumination.md.")
+    return entry
+
+
+def _checked(img: np.ndarray, calib: RigCalibration, bit_depth: int, path: Path) -> np.ndarray:
+    """A stored trans-illumination image if it is a frame of this run's camera (size of the
+    calibration's camera, dtype and range of ``bit_depth``)."""
+    spec = FrameSpec(*calib.camera.size, bit_depth)
+    return spec.check(img, str(path), "The image does not belong to this run; restore the "
+                      "run's frames from a backup, or capture the trans-illumination again.")
+
+
 def _truth_source(profile: Profile, pm: PluginManager) -> TransilluminationTruth | None:
     """The rig's light source if it knows the true light (the simulator); devices are built but
     not connected."""
@@ -179,10 +199,7 @@ class Normalization:
                  normalizer: str | None = None, min_sin_beta: float | None = None,
                  max_normal_spread_deg: float | None = None) -> None:
         self.store, self.profile, self.bus = store, profile, bus
-        self.entry = store.manifest.get("transillumination")
-        if not self.entry or not self.entry.get("views"):
-            raise RunError(f"{store.root} has no trans-illumination frames. Scan with "
-                           "[transillumination] enabled = true (and a [light_source]).")
+        self.entry = transillumination_entry(store)
         self.cfg = dict(profile.data["normalize"])
         if min_sin_beta is not None:
             self.cfg["min_sin_beta"] = min_sin_beta
@@ -196,7 +213,8 @@ class Normalization:
         self.primary = next(iter(self.models))
         self.flat = flat_field(store, self.entry, self.calib, bus)
         self.truth = _truth_source(profile, pm)
-        self.full_scale = (1 << int(self.entry.get("camera_bit_depth", 16))) - 1
+        self.bit_depth = int(self.entry.get("camera_bit_depth", 16))
+        self.full_scale = (1 << self.bit_depth) - 1
         self.angles = {v["index"]: v["angle_deg"] for v in store.manifest["views"]}
         targets = self.entry["targets_mm"]  # [None] for a source that was not aimed
         self.targets = dict(zip(source_names(len(targets)), targets))
@@ -224,13 +242,14 @@ class Normalization:
     def _image(self, view: int, name: str) -> tuple[np.ndarray, np.ndarray]:
         """(DN per ms, flat-fielded; saturated-pixel mask) of one stored frame."""
         path = self.store.trans_path(name, view)
-        raw = self.store.read_image(path, f"view {view} cannot be normalized")
-        _check_size(raw, self.calib, path)
+        raw = _checked(self.store.read_image(path, f"view {view} cannot be normalized"),
+                       self.calib, self.bit_depth, path)
         saturated = raw >= self.cfg["saturation_fraction"] * self.full_scale
         img = _float(raw)
         if "dark" in self.entry["views"][str(view)]:
-            img = img - _float(self.store.read_image(self.store.trans_path("dark", view),
-                                                     f"view {view} cannot be dark-subtracted"))
+            dark = self.store.trans_path("dark", view)
+            img = img - _float(_checked(self.store.read_image(
+                dark, f"view {view} cannot be dark-subtracted"), self.calib, self.bit_depth, dark))
         img = img / float(self.entry["exposure_ms"])
         if self.flat is not None:
             img = img / self.flat

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from dotshell.coding import Correspondence, PatternCoding
-from dotshell.errors import CalibrationError
+from dotshell.errors import CalibrationError, ReconstructionError
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.triangulate import camera_ray_grid, triangulate
 
@@ -72,6 +72,71 @@ def triangulate_correspondence(corr: Correspondence, calib: RigCalibration,
     stats = {"triangulated": int(tri.keep.sum()), "row_rejected": int(tri.row_rejected.sum()),
              "grazing": int(tri.grazing.sum())}
     return np.column_stack([xs, ys])[tri.keep], tri.points[tri.keep], stats
+
+
+#: Pixel losses in the order they happen, with what each means and what would fix it.
+LOSSES: dict[str, str] = {
+    "shadow": "white − black is below the decoder's shadow_threshold: the projector does not "
+              "light these pixels or the frames are too dark (check the exposure, and the "
+              "layout's order: are 'white' and 'black' where it says?)",
+    "low_contrast": "pattern and inverse differ by less than min_contrast: check focus, the "
+                    "layout's order and inverse, and the decoder's min_contrast",
+    "uncertain": "the robust classification could not decide a bit (direct light too weak "
+                 "against the global light or the noise): check focus and exposure, the "
+                 "layout's order and inverse, or decode with classification = \"contrast\"",
+    "out_of_range": "the decoded code lies outside the projector: check projector_width / "
+                    "projector_height, centred and the polarity (bright_is_one) of the layout",
+    "row_rejected": "the decoded column and row do not meet in one point (more than "
+                    "row_tolerance_px apart): the calibration does not belong to this rig "
+                    "(camera–projector pose, projector size) or the layout swaps columns and rows",
+    "speckle": "isolated depths removed by the speckle filter (max_depth_jump_mm)",
+    "outside_roi": "points outside [processing.roi]",
+}
+
+
+def baseline_direction(calib: RigCalibration) -> str:
+    """Where the projector sits seen from the camera, e.g. ``"81 mm above the camera (90° from
+    the image's x axis)"`` (image x to the right, image up = camera −y)."""
+    c = calib.projector_centre
+    across = float(np.hypot(c[0], c[1]))
+    angle = float(np.degrees(np.arctan2(-c[1], c[0])))
+    steep = abs(np.sin(np.radians(angle)))
+    vertical = "above" if angle > 0 else "below"
+    side = ("beside" if steep <= 0.5 else vertical if steep >= np.sin(np.radians(60))
+            else f"diagonally {vertical}")
+    return f"{across:.0f} mm {side} the camera ({angle:.0f}° from the image's x axis)"
+
+
+def explain_grazing(calib: RigCalibration, has_rows: bool, min_angle_deg: float) -> str:
+    if not has_rows:
+        return (f"camera rays meet the projector's column planes at less than {min_angle_deg:g}°: "
+                f"the projector is {baseline_direction(calib)}, and a column plane fixes depth "
+                "only when the projector is beside the camera. Decode the rows too (a coding "
+                "with axes = \"both\", a layout whose order has 'rows'): dotshell then "
+                "triangulates from columns and rows together")
+    return (f"camera and projector rays meet at less than {min_angle_deg:g}° (the projector is "
+            f"{baseline_direction(calib)}): the baseline is too short for this distance, or the "
+            "calibration's camera–projector pose is not this rig's")
+
+
+def no_points_error(where: str, stats: dict[str, int], calib: RigCalibration, has_rows: bool,
+                    min_angle_deg: float) -> ReconstructionError:
+    """The error for a sequence that gave no point: every pixel count, then the cause — the
+    triangulation's largest loss when pixels were decoded, else the decoder's — and its fix."""
+    counts = {k: int(stats.get(k, 0)) for k in ("shadow", "low_contrast", "uncertain",
+                                                 "out_of_range", "grazing", "row_rejected")}
+    decoded = int(stats.get("decoded", 0))
+    stage = ("grazing", "row_rejected") if decoded else ("shadow", "low_contrast", "uncertain",
+                                                         "out_of_range")
+    worst = max(stage, key=counts.get)
+    why = (explain_grazing(calib, has_rows, min_angle_deg) if worst == "grazing"
+           else LOSSES[worst])
+    listing = ", ".join(f"{k} {v}" for k, v in counts.items() if v)
+    cause = (f"the decoded pixels were lost to {worst} ({counts[worst]} px)" if decoded
+             else f"nothing was decoded; the largest loss is {worst} ({counts[worst]} px)")
+    return ReconstructionError(
+        f"{where}: no pixel decoded into a point. Of {stats.get('pixels', 0)} pixels {decoded} "
+        f"were decoded; lost: {listing or 'none'}. Cause: {cause}: {why}.")
 
 
 def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],

@@ -19,16 +19,18 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from dotshell.errors import RunError
+from dotshell.errors import CalibrationError, FrameError, RunError
+from dotshell.framecheck import FrameSpec
 from dotshell.events import EventBus, ScanFinished, ScanStarted, StepStarted, ViewCaptured, \
     ViewReconstructed
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.acquire import Acquisition
 from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.generations import Generation, ProductStore
-from dotshell.pipeline.lifecycle import on_interrupt
+from dotshell.pipeline.lifecycle import describe_holder, lock_holder, on_interrupt
 from dotshell.pipeline.pdi import plan_shots
-from dotshell.pipeline.steps import make_coding, reconstruct_one_view
+from dotshell.pipeline.steps import (make_coding, reconstruct_one_view,
+                                     require_turntable_axis, view_angle)
 from dotshell.pipeline.transillum import TransilluminationCapture
 from dotshell.plugins import PluginManager
 from dotshell.profile import Profile, validate_profile
@@ -129,7 +131,10 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
     end's live session) instead of opening the profile's devices for the scan alone.
     """
     bus = bus or EventBus()
-    coding = make_coding(profile, pm)  # a bad coding is refused before a run is made
+    coding = make_coding(profile, pm)  # a bad coding or calibration is refused before a run
+    calibration = calibration_file or profile.calibration_path()  # is made
+    if calibration is not None and rig is None:
+        RigCalibration.load(calibration)
     store = RunStore.create(Path(out_dir), profile.name)
 
     def create() -> None:
@@ -151,13 +156,15 @@ def resume_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = No
     store = RunStore.open(Path(run_dir))
     status, _ = store.status()
     if status == "running":
-        raise RunError(f"{store.root} is still being written (`dotshell status`); it can be "
-                       "resumed only once that process has ended.")
+        raise RunError(f"{store.root} is being written by "
+                       f"{describe_holder(lock_holder(store.root) or {})}; it can be resumed "
+                       "once that process has ended (`dotshell inspect RUN` shows it).")
     if status == "completed":
         raise RunError(f"{store.root} is completed; nothing to resume. Re-process it with "
                        "`dotshell reconstruct RUN`.")
     profile = load_run_profile(store, pm)
     coding = make_coding(profile, pm)
+    RigCalibration.load(store.path("calibration.json"))  # checked before the job starts
     return _capture_and_process(store, profile, pm, bus, "resume", coding, stop, running, rig,
                                 None, None)
 
@@ -190,12 +197,16 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
     store, bus = job.store, job.bus
     resuming = job.command == "resume"
     gen = Generation.start(store)
+    job.generation = gen.number
     products = ProductStore(store, gen.dir)
     with (Rig(profile, pm) if rig is None else _kept_open(rig)) as rig, on_interrupt(rig.stop):
         if resuming:
             calib = RigCalibration.load(store.path("calibration.json"))
         else:
             calib = rig.calibration(calibration_file)
+            require_turntable_axis(calib, profile.angles_deg(), profile.source)
+        _check_devices(store, rig, calib, resuming)
+        if not resuming:
             calib.save(store.path("calibration.json"))
         patterns = coding.patterns(rig.projector.resolution)
         shots = plan_shots(patterns, profile.data["scan"])
@@ -225,7 +236,8 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
                 if trans is not None and trans.covers(view):
                     trans.run_view(view)
                 if fringes:
-                    pipeline.submit(view, angle, frames)
+                    pipeline.submit(view, view_angle(store.manifest["views"][view]), frames)
+                    del frames  # the pipeline holds them only until the view is reconstructed
             reconstructed = pipeline.results()
         finally:
             acq.close()
@@ -236,6 +248,31 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
                "timings": {"acquire": acq.seconds}}
     return process(job, profile, pm, SCAN_TARGETS, options,
                    final_status=job.status or "completed", generation=gen)
+
+
+def _check_devices(store: RunStore, rig: Rig, calib: RigCalibration, resuming: bool) -> None:
+    """The calibration fits the camera and projector, and a resumed run's camera gives the
+    frames the run was captured with; a new run records what its frames are (``camera``)."""
+    spec = FrameSpec.of_camera(rig.camera)
+    for role, lens, size in (("camera", calib.camera, rig.camera.resolution),
+                             ("projector", calib.projector, rig.projector.resolution)):
+        if tuple(lens.size) != tuple(size):
+            raise CalibrationError(
+                f"{calib.source}: the calibration's {role} is {lens.width}x{lens.height} px but "
+                f"the {role} ({rig.profile.role(role)['backend']}) is {size[0]}x{size[1]} px; "
+                f"give the calibration of this {role} at this resolution (or set the {role}'s "
+                "resolution to the calibrated one).")
+    if not resuming:
+        store.update_manifest(camera=spec.to_dict())
+        return
+    recorded = store.manifest.get("camera")
+    if recorded is not None and FrameSpec.from_dict(recorded) != spec:
+        was = FrameSpec.from_dict(recorded)
+        raise FrameError(
+            f"{store.root} was captured at {was.bit_depth} bit, {was.width}x{was.height} px, but "
+            f"the camera ({rig.profile.role('camera')['backend']}) now reports {spec.bit_depth} "
+            f"bit, {spec.width}x{spec.height} px: a resumed view must match the others. Set the "
+            f"camera's bit_depth and resolution as they were (in {store.path('profile.toml')}).")
 
 
 def _record_sequence(store: RunStore, shots, patterns, resuming: bool) -> None:
@@ -265,14 +302,19 @@ def _views_to_capture(store: RunStore, trans: TransilluminationCapture | None
 
 
 def _set_aside_partial(store: RunStore, view: int) -> None:
-    """Move the frames of an unfinished view out of the way (kept, never deleted)."""
-    d = store.path("frames", f"view_{view:03d}")
-    if not d.exists() or not any(d.iterdir()):
+    """Move the frames of an unfinished view out of the way (kept, never deleted): its frame
+    stack ``frames/view_NNN.tif`` and directory ``frames/view_NNN/`` (frame metadata; PNG frames
+    of runs before TIFF stacks) become ``view_NNN.partial-K.tif`` and ``view_NNN.partial-K/``."""
+    stem = f"view_{view:03d}"
+    found = [p for p in (store.path("frames", stem), store.path("frames", f"{stem}.tif"))
+             if p.is_file() or (p.is_dir() and any(p.iterdir()))]
+    if not found:
         return
     k = 1
-    while store.path("frames", f"view_{view:03d}.partial-{k}").exists():
+    while any(store.path("frames", f"{stem}.partial-{k}{s}").exists() for s in ("", ".tif")):
         k += 1
-    d.rename(store.path("frames", f"view_{view:03d}.partial-{k}"))
+    for p in found:
+        p.rename(store.path("frames", f"{stem}.partial-{k}{p.suffix}"))
 
 
 def _transillumination(rig: Rig, store: RunStore, profile: Profile, acq: Acquisition,

@@ -26,8 +26,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from dotshell.errors import ReconstructionError, RunError
+from dotshell.errors import CalibrationError, ReconstructionError, RunError
 from dotshell.events import EventBus, StepProgress, StepStarted, ViewReconstructed
+from dotshell.framecheck import FrameSpec
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.pdi import combine, shots_from_manifest
 from dotshell.pipeline.reconstruct import ViewCloud, reconstruct_view
@@ -84,6 +85,18 @@ def calibration_step(ctx: StepContext) -> dict[str, Any]:
     return {"calibration": calib.source}
 
 
+def require_turntable_axis(calib: RigCalibration, angles_deg: Sequence[float],
+                           where: str) -> None:
+    """Views at several stage angles are merged about the turntable axis: refuse a calibration
+    whose axis was never measured (an OpenCV file, a solve without turntable frames)."""
+    if not calib.axis_measured and len({round(a, 6) for a in angles_deg}) > 1:
+        raise CalibrationError(
+            f"{where}: calibration {calib.source} has no measured turntable axis, but the "
+            f"views are at {len(set(angles_deg))} stage angles and are merged about it. Solve "
+            "the axis with `dotshell calibrate` and turntable frames, or scan one view "
+            "(--set scan.views=1).")
+
+
 # ---- views ---------------------------------------------------------------------------------
 
 def view_stem(view: int) -> str:
@@ -122,11 +135,31 @@ def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: 
     products; returns its report record."""
     manifest = store.manifest
     if frames is None:
-        frames = store.read_frames(view)
+        frames = stored_frames(store, view, calib)
     shots = shots_from_manifest(manifest)
     vc = reconstruct_view(view, angle_deg, combine(frames, shots), coding, calib,
                           profile.data["processing"])
     return store_view(store, vc, frames[0] if len(frames) else None, profile, calib, bus)
+
+
+def stored_frames(store: RunStore, view: int, calib: RigCalibration) -> np.ndarray:
+    """A view's frames from the run's files, each checked against the run's frames (the
+    manifest's ``camera``; for runs made before it was recorded, the calibration's camera size
+    and the depth of the view's first frame)."""
+    recorded = store.manifest.get("camera")
+    if recorded is not None:
+        spec = FrameSpec.from_dict(recorded)
+    else:
+        first = store.frames(view).read_one(0)
+        spec = FrameSpec(*calib.camera.size, 8 if first.dtype == np.uint8 else 16)
+    return store.read_frames(view, spec, "Restore the run's frames from a backup, or "
+                             "re-capture the view.")
+
+
+def view_angle(view: dict[str, Any]) -> float:
+    """The stage angle a view was captured at (degrees): the one read back from the stage
+    when it could tell, else the one commanded."""
+    return float(view.get("angle_read_deg", view["angle_deg"]))
 
 
 def complete_views(store: RunStore) -> list[dict[str, Any]]:
@@ -137,6 +170,11 @@ def views_step(ctx: StepContext) -> dict[str, Any]:
     store, manifest = ctx.store, ctx.store.manifest
     views = manifest["views"]
     done: dict[int, dict[str, Any]] = ctx.options.get("reconstructed", {})
+    if not any(v.get("complete") for v in views):
+        raise ReconstructionError(
+            f"no view of {store.run_root} is completely captured ({len(views)} views, "
+            f"{sum(v['frames'] for v in views)} frames on disk): there is nothing to "
+            f"reconstruct. Capture the missing views with `dotshell resume {store.run_root}`.")
     coding = None
     ctx.bus.emit(StepStarted(step="reconstruct", total=len(views)))
     for n, v in enumerate(views, 1):
@@ -146,7 +184,7 @@ def views_step(ctx: StepContext) -> dict[str, Any]:
             continue
         if v["index"] not in done:
             coding = coding or make_coding(ctx.profile, ctx.pm)
-            done[v["index"]] = reconstruct_one_view(store, v["index"], v["angle_deg"],
+            done[v["index"]] = reconstruct_one_view(store, v["index"], view_angle(v),
                                                     ctx.profile, coding, ctx.calibration, ctx.bus)
         ctx.bus.emit(StepProgress(step="reconstruct", done=n, total=len(views)))
     records = [done[i] for i in sorted(done)]
@@ -177,15 +215,39 @@ def cloud_step(ctx: StepContext) -> dict[str, Any]:
     parts = [(v, read_ply(ctx.store.path("views", f"{view_stem(v)}.ply"))[0]) for v in views]
     n = sum(len(p) for _, p in parts)
     if n == 0:
-        raise ReconstructionError(
-            f"{ctx.store.run_root}: no view produced points inside the region of interest "
-            f"({len(views)} views reconstructed). Check the previews (is the sample lit and in "
-            "focus?), the calibration and [processing.roi]; report.json's views list the "
-            "pixels lost at each stage.")
+        raise _no_points(ctx, views)
     points = np.concatenate([p for _, p in parts])
     ids = np.concatenate([np.full(len(p), v) for v, p in parts])
     write_ply(ctx.store.path("cloud.ply"), points, view=ids)
     return {"cloud": {"path": "cloud.ply", "points": int(n)}}
+
+
+def pixel_totals(records: Sequence[dict[str, Any]]) -> dict[str, int]:
+    """Per-reason pixel counts summed over views (ints only)."""
+    totals: dict[str, int] = {}
+    for r in records:
+        for k, v in r.items():
+            if isinstance(v, int) and not isinstance(v, bool) and k != "view":
+                totals[k] = totals.get(k, 0) + v
+    return totals
+
+
+def _no_points(ctx: StepContext, views: list[int]) -> ReconstructionError:
+    """Why a run gave no point: the decoder's or triangulation's largest loss and its fix, or
+    the region of interest when points were made but all fell outside it."""
+    from dotshell.pipeline.reconstruct import no_points_error
+
+    where = f"{ctx.store.run_root} ({len(views)} views reconstructed)"
+    totals = pixel_totals([read_view_record(ctx.store, v) for v in views])
+    if totals.get("triangulated", 0) == 0:
+        has_rows = totals.get("refined_row", 0) > 0 or totals.get("row_rejected", 0) > 0
+        return no_points_error(where, totals, ctx.calibration, has_rows,
+                               ctx.profile.data["processing"]["min_ray_angle_deg"])
+    return ReconstructionError(
+        f"{where}: {totals['triangulated']} pixels were triangulated but no point is left: "
+        f"{totals.get('speckle', 0)} removed as speckle, {totals.get('outside_roi', 0)} outside "
+        "the region of interest. Check [processing.roi] (radius_mm, z_min_mm, z_max_mm) against "
+        "the sample's size and the calibration's turntable axis.")
 
 
 def load_cloud(store: RunStore) -> np.ndarray:

@@ -20,7 +20,8 @@ import numpy as np
 from dotshell.devices import ExposureControl, FlatFieldReference, Targetable
 from dotshell.errors import ProfileError
 from dotshell.events import EventBus, StepStarted
-from dotshell.pipeline.acquire import FrameWriter, with_retries
+from dotshell.framecheck import FrameSpec
+from dotshell.pipeline.acquire import FrameWriter, check_frame, with_retries
 from dotshell.rig import Rig
 from dotshell.store import RunStore
 
@@ -52,6 +53,7 @@ class TransilluminationCapture:
                                  if isinstance(d, FlatFieldReference)), None)
         self.flat_file = self._flat_file(settings["flat_field"], base_dir, where)
         self.names = source_names(len(self.targets))
+        self.spec = FrameSpec.of_camera(rig.camera)
 
     @staticmethod
     def _flat_file(value: str, base_dir: Path, where: str) -> Path | None:
@@ -72,7 +74,8 @@ class TransilluminationCapture:
                 "flat_field": None, "views": {}}
 
     def _capture(self, what: str) -> np.ndarray:
-        return with_retries(self.rig.camera.capture, self.scan["retries"], what, self.bus)
+        return check_frame(self.rig, self.spec, with_retries(
+            self.rig.camera.capture, self.scan["retries"], what, self.bus), what)
 
     def _dark_projector(self) -> None:
         w, h = self.rig.projector.resolution
@@ -157,9 +160,10 @@ class TransilluminationCapture:
                 self._take(view, "dark")
                 written.append("dark")
         finally:
-            self.writer.queue.join()  # every frame taken is on disk and listed
-            entry = self.store.manifest["transillumination"]
-            entry["views"][str(view)] = written
+            self.writer.queue.join()  # every frame taken is on disk and listed; a frame
+            entry = self.store.manifest["transillumination"]  # not written is not listed
+            entry["views"][str(view)] = [n for n in written
+                                         if self.store.trans_path(n, view).is_file()]
             self.store.update_manifest(transillumination=entry)
         self.writer.check()
         self._exposure(self.scan["exposure_ms"])

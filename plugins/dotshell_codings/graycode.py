@@ -29,9 +29,13 @@ the Xu & Aliaga rule after a direct/global separation (:mod:`dotshell_codings.ro
 docs/codings.md), undecidable bits are *uncertain* instead of weak, and such pixels count as
 ``uncertain``.
 
-Sub-pixel refinement (``subpixel = true``): along each camera row (columns) or camera column
-(rows), between two adjacent valid pixels whose codes differ by one step, exactly one Gray bit
-flips; the zero crossing of that bit's difference signal ``d`` gives the camera position of the
+Sub-pixel refinement (``subpixel = true``), for columns and rows alike: each axis is scanned
+along the image direction in which its code changes more often (camera rows when its stripes
+stand closer to the image columns, camera columns otherwise — so a projector turned 90° or a
+projector above the camera refines as well as one beside it), and along the other direction too
+where the first leaves more than 5 % of the decoded pixels unrefined (stripes at an angle).
+Along a scan line, between two adjacent valid pixels whose codes differ by one step, exactly
+one Gray bit flips; the zero crossing of that bit's difference signal ``d`` gives the camera position of the
 projector boundary ``c + 0.5``. Where codes differ by two steps (camera coarser than the
 projector) the two flipping bits each give a crossing and their mean is an anchor at the centre
 of the skipped projector pixel. Every valid pixel with an anchor on each side (within its run of
@@ -48,7 +52,7 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 import cv2
 import numpy as np
 
-from dotshell.coding import Correspondence, PatternFrame
+from dotshell.coding import Correspondence, PatternFrame, label_reasons
 from dotshell.settings import Setting
 from dotshell_codings.robust import direct_global, full_scale, noise_sigma, robust_bits
 
@@ -111,6 +115,9 @@ SETTINGS_SCHEMA: dict[str, Setting] = {
 AUTO_DIRECT_MIN_SIGMAS = 8.0
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
 _MAX_SUBPIXEL_SPAN = 2  # anchors may be at most this many code steps apart
+#: refine along the second image direction too when the first leaves more than this share of
+#: the decoded pixels unrefined (stripes at an angle, curved stripes)
+SECOND_PASS_SHARE = 0.05
 
 
 def code_bits(size: int) -> int:
@@ -338,8 +345,15 @@ class GrayCode:
             "edge_tolerated": int((tolerated & valid).sum()),
         }
         stats.update(refined)
+        masks = {"shadow": shadow, "low_contrast": low_contrast, "uncertain": uncertain,
+                 "out_of_range": out_of_range}
+        if self.classification == "robust":
+            del masks["low_contrast"]
+        else:
+            del masks["uncertain"]
+        reason, names = label_reasons(valid, masks)
         return Correspondence(column=coords[0], row=coords[1] if len(coords) > 1 else None,
-                              valid=valid, stats=stats)
+                              valid=valid, stats=stats, reason=reason, reason_names=names)
 
     def _classifier(self, pairs: "_Pairs", axes: list[_Axis], lv: FrameLevels) -> "_Classifier":
         if self.classification == "contrast":
@@ -381,16 +395,33 @@ class GrayCode:
         for d in decoded:
             coord = d.integer.astype(np.float32)
             if self.subpixel:
-                transpose = d.axis.prefix == "row"
-                anchor, span = self.refine_anchors(d.axis)
-                fine, ok = _refine(d.axis, d.code, valid, transpose,
-                                   lambda i, flat, step, f=d.first_pair: pairs.d_at(f + i, flat, step),
-                                   anchor, span)
+                fine, ok = self._refine_axis(d, valid, pairs)
                 coord = np.where(ok, fine, coord).astype(np.float32)
-                refined[f"refined_{'row' if transpose else 'column'}"] = int(ok.sum())
+                refined[f"refined_{'column' if d.axis.prefix == 'col' else 'row'}"] = int(ok.sum())
             coord[~valid] = np.nan
             coords.append(coord)
         return coords, refined
+
+    def _refine_axis(self, d: AxisDecode, valid: np.ndarray, pairs: "_Pairs",
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """Sub-pixel coordinates of one axis and where they exist: scanned along the image
+        direction its stripes cross, then along the other where that leaves more than
+        :data:`SECOND_PASS_SHARE` of the decoded pixels unrefined."""
+        anchor, span = self.refine_anchors(d.axis)
+
+        def refine(transpose: bool) -> tuple[np.ndarray, np.ndarray]:
+            return _refine(d.axis, d.code, valid, transpose,
+                           lambda i, flat, step: pairs.d_at(d.first_pair + i, flat, step),
+                           anchor, span)
+
+        across = stripes_cross_columns(d.code, valid)
+        fine, ok = refine(across)
+        left = valid & ~ok
+        if left.sum() > SECOND_PASS_SHARE * max(int(valid.sum()), 1):
+            fine2, ok2 = refine(not across)
+            more = left & ok2
+            fine, ok = np.where(more, fine2, fine), ok | more
+        return fine, ok
 
 
 class _Pairs:
@@ -511,6 +542,14 @@ def _decode_axis(ax: _Axis, first: int, bits: Iterable[tuple[np.ndarray, np.ndar
     oor = (hi < 0) | (lo > ax.size - 1)
     integer = 0.5 * (np.maximum(lo, 0) + np.minimum(hi, ax.size - 1))
     return AxisDecode(ax, first, code, integer, (n_weak > 0) & ~edge_ok, edge_ok, oor)
+
+
+def stripes_cross_columns(code: np.ndarray, valid: np.ndarray) -> bool:
+    """True when the decoded code changes more often down the camera columns than along the
+    camera rows, i.e. the stripes lie closer to the image rows (refine along the columns)."""
+    along_rows = np.count_nonzero((code[:, 1:] != code[:, :-1]) & valid[:, 1:] & valid[:, :-1])
+    along_cols = np.count_nonzero((code[1:] != code[:-1]) & valid[1:] & valid[:-1])
+    return along_cols > along_rows
 
 
 def _refine(ax: _Axis, code: np.ndarray, valid: np.ndarray, transpose: bool,

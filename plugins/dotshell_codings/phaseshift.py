@@ -133,8 +133,14 @@ class GrayPhaseCode:
         stats.pop("edge_tolerated", None)
         stats.update(decoded=int(valid.sum()), low_modulation=int(low_mod.sum()),
                      phase_inconsistent=int(inconsistent.sum()))
+        reason, names = coarse.reason, coarse.reason_names
+        if reason is not None:
+            reason = reason.copy()
+            for name, mask in (("low_modulation", low_mod), ("phase_inconsistent", inconsistent)):
+                reason[mask & (reason == 0)] = len(names)
+                names = (*names, name)
         return Correspondence(column=coords[0], row=coords[1] if len(coords) > 1 else None,
-                              valid=valid, stats=stats)
+                              valid=valid, stats=stats, reason=reason, reason_names=names)
 
 
 def phase_and_amplitude(frames: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

@@ -153,6 +153,11 @@ TURNTABLE_SCHEMA: dict[str, Setting] = {
                           schema=_BACKGROUND_SCHEMA),
 }
 
+CAMERA_SCHEMA["turntable"] = Setting(
+    "table", None, "mixed rigs: the sample, plate and rotation axis the camera sees when the "
+    "rig's [stage] is a real stage (e.g. on its emulator) instead of sim-turntable; the sample "
+    "turns to the angle that stage reports (read back)", schema=TURNTABLE_SCHEMA)
+
 ANALYZER_SCHEMA: dict[str, Setting] = {
     "initial_deg": Setting("float", 0.0, "analyzer angle after connect, relative to the "
                            "projector's polarizer (0 = parallel)", "deg"),
@@ -242,20 +247,34 @@ class SimWorld:
         """The renderer for this world's geometry. Renderers are pure functions of the
         geometry, so worlds with identical settings (e.g. many test rigs from one profile)
         share one, with its cached camera rays and views."""
-        cam = self.camera
         projector, stage = self.require("sim-camera")
-        calib = self.calibration()
-        s = cam.settings
-        key = json.dumps([calib.to_dict(), stage.settings["scene"], stage.settings["plate"],
-                          stage.settings["background"], s["supersample"], s["ambient"],
-                          projector.ref_mm, stage.target_key], sort_keys=True)
-        return cached(_RENDERERS, key, lambda: Renderer(
-            calib, stage.scene, supersample=s["supersample"], ambient=s["ambient"],
+        s = self.camera.settings
+        return cached(_RENDERERS, self._renderer_key(), lambda: Renderer(
+            self.calibration(), stage.scene, supersample=s["supersample"], ambient=s["ambient"],
             projector_ref_mm=projector.ref_mm), _MAX_RENDERERS)
 
+    def _renderer_key(self) -> str:
+        projector, stage = self.require("sim-camera")
+        s = self.camera.settings
+        return json.dumps([self.calibration().to_dict(), stage.settings["scene"],
+                           stage.settings["plate"], stage.settings["background"],
+                           s["supersample"], s["ambient"], projector.ref_mm, stage.target_key],
+                          sort_keys=True)
 
-#: Renderers shared across worlds, by geometry (a full-resolution renderer with two cached
-#: views holds ~0.3 GB).
+    def release_renderer(self) -> None:
+        """Free the shared renderer's cached views and rays: a closed rig's views are rarely
+        asked for again, and at full resolution they hold ~0.2 GB (a scan's merge, validation
+        and previews run after the rig is closed)."""
+        try:
+            renderer = _RENDERERS.get(self._renderer_key())
+        except DeviceError:  # not a complete rig: no renderer was made
+            return
+        if renderer is not None:
+            renderer.release()
+
+
+#: Renderers shared across worlds, by geometry (a full-resolution renderer with its cached
+#: view and rays holds ~0.2 GB; a closed camera releases them).
 _RENDERERS: OrderedDict[str, Renderer] = OrderedDict()
 _MAX_RENDERERS = 2
 
@@ -335,6 +354,10 @@ class SimCamera(_Device):
 
     def ground_truth_calibration(self) -> RigCalibration:
         return self.world.calibration(self.name)
+
+    def close(self) -> None:
+        super().close()
+        self.world.release_renderer()
 
     def expected_electrons(self) -> np.ndarray:
         """Noise-free signal (H, W) float32 in electrons for the current world state."""
@@ -468,6 +491,10 @@ class SimTurntable(_Device):
         self.scene = build_scene(s["scene"], s["plate"], s["background"])
         self.target_key: str | None = None  # the calibration target on the stage, if any
         self._angle = 0.0
+        self.follow: Any = None  # mixed rigs: () -> the real stage's angle (degrees)
+        if world.stage is not None:
+            raise DeviceError(f"{self.name}: this rig has both [stage] backend = "
+                              "\"sim-turntable\" and [camera.settings.turntable]; keep one.")
         world.stage = self
 
     def place_target(self, board: dict | None, pose: dict | None) -> None:
@@ -497,10 +524,10 @@ class SimTurntable(_Device):
 
     @property
     def position(self) -> float:
-        return self._angle
+        return float(self.follow()) if self.follow is not None else self._angle
 
     def status(self) -> dict[str, Any]:
-        return {**super().status(), "angle_deg": self._angle}
+        return {**super().status(), "angle_deg": self.position}
 
 
 class SimAnalyzer(_Device):
@@ -657,7 +684,26 @@ def _factory(cls, schema, backend: str):
     return factory
 
 
-make_camera = _factory(SimCamera, CAMERA_SCHEMA, "sim-camera")
+_make_camera = _factory(SimCamera, CAMERA_SCHEMA, "sim-camera")
+
+
+def make_camera(settings: dict | None = None, context: RigContext | None = None) -> SimCamera:
+    """The sim camera; with a ``turntable`` setting (mixed rigs) also the simulated sample on
+    whatever stage the rig has, turning to that stage's reported angle."""
+    camera = _make_camera(settings, context)
+    if camera.settings["turntable"] is not None:
+        table = validate_settings(TURNTABLE_SCHEMA, camera.settings["turntable"], "sim-camera",
+                                  "camera.settings.turntable")
+        SimTurntable(table, camera.world).follow = lambda: _rig_stage_angle(context)
+    return camera
+
+
+def _rig_stage_angle(context: RigContext | None) -> float:
+    stage = context.device("stage") if context is not None else None
+    if stage is None:
+        raise DeviceError("sim-camera: [camera.settings.turntable] follows the rig's stage, but "
+                          "this rig has none; add a [stage] section.")
+    return float(stage.position)
 make_projector = _factory(SimProjector, PROJECTOR_SCHEMA, "sim-projector")
 make_turntable = _factory(SimTurntable, TURNTABLE_SCHEMA, "sim-turntable")
 make_analyzer = _factory(SimAnalyzer, ANALYZER_SCHEMA, "sim-analyzer")

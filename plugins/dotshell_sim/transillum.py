@@ -9,9 +9,8 @@ Model (docs/light-model.md, "Trans-illumination"; lengths mm, coefficients 1/mm)
    (:func:`dotshell.forward.system_matrix`) is solved for a unit point source one transport
    length ``1/μs'`` inside the beam's entry point, along the beam: φ per node (1/mm² per unit
    power). The system matrix is symmetric positive definite; it is solved by conjugate
-   gradients with a Jacobi preconditioner (to a relative residual of 1e-10), which gives the
-   same φ as :func:`dotshell.forward.solve_cw` (sparse LU) more than 100× faster on 30 000
-   nodes.
+   gradients with a Jacobi preconditioner (:func:`dotshell.forward.jacobi_cg`, to a relative
+   residual of 1e-10), the solver of :func:`dotshell.forward.solve_cw`.
 2. **Surface**: φ at a surface point is read by snapping the point to the FEM boundary
    (:class:`dotshell.geometry.raycast.TriangleScene`, closest point) and interpolating the
    boundary triangle's node values barycentrically.
@@ -42,7 +41,7 @@ from scipy.spatial import Delaunay
 from dotshell.errors import DeviceError
 from dotshell.fem import (MeshError, TetMesh, TriangleSurface, closed_manifold_problems,
                           element_containing, orient_positive)
-from dotshell.forward import move_inside, robin_A, system_matrix
+from dotshell.forward import jacobi_cg, move_inside, robin_A, system_matrix
 from dotshell.geometry.calibration import rot_z
 from dotshell.geometry.lens import Lens
 from dotshell.geometry.raycast import TriangleScene
@@ -253,43 +252,16 @@ class FluenceModel:
         el, w = element_containing(self.mesh, source_mm)
         q = np.zeros(len(self.mesh.nodes))
         q[self.mesh.tets[el]] = w
-        return jacobi_cg(self.matrix, q)
+        try:
+            return jacobi_cg(self.matrix, q)
+        except MeshError as exc:
+            raise DeviceError(f"sim-laser: {exc}") from None
 
     def surface_fluence(self, phi: np.ndarray, points_mm: np.ndarray
                         ) -> tuple[np.ndarray, np.ndarray]:
         """φ at surface points (snapped to the FEM boundary) and their distance to it (mm)."""
         at = self.boundary.closest(points_mm)
         return at.interpolate(phi), at.distance_mm
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> float:
-    # einsum, not BLAS: after open3d is imported OpenBLAS's threaded ddot is ~1000x slower here
-    return float(np.einsum("i,i->", a, b))
-
-
-def jacobi_cg(matrix: sp.csr_matrix, rhs: np.ndarray, rtol: float = 1e-10) -> np.ndarray:
-    """Solve a symmetric positive definite system by conjugate gradients with a Jacobi
-    (diagonal) preconditioner, to ``|r| ≤ rtol · |rhs|``."""
-    inv_diag = 1.0 / matrix.diagonal()
-    x = np.zeros_like(rhs)
-    r = rhs.copy()
-    z = inv_diag * r
-    p = z.copy()
-    rz = _dot(r, z)
-    stop = (rtol ** 2) * _dot(rhs, rhs)
-    for _ in range(20 * len(rhs)):
-        if _dot(r, r) <= stop:
-            return x
-        ap = matrix @ p
-        alpha = rz / _dot(p, ap)
-        x += alpha * p
-        r -= alpha * ap
-        z = inv_diag * r
-        rz_new = _dot(r, z)
-        p = z + (rz_new / rz) * p
-        rz = rz_new
-    raise DeviceError("sim-laser: the diffusion solve did not converge; check the sample's "
-                      "optical properties (μa ≥ 0, μs' > 0).")
 
 
 _MODELS: OrderedDict[str, FluenceModel] = OrderedDict()
@@ -383,8 +355,7 @@ def laser_view(renderer: Renderer, view: View, shape, model: FluenceModel) -> La
     cam = renderer.calib.camera
     ss = view.ss
     k = np.flatnonzero(view.material.ravel() == shape.material)
-    grid = subpixel_grid(cam.width, cam.height, ss)[k]
-    d_c = cam.rays(grid)
+    d_c = renderer.camera_rays()[k]
     o_s = renderer.calib.camera_to_sample(np.zeros((1, 3)), view.angle_deg)[0]
     d_s = d_c @ renderer.calib.sample_rotation(view.angle_deg)
     t, normals = shape.intersect(np.broadcast_to(o_s, d_s.shape), d_s)
