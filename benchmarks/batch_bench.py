@@ -75,6 +75,9 @@ def warm_up() -> float:
 def serial_child(result: str, runs: list[str]) -> None:
     from dotshell.pipeline.scan import reconstruct_run
     from dotshell.plugins import get_plugin_manager
+    from dotshell.runtime import configure_process
+
+    configure_process()  # as the dotshell command runs
 
     start_s = warm_up()
     pm = get_plugin_manager()
@@ -184,5 +187,29 @@ def print_batch(b: dict[str, Any]) -> None:
               f"{r['read_mb_per_s']:10.0f} MB/s")
 
 
+def study_alone(quick: bool) -> None:
+    """This section alone (``python benchmarks/batch_bench.py study [--quick]``): one scan with
+    the bench profile in its own process, then the study; figures printed and written to
+    ``bench-results/batch[-quick].json``."""
+    import tempfile
+
+    from run import RESULTS, run_child
+
+    with tempfile.TemporaryDirectory(prefix="dotshell-batch-bench-") as tmp:
+        work = Path(tmp)
+        t0 = time.perf_counter()
+        scanned = run_child("scan", work / "runs", quick, work)
+        print(f"rendered and scanned the study's one run in {time.perf_counter() - t0:.0f} s "
+              f"(status {scanned['status']})")
+        figures = bench_batch(Path(scanned["run_dir"]), work, quick)
+    print_batch(figures)
+    out = RESULTS.with_name("batch-quick.json" if quick else "batch.json")
+    out.parent.mkdir(exist_ok=True)
+    out.write_text(json.dumps(figures, indent=2, default=str))
+    print(f"figures written to {out}")
+
+
 if __name__ == "__main__" and len(sys.argv) > 2 and sys.argv[1] == "serial":
     serial_child(sys.argv[2], sys.argv[3:])
+elif __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "study":
+    study_alone("--quick" in sys.argv[2:])

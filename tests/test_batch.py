@@ -55,6 +55,9 @@ def study(tmp_path_factory):
         raw["outputs"] = {"previews": False}
         prof = write_profile(tmp / f"p{i}.toml", raw)
         assert scan(load_profile(prof, pm), pm, tmp / "captured").status == "completed"
+    first = RunStore(min((tmp / "captured").iterdir()))  # a stage that read back other angles
+    first.update_manifest(views=[{**v, "angle_read_deg": v["angle_deg"] + 0.5}
+                                 for v in first.manifest["views"]])
     return tmp / "captured"
 
 
@@ -143,16 +146,31 @@ def test_a_batch_on_two_workers_gives_the_serial_commands_bytes(cluster, study, 
     assert sum(isinstance(e, BatchRunFinished) for e in events) == N_RUNS
 
 
-def test_a_damaged_frame_fails_its_run_alone_with_the_message(cluster, study, serial,
+def damage_page(stack: Path, index: int) -> str:
+    """Write ``stack`` again (as another TIFF writer would) with page ``index`` replaced by a
+    60x50 px frame; returns that frame's name."""
+    import numpy as np
+    import tifffile
+
+    with tifffile.TiffFile(stack) as tif:
+        pages = [p.asarray() for p in tif.pages]
+        names = [p.description for p in tif.pages]
+    pages[index] = np.zeros((50, 60), pages[index].dtype)
+    with tifffile.TiffWriter(stack) as out:
+        for page, name in zip(pages, names):
+            out.write(page, description=name, metadata=None)
+    return names[index]
+
+
+def test_a_damaged_frame_fails_its_run_alone_with_the_message(study, serial,
                                                               tmp_path, capsys):
     from dotshell.cli import main
 
     runs = copy_study(study, tmp_path / "study")
     damaged = runs[2]
-    frame = max((damaged / "frames" / "view_001").iterdir(), key=lambda p: p.stat().st_size)
-    frame.write_bytes(b"not an image")
-    code = main(["batch", "reconstruct", str(tmp_path / "study" / "*"), "--scheduler",
-                 cluster, "--out", str(tmp_path)])
+    name = damage_page(damaged / "frames" / "view_001.tif", 3)
+    code = main(["batch", "reconstruct", str(tmp_path / "study" / "*"), "--workers", "2",
+                 "--out", str(tmp_path)])  # the command's own local cluster
     err = capsys.readouterr().err
     assert code == 1 and "1 of 4 runs failed" in err and "Traceback" not in err
     rows = (tmp_path / "batch.csv").read_text().splitlines()
@@ -162,7 +180,10 @@ def test_a_damaged_frame_fails_its_run_alone_with_the_message(cluster, study, se
     assert (tmp_path / "batch.png").stat().st_size > 10_000
     m = json.loads((damaged / "manifest.json").read_text())
     assert m["status"] == "completed"  # a failed re-processing keeps the run as it was
-    assert m["jobs"][-1]["status"] == "failed" and frame.name in m["jobs"][-1]["reason"]
+    reason = m["jobs"][-1]["reason"]
+    assert m["jobs"][-1]["status"] == "failed", m["jobs"][-1]
+    assert name in reason and "view_001.tif" in reason and "is 60x50 px" in reason, reason
+    assert name in err  # the run's message reaches the batch's output
     assert (damaged / "current").resolve().name == "001"
     alone = tmp_path / "alone"  # the single-run command on the same damage says the same
     subprocess.run(["cp", "-a", str(damaged), str(alone)], check=True)

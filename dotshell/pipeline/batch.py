@@ -21,6 +21,7 @@ import hashlib
 import json
 import logging
 import os
+import time
 import uuid
 from collections import deque
 from contextlib import contextmanager
@@ -30,13 +31,19 @@ from typing import Any, Iterator
 
 from dotshell.errors import DotshellError, RunError
 from dotshell.events import Event, EventBus
-from dotshell.pipeline.batch_tasks import (TaskOutcome, head_task, identity, missing_runs,
-                                           tail_task, view_task)
+from dotshell.pipeline.batch_tasks import (TaskOutcome, executing_keys, head_task, identity,
+                                           missing_runs, tail_task, view_task)
 from dotshell.pipeline.commands import check_calibration_for_run
 from dotshell.pipeline.engine import JobWork, RunJob, outcome_of, prepare, publish
 from dotshell.pipeline.generations import current_number
+from dotshell.pipeline.steps import view_angle
 from dotshell.plugins import PluginManager
 from dotshell.store import RunStore
+
+
+#: seconds to wait for tasks that run on after their batch stopped (a view's decode and
+#: triangulation takes seconds at full resolution, a run's tail a minute at most)
+STRAGGLER_WAIT_S = 120.0
 
 
 class BatchError(DotshellError):
@@ -232,6 +239,31 @@ def check_workers(client: Any, runs: list[Path], wait_s: float = 60.0) -> int:
     return len(client.scheduler_info(n_workers=-1)["workers"])
 
 
+def tasks_running_on(client: Any, runs: list[Path]) -> list[str]:
+    """The runs of ``runs`` (names) a worker is still running a batch task of: a task goes on
+    running after it is cancelled or its client is gone (a killed batch), and writes into its
+    job's generation until it ends."""
+    marks = {f"-{r.name}-g": r.name for r in runs}
+    running = client.run(executing_keys, on_error="ignore")
+    return sorted({name for keys in running.values() for key in keys
+                   for mark, name in marks.items() if mark in key})
+
+
+def wait_for_tasks(client: Any, runs: list[Path], timeout_s: float) -> list[str]:
+    """Wait until no worker runs a task of ``runs`` (at most ``timeout_s``); returns the runs
+    still busy then (none once the tasks ended). A scheduler that cannot be asked counts as
+    idle: its workers are gone too."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            busy = tasks_running_on(client, runs)
+        except Exception:  # noqa: BLE001 (a lost scheduler: nothing more to wait for)
+            return []
+        if not busy or time.monotonic() > deadline:
+            return busy
+        time.sleep(0.05)
+
+
 # ---- the batch -----------------------------------------------------------------------------
 
 @dataclass
@@ -278,6 +310,12 @@ class StudyBatch:
         per run, in the study's order."""
         workers = check_workers(client, self.runs)
         self._version = identity()["dotshell"]
+        busy = wait_for_tasks(client, self.runs, STRAGGLER_WAIT_S)
+        if busy:
+            raise BatchError(f"the workers still run tasks of an earlier batch on {busy[0]} "
+                             f"(and {len(busy) - 1} other runs) after {STRAGGLER_WAIT_S:.0f} s "
+                             "(its client was killed; a task runs to its end); run the batch "
+                             "again once they end.")
         todo = deque(r for r in self.runs if self.redo or not self._skip(r))
         self.bus.emit(BatchStarted(command=self.command.name, runs=len(self.runs),
                                    skipped=len(self.runs) - len(todo), cluster=cluster,
@@ -317,10 +355,13 @@ class StudyBatch:
                 future = next(pending)
                 root = owner.pop(future.key)
                 if root in active:
-                    self._collect(root, active, future)
+                    self._collect(client, root, active, future)
         except BaseException as exc:  # Ctrl-C, SIGTERM, a lost scheduler: close every open job
             for run in active.values():
                 client.cancel(run.futures)
+            # a running task goes on writing into its job's generation: let it end first
+            wait_for_tasks(client, list(active), STRAGGLER_WAIT_S)
+            for run in active.values():
                 self._close(run.job, exc, run.outcomes)
             raise
 
@@ -365,7 +406,7 @@ class StudyBatch:
                              **opts) if head_names else None
         views = []
         if "views" in steps:
-            views = [client.submit(view_task, work, v["index"], v["angle_deg"], version, head,
+            views = [client.submit(view_task, work, v["index"], view_angle(v), version, head,
                                    key=f"view-{name}-{v['index']:03d}", **opts)
                      for v in store.manifest["views"] if v.get("complete")]
         tail = client.submit(tail_task, work, tail_names, version, head, views,
@@ -374,7 +415,8 @@ class StudyBatch:
         self._total += len(futures)
         return futures
 
-    def _collect(self, root: Path, active: dict[Path, _ActiveRun], future: Any) -> None:
+    def _collect(self, client: Any, root: Path, active: dict[Path, _ActiveRun],
+                 future: Any) -> None:
         """A task of an active run finished: replay its events; publish after the tail; fail
         the run (and cancel its other tasks) on an error."""
         run = active[root]
@@ -386,6 +428,7 @@ class StudyBatch:
             future.release()
             for f in run.futures:
                 f.cancel()
+            wait_for_tasks(client, [root], STRAGGLER_WAIT_S)  # its other running tasks
             self._total -= len(run.futures) - len(run.outcomes) - 1  # never to be done
             self._close(run.job, exc, run.outcomes)
             return

@@ -66,6 +66,21 @@ def missing_runs(roots: list[str]) -> list[str]:
     return [r for r in roots if not (Path(r) / "manifest.json").is_file()]
 
 
+def executing_keys(dask_worker: Any) -> list[str]:
+    """The keys of the tasks this worker is running, including cancelled ones still running
+    (a cancelled task's function is not stopped: it runs to its end)."""
+    return [str(ts.key) for ts in dask_worker.state.executing]
+
+
+@lru_cache(maxsize=1)
+def _configure_worker() -> None:
+    """The ``dotshell`` command's process settings (BLAS on one thread, the heap's mmap
+    threshold), once per worker process."""
+    from dotshell.runtime import configure_process
+
+    configure_process()
+
+
 def _read_bytes() -> int | None:
     try:
         with open("/proc/self/io", "rb") as f:
@@ -84,6 +99,7 @@ def _measured(run_root: Path, kind: str, view: int | None,
         raise RunError(f"worker {socket.gethostname()} (pid {os.getpid()}) runs dotshell "
                        f"{__version__} but the batch was started with {client_version}; install "
                        "the same dotshell version on every worker (docs/batch.md).")
+    _configure_worker()
     events: list[Event] = []
     bus = EventBus()
     bus.subscribe(events.append)
