@@ -17,6 +17,7 @@ Run as ``python batch_bench.py serial RESULT_JSON RUN ...`` it is the serial chi
 from __future__ import annotations
 
 import json
+import os
 import resource
 import statistics
 import subprocess
@@ -146,18 +147,36 @@ def scaling_model(outcomes: list[Any], measured_wall_s: float) -> dict[str, Any]
             "overhead_s": measured_wall_s - work / WORKERS, "model": model}
 
 
+def serial_model(serial: dict[str, Any], views: int) -> dict[str, Any]:
+    """The same bounds from the serial process's times (a second estimate when other work on
+    the machine slowed the batch's tasks): W = the serial wall, D = the slowest run's mean view
+    (its ``reconstruct`` / views) plus the rest of its time (an underestimate: a run's slowest
+    view is above its mean)."""
+    work = sum(r["wall_s"] for r in serial["runs"])
+    span = max(r["timings_s"].get("reconstruct", 0.0) / views
+               + r["wall_s"] - r["timings_s"].get("reconstruct", 0.0) for r in serial["runs"])
+    return {"work_s": work, "critical_path_s": span,
+            "model": [{"workers": n, "lower_s": max(work / n, span), "brent_s": work / n + span}
+                      for n in MODEL_WORKERS]}
+
+
 def bench_batch(source: Path, work: Path, quick: bool) -> dict[str, Any]:
     """Section 4's figures (see the module docstring)."""
     n = QUICK_RUNS if quick else RUNS
     serial_runs = make_study(source, work / "study-serial", n)
     batch_runs = make_study(source, work / "study-batch", n)
+    load0 = os.getloadavg()[0]
     serial = run_serial(serial_runs, work)
+    load1 = os.getloadavg()[0]
     parallel, outcomes = run_parallel(batch_runs)
+    load2 = os.getloadavg()[0]
     same = all((a / "cloud.ply").read_bytes() == (b / "cloud.ply").read_bytes()
                for a, b in zip(serial_runs, batch_runs))
-    return {"runs": n, "views_per_run": len(json.loads((source / "manifest.json").read_text())
-                                            ["views"]),
+    views = len(json.loads((source / "manifest.json").read_text())["views"])
+    return {"runs": n, "views_per_run": views, "copies_of_one_run": source.name,
+            "serial_model": serial_model(serial, views),
             "serial": serial, "batch": parallel, "clouds_identical": same,
+            "loadavg_1min": {"serial_start": load0, "serial_end": load1, "batch_end": load2},
             "ratio_serial_over_batch": serial["wall_s"] / parallel["wall_s"],
             "model": scaling_model(outcomes, parallel["wall_s"])}
 
@@ -166,6 +185,8 @@ def print_batch(b: dict[str, Any]) -> None:
     s, p, m = b["serial"], b["batch"], b["model"]
     print(f"\n== 6. study of {b['runs']} runs x {b['views_per_run']} views: `reconstruct` "
           f"serially vs `dotshell batch reconstruct` on {WORKERS} local workers ==")
+    print(f"  the runs are copies of one scan (rendered once; frames hard-linked, the rest "
+          f"copied): {b.get('copies_of_one_run', '?')}")
     print(f"  serial, one process       {s['wall_s']:8.1f} s  ({s['wall_s'] / b['runs']:.1f} s "
           f"per run; start-up {s['warm_up_s']:.1f} s before; peak RSS "
           f"{s['peak_rss_mib']:.0f} MiB)")
@@ -174,6 +195,12 @@ def print_batch(b: dict[str, Any]) -> None:
           f"{p['worker_peak_rss_mib']:.0f} MiB; runs {', '.join(p['statuses'])})")
     print(f"  ratio serial / batch      {b['ratio_serial_over_batch']:8.2f}x   clouds "
           f"byte-identical: {b['clouds_identical']}")
+    load = b.get("loadavg_1min", {})
+    if load:
+        print(f"  1-min load average: serial {load['serial_start']:.1f} -> {load['serial_end']:.1f}, "
+              f"batch -> {load['batch_end']:.1f} (other work on the 2 cores slows both sides)")
+    print(f"  the tasks' time summed / the serial wall = {m['work_s'] / s['wall_s']:.2f} (1 when "
+          "the workers run the same work as fast as the serial process)")
     kinds = ", ".join(f"{k} {v['count']}" for k, v in m["per_kind"].items())
     print(f"  tasks {m['tasks']} ({kinds}); work W = {m['work_s']:.1f} s of task time; critical path D = "
           f"{m['critical_path_s']:.1f} s; W/D = {m['max_parallelism']:.0f} workers at most")
@@ -181,10 +208,19 @@ def print_batch(b: dict[str, Any]) -> None:
         print(f"    {k:5s} median {v['median_s']:6.2f} s, max {v['max_s']:6.2f} s, "
               f"reads {v['median_read_mb']:6.1f} MB (median)")
     print(f"  overhead at {WORKERS} workers: measured wall - W/{WORKERS} = {m['overhead_s']:.1f} s")
-    print("  model  N workers   max(W/N, D)   W/N + D   file reads needed")
-    for r in m["model"]:
-        print(f"         {r['workers']:9d} {r['lower_s']:11.1f} s {r['brent_s']:8.1f} s "
-              f"{r['read_mb_per_s']:10.0f} MB/s")
+    sm = b.get("serial_model")
+    if sm:
+        print(f"  from the serial times: W = {sm['work_s']:.1f} s, D = "
+              f"{sm['critical_path_s']:.1f} s (mean view + tail; an underestimate)")
+    print("  model  N workers   max(W/N, D)   W/N + D   file reads needed"
+          + ("   serial times: max(W/N, D)   W/N + D" if sm else ""))
+    for i, r in enumerate(m["model"]):
+        line = (f"         {r['workers']:9d} {r['lower_s']:11.1f} s {r['brent_s']:8.1f} s "
+                f"{r['read_mb_per_s']:10.0f} MB/s")
+        if sm:
+            q = sm["model"][i]
+            line += f"   {q['lower_s']:21.1f} s {q['brent_s']:8.1f} s"
+        print(line)
 
 
 def study_alone(quick: bool) -> None:
