@@ -1,4 +1,4 @@
-"""Section 6 of ``make bench``: a study re-processed serially vs on a 2-worker local Dask cluster.
+"""Section 7 of ``make bench``: a study re-processed serially vs on a 2-worker local Dask cluster.
 
 The study is ``RUNS`` copies of one full-resolution scan (frames hard-linked, everything else
 copied, so each copy is a run of its own). Serially, one process calls
@@ -183,7 +183,7 @@ def bench_batch(source: Path, work: Path, quick: bool) -> dict[str, Any]:
 
 def print_batch(b: dict[str, Any]) -> None:
     s, p, m = b["serial"], b["batch"], b["model"]
-    print(f"\n== 6. study of {b['runs']} runs x {b['views_per_run']} views: `reconstruct` "
+    print(f"\n== 7. study of {b['runs']} runs x {b['views_per_run']} views: `reconstruct` "
           f"serially vs `dotshell batch reconstruct` on {WORKERS} local workers ==")
     print(f"  the runs are copies of one scan (rendered once; frames hard-linked, the rest "
           f"copied): {b.get('copies_of_one_run', '?')}")

@@ -11,7 +11,11 @@
    opencv-python-headless); a plain numpy integer decoder (:mod:`numpy_gray`).
 4. The end-to-end demo scan in a subprocess (wall time by stage, peak memory, accuracy), then
    ``reconstruct`` of that run in another (wall time, peak memory).
-5. A study of 12 copies of that scan re-processed serially vs by ``dotshell batch`` on a
+5. Acquisition rate of show/settle/capture vs hardware-sequenced on the simulator's time model
+   (``acquisition_rate.py``): frames per second, seconds per 42-frame view, their ratio.
+6. An idle ``dotshell tui`` attached to its rig server after a 4-view scan: resident memory and
+   CPU; peer: a bare Textual app on the same pseudo-terminal (``bench_tui.py``).
+7. A study of 12 copies of that scan re-processed serially vs by ``dotshell batch`` on a
    2-worker local Dask cluster, and a model of the scaling to N workers (:mod:`batch_bench`;
    ``--skip-batch`` leaves it out).
 
@@ -40,6 +44,7 @@ import cv2
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+import acquisition_rate
 import batch_bench
 import decoders
 import frame_io
@@ -228,8 +233,9 @@ def main() -> None:
                     help="camera 320x256, projector 256x192, 2 views (tests the harness)")
     ap.add_argument("--repeats", type=int, default=5, help="repeats of each timing (min, median)")
     ap.add_argument("--skip-scan", action="store_true", help="sections 1 to 3 only")
+    ap.add_argument("--skip-tui", action="store_true", help="without the idle-TUI section")
     ap.add_argument("--skip-batch", action="store_true",
-                    help="no section 6 (12 runs serially vs a 2-worker Dask cluster)")
+                    help="no section 7 (12 runs serially vs a 2-worker Dask cluster)")
     args = ap.parse_args()
     configure_process()  # as the dotshell command runs
     pm = get_plugin_manager()
@@ -264,10 +270,17 @@ def main() -> None:
                                                    Path(results["scan"]["run_dir"]),
                                                    args.quick, work)
             print_reconstruct_run(results["reconstruct_run"], baseline)
-            if not args.skip_batch:
-                results["batch"] = batch_bench.bench_batch(Path(results["scan"]["run_dir"]),
-                                                           work, args.quick)
-                batch_bench.print_batch(results["batch"])
+        results["acquisition_rate"] = acquisition_rate.measure(pm, work / "acquisition")
+        acquisition_rate.print_rates(results["acquisition_rate"])
+        if not args.skip_tui:
+            from bench_tui import print_tui, run_tui_bench
+
+            results["tui"] = run_tui_bench(args.quick)
+            print_tui(results["tui"])
+        if not args.skip_scan and not args.skip_batch:
+            results["batch"] = batch_bench.bench_batch(Path(results["scan"]["run_dir"]), work,
+                                                       args.quick)
+            batch_bench.print_batch(results["batch"])
     results["machine"]["loadavg_1min_end"] = os.getloadavg()[0]
     print(f"\n1-min load average at end {os.getloadavg()[0]:.2f} (other work on the machine "
           "skews every figure above; the sides of each comparison ran interleaved)")

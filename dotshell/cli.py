@@ -148,6 +148,10 @@ def cmd_scan(args: argparse.Namespace) -> int:
     from dotshell.pipeline.scan import scan
     from dotshell.profile import load_profile
 
+    if args.detach:
+        from dotshell.cli_server import scan_detached
+
+        return scan_detached(args)
     pm = _pm(args)
     profile = load_profile(args.profile, pm, args.set)
     bus = EventBus()
@@ -250,12 +254,23 @@ def cmd_check(args: argparse.Namespace) -> int:
             info = pm.backend(role, sec["backend"])
             out.print(f"  {role:<13} {sec['backend']:<16} from {info.distribution}")
     out.print(f"  views         {len(profile.angles_deg())}")
-    if args.connect:
+    if args.connect or args.latency:
+        from dotshell.rig_checks import check_resolutions, measure_latency, refused_controls
+
         with Rig(profile, pm) as rig:
             for role, status in rig.status().items():
                 out.print(f"  [green]connected[/] {role:<13} {escape(str(status))}")
             cal = rig.calibration(args.calibration)
             out.print(f"  calibration   {cal.source}: baseline {cal.baseline_mm:.2f} mm")
+            check_resolutions(rig, cal, str(profile.source))
+            for line in refused_controls(rig):
+                out.print(f"  [yellow]warning[/] {escape(line)}")
+            if args.latency:
+                lat = measure_latency(rig, profile.data["scan"]["exposure_ms"])
+                out.print(f"  display latency: the full pattern is seen {lat.shortest_ms:.0f} ms "
+                          f"after show() ({len(lat.trials)} trials, step "
+                          f"{lat.contrast_dn:.0f} DN)")
+                out.print(f"settle_ms = {lat.settle_ms:g}")
         out.print("[green]all devices opened and closed[/]")
     return 0
 
@@ -287,14 +302,6 @@ def cmd_plugins(args: argparse.Namespace) -> int:
             out.print(f"  {escape(str(e))}")
         return 1
     return 0
-
-
-def cmd_tui(args: argparse.Namespace) -> int:
-    from dotshell.console import Session
-    from dotshell.tui.app import run_tui  # imported before the app starts: it probes the terminal
-
-    session = Session(args.profile, pm=_pm(args), out_dir=args.out, overrides=args.set)
-    return run_tui(session)
 
 
 def cmd_script(args: argparse.Namespace) -> int:
@@ -362,7 +369,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("check", help="validate a profile (and open every device with --connect)")
     profile_args(sp)
-    sp.add_argument("--connect", action="store_true", help="connect and close every device")
+    sp.add_argument("--connect", action="store_true", help="connect and close every device; "
+                    "check the calibration against the devices' resolutions")
+    sp.add_argument("--latency", action="store_true", help="with the devices connected, "
+                    "measure the display latency and print a settle_ms for the profile")
     sp.set_defaults(func=cmd_check)
 
     sp = sub.add_parser("plugins", help="list backends by role and plugin load errors")
@@ -386,11 +396,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="override a profile key (TOML value), e.g. --set scan.views=24")
         sp.add_argument("--out", default="runs", help="parent directory of runs (default: runs)")
 
-    sp = sub.add_parser("tui", help="terminal UI: rig, scan, previews, log, Python console")
-    sp.add_argument("profile", nargs="?", help="profile TOML file (omit to pick one in the UI)")
-    session_args(sp)
-    sp.set_defaults(func=cmd_tui)
+    from dotshell.cli_server import add_server_parsers
 
+    add_server_parsers(sub)  # serve, tui, attach, status, stop, scan --detach
     sp = sub.add_parser("script", help="run a Python script against a live session, headless")
     sp.add_argument("file", help="the Python script (rig, profile, run, scan(), np, ... are "
                     "defined; see docs/tui.md)")

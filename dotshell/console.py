@@ -12,8 +12,11 @@ Workflow logic lives here and in :mod:`dotshell.pipeline`, never in widgets::
     run.report["validation"]["mean_rel_error_pct"]
 
 Device actions refuse while a scan is running (:class:`SessionBusy`); ``pause()``,
-``resume()`` and ``abort()`` steer a scan from any thread. Everything the session does is
-published on :attr:`Session.bus` (the scan's events, :class:`PreviewSaved`, log messages).
+``resume()``, ``abort()`` and ``stop()`` steer a scan from any thread. Everything the session
+does is published on :attr:`Session.bus` (the scan's events, :class:`PreviewSaved`, a log line
+for every rig action). The rig server (:mod:`dotshell.server`) holds one Session for all front
+ends. Importing this module is cheap (no numpy, no plugins): front ends that only decode its
+events import it too.
 """
 
 from __future__ import annotations
@@ -21,18 +24,21 @@ from __future__ import annotations
 import re
 import sys
 import threading
+import time
 import weakref
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
-
-import numpy as np
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 from dotshell.errors import DeviceError, DotshellError, ProfileError, RunError
 from dotshell.events import Event, EventBus, ScanFinished, ScanStarted, ViewCaptured
-from dotshell.plugins import PluginManager
-from dotshell.profile import DEVICE_ROLES, Profile, apply_overrides, load_profile, validate_profile
-from dotshell.rig import Rig
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from dotshell.plugins import PluginManager
+    from dotshell.profile import Profile
+    from dotshell.rig import Rig
 
 #: Session states: no scan, scanning, paused between frames, abort requested.
 STATES = ("idle", "running", "paused", "stopping")
@@ -45,11 +51,34 @@ class SessionBusy(DotshellError):
 @dataclass(frozen=True)
 class PreviewSaved(Event):
     """A preview PNG was written: ``kind`` is ``snap``, ``frame`` (latest view of a scan),
-    ``columns`` (decoded projector columns) or ``cloud``; ``view`` is -1 when not a view."""
+    ``columns`` (decoded projector columns) or ``cloud``; ``view`` is -1 when not a view
+    (0-based). ``stats`` describes the raw frame behind a ``snap`` or ``frame`` preview
+    (:func:`frame_stats`), empty otherwise."""
 
     kind: str
     path: str
     view: int = -1
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+#: Bins of the histogram in :func:`frame_stats`.
+HISTOGRAM_BINS = 32
+
+
+def frame_stats(frame: "np.ndarray", bit_depth: int | None = None) -> dict[str, Any]:
+    """What a person checks on a raw frame: its size, minimum, maximum and mean (DN), the share
+    of saturated pixels (at full scale, ``2**bit_depth - 1``; the dtype's maximum when the bit
+    depth is unknown), in percent, and a histogram over 0..full scale (counts)."""
+    import numpy as np
+
+    full = (1 << bit_depth) - 1 if bit_depth else int(np.iinfo(frame.dtype).max) \
+        if np.issubdtype(frame.dtype, np.integer) else float(frame.max())
+    counts, _ = np.histogram(frame, bins=HISTOGRAM_BINS, range=(0, max(full, 1)))
+    return {"width": int(frame.shape[1]), "height": int(frame.shape[0]),
+            "min": float(frame.min()), "max": float(frame.max()), "mean": float(frame.mean()),
+            "full_scale": float(full),
+            "saturated_pct": float(100.0 * np.count_nonzero(frame >= full) / frame.size),
+            "histogram": counts.astype(int).tolist()}
 
 
 @dataclass
@@ -97,8 +126,20 @@ class Run:
 
     @property
     def status(self) -> str:
-        """``running``, ``completed``, ``aborted``, ``failed`` (or ``unknown``)."""
-        return self.manifest.get("status", "unknown")
+        """``running``, ``completed``, ``aborted``, ``failed``, ``interrupted`` (recorded
+        ``running`` but no process writes it any more) or ``unknown``."""
+        return self.status_and_reason()[0]
+
+    def status_and_reason(self) -> tuple[str, str]:
+        """The run's status as it truly is, and why when it is not ``completed``."""
+        from dotshell.store import RunStore
+
+        if not (self.root / "manifest.json").is_file():
+            return "unknown", f"{self.root} has no manifest.json"
+        try:
+            return RunStore(self.root).status()
+        except RunError as exc:  # a damaged manifest: say so rather than fail the caller
+            return "unknown", str(exc)
 
     def frame_count(self) -> int:
         """Frames on disk over all views."""
@@ -132,6 +173,7 @@ class ScanJob:
     def __init__(self, target: Callable[[], Run]) -> None:
         self.result: Run | None = None
         self.error: BaseException | None = None
+        self.started = time.time()
         self.thread = threading.Thread(target=self._run, args=(target,), name="dotshell-scan",
                                        daemon=True)
         self.thread.start()
@@ -145,6 +187,13 @@ class ScanJob:
     @property
     def done(self) -> bool:
         return not self.thread.is_alive()
+
+    def __repr__(self) -> str:
+        if not self.done:
+            return f"ScanJob(running for {time.time() - self.started:.0f} s; wait() returns the Run)"
+        if self.error is not None:
+            return f"ScanJob(failed: {type(self.error).__name__}: {self.error})"
+        return f"ScanJob(done: {self.result!r})"
 
     def wait(self, timeout: float | None = None) -> Run:
         """The finished run; re-raises the scan's error. TimeoutError if still running."""
@@ -167,7 +216,7 @@ def _next_free(directory: Path, stem: str) -> int:
 
 class Session:
     """A live session: plugin manager, profile, rig (built on load, connected on demand), the
-    last run, and the scan control (pause, resume, abort).
+    last run, and the scan control (pause, resume, abort, stop).
 
     Args:
         profile: a profile file, a validated :class:`Profile`, or None (load one later).
@@ -194,7 +243,8 @@ class Session:
         self.projected: str | None = None
         self.job: ScanJob | None = None
         self._state = "idle"
-        self._lock = threading.RLock()
+        self._lock = threading.RLock()  # device I/O: one action at a time
+        self._state_lock = threading.Lock()  # scan state changes, never held during I/O
         self._stop = threading.Event()
         self._running = threading.Event()
         self._coding: Any = None
@@ -205,10 +255,18 @@ class Session:
         if profile is not None:
             self.load(profile, overrides)
 
+    def __repr__(self) -> str:
+        name = self.profile.name if self.profile else "no profile"
+        rig = "connected" if self.connected else "not connected"
+        return f"Session({name}, rig {rig}, {self._state}, out {str(self.out_dir)!r})"
+
     # ---- profile ------------------------------------------------------------------------------
 
     def load(self, profile: Profile | str | Path, overrides: Sequence[str] = ()) -> Profile:
         """Load a profile (file or :class:`Profile`); closes the previous rig."""
+        from dotshell.profile import Profile, apply_overrides, load_profile, validate_profile
+        from dotshell.rig import Rig
+
         with self._lock:
             self._require_idle("load another profile")
             if isinstance(profile, Profile):
@@ -224,7 +282,8 @@ class Session:
             self.disconnect()
             self.profile, self.rig = prof, rig
             self._coding, self._patterns, self.projected = None, None, None
-        self.bus.info(f"profile {prof.name} loaded from {prof.source}")
+        self.bus.info(f"profile {prof.name} loaded from {prof.source}"
+                      + (f" with {', '.join(overrides)}" if overrides else ""))
         self._refresh_namespaces()
         return prof
 
@@ -288,6 +347,8 @@ class Session:
 
     def devices(self) -> list[dict[str, Any]]:
         """One row per device role of the profile: role, backend, connected, status."""
+        from dotshell.profile import DEVICE_ROLES
+
         if self.profile is None or self.rig is None:
             return []
         status = self.rig.status()
@@ -321,24 +382,33 @@ class Session:
         with self._lock:
             stage = self._device("stage", "move the stage")
             stage.move_to(float(degrees))
-            return float(stage.position)
+            reached = float(stage.position)
+        self.bus.info(f"stage moved to {reached:.2f}°")
+        return reached
 
     def home(self, role: str = "stage") -> float | None:
         """Home the stage (or ``role``): find its reference position; the angle afterwards."""
         with self._lock:
             self._device(role, f"home the {role}")
-            return self.rig.home(role)  # type: ignore[union-attr]
+            reached = self.rig.home(role)  # type: ignore[union-attr]
+        self.bus.info(f"{role} homed" + (f": at {reached:.2f}°" if reached is not None else ""))
+        return reached
 
     def jog(self, degrees: float) -> float:
         """Rotate the stage by ``degrees`` (relative); returns the angle reached."""
         with self._lock:
             stage = self._device("stage", "jog the stage")
-            return self.move_to(float(stage.position) + float(degrees))
+            start = float(stage.position)
+            stage.move_to(start + float(degrees))
+            reached = float(stage.position)
+        self.bus.info(f"stage jogged {float(degrees):+.2f}° from {start:.2f}° to {reached:.2f}°")
+        return reached
 
     def set_analyzer(self, degrees: float) -> float:
         """Set the analyzer's transmission axis (degrees)."""
         with self._lock:
             self._device("analyzer", "set the analyzer").set_angle(float(degrees))
+        self.bus.info(f"analyzer set to {float(degrees):.2f}°")
         return float(degrees)
 
     def set_exposure(self, ms: float) -> float:
@@ -351,7 +421,18 @@ class Session:
                 raise DeviceError(f"the camera ({self.profile.role('camera')['backend']}) has "  # type: ignore[union-attr]
                                   "no exposure control.")
             cam.set_exposure(float(ms))
+        self.bus.info(f"camera exposure set to {float(ms):g} ms")
         return float(ms)
+
+    def stop(self) -> None:
+        """Stop now, from any thread, without waiting for the action under way (a move holds
+        the session): every device that can move is stopped (:meth:`dotshell.rig.Rig.stop`),
+        then a running scan is aborted cleanly (frames kept). Safe when nothing moves."""
+        rig = self.rig
+        if rig is not None and rig.connected:
+            rig.stop()
+            self.bus.warn("stop: every device that can move was told to stop")
+        self.abort()
 
     # ---- patterns, frames, decoding -------------------------------------------------------------
 
@@ -378,6 +459,7 @@ class Session:
                                   f"coding; choose one of {', '.join(pats)}.")
             proj.show(pats[name])
             self.projected = name
+        self.bus.info(f"projector shows pattern {name}")
         return name
 
     def _snapshot_dir(self) -> Path:
@@ -394,7 +476,8 @@ class Session:
         from dotshell.store import atomic_write_bytes
 
         with self._lock:
-            frame = self._device("camera", "snap a frame").capture()
+            camera = self._device("camera", "snap a frame")
+            frame = camera.capture()
             angle = float(self.rig.stage.position) if "stage" in self.rig.connected else 0.0  # type: ignore[union-attr]
         d = self._snapshot_dir()
         n = _next_free(d, "snap")
@@ -404,7 +487,10 @@ class Session:
             raise RunError(f"could not encode {raw}")
         atomic_write_bytes(raw, buf.tobytes())
         preview = frame_preview(frame, d / f"snap_{n:04d}_preview.png")
-        self.bus.emit(PreviewSaved(kind="snap", path=str(preview)))
+        stats = frame_stats(frame, getattr(camera, "bit_depth", None))
+        self.bus.info(f"snap at {angle:.2f}° (pattern {self.projected or 'none'}): mean "
+                      f"{stats['mean']:.0f} DN, {stats['saturated_pct']:.2f} % saturated → {raw}")
+        self.bus.emit(PreviewSaved(kind="snap", path=str(preview), stats=stats))
         return Snapshot(frame, raw, preview, angle)
 
     def decode(self) -> DecodeResult:
@@ -425,39 +511,48 @@ class Session:
         d = self._snapshot_dir()
         path = column_map_preview(corr.column, corr.valid, proj.resolution[0],
                                   d / f"decode_{_next_free(d, 'decode'):04d}.png")
+        result = DecodeResult(int(corr.valid.sum()), int(corr.valid.size), path)
+        self.bus.info(f"decode map: {result.decoded_pixels} of {result.total_pixels} pixels "
+                      f"decoded → {path}")
         self.bus.emit(PreviewSaved(kind="columns", path=str(path)))
-        return DecodeResult(int(corr.valid.sum()), int(corr.valid.size), path)
+        return result
 
     # ---- scans ----------------------------------------------------------------------------------
 
-    def scan(self, wait: bool = True, out: Path | str | None = None) -> Run | ScanJob:
+    def scan(self, wait: bool = True, out: Path | str | None = None,
+             calibration: Path | str | None = None) -> Run | ScanJob:
         """Scan with the current profile and rig into ``out`` (default: the session's output
-        directory). Blocks and returns the :class:`Run`, or with ``wait=False`` returns a
-        :class:`ScanJob` at once. A stopped scan returns normally with status ``aborted``."""
-        with self._lock:
+        directory), with the profile's calibration or the ``calibration`` file. Blocks and
+        returns the :class:`Run`, or with ``wait=False`` returns a :class:`ScanJob` at once. A
+        stopped scan returns normally with status ``aborted``."""
+        with self._lock, self._state_lock:
             self._require_profile()
             self._require_idle("start a scan")
             self._stop = threading.Event()
             self._running = threading.Event()
             self._running.set()
             self._state = "running"
-        target = lambda: self._run_scan(Path(out) if out is not None else self.out_dir)  # noqa: E731
+        target = lambda: self._run_scan(Path(out) if out is not None else self.out_dir,  # noqa: E731
+                                        calibration)
         if wait:
             return target()
         self.job = ScanJob(target)
         return self.job
 
-    def _run_scan(self, out: Path) -> Run:
+    def _run_scan(self, out: Path, calibration: Path | str | None = None) -> Run:
         from dotshell.pipeline.scan import scan
 
         self._live = {}
         try:
             result = scan(self.profile, self.pm, out, bus=self.bus, stop=self._stop,  # type: ignore[arg-type]
-                          running=self._running, rig=self.rig)
+                          running=self._running, rig=self.rig,
+                          calibration_file=str(calibration) if calibration else None)
         finally:  # a failed run is the session's last run too
             if self._live.get("run_dir"):
                 self.run = Run(self._live["run_dir"])
-            self._state = "idle"
+            self._live = {"run_dir": self._live.get("run_dir")}  # no frame kept past the scan
+            with self._state_lock:
+                self._state = "idle"
             self._refresh_namespaces()
         run = self.run = Run(result.run_dir)
         for kind, rel in (result.report.get("previews") or {}).items():
@@ -478,28 +573,32 @@ class Session:
         self._require_idle("normalize")
         return normalize_run(root, self.pm, self.bus, normalizer=normalizer)
 
+    def _transition(self, allowed: tuple[str, ...], to: str) -> bool:
+        """Move the scan state from one of ``allowed`` to ``to``; False if it was elsewhere."""
+        with self._state_lock:
+            if self._state not in allowed:
+                return False
+            self._state = to
+            return True
+
     def pause(self) -> None:
         """Pause the running scan before its next frame."""
-        with self._lock:
-            if self._state == "running":
-                self._running.clear()
-                self._state = "paused"
-                self.bus.info("pause requested: the scan stops before its next frame")
+        if self._transition(("running",), "paused"):
+            self._running.clear()
+            self.bus.info("pause requested: the scan stops before its next frame")
 
     def resume(self) -> None:
         """Resume a paused scan."""
-        with self._lock:
-            if self._state == "paused":
-                self._state = "running"
-                self._running.set()
+        if self._transition(("paused",), "running"):
+            self._running.set()
+            self.bus.info("resume requested")
 
     def abort(self) -> None:
-        """Stop the scan cleanly: frames captured so far are kept, the run is ``aborted``."""
-        with self._lock:
-            if self._state in ("running", "paused"):
-                self._state = "stopping"
-                self._stop.set()
-                self.bus.warn("abort requested: stopping the scan, frames are kept")
+        """Stop the scan cleanly: frames captured so far are kept, the run is ``aborted``. Never
+        waits for a device action under way."""
+        if self._transition(("running", "paused"), "stopping"):
+            self._stop.set()
+            self.bus.warn("abort requested: stopping the scan, frames are kept")
 
     def wait(self, timeout: float | None = None) -> Run:
         """Wait for a background scan (``scan(wait=False)``) and return its run."""
@@ -525,7 +624,9 @@ class Session:
                 return
             store.path("previews").mkdir(exist_ok=True)
             path = frame_preview(frame, store.path("previews", "latest_frame.png"))
-            self.bus.emit(PreviewSaved(kind="frame", path=str(path), view=ev.view))
+            bits = getattr(self.rig.camera, "bit_depth", None) if self.rig else None
+            self.bus.emit(PreviewSaved(kind="frame", path=str(path), view=ev.view,
+                                       stats=frame_stats(frame, bits)))
 
     # ---- lifetime and scripting -----------------------------------------------------------------
 
@@ -546,6 +647,8 @@ class Session:
     def namespace(self) -> dict[str, Any]:
         """A fresh namespace for scripts and the console, bound to this session: ``rig``,
         ``profile`` and ``run`` follow the session as it changes."""
+        import numpy as np
+
         import dotshell
 
         ns: dict[str, Any] = {
@@ -556,7 +659,8 @@ class Session:
             "set_exposure": self.set_exposure, "patterns": self.patterns,
             "project": self.project, "snap": self.snap, "decode": self.decode,
             "scan": self.scan, "pause": self.pause, "resume": self.resume,
-            "abort": self.abort, "wait": self.wait, "normalize": self.normalize,
+            "abort": self.abort, "stop": self.stop, "wait": self.wait,
+            "normalize": self.normalize,
         }
         self._bind(ns)
         return ns
@@ -576,6 +680,25 @@ class Session:
             holder.ns.update(rig=self.rig, profile=self.profile, run=self.run)
             alive.append(ref)
         self._namespaces = alive
+
+
+def readable_repr(value: Any) -> str:
+    """How the console shows a value: the rig and a profile as a sentence (their classes have
+    no repr of their own), anything else as ``repr``."""
+    from dotshell.profile import Profile
+    from dotshell.rig import Rig
+
+    if isinstance(value, Rig):
+        devices = ", ".join(f"{role} {value.profile.role(role)['backend']}"
+                            + ("" if role in value.connected else " (closed)")
+                            for role in value.devices)
+        return f"<Rig of {value.profile.name}: {devices or 'no devices'}>"
+    if isinstance(value, Profile):
+        scan = value.data["scan"]
+        return (f"<Profile {value.name} from {value.source}: {len(value.angles_deg())} views, "
+                f"exposure {scan['exposure_ms']:g} ms, coding {value.role('coding')['backend']}>")
+    return repr(value)
+
 
 
 class _Namespace:

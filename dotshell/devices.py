@@ -218,6 +218,12 @@ class SequencedProjector(Protocol):
     """A projector that stores a pattern sequence and steps through it on its own, with a
     trigger output per pattern (DLP LightCrafter pattern mode)."""
 
+    def shortest_period_ms(self, exposure_ms: float, at_least_ms: float) -> float:
+        """The shortest pattern period (ms) the projector can run with this pattern exposure
+        that is at least ``at_least_ms`` (e.g. a LightCrafter takes a period equal to the
+        exposure or at least 0.23 ms longer). Hardware-free."""
+        ...
+
     def load_sequence(self, patterns: Sequence[SequencePattern], exposure_ms: float,
                       period_ms: float) -> None:
         """Store ``patterns`` on the device, each shown for ``period_ms`` with the trigger out
@@ -236,6 +242,13 @@ class SequencedProjector(Protocol):
 @runtime_checkable
 class TriggeredCamera(Protocol):
     """A camera that can be armed for N externally triggered frames."""
+
+    def min_trigger_period_ms(self, exposure_ms: float) -> float:
+        """Shortest time between trigger edges (ms) the camera keeps up with at this exposure
+        (exposure plus readout, or the longer of the two for sensors that read out while the
+        next frame exposes). The runner chooses the pattern period from it: faster edges are
+        missed and the view times out. Hardware-free."""
+        ...
 
     def arm(self, n_frames: int, exposure_ms: float) -> None:
         """Prepare to take ``n_frames`` frames, one per trigger edge."""

@@ -91,6 +91,15 @@ SCHEMA: dict[str, Setting] = {
                              help="wait after each projector change before capturing"),
         "retries": Setting("int", default=2, min=0, max=20,
                            help="re-tries of a frame capture that raised DeviceError"),
+        "acquisition": Setting("str", default="auto", choices=("auto", "sequenced",
+                                                                "show-capture"),
+                               help="'sequenced': the projector runs the view's patterns as a "
+                                    "stored sequence and triggers the camera; 'show-capture': "
+                                    "show, settle, capture each frame; 'auto': sequenced when "
+                                    "both devices can (docs/hardware.md)"),
+        "pattern_period_ms": Setting("float", default=0.0, min=0.0, unit="ms",
+                                     help="sequenced acquisition: time per pattern; 0 = the "
+                                          "shortest both devices allow"),
         "pdi": Setting("bool", default=False,
                        help="polarization difference imaging: capture every pattern with the "
                             "analyzer parallel and perpendicular, reconstruct from |I∥ − I⊥|"),

@@ -61,6 +61,7 @@ def write_test_profile(tmp_path: Path, views: int = 2, name: str = "p.toml",
     raw = small_profile_dict(factor=0.12, views=views)
     raw["camera"]["settings"]["supersample"] = 1
     raw["scan"]["settle_ms"] = settle_ms
+    raw["scan"]["acquisition"] = "show-capture"  # front ends pause and stop between frames
     raw["outputs"] = {"previews": False, **outputs}
     return write_profile(tmp_path / name, raw)
 

@@ -146,6 +146,9 @@ def tiny_profile_dict(raw: dict | None = None, **changes: Any) -> dict:
         raw = small_profile_dict(factor=0.1, views=2)
         raw["camera"]["settings"]["supersample"] = 1
         raw["outputs"] = {"previews": False}
+        # the cases' camera wrappers act in capture(); faults of hardware-sequenced runs are
+        # in tests/test_sequenced.py
+        raw["scan"]["acquisition"] = "show-capture"
     for dotted, value in changes.items():
         *path, key = dotted.split("__")
         d = raw

@@ -35,10 +35,10 @@ def test_toml_syntax_error_names_file(capsys, tmp_path):
 
 
 @pytest.mark.parametrize("mutate, fragment", [
-    (lambda r: r["scan"].update(viewz=3), "unknown key [scan.viewz]. Valid keys here: angles_deg"),
+    (lambda r: r["scan"].update(viewz=3), "unknown key [scan.viewz]. Valid keys here: acquisition, angles_deg"),
     (lambda r: r["scan"].update(views="twelve"), "[scan.views] = 'twelve' is invalid: expected an integer"),
     (lambda r: r["camera"]["settings"].update(bit_depth=10), "[camera.settings.bit_depth] = 10 is not a valid choice"),
-    (lambda r: r["camera"].update(backend="basler"), "[camera.backend] = 'basler' is not an installed camera backend. Valid choices: 'sim-camera'"),
+    (lambda r: r["camera"].update(backend="basler"), "[camera.backend] = 'basler' is not an installed camera backend. Valid choices: 'genicam', 'opencv', 'scientific', 'sim-camera'"),
     (lambda r: r.pop("stage"), "missing required key [stage]"),
     (lambda r: r["calibration"].update(source="file"), "[calibration] needs file ="),
 ])

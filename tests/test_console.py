@@ -2,6 +2,7 @@
 acquisition runner and the progress tracker — headless, on the reduced simulated bench."""
 
 import json
+import shutil
 import threading
 import time
 
@@ -10,15 +11,15 @@ import pytest
 
 from conftest import write_test_profile
 from dotshell.cli import main
-from dotshell.console import PreviewSaved, Run, Session, SessionBusy
+from dotshell.console import PreviewSaved, Run, Session, SessionBusy, frame_stats, readable_repr
 from dotshell.errors import DeviceError, ProfileError
 from dotshell.events import (EventBus, FrameCaptured, ScanFinished, ScanPaused, ScanResumed,
                              ScanStarted, ViewCaptured, ViewReconstructed)
 from dotshell.pipeline.scan import scan
 from dotshell.profile import load_profile
+from dotshell.server.interpreter import Interpreter, wants_more
+from dotshell.server.progress import ScanTracker, format_seconds
 from dotshell.store import RunStore
-from dotshell.tui.interpreter import Interpreter, wants_more
-from dotshell.tui.progress import ScanTracker, format_seconds
 
 
 @pytest.fixture
@@ -131,6 +132,7 @@ def test_session_background_scan_pause_resume_and_busy_guard(session):
     session.bus.subscribe(lambda ev: gate.wait(30) if isinstance(ev, FrameCaptured)
                           and (ev.view, ev.index) == (0, 1) else None)
     job = session.scan(wait=False)
+    assert repr(job).startswith("ScanJob(running for ")
     with pytest.raises(SessionBusy, match="while a scan is running"):
         session.jog(5)
     with pytest.raises(SessionBusy):
@@ -143,6 +145,7 @@ def test_session_background_scan_pause_resume_and_busy_guard(session):
     session.resume()
     run = session.wait(60)
     assert run.status == "completed" and session.state == "idle"
+    assert repr(job) == f"ScanJob(done: {run!r})"
     assert run is session.run and len(run.cloud()) > 1000
     assert session.jog(5) == pytest.approx(185.0)  # free again, still at the last view
 
@@ -268,3 +271,90 @@ def test_tracker_counts_and_eta_exclude_pauses():
     assert (t.status, t.frames_done, t.views_done, t.points) == ("aborted", 5, 1, 1000)
     assert t.eta_s(130.0) is None
     assert format_seconds(3725) == "1:02:05" and format_seconds(None) == "--:--"
+
+
+def test_eta_ignores_the_warm_up():
+    """Ten minutes of connecting, calibration and flat field before the first frame, then a
+    frame a second: the ETA is a second a frame, not the warm-up spread over the frames."""
+    t = ScanTracker()
+    t.update(ScanStarted(run_dir="r", profile="p", n_views=2, frames_per_view=10), 0.0)
+    t.update(FrameCaptured(view=0, index=0, name="f0"), 600.0)
+    assert t.eta_s(600.5) is None  # one frame says nothing about the rate yet
+    for i in range(1, 5):
+        t.update(FrameCaptured(view=0, index=i, name=f"f{i}"), 600.0 + i)
+    assert t.eta_s(604.0) == pytest.approx(15.0)  # 15 frames left at 1 s
+    t.update(ScanPaused(view=0, index=5), 604.0)
+    t.update(ScanResumed(view=0, index=5), 700.0)
+    assert t.eta_s(700.0) == pytest.approx(15.0)  # the pause does not count either
+    assert t.active_seconds(700.0) == pytest.approx(604.0)
+    again = ScanTracker.from_dict(json.loads(json.dumps(t.to_dict())))
+    assert again == t  # what the server sends a front end that attaches now
+
+
+def test_tracker_uses_the_events_own_times():
+    t = ScanTracker()
+    t.update(ScanStarted(run_dir="r", profile="p", n_views=1, frames_per_view=3, time=50.0))
+    for i in range(3):
+        t.update(FrameCaptured(view=0, index=i, name="f", time=51.0 + i))
+    t.update(ScanFinished(status="completed", run_dir="r", summary={"points": 0}, time=60.0))
+    assert t.active_seconds(1e9) == pytest.approx(10.0)
+    assert t.status == "completed" and t.shown_status == "failed"  # no points: not a success
+
+
+def test_frame_stats_describe_the_raw_frame():
+    frame = np.zeros((10, 20), np.uint16)
+    frame[0, :5] = 4095  # 5 saturated pixels of a 12-bit camera
+    frame[1, :] = 2000
+    stats = frame_stats(frame, bit_depth=12)
+    assert (stats["width"], stats["height"]) == (20, 10)
+    assert (stats["min"], stats["max"], stats["full_scale"]) == (0.0, 4095.0, 4095.0)
+    assert stats["saturated_pct"] == pytest.approx(2.5)
+    assert stats["mean"] == pytest.approx(frame.mean())
+    assert sum(stats["histogram"]) == 200 and stats["histogram"][0] == 175
+    assert stats["histogram"][-1] == 5 and stats["histogram"][15] == 20  # 2000 of 0..4095
+    assert frame_stats(np.full((2, 2), 255, np.uint8))["saturated_pct"] == 100.0
+
+
+def test_stop_stops_the_devices_without_waiting_for_a_move(session, monkeypatch):
+    session.connect()
+    stops, moving, released = [], threading.Event(), threading.Event()
+    monkeypatch.setattr(session.rig, "stop", lambda: stops.append(time.monotonic()))
+    move = session.rig.stage.move_to
+
+    def slow_move(deg):
+        moving.set()
+        released.wait(30)
+        move(deg)
+
+    monkeypatch.setattr(session.rig.stage, "move_to", slow_move)
+    mover = threading.Thread(target=session.jog, args=(10,))
+    mover.start()
+    assert moving.wait(30)
+    session.stop()  # the jog holds the session: stop must not wait for it
+    assert len(stops) == 1 and mover.is_alive()
+    released.set()
+    mover.join(30)
+
+
+def test_readable_reprs(session):
+    assert readable_repr(session.rig) == ("<Rig of sim-metal-cylinder: camera sim-camera "
+                                          "(closed), projector sim-projector (closed), stage "
+                                          "sim-turntable (closed)>")
+    assert readable_repr(session.profile).startswith("<Profile sim-metal-cylinder from ")
+    assert "2 views, exposure 20 ms, coding graycode>" in readable_repr(session.profile)
+    assert readable_repr([1, 2]) == "[1, 2]"
+
+
+def test_a_run_nobody_writes_any_more_reads_interrupted(small_scan, tmp_path):
+    """The manifest says ``running`` but no process holds the run: the session says
+    ``interrupted`` (the engine's view), not ``running`` for good."""
+    result, _ = small_scan
+    copy = tmp_path / "run"
+    shutil.copytree(result.run_dir, copy, symlinks=True)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["status"] = "running"
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    status, reason = Run(copy).status_and_reason()
+    assert status == "interrupted" and "ended without finishing" in reason
+    (copy / "manifest.json").write_text("{}")
+    assert Run(copy).status_and_reason()[0] == "unknown"  # damaged: said, not raised

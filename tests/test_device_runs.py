@@ -240,6 +240,7 @@ def tiny(tmp_path, camera):
     raw = small_profile_dict(0.12, 2)
     raw["camera"]["backend"] = camera
     raw["camera"]["settings"]["supersample"] = 1
+    raw["scan"]["acquisition"] = "show-capture"  # the wrapped cameras act in capture()
     raw["outputs"] = {"previews": False}
     return write_profile(tmp_path / "p.toml", raw)
 

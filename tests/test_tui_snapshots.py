@@ -1,6 +1,7 @@
-"""Snapshot tests of the main screens at 80×24 and 120×40: the SVG Textual exports is compared
-with the reference under tests/snapshots/tui/, with the volatile parts (run-directory time
-stamps, clocks, Textual's per-render id) masked.
+"""Snapshot tests of the main screens at 60×20, 80×24 and 120×40 (the app attached to a rig
+server on the tiny simulated bench): the SVG Textual exports is compared with the reference
+under tests/snapshots/tui/, with the volatile parts (run-directory time stamps, clocks,
+Textual's per-render id) masked.
 
 A difference fails the test and leaves the new SVG next to the test's tmp dir. When a change
 is intended, regenerate the references with ``DOTSHELL_UPDATE_SNAPSHOTS=1 pytest
@@ -16,7 +17,9 @@ from pathlib import Path
 
 import pytest
 
-from conftest import small_profile_dict, write_profile
+import textual.constants
+
+from conftest import write_test_profile
 from dotshell import hookimpl
 from dotshell.backends import Backend
 from dotshell.console import Session
@@ -24,13 +27,15 @@ from dotshell.events import FrameCaptured
 from dotshell.plugins import PluginLoadError, PluginManager
 from dotshell.tui.app import DotshellApp
 from dotshell.tui.widgets.console_input import ConsoleInput
+from dotshell.tui.widgets.keys_screen import KeysScreen
 from dotshell.tui.widgets.plugins_screen import PluginsScreen
+from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
 
 pytestmark = pytest.mark.asyncio
 
 REFERENCES = Path(__file__).parent / "snapshots" / "tui"
 UPDATE = os.environ.get("DOTSHELL_UPDATE_SNAPSHOTS") == "1"
-SIZES = ((80, 24), (120, 40))
+SIZES = ((60, 20), (80, 24), (120, 40))
 
 
 def masked(svg: str) -> str:
@@ -75,7 +80,7 @@ async def check_sizes(pilot, name, tmp_path):
 
 async def settle(pilot):
     for _ in range(400):
-        if all(w.is_finished or w.group == "scan" for w in pilot.app.workers):
+        if all(w.is_finished for w in pilot.app.workers):
             break
         await pilot.pause(0.02)
     await pilot.pause()
@@ -83,35 +88,40 @@ async def settle(pilot):
 
 
 @pytest.fixture
-def session(tmp_path, monkeypatch):
+def server(tmp_path, monkeypatch, user_dirs):
     monkeypatch.chdir(tmp_path)  # paths on screen are relative: runs/..., p.toml
-    raw = small_profile_dict(factor=0.12, views=2)
-    raw["camera"]["settings"]["supersample"] = 1
-    raw["outputs"] = {"previews": False}
+    monkeypatch.setattr(textual.constants, "COLOR_SYSTEM", "truecolor")
     pm = PluginManager()
     pm.load_entry_points()
-    s = Session(write_profile(tmp_path / "p.toml", raw), pm=pm, out_dir="runs")
-    yield s
-    s.close()
+    session = Session(write_test_profile(tmp_path), pm=pm, out_dir="runs")
+    with served(session, poll_s=0.1) as srv:
+        yield srv
+    session.close()
 
 
-def quiet_app(session):
-    """The app with status polling slowed down, so nothing changes between resize and shot."""
-    return DotshellApp(session, status_interval_s=3600)
+async def until(pilot, condition):
+    for _ in range(1200):
+        if condition():
+            return
+        await pilot.pause(0.05)
+    raise AssertionError("the screen never got there")
 
 
-async def test_rig_screen(session, tmp_path):
-    app = quiet_app(session)
-    async with app.run_test(size=SIZES[0]) as pilot:
+async def test_rig_screen(server, tmp_path):
+    app = DotshellApp(attach(server))
+    async with app.run_test(size=SIZES[1]) as pilot:
+        await until(pilot, lambda: app.focused is not None)
         await pilot.press("c")
         await settle(pilot)
-        await pilot.press("right", "right")
+        await pilot.press("right_square_bracket", "right_square_bracket")
         await settle(pilot)
-        app.refresh_status()
+        await until(pilot, lambda: any(r["status"].get("angle_deg") == 10.0
+                                       for r in app.session.rows))
         await check_sizes(pilot, "rig", tmp_path)
 
 
-async def test_scan_screen_paused_midway(session, tmp_path):
+async def test_scan_screen_paused_midway(server, tmp_path):
+    session = server.session
     reached, opened = threading.Event(), threading.Event()
 
     def hold(ev):
@@ -120,40 +130,53 @@ async def test_scan_screen_paused_midway(session, tmp_path):
             opened.wait(60)
 
     session.bus.subscribe(hold)
-    app = quiet_app(session)
-    async with app.run_test(size=SIZES[0]) as pilot:
-        await pilot.pause()
+    app = DotshellApp(attach(server))
+    async with app.run_test(size=SIZES[1]) as pilot:
+        await until(pilot, lambda: app.focused is not None)
         app.action_show_tab("scan")
         await pilot.pause()
         await pilot.press("s")
-        while not reached.is_set():
-            await pilot.pause(0.02)
+        await until(pilot, reached.is_set)
         await pilot.press("p")
+        await until(pilot, lambda: session.state == "paused")
         opened.set()
-        while app.tracker.status != "paused":
-            await pilot.pause(0.02)
-        app.refresh_status()
+        await until(pilot, lambda: app.tracker.status == "paused"
+                    and app.session.session_state == "paused")
         await check_sizes(pilot, "scan-paused", tmp_path)
         session.abort()
-        while session.scanning:
-            await pilot.pause(0.02)
+        await until(pilot, lambda: not session.scanning)
 
 
-async def test_console_screen(session, tmp_path):
-    app = quiet_app(session)
-    async with app.run_test(size=SIZES[0]) as pilot:
-        await pilot.pause()
+async def test_console_screen(server, tmp_path):
+    app = DotshellApp(attach(server))
+    async with app.run_test(size=SIZES[1]) as pilot:
+        await until(pilot, lambda: app.focused is not None)
         app.action_show_tab("console")
         await pilot.pause()
         box = app.panel(ConsoleInput)
         box.cursor_blink = False
         for source in ("connect(); jog(12.5)", "rig.stage.position * 2",
-                       "for name in patterns()[:3]:\n    print(name)\n", "1 / 0"):
+                       "for name in patterns()[:3]:\n    print(name)\n", "1 / 0", "rig"):
             box.text = source
             box.move_cursor(box.document.end)
             await pilot.press("enter")
             await settle(pilot)
+            await until(pilot, lambda: not box.busy)
         await check_sizes(pilot, "console", tmp_path)
+
+
+async def check_screen(server, key, screen, name, tmp_path):
+    """The app with ``screen`` opened by ``key``, at every size."""
+    app = DotshellApp(attach(server))
+    async with app.run_test(size=SIZES[1]) as pilot:
+        await until(pilot, lambda: app.focused is not None)
+        await pilot.press(key)
+        await until(pilot, lambda: isinstance(app.screen, screen))
+        await check_sizes(pilot, name, tmp_path)
+
+
+async def test_keys_overlay(server, tmp_path):
+    await check_screen(server, "question_mark", KeysScreen, "keys", tmp_path)
 
 
 class FixedPlugin:
@@ -168,15 +191,10 @@ class FixedPlugin:
         return [Backend("lab-stage", lambda settings, context: None, {}, "a made-up stage")]
 
 
-async def test_plugins_screen(session, tmp_path):
+async def test_plugins_screen(server, tmp_path):
     pm = PluginManager()
     pm.register(FixedPlugin(), name="lab", distribution="dotshell-lab 1.2")
     pm.load_errors.append(PluginLoadError("broken", "dotshell-broken 0.1",
                                           "ImportError: needs libfoo.so"))
-    session.pm = pm
-    app = quiet_app(session)
-    async with app.run_test(size=SIZES[0]) as pilot:
-        await pilot.press("ctrl+g")
-        await pilot.pause()
-        assert isinstance(app.screen, PluginsScreen)
-        await check_sizes(pilot, "plugins", tmp_path)
+    server.session.pm = pm
+    await check_screen(server, "ctrl+g", PluginsScreen, "plugins", tmp_path)

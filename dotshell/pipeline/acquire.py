@@ -25,7 +25,8 @@ from typing import Any, Callable, TypeVar
 import numpy as np
 
 from dotshell.coding import PatternFrame
-from dotshell.devices import AngleReadback, ExposureControl, FrameInfoSource, implements
+from dotshell.devices import (AngleReadback, ExposureControl, FrameInfoSource, accepted_kwargs,
+                              implements)
 from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, ProfileError,
                              RunError)
 from dotshell.events import (EventBus, FrameCaptured, Message, ScanPaused, ScanResumed,
@@ -34,7 +35,9 @@ from dotshell.frames import FrameStore
 from dotshell.framecheck import FrameSpec
 from dotshell.pipeline.lifecycle import signals_deferred
 from dotshell.pipeline.pdi import Shot, plan_shots
+from dotshell.pipeline.sequenced import SequencedCapture, uses_sequenced
 from dotshell.rig import Rig
+from dotshell.rig_checks import refused_controls
 from dotshell.store import RunStore
 
 T = TypeVar("T")
@@ -190,11 +193,22 @@ class Acquisition:
         self.spec = FrameSpec.of_camera(rig.camera)
         if implements(rig.camera, ExposureControl):
             rig.camera.set_exposure(scan["exposure_ms"])
+        for line in refused_controls(rig):
+            bus.warn(line)
+        self._show_kwargs = accepted_kwargs(rig.projector.show, ("name", "index"))
+        self.sequenced = (SequencedCapture(rig, patterns, self.shots, scan, bus, with_retries)
+                          if uses_sequenced(rig, scan) else None)
         for role, policy in rig.policies.items():
             if policy.home == "before_scan":
                 self.bus.info(f"homing the {role} before the scan")
                 rig.home(role)
         self.flush_device_log()
+
+    def _set_analyzer(self, degrees: float) -> None:
+        if degrees != self._analyzer_deg:
+            self._analyzer_deg = None  # unknown until the move succeeds
+            self.rig.analyzer.set_angle(degrees)
+            self._analyzer_deg = degrees
 
     def _stop_watch(self) -> None:
         """Stop moving devices as soon as the scan is asked to stop (abort from any thread)."""
@@ -217,10 +231,10 @@ class Acquisition:
 
         def attempt() -> np.ndarray:
             try:
-                if shot.analyzer_deg is not None and shot.analyzer_deg != self._analyzer_deg:
-                    self.rig.analyzer.set_angle(shot.analyzer_deg)
-                    self._analyzer_deg = shot.analyzer_deg
-                self.rig.projector.show(pattern.image)
+                if shot.analyzer_deg is not None:
+                    self._set_analyzer(shot.analyzer_deg)
+                ident = {"name": pattern.name, "index": shot.pattern}
+                self.rig.projector.show(pattern.image, **{k: ident[k] for k in self._show_kwargs})
                 if self.scan["settle_ms"] > 0:
                     time.sleep(self.scan["settle_ms"] / 1000.0)
                 return self.rig.camera.capture()
@@ -269,12 +283,19 @@ class Acquisition:
             reached = self._move(view, angle_deg)
             self.flush_device_log()
             for i, shot in enumerate(self.shots):
-                if self.stop.is_set() or not self._wait_if_paused(view, i):
+                captured = self.sequenced is not None and self.sequenced.pending()
+                if (self.stop.is_set() and not captured) or not self._wait_if_paused(view, i):
                     return None
-                frame = self._capture(shot, view)
-                if frame_info:
-                    infos.append({"index": i, "name": shot.name,
-                                  **self.rig.camera.last_frame_info().to_dict()})
+                if self.sequenced is not None:
+                    frame = check_frame(self.rig, self.spec,
+                                        self.sequenced.frame(view, i, self._set_analyzer),
+                                        f"view {view}, frame {shot.name!r}")
+                    info = self.sequenced.infos[i].to_dict()
+                else:
+                    frame = self._capture(shot, view)
+                    info = self.rig.camera.last_frame_info().to_dict() if frame_info else None
+                if info is not None:
+                    infos.append({"index": i, "name": shot.name, **info})
                 self.writer.put(view, i, shot.name, frame)
                 frames.append(frame)
                 self.flush_device_log()
@@ -287,10 +308,11 @@ class Acquisition:
             self.rig.stop()
             raise
         finally:
-            self.writer.end_view(view)  # every frame taken is on disk before we go on
-            written = self.writer.written.get(view, 0)  # on disk, not merely captured
-            self.store.mark_view(view, written, written == len(self.shots))
-            self._record_view(view, reached, infos)
+            with signals_deferred():  # a stop arriving now is raised once the view is recorded
+                self.writer.end_view(view)  # every frame taken is on disk before we go on
+                written = self.writer.written.get(view, 0)  # on disk, not merely captured
+                self.store.mark_view(view, written, written == len(self.shots))
+                self._record_view(view, reached, infos)
             self.flush_device_log()
             self.seconds += time.perf_counter() - t0
         self.writer.check()

@@ -1,3 +1,4 @@
-"""The Textual terminal UI (``dotshell tui``): rig, scan, preview, log and a Python console over
-one :class:`dotshell.console.Session`. Widgets only show state and forward keys to the session;
-device I/O, scans and console input run in worker threads and report through messages."""
+"""The Textual terminal UI (``dotshell tui``): rig, scan, preview, log and a Python console, a
+front end of a rig server (:mod:`dotshell.server`) that holds the session. Widgets only show
+state and forward keys as requests to the server; requests run in worker threads and what the
+server pushes arrives as messages."""

@@ -1,62 +1,78 @@
-"""``dotshell tui``: the Textual app. It owns one :class:`~dotshell.console.Session`, forwards
-the session's events to the panels as messages, and runs every session action (device I/O,
-scans, profile loading) in worker threads so the UI never waits on hardware.
+"""``dotshell tui``: the Textual app, a front end of a rig server. It holds a
+:class:`~dotshell.server.client.RemoteSession` — no devices, no frames — forwards what the
+server pushes (events, state, device status, console output) to the panels as messages, and
+runs every request in a worker thread so the UI never waits on hardware. Quitting during a scan
+offers to leave it running on the server; a terminal that goes away just ends this process.
 
-Layout: a header, a tabbed body (Rig, Scan, Preview, Log, Console), the footer with the keys;
-from 100 columns on a summary sidebar shows the rig and the scan next to any tab.
+Layout: a header (profile, server, who controls), a tabbed body (1 Rig, 2 Scan, 3 Preview,
+4 Log, 5 Console), the footer with the keys; from 100 columns on a summary sidebar shows the
+server, the rig and the scan next to any tab.
 """
 
 from __future__ import annotations
 
+import re
 import time
 import traceback
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, Iterable, TypeVar
 
-from textual.app import App, ComposeResult
+from textual.app import App, ComposeResult, SystemCommand
 from textual.binding import Binding
 from textual.containers import Horizontal
+from textual.screen import Screen
 from textual.widget import Widget
 from textual.widgets import Footer, Header, TabbedContent, TabPane
+from textual.widgets._tabbed_content import ContentTabs
 
-from dotshell.console import Session
 from dotshell.errors import DotshellError
-from dotshell.events import Message
-from dotshell.tui.messages import ActionDone, DeviceRows, SessionEvent
-from dotshell.tui.progress import ScanTracker
-from dotshell.tui.text import short_path
-from dotshell.tui.widgets.confirm import ConfirmScreen
+from dotshell.server.client import RemoteSession
+from dotshell.server.paths import user_config
+from dotshell.server.progress import ScanTracker
+from dotshell.server.protocol import event_from_wire
+from dotshell.tui.messages import ActionDone, ServerMessage
+from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.console_panel import ConsolePanel
+from dotshell.tui.widgets.keys_screen import CONSOLE_KEYS, KeysScreen
 from dotshell.tui.widgets.log_panel import LogPanel
 from dotshell.tui.widgets.plugins_screen import PluginsScreen
 from dotshell.tui.widgets.preview_panel import PreviewPanel
 from dotshell.tui.widgets.profile_picker import ProfilePicker
+from dotshell.tui.widgets.quit_screen import QuitScreen
 from dotshell.tui.widgets.rig_panel import RigPanel
 from dotshell.tui.widgets.scan_panel import ScanPanel
 from dotshell.tui.widgets.summary import Summary
 
 W = TypeVar("W", bound=Widget)
 TABS = ("rig", "scan", "preview", "log", "console")
+#: The widget that takes the focus when a tab is shown (None: the pane's first focusable one).
+TAB_FOCUS = {"console": "#console-in", "log": "#log-view"}
+#: Previews replayed from the server's backlog when attaching.
+REPLAYED_PREVIEWS = 5
 
 
 class DotshellApp(App):
-    """The instrument shell's terminal UI over one session."""
+    """The instrument shell's terminal UI over one rig server's session."""
 
     TITLE = "dotshell"
     CSS_PATH = "app.tcss"
+    AUTO_FOCUS = "#rig-panel"  # the first tab's panel: its keys work at once
     HORIZONTAL_BREAKPOINTS = [(0, "-narrow"), (100, "-wide")]
     BINDINGS = [
         Binding("ctrl+q", "quit", "Quit", priority=True),
+        Binding("question_mark,f1", "keys", "Keys", key_display="?"),
+        Binding("escape", "stop", "Stop", key_display="esc"),
         Binding("ctrl+o", "pick_profile", "Profile"),
-        Binding("ctrl+g", "plugins", "Plugins"),
-        *(Binding(f"f{i + 2}", f"show_tab('{tab}')", tab.title(), show=False)
+        Binding("ctrl+g", "plugins", "Plugins", show=False),
+        Binding("ctrl+t", "take_control", "Take control", show=False),
+        *(Binding(f"{i + 1},f{i + 2}", f"show_tab('{tab}')", tab.title(), show=False)
           for i, tab in enumerate(TABS)),
     ]
 
-    def __init__(self, session: Session, status_interval_s: float = 0.5) -> None:
+    def __init__(self, session: RemoteSession, notice: str = "") -> None:
         super().__init__()
         self.session = session
-        self.tracker = ScanTracker()
-        self.status_interval_s = status_interval_s
+        self.notice = notice
+        self.tracker = ScanTracker.from_dict(session.tracker.to_dict())
         self._unsubscribe: Callable[[], None] | None = None
         self._quitting = False
 
@@ -67,65 +83,122 @@ class DotshellApp(App):
         with Horizontal(id="body"):
             yield Summary(id="summary")
             with TabbedContent(id="tabs", initial="rig"):
-                with TabPane("Rig", id="rig"):
+                with TabPane("1 Rig", id="rig"):
                     yield RigPanel(id="rig-panel")
-                with TabPane("Scan", id="scan"):
+                with TabPane("2 Scan", id="scan"):
                     yield ScanPanel(id="scan-panel")
-                with TabPane("Preview", id="preview"):
+                with TabPane("3 Preview", id="preview"):
                     yield PreviewPanel(id="preview-panel")
-                with TabPane("Log", id="log"):
+                with TabPane("4 Log", id="log"):
                     yield LogPanel(id="log-panel")
-                with TabPane("Console", id="console"):
-                    yield ConsolePanel(self.session, id="console-panel")
+                with TabPane("5 Console", id="console"):
+                    yield ConsolePanel(id="console-panel")
         yield Footer()
 
     def on_mount(self) -> None:
-        self._unsubscribe = self.session.bus.subscribe(
-            lambda ev: self.post_message(SessionEvent(ev)))
-        self._profile_changed()
-        self.set_interval(self.status_interval_s, self.refresh_status)
+        log = self.panel(LogPanel)
+        previews = []
+        for ev in self.session.backlog:
+            log.add_event(ev)
+            if hasattr(ev, "kind") and hasattr(ev, "path"):
+                previews.append(ev)
+        for ev in previews[-REPLAYED_PREVIEWS:]:
+            self.panel(PreviewPanel).handle_session_event(ev)
+        self.panel(ConsoleInput).set_history(self.session.history)
+        self._unsubscribe = self.session.subscribe(lambda m: self.post_message(ServerMessage(m)))
+        if self.notice:
+            log.add("info", self.notice)
+            self.notify(self.notice, timeout=8)
+        if self.console.color_system != "truecolor":
+            log.add("warning", f"this terminal shows {self.console.color_system or 'no'} colours: "
+                    "previews are approximate (a truecolor terminal, COLORTERM=truecolor, shows "
+                    "them as they are)")
+        self._state_changed()
+        self.panel(RigPanel).show_rows(self.session.rows)
+        self.panel(Summary).show_rows(self.session.rows)
         self.set_interval(1.0, self._tick)
-        self.call_after_refresh(lambda: self.focus_pane(self.panel(TabbedContent).active))
-        if self.session.profile is None:
+        if self.session.profile is None and not self.session.scanning:
             self.action_pick_profile()
 
     def panel(self, cls: type[W]) -> W:
         """The one widget of type ``cls`` on the main screen (also while a dialog is open)."""
         return self.screen_stack[0].query_one(cls)
 
-    def on_tabbed_content_tab_activated(self, event: TabbedContent.TabActivated) -> None:
-        if event.pane.id == self.panel(TabbedContent).active:  # not a stale activation
-            self.focus_pane(event.pane.id)
-
-    def focus_pane(self, tab: str) -> None:
-        """Focus the main widget of a tab (the console's input, the log, or the panel)."""
-        if not self.main_ready:
-            return
-        pane = self.screen_stack[0].query_one(f"TabPane#{tab}")
-        focus = {"console": "#console-in", "log": "#log-view"}.get(tab)
-        candidates = pane.query(focus) if focus else pane.query("*")
-        target = next((w for w in candidates if w.focusable), None)
-        if target is not None:
-            target.focus(scroll_visible=False)
-
-    def action_show_tab(self, tab: str) -> None:
-        self.panel(TabbedContent).active = tab
-        self.call_after_refresh(self.focus_pane, tab)
-
-    # ---- session events -----------------------------------------------------------------------
-
     @property
     def main_ready(self) -> bool:
         """False before the main screen is up and after it is gone (shutting down)."""
         return bool(self.screen_stack) and self.screen_stack[0].is_mounted
 
-    def on_session_event(self, message: SessionEvent) -> None:
+    # ---- tabs and focus -----------------------------------------------------------------------
+
+    def _focus_target(self, tab: str) -> Widget | None:
+        pane = self.screen_stack[0].query_one(f"TabPane#{tab}")
+        selector = TAB_FOCUS.get(tab)
+        candidates = pane.query(selector) if selector else pane.query("*")
+        return next((w for w in candidates if w.focusable), None)
+
+    def action_show_tab(self, tab: str) -> None:
+        """Show a tab by focusing its main widget first: TabbedContent then shows the pane that
+        holds the focus. (Switching the pane first hides the focused widget, Textual hands the
+        focus to a hidden sibling — the console's log — and switches back: the F-key bounce.)"""
         if not self.main_ready:
             return
-        ev = message.event
-        self.tracker.update(ev, time.monotonic())
-        self.panel(LogPanel).add_event(ev)
-        self.panel(PreviewPanel).handle_session_event(ev)
+        target = self._focus_target(tab)
+        if target is not None:
+            target.focus(scroll_visible=False)  # takes effect before the switch below
+        self.call_later(setattr, self.panel(TabbedContent), "active", tab)
+
+    def on_tabbed_content_tab_activated(self, event: TabbedContent.TabActivated) -> None:
+        """A tab chosen on the tab bar: the bar keeps the focus while the user walks along it
+        with the arrows; otherwise (a click elsewhere) the pane's widget takes it."""
+        if event.pane.id != self.panel(TabbedContent).active:
+            return  # a stale activation
+        focused = self.focused
+        if isinstance(focused, ContentTabs):
+            return
+        if focused is None or event.pane not in focused.ancestors_with_self:
+            target = self._focus_target(event.pane.id or "")
+            if target is not None:
+                target.focus(scroll_visible=False)
+
+    # ---- what the server says -----------------------------------------------------------------
+
+    def on_server_message(self, message: ServerMessage) -> None:
+        if not self.main_ready:
+            return
+        m = message.message
+        kind = m.get("type")
+        if kind == "event":
+            ev = event_from_wire(m["event"])
+            self.tracker.update(ev)
+            self.panel(LogPanel).add_event(ev)
+            self.panel(PreviewPanel).handle_session_event(ev)
+            self.show_scan()
+        elif kind == "state":
+            self._state_changed()
+        elif kind == "devices":
+            self.panel(RigPanel).show_rows(m["rows"])
+            self.panel(Summary).show_rows(m["rows"])
+        elif kind in ("console", "console_input", "console_done"):
+            self.panel(ConsolePanel).handle(m)
+        elif kind == "control":
+            self.panel(LogPanel).add("warning", m.get("text", "control moved"))
+            self.notify(f"{m.get('text', 'control moved')}: you are watching now (ctrl+t "
+                        "takes it back)", severity="warning", timeout=10)
+        elif kind == "closed" and not self._quitting:
+            self._quitting = True
+            self.exit(return_code=1, message=f"dotshell tui: {m.get('reason', 'disconnected')}")
+
+    def _state_changed(self) -> None:
+        s = self.session
+        p = s.profile
+        c = s.controller
+        control = ("in control" if s.in_control else
+                   f"watching: {c['client']}#{c['id']} controls (^t takes over)" if c else
+                   "watching: nobody controls (^t)")
+        self.sub_title = f"{p['name'] if p else 'no profile (^o)'} · {control}"
+        self.panel(RigPanel).show_profile()
+        self.panel(Summary).show_server(s)
         self.show_scan()
 
     def _tick(self) -> None:
@@ -133,44 +206,17 @@ class DotshellApp(App):
             self.show_scan()
 
     def show_scan(self) -> None:
-        now = time.monotonic()
-        self.panel(ScanPanel).show_tracker(self.tracker, self.session, now)
+        now = time.time()
+        self.panel(ScanPanel).show_tracker(self.tracker, now)
         self.panel(Summary).show_scan(self.tracker, self.session, now)
 
-    def _profile_changed(self) -> None:
-        p = self.session.profile
-        self.sub_title = f"{p.name} — {short_path(p.source)}" if p else "no profile (ctrl+o)"
-        self.panel(RigPanel).show_profile(self.session)
-        self.show_scan()
-        self.refresh_status()
-
-    # ---- device status ------------------------------------------------------------------------
-
-    def refresh_status(self) -> None:
-        """Read every device's status in a worker thread (hardware may be slow to answer)."""
-        self.run_worker(self._read_status, thread=True, group="status", exclusive=True,
-                        exit_on_error=False)
-
-    def _read_status(self) -> None:
-        try:
-            rows = self.session.devices()
-        except Exception as exc:  # a misbehaving backend must not take the UI down
-            rows = [{"role": "?", "backend": "?", "connected": False,
-                     "status": {"error": f"{type(exc).__name__}: {exc}"}}]
-        self.post_message(DeviceRows(rows))
-
-    def on_device_rows(self, message: DeviceRows) -> None:
-        if not self.main_ready:
-            return
-        self.panel(RigPanel).show_rows(message.rows, self.session)
-        self.panel(Summary).show_rows(message.rows)
-
-    # ---- actions ------------------------------------------------------------------------------
+    # ---- requests -----------------------------------------------------------------------------
 
     def run_session_action(self, label: str, fn: Callable[..., Any], *args: Any,
-                   reply_to: Any = None) -> None:
-        """Run ``fn(*args)`` (a session call) in a worker thread. Its outcome is posted as
-        :class:`ActionDone` to ``reply_to`` (a widget) and errors are logged on the bus."""
+                           reply_to: Any = None, then: Callable[[Any], None] | None = None) -> None:
+        """Run ``fn(*args)`` (a request to the server) in a worker thread. Its outcome is posted
+        as :class:`ActionDone` to ``reply_to`` (a widget); ``then(result)`` runs on the UI thread
+        after a success; errors are logged."""
 
         def work() -> None:
             result, error = None, ""
@@ -178,88 +224,146 @@ class DotshellApp(App):
                 result = fn(*args)
             except DotshellError as exc:
                 error = str(exc)
-            except Exception as exc:  # a bug or a driver failure: show it, keep the UI alive
+            except Exception as exc:  # a bug or a lost server: show it, keep the UI alive
                 error = f"{type(exc).__name__}: {exc}"
-                self.session.bus.emit(Message(level="error", text=f"{label} failed:\n"
-                                              + traceback.format_exc()))
-            else:
-                self.refresh_status_later()
+                self.call_from_thread(self.log_line, "error",
+                                      f"{label} failed:\n{traceback.format_exc()}")
             if error:
-                self.session.bus.emit(Message(level="error", text=f"{label}: {error}"))
+                self.call_from_thread(self.log_line, "error", f"{label}: {error}")
+            elif then is not None:
+                self.call_from_thread(then, result)
             if reply_to is not None:
                 reply_to.post_message(ActionDone(label, result, error))
 
         self.run_worker(work, thread=True, group=label, exit_on_error=False)
 
-    def refresh_status_later(self) -> None:
-        self.call_from_thread(self.refresh_status)
+    def log_line(self, level: str, text: str) -> None:
+        """A line of this front end's own (the server does not see it) in the Log tab."""
+        if self.main_ready:
+            self.panel(LogPanel).add(level, text)
 
-    def start_scan(self, reply_to: Any = None) -> None:
-        self.run_session_action("scan", self.session.scan, reply_to=reply_to)
+    def action_stop(self) -> None:
+        """The stop key: a scan is aborted (asking first when older than a minute) and every
+        moving device stopped; otherwise moving devices stop and pending jogs are dropped."""
+        if self.session.scanning:
+            self.panel(ScanPanel).action_abort(stop_devices=True)
+        else:
+            self.panel(RigPanel).stop()
+
+    def action_take_control(self) -> None:
+        self.run_session_action("take control", self.session.take_control)
 
     def load_profile(self, path: str) -> None:
-        def done_loading() -> None:
-            self.session.load(path)
-
-        self.run_session_action("load profile", done_loading, reply_to=self.panel(RigPanel))
-
-    def on_action_done(self, message: ActionDone) -> None:
-        if message.label == "load profile":
-            self._profile_changed()
+        self.run_session_action("load profile", self.session.load, path,
+                                reply_to=self.panel(RigPanel))
 
     def action_pick_profile(self) -> None:
         def chosen(path: str | None) -> None:
             if path:
                 self.load_profile(path)
 
-        self.push_screen(ProfilePicker(self.session), chosen)
+        try:
+            extra = user_config()["profile_dirs"]
+        except DotshellError as exc:
+            self.log_line("warning", str(exc))
+            extra = []
+        p = self.session.profile
+        self.push_screen(ProfilePicker(p["path"] if p else None, extra), chosen)
 
     def action_plugins(self) -> None:
-        self.push_screen(PluginsScreen(self.session.pm))
+        self.run_session_action("plugins", self.session.plugins,
+                                then=lambda listing: self.push_screen(PluginsScreen(listing)))
+
+    def action_keys(self) -> None:
+        if not isinstance(self.screen, KeysScreen):
+            self.push_screen(KeysScreen(self.key_sections()))
+
+    def key_sections(self) -> list[tuple[str, list[tuple[str, str]]]]:
+        """(where, [(keys, what)]) for the keys overlay, from the bindings themselves."""
+
+        def rows(bindings: Iterable[Binding | tuple]) -> list[tuple[str, str]]:
+            out = []
+            for b in bindings:
+                if isinstance(b, Binding):
+                    keys = " ".join(re.sub(r"^f(\d+)$", r"F\1", self.get_key_display(
+                        Binding(k, b.action, key_display=b.key_display if "," not in b.key
+                                else None))) for k in b.key.split(","))
+                    out.append((keys, b.description or b.action))
+            return out
+
+        return [("anywhere", rows(self.BINDINGS) + [("^p", "search every command")]),
+                ("Rig", rows(RigPanel.BINDINGS)), ("Scan", rows(ScanPanel.BINDINGS)),
+                ("Preview", rows(PreviewPanel.BINDINGS)), ("Log", rows(LogPanel.BINDINGS)),
+                ("Console", CONSOLE_KEYS)]
+
+    def get_system_commands(self, screen: Screen) -> Iterable[SystemCommand]:
+        """dotshell's own actions in the command palette (ctrl+p), before Textual's."""
+        rig, scan = self.panel(RigPanel), self.panel(ScanPanel)
+        commands: list[tuple[str, str, Callable[[], Any]]] = [
+            ("Connect the rig", "connect every device", rig.action_connect),
+            ("Disconnect the rig", "close every device", rig.action_disconnect),
+            ("Start scan", "scan with the loaded profile (Scan: s)", scan.action_start),
+            ("Pause or resume the scan", "between frames (Scan: p)", scan.action_pause),
+            ("Abort the scan", "frames are kept, run aborted (Scan: x)", scan.action_abort),
+            ("Stop devices now", "abort a scan and stop every moving device (esc)",
+             self.action_stop),
+            ("Go to stage angle", "absolute, degrees (Rig: g)", rig.action_goto),
+            ("Home the stage", "find its reference position (Rig: h)", rig.action_home),
+            ("Jog stage +", "by the jog step (Rig: ])", lambda: rig.action_jog(1)),
+            ("Jog stage −", "by the jog step (Rig: [)", lambda: rig.action_jog(-1)),
+            ("Set analyzer angle", "degrees (Rig: a)", rig.action_analyzer),
+            ("Set camera exposure", "ms (Rig: e)", rig.action_exposure),
+            ("Snap a frame", "with the current pattern (Rig: space)", rig.action_snap),
+            ("Project a pattern", "from the coding's sequence (Rig: p)", rig.action_project),
+            ("Decode map", "project, capture and decode here (Rig: m)", rig.action_decode),
+            ("Load profile", "pick a profile (ctrl+o)", self.action_pick_profile),
+            ("Plugins", "backends and load errors (ctrl+g)", self.action_plugins),
+            ("Take control", "of the rig from another front end (ctrl+t)",
+             self.action_take_control),
+            ("Detach", "quit this terminal, leave the server and its scan running",
+             self.detach_and_exit),
+            *((f"Show {tab.title()}", f"tab {i + 1}", lambda tab=tab: self.action_show_tab(tab))
+              for i, tab in enumerate(TABS)),
+        ]
+        for title, help_text, callback in commands:
+            yield SystemCommand(title, help_text, callback)
+        yield from super().get_system_commands(screen)
 
     # ---- quitting -----------------------------------------------------------------------------
 
     async def action_quit(self) -> None:
         if self._quitting:
             return
-        if not self.session.scanning:
-            self._close_and_exit()
+        if not (self.session.scanning and self.session.in_control):
+            self.detach_and_exit()
             return
 
-        def answer(stop: bool | None) -> None:
-            if stop:
-                self._quitting = True
-                self.session.abort()
-                self.run_worker(self._wait_and_exit, thread=True, group="quit",
-                                exit_on_error=False)
+        def answer(choice: str | None) -> None:
+            if choice == "leave":
+                self.detach_and_exit()
+            elif choice == "stop":
+                self.run_session_action("abort", self.session.abort,
+                                        then=lambda _: self.detach_and_exit())
 
-        self.push_screen(ConfirmScreen(
-            "A scan is running. Stop it and quit?\nFrames captured so far are kept and the "
-            "run is marked aborted.", yes="Stop scan and quit", no="Keep scanning"), answer)
+        self.push_screen(QuitScreen(
+            "A scan is running on the rig server. Leave it running (it goes on without this "
+            "terminal; dotshell tui or dotshell attach shows it again), or stop it and quit "
+            "(frames captured so far are kept and the run is marked aborted)?"), answer)
+
+    def detach_and_exit(self) -> None:
+        """Leave: the server (and a scan) go on; an idle server a front end started exits
+        by itself once nobody is attached."""
+        self._quitting = True
+        self.exit()
 
     def on_unmount(self) -> None:
-        """However the app ends, a scan it started must not stay paused with nobody to
-        resume it: stop it cleanly (frames kept)."""
-        self.session.abort()
-
-    def _wait_and_exit(self) -> None:
-        for worker in list(self.workers):
-            if worker.group == "scan":
-                while not worker.is_finished:
-                    time.sleep(0.05)
-        self.call_from_thread(self._close_and_exit)
-
-    def _close_and_exit(self) -> None:
         if self._unsubscribe is not None:
             self._unsubscribe()
-        try:
-            self.session.close()
-        finally:
-            self.exit()
+        self.session.close()
 
 
-def run_tui(session: Session) -> int:
-    """Run the app in the terminal until the user quits."""
-    DotshellApp(session).run()
-    return 0
-
+def run_tui(session: RemoteSession, notice: str = "") -> int:
+    """Run the app in the terminal until the user quits or the server goes away."""
+    app = DotshellApp(session, notice)
+    app.run()
+    return app.return_code or 0

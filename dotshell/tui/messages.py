@@ -1,4 +1,4 @@
-"""Messages the session's worker threads post to the UI thread."""
+"""Messages the client's reader thread and the worker threads post to the UI thread."""
 
 from __future__ import annotations
 
@@ -6,27 +6,18 @@ from typing import Any
 
 from textual.message import Message
 
-from dotshell.events import Event
 
+class ServerMessage(Message):
+    """A message the rig server pushed (``event``, ``state``, ``devices``, ``console``, ...;
+    docs/server.md), or ``closed`` when the connection is gone."""
 
-class SessionEvent(Message):
-    """An event published on the session's bus (from any thread)."""
-
-    def __init__(self, event: Event) -> None:
+    def __init__(self, message: dict[str, Any]) -> None:
         super().__init__()
-        self.event = event
-
-
-class DeviceRows(Message):
-    """A fresh device-status snapshot: ``Session.devices()`` rows, read off the UI thread."""
-
-    def __init__(self, rows: list[dict[str, Any]]) -> None:
-        super().__init__()
-        self.rows = rows
+        self.message = message
 
 
 class ActionDone(Message):
-    """A session action run in a worker finished: ``error`` is its message or ``""``."""
+    """A session request run in a worker finished: ``error`` is its message or ``""``."""
 
     def __init__(self, label: str, result: Any = None, error: str = "") -> None:
         super().__init__()

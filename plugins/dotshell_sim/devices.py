@@ -28,7 +28,8 @@ import cv2
 import numpy as np
 
 from dotshell.backends import RigContext
-from dotshell.errors import DeviceError
+from dotshell.devices import FrameInfo, SequencePattern
+from dotshell.errors import DeviceError, DeviceTimeout
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens, lens_from_fov
 from dotshell.settings import Setting, validate_settings
@@ -36,6 +37,7 @@ from dotshell.settings import Setting, validate_settings
 from dotshell.optics import exit_radiance_per_fluence
 
 from dotshell_sim import transillum
+from dotshell_sim.timing import DisplayTimeline, SimClock, display_time
 from dotshell_sim.lru import cached
 from dotshell_sim.render import Light, Renderer, SensorModel, sensor
 from dotshell_sim.scene import MATERIALS, build_scene
@@ -82,6 +84,13 @@ CAMERA_SCHEMA: dict[str, Setting] = {
                           "corner, falling off as 1 − v·(r/r_corner)² from the principal point "
                           "(on top of the natural cos⁴); applies to all light, flat fields "
                           "included; 0 = none", min=0.0, max=0.99),
+    # time model (dotshell_sim.timing)
+    "readout_ms": Setting("float", 0.0, "time model: sensor readout and transfer after each "
+                          "exposure; a capture() takes exposure + readout", "ms", min=0.0),
+    "overlap_readout": Setting("bool", True, "time model: a triggered exposure may start while "
+                               "the previous frame is read out (global-shutter overlap), so "
+                               "triggers may come every max(exposure, readout) instead of "
+                               "every exposure + readout"),
 }
 
 PROJECTOR_SCHEMA: dict[str, Setting] = {
@@ -106,6 +115,15 @@ PROJECTOR_SCHEMA: dict[str, Setting] = {
                            "(finite contrast)", min=0.0, max=1.0),
     "defocus_sigma_px": Setting("float", 0.6, "projector defocus (Gaussian sigma on the panel)",
                                 "px", min=0.0),
+    "pixel_aspect": Setting("float", 1.0, "panel pixel height / width (fy = fx · aspect); 0.5 "
+                            "for the diamond-pixel DLP4500 of a LightCrafter 4500 addressed as "
+                            "912 × 1140", min=0.1, max=10.0),
+    # time model (dotshell_sim.timing)
+    "display_latency_ms": Setting("float", 0.0, "time model: from show() to the new image on "
+                                  "the panel (video input lag, frame buffering); the runner's "
+                                  "settle_ms must cover it", "ms", min=0.0),
+    "refresh_hz": Setting("float", 0.0, "time model: panel refresh rate; a shown image appears "
+                          "at the next refresh after the latency (0 = at once)", "Hz", min=0.0),
 }
 
 _SCENE_SCHEMA = {
@@ -195,6 +213,7 @@ class SimWorld:
     """State shared by the simulated devices of one rig."""
 
     def __init__(self) -> None:
+        self.clock = SimClock()  # the time model (dotshell_sim.timing)
         self.camera: SimCamera | None = None
         self.projector: SimProjector | None = None
         self.stage: SimTurntable | None = None
@@ -224,16 +243,18 @@ class SimWorld:
                               axis_point=stage.axis_point, axis_direction=stage.axis_direction,
                               source="ground-truth")
 
-    def state_digest(self, exposure_ms: float) -> bytes:
+    def state_digest(self, exposure_ms: float, light: bytes | None = None) -> bytes:
         """A digest of everything a frame depends on (pattern shown, stage and analyzer
         angles, laser and flat field, exposure): the camera seeds its noise with it, so a frame
         depends on the state it was taken in, not on how many frames came before — a resumed
-        scan captures the same frames as an uninterrupted one."""
+        scan captures the same frames as an uninterrupted one. ``light``: the digest of what
+        the panel showed during the exposure (:meth:`SimProjector.light_digest`); the newest
+        pattern's when omitted."""
         import hashlib
 
         h = hashlib.blake2b(digest_size=16)
         if self.projector is not None:
-            h.update(self.projector.pattern_digest)
+            h.update(self.projector.pattern_digest if light is None else light)
         if self.stage is not None:
             h.update(repr((round(self.stage.position, 6), self.stage.target_key)).encode())
         if self.analyzer is not None and self.analyzer.connected:
@@ -321,7 +342,14 @@ class _Device:
 # ---- devices --------------------------------------------------------------------------------
 
 class SimCamera(_Device):
-    """Renders the world; satisfies Camera, ExposureControl and GroundTruth."""
+    """Renders the world; satisfies Camera, ExposureControl, FrameInfoSource, TriggeredCamera
+    (its trigger input wired to the sim projector's trigger output) and GroundTruth.
+
+    Time model (:mod:`dotshell_sim.timing`): ``capture()`` exposes over
+    ``[now, now + exposure]`` and takes exposure + ``readout_ms``; a triggered frame exposes
+    from its trigger edge. A frame's noise is seeded by the rig's state during its exposure
+    (the light on the panel included), the same in both paths, so a triggered view and a
+    captured view of the same light are the same frames."""
 
     name = "sim-camera"
 
@@ -336,6 +364,8 @@ class SimCamera(_Device):
                                   s["dark_offset_dn"])
         self.exposure_ms = float(s["exposure_ms"])
         self.frames = 0
+        self._info = FrameInfo(timestamp_s=float("nan"))
+        self._armed: tuple[int, float] | None = None  # (frames wanted, armed at clock time)
         self._repeats: dict[bytes, int] = {}
         world.camera = self
 
@@ -359,13 +389,16 @@ class SimCamera(_Device):
         super().close()
         self.world.release_renderer()
 
-    def expected_electrons(self) -> np.ndarray:
-        """Noise-free signal (H, W) float32 in electrons for the current world state."""
+    def expected_electrons(self, start_s: float | None = None) -> np.ndarray:
+        """Noise-free signal (H, W) float32 in electrons of an exposure starting at clock time
+        ``start_s`` (now when omitted)."""
         self._check("capture")
         projector, stage = self.world.require(self.name)
+        t0 = self.world.clock.now() if start_s is None else start_s
+        radiance = projector.radiance_during(t0, t0 + self.exposure_ms / 1000.0)
         renderer = self.world.renderer()
         view = renderer.view(stage.position)
-        light = renderer.render(view, projector.radiance())
+        light = renderer.render(view, radiance)
         if self.world.laser is not None:  # trans-illumination laser, flat-field diffuser
             light = self.world.laser.light(light, renderer, view)
         analyzer = self.world.analyzer
@@ -382,25 +415,100 @@ class SimCamera(_Device):
             irr = cv2.GaussianBlur(irr, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
         return irr
 
-    def capture(self) -> np.ndarray:
-        """One frame; its noise is seeded by the setting ``seed``, the world's state and how
-        many frames were taken in that same state before (see :meth:`SimWorld.state_digest`)."""
-        electrons = self.expected_electrons()
-        state = self.world.state_digest(self.exposure_ms)
-        repeat = self._repeats.get(state, 0)
-        self._repeats[state] = repeat + 1
-        rng = np.random.default_rng([self.settings["seed"], repeat,
-                                     *np.frombuffer(state, np.uint32).tolist()])
+    def _frame(self, start_s: float, trigger: str) -> np.ndarray:
+        """One frame exposed from clock time ``start_s``; its noise is seeded by the setting
+        ``seed``, the world's state (the light on the panel during the exposure included) and
+        how many frames were taken in that same state before (see
+        :meth:`SimWorld.state_digest`)."""
+        exposure_s = self.exposure_ms / 1000.0
+        with self.world.clock.computing():
+            electrons = self.expected_electrons(start_s)
+            light = self.world.projector.light_digest(start_s, start_s + exposure_s)
+            state = self.world.state_digest(self.exposure_ms, light)
+            repeat = self._repeats.get(state, 0)
+            self._repeats[state] = repeat + 1
+            rng = np.random.default_rng([self.settings["seed"], repeat,
+                                         *np.frombuffer(state, np.uint32).tolist()])
+            frame = sensor(electrons, self.sensor, rng)
+        self._info = FrameInfo(timestamp_s=start_s, frame_id=self.frames,
+                               exposure_ms=self.exposure_ms, extra={"trigger": trigger})
         self.frames += 1
-        return sensor(electrons, self.sensor, rng)
+        return frame
+
+    def capture(self) -> np.ndarray:
+        clock = self.world.clock
+        t0 = clock.now()
+        frame = self._frame(t0, "software")
+        clock.advance_to(t0 + (self.exposure_ms + self.settings["readout_ms"]) / 1000.0)
+        return frame
+
+    def last_frame_info(self) -> FrameInfo:
+        return self._info
+
+    # ---- triggered frames (TriggeredCamera) ---------------------------------------------------
+
+    def min_trigger_period_ms(self, exposure_ms: float) -> float:
+        """Shortest time between trigger edges this camera keeps up with, in ms."""
+        readout = self.settings["readout_ms"]
+        return max(exposure_ms, readout) if self.settings["overlap_readout"] else (
+            exposure_ms + readout)
+
+    def arm(self, n_frames: int, exposure_ms: float) -> None:
+        self._check("arm for triggered frames")
+        if not (isinstance(n_frames, int) and n_frames > 0):
+            raise DeviceError(f"{self.name}: arm() needs a positive number of frames, got "
+                              f"{n_frames!r}.")
+        self.set_exposure(exposure_ms)
+        self._armed = (n_frames, self.world.clock.now())
+
+    def read_armed(self, timeout_s: float) -> list[tuple[np.ndarray, FrameInfo]]:
+        if self._armed is None:
+            raise DeviceError(f"{self.name}: read_armed() before arm(); arm the camera first.")
+        wanted, armed_at = self._armed
+        clock = self.world.clock
+        deadline = clock.now() + timeout_s
+        projector = self.world.projector
+        edges = [] if projector is None else [
+            t for t in projector.timeline.triggers_s if armed_at <= t <= deadline]
+        frames, busy_until, missed = [], -math.inf, 0
+        exposure_s = self.exposure_ms / 1000.0
+        for t in edges:
+            if len(frames) == wanted:
+                break
+            if t < busy_until - 1e-9:
+                missed += 1
+                continue
+            frames.append((self._frame(t, "projector"), self._info))
+            busy_until = t + self.min_trigger_period_ms(self.exposure_ms) / 1000.0
+        self._armed = None
+        if len(frames) < wanted:
+            clock.advance_to(deadline)
+            why = (f"{missed} trigger edges came faster than the camera's "
+                   f"{self.min_trigger_period_ms(self.exposure_ms):.2f} ms minimum period"
+                   if missed else "no more trigger edges came: is the projector's trigger out "
+                   "wired to the camera and its sequence started?")
+            raise DeviceTimeout(f"{self.name}: {len(frames)} of {wanted} triggered frames "
+                                f"arrived within {timeout_s:.3f} s; {why}")
+        clock.advance_to(frames[-1][1].timestamp_s + exposure_s
+                         + self.settings["readout_ms"] / 1000.0)
+        return frames
+
+    def disarm(self) -> None:
+        self._armed = None
 
     def status(self) -> dict[str, Any]:
-        return {**super().status(), "exposure_ms": self.exposure_ms, "frames": self.frames,
-                "resolution": list(self.resolution), "bit_depth": self.bit_depth}
+        out = {**super().status(), "exposure_ms": self.exposure_ms, "frames": self.frames,
+               "resolution": list(self.resolution), "bit_depth": self.bit_depth}
+        if self._armed is not None:
+            out["armed_frames"] = self._armed[0]
+        return out
 
 
 class SimProjector(_Device):
-    """Stores the shown pattern (defocused, as relative radiance) for the camera."""
+    """The panel and optics of a projector: shows patterns on a display timeline (see
+    :mod:`dotshell_sim.timing`) the camera integrates over its exposures. Satisfies Projector
+    and SequencedProjector (a stored sequence run by the projector's own clock with a trigger
+    edge at the start of each pattern, wired to the sim camera's trigger input)."""
 
     name = "sim-projector"
 
@@ -409,16 +517,27 @@ class SimProjector(_Device):
         s = settings
         self.lens: Lens = lens_from_fov(s["width"], s["height"], s["focal_px"], s["dist"],
                                         s["cx"], s["cy"])
+        if s["pixel_aspect"] != 1.0:
+            K = self.lens.K.copy()
+            K[1, 1] *= s["pixel_aspect"]
+            self.lens = Lens(K, self.lens.dist, self.lens.width, self.lens.height)
         self.ref_mm = float(np.linalg.norm(np.subtract(s["look_at_mm"], s["position_mm"])))
         self.pose()  # validate the geometry now
-        self._radiance: np.ndarray | None = None
-        self.pattern_name = None
-        self.pattern_digest = b""
+        self.timeline = DisplayTimeline()
+        self._radiance_cache: OrderedDict[int, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._sequence: tuple[list[SequencePattern], float, float] | None = None
+        self.last_shown: tuple[str, int] = ("", -1)
+        self._running_until = -math.inf
+        self._digests: dict[int, tuple[np.ndarray, bytes]] = {}
         world.projector = self
 
     @property
     def resolution(self) -> tuple[int, int]:
         return self.lens.size
+
+    @property
+    def clock(self) -> SimClock:
+        return self.world.clock
 
     def pose(self) -> tuple[np.ndarray, np.ndarray]:
         """(R, T) with X_projector = R @ X_camera + T, from position / look-at / up."""
@@ -441,35 +560,138 @@ class SimProjector(_Device):
 
     def connect(self) -> None:
         super().connect()
-        self.show(np.zeros((self.lens.height, self.lens.width), np.uint8))
+        black = np.zeros((self.lens.height, self.lens.width), np.uint8)
+        self.timeline.show(self.clock.now(), black)  # powered on showing black
 
     def close(self) -> None:
         super().close()
-        self._radiance = None
+        self._sequence = None
+        self._radiance_cache.clear()
 
-    def show(self, pattern: np.ndarray) -> None:
-        self._check("show a pattern")
+    def check_pattern(self, pattern: np.ndarray) -> np.ndarray:
+        """``pattern`` as the panel takes it: uint8 (or bool) of shape (height, width)."""
         p = np.asarray(pattern)
         w, h = self.resolution
         if p.shape != (h, w) or p.dtype not in (np.uint8, np.bool_):
             raise DeviceError(f"{self.name}: pattern must be a uint8 array of shape ({h}, {w}), "
                               f"got {p.dtype} {p.shape}.")
+        return p
+
+    def show(self, pattern: np.ndarray, name: str = "", index: int = -1) -> None:
+        self._check("show a pattern")
+        p = self.check_pattern(pattern).copy()
         s = self.settings
-        img = p.astype(np.float32) * np.float32((1.0 if p.dtype == np.bool_ else 1 / 255.0))
+        at = display_time(self.clock.now(), s["display_latency_ms"], s["refresh_hz"])
+        self.timeline.show(at, p, name, index)
+        self.last_shown = (name, index)
+
+    def radiance_of(self, image: np.ndarray | None) -> np.ndarray | None:
+        """Relative radiance (h, w) float32 of a panel image after defocus; ``None`` = dark."""
+        if image is None:
+            return None
+        key = id(image)
+        hit = self._radiance_cache.get(key)
+        if hit is not None and hit[0] is image:
+            return hit[1]
+        s = self.settings
+        img = image.astype(np.float32) * np.float32(
+            (1.0 if image.dtype == np.bool_ else 1 / 255.0))
         img = s["brightness"] * (s["black_level"] + (1 - s["black_level"]) * img)
         img = img.astype(np.float32)
         if s["defocus_sigma_px"] > 0:
             img = cv2.GaussianBlur(img, (0, 0), s["defocus_sigma_px"],
                                    borderType=cv2.BORDER_CONSTANT)
-        self._radiance = img
-        self.pattern_digest = _digest(p)
+        self._radiance_cache[key] = (image, img)
+        while len(self._radiance_cache) > 4:
+            self._radiance_cache.popitem(last=False)
+        return img
 
-    def radiance(self) -> np.ndarray | None:
-        """Relative radiance (h, w) float32 after defocus; ``None`` when off."""
-        return self._radiance if self.connected else None
+    def _image_digest(self, image: np.ndarray | None) -> bytes:
+        if image is None:
+            return b"dark"
+        hit = self._digests.get(id(image))
+        if hit is None or hit[0] is not image:
+            hit = self._digests[id(image)] = (image, _digest(image))
+            while len(self._digests) > 8:
+                self._digests.pop(next(iter(self._digests)))
+        return hit[1]
+
+    @property
+    def pattern_digest(self) -> bytes:
+        """Digest of the newest pattern on the timeline (b"" before any)."""
+        image = self.timeline.segments[-1].image
+        return b"" if image is None and len(self.timeline.segments) == 1 else (
+            self._image_digest(image))
+
+    def light_digest(self, t0_s: float, t1_s: float) -> bytes:
+        """Digest of what the panel showed over ``[t0, t1)``: the pattern's digest when one
+        pattern covered it, else of every pattern with its share."""
+        parts = [(w, seg) for w, seg in self.timeline.weights(t0_s, t1_s) if w > 1e-9]
+        if not self.connected:
+            return b"off"
+        if len(parts) == 1:
+            return self._image_digest(parts[0][1].image)
+        return _digest(np.frombuffer(b"".join(
+            repr(round(w, 6)).encode() + self._image_digest(seg.image) for w, seg in parts),
+            np.uint8))
+
+    def radiance_during(self, t0_s: float, t1_s: float) -> np.ndarray | None:
+        """Mean relative radiance (h, w) float32 over the clock window ``[t0, t1)`` (an
+        exposure); ``None`` when the panel is dark (or off) throughout."""
+        if not self.connected:
+            return None
+        parts = [(w, seg) for w, seg in self.timeline.weights(t0_s, t1_s) if w > 1e-9]
+        lit = [(w, seg) for w, seg in parts if seg.image is not None]
+        if not lit:
+            return None
+        if len(parts) == 1:  # one image for the whole exposure: exactly its radiance
+            return self.radiance_of(lit[0][1].image)
+        out = np.zeros((self.lens.height, self.lens.width), np.float32)
+        for w, seg in lit:
+            out += np.float32(w) * self.radiance_of(seg.image)
+        return out
+
+    # ---- hardware sequences (SequencedProjector) ---------------------------------------------
+
+    def shortest_period_ms(self, exposure_ms: float, at_least_ms: float) -> float:
+        return max(float(exposure_ms), float(at_least_ms))
+
+    def load_sequence(self, patterns, exposure_ms: float, period_ms: float) -> None:
+        self._check("load a pattern sequence")
+        if not patterns:
+            raise DeviceError(f"{self.name}: an empty pattern sequence cannot be loaded.")
+        if not (0 < exposure_ms <= period_ms):
+            raise DeviceError(f"{self.name}: pattern exposure {exposure_ms} ms must be positive "
+                              f"and at most the period {period_ms} ms.")
+        stored = [SequencePattern(self.check_pattern(p.image).copy(), p.name, p.index)
+                  for p in patterns]
+        self._sequence = (stored, float(exposure_ms), float(period_ms))
+
+    def start_sequence(self) -> None:
+        self._check("start a pattern sequence")
+        if self._sequence is None:
+            raise DeviceError(f"{self.name}: start_sequence() before load_sequence(); load the "
+                              "patterns first.")
+        stored, exposure_ms, period_ms = self._sequence
+        start = self.clock.now()
+        self.timeline.run_sequence(start, [(p.image, p.name, p.index) for p in stored],
+                                   exposure_ms / 1000.0, period_ms / 1000.0)
+        self._running_until = start + len(stored) * period_ms / 1000.0
+
+    def stop_sequence(self) -> None:
+        now = self.clock.now()
+        if now < self._running_until:  # a finished sequence leaves the panel dark anyway
+            self.timeline.stop(now)
+        self._running_until = -math.inf
 
     def status(self) -> dict[str, Any]:
-        return {**super().status(), "resolution": list(self.resolution)}
+        out = {**super().status(), "resolution": list(self.resolution)}
+        name, index = self.last_shown
+        if name or index >= 0:
+            out.update(pattern=name, pattern_index=index)
+        if self._sequence is not None:
+            out["sequence_patterns"] = len(self._sequence[0])
+        return out
 
 
 class SimTurntable(_Device):

@@ -1,16 +1,23 @@
 """The console's input box: multi-line Python with REPL rules — Enter runs a complete
 statement and adds a line to an unfinished one (a blank line ends a block); ↑/↓ on the first
-or last line walk the history; ctrl+c interrupts a running input (copies otherwise)."""
+or last line walk the history; Tab completes the name before the cursor (indents elsewhere);
+ctrl+c interrupts a running input (copies otherwise); page up/down scroll the output. While
+the running input waits in ``input()`` (or ``help()``), Enter sends the line to it and ctrl+d
+ends its input."""
 
 from __future__ import annotations
 
+import os
+import re
 from typing import Any
 
 from textual import events
 from textual.message import Message
 from textual.widgets import TextArea
 
-from dotshell.tui.interpreter import wants_more
+from dotshell.server.interpreter import wants_more
+
+_TOKEN_END = re.compile(r"[A-Za-z_][\w.]*$")
 
 
 class ConsoleInput(TextArea):
@@ -21,8 +28,27 @@ class ConsoleInput(TextArea):
             super().__init__()
             self.source = source
 
+    class Reply(Message):
+        """A line for the running input's ``input()`` (None: end of file)."""
+
+        def __init__(self, line: str | None) -> None:
+            super().__init__()
+            self.line = line
+
     class Interrupt(Message):
         """ctrl+c while an input is running."""
+
+    class Page(Message):
+        """page up / page down: scroll the console's output."""
+
+        def __init__(self, up: bool) -> None:
+            super().__init__()
+            self.up = up
+
+    class CompleteRequest(Message):
+        def __init__(self, text: str) -> None:
+            super().__init__()
+            self.text = text
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(language=None, soft_wrap=True, show_line_numbers=False,
@@ -30,11 +56,14 @@ class ConsoleInput(TextArea):
         self.past_inputs: list[str] = []
         self.past_pos = 0
         self.busy = False
+        self.waiting_prompt: str | None = None
         self._draft = ""
 
     async def _on_key(self, event: events.Key) -> None:
         handler = {"enter": self._enter, "up": self._history_up, "down": self._history_down,
-                   "ctrl+c": self._interrupt}.get(event.key)
+                   "ctrl+c": self._interrupt, "ctrl+d": self._end_of_file,
+                   "tab": self._complete, "pageup": lambda: self._page(True),
+                   "pagedown": lambda: self._page(False)}.get(event.key)
         if handler is not None and handler():
             event.stop()
             event.prevent_default()
@@ -42,6 +71,10 @@ class ConsoleInput(TextArea):
         await super()._on_key(event)
 
     def _enter(self) -> bool:
+        if self.waiting_prompt is not None:
+            line, self.text = self.text, ""
+            self.post_message(self.Reply(line))
+            return True
         row, _ = self.cursor_location
         single_line = "\n" not in self.text
         at_end = row == self.document.line_count - 1
@@ -64,6 +97,10 @@ class ConsoleInput(TextArea):
         self.past_pos = len(self.past_inputs)
         self.text = ""
         self.post_message(self.Submitted(source))
+
+    def set_history(self, inputs: list[str]) -> None:
+        self.past_inputs = list(inputs)
+        self.past_pos = len(self.past_inputs)
 
     def _history_up(self) -> bool:
         if self.cursor_location[0] != 0 or not self.past_inputs or self.past_pos == 0:
@@ -92,3 +129,34 @@ class ConsoleInput(TextArea):
             return False  # TextArea copies the selection
         self.post_message(self.Interrupt())
         return True
+
+    def _page(self, up: bool) -> bool:
+        self.post_message(self.Page(up))
+        return True
+
+    def _end_of_file(self) -> bool:
+        if self.waiting_prompt is None or self.text:
+            return False
+        self.post_message(self.Reply(None))
+        return True
+
+    # ---- completion ---------------------------------------------------------------------------
+
+    def before_cursor(self) -> str:
+        return self.document.get_text_range((0, 0), self.cursor_location)
+
+    def _complete(self) -> bool:
+        if self.waiting_prompt is not None or not _TOKEN_END.search(self.before_cursor()):
+            return False  # Tab indents
+        self.post_message(self.CompleteRequest(self.before_cursor()))
+        return True
+
+    def apply_completion(self, token: str, matches: list[str]) -> None:
+        """Replace the ``token`` before the cursor with the only match, or extend it to what
+        all matches share."""
+        if not matches or not self.before_cursor().endswith(token):
+            return
+        common = matches[0] if len(matches) == 1 else os.path.commonprefix(matches)
+        if len(common) > len(token):
+            row, col = self.cursor_location
+            self.replace(common, (row, col - len(token)), (row, col))

@@ -1,90 +1,85 @@
-"""The Console panel: a Python console bound to the live session (``rig``, ``profile``,
-``run``, ``scan()``, ``np`` and the rest of :meth:`dotshell.console.Session.namespace`).
-Input runs in a worker thread; output, results and tracebacks appear in the pane as they come."""
+"""The Console panel: the Python console of the rig server, bound to its live session
+(``rig``, ``profile``, ``run``, ``scan()``, ``np`` and the rest of
+:meth:`dotshell.console.Session.namespace`). Input is sent to the server and runs there;
+output, results, tracebacks and ``input()`` prompts come back as they happen, to every attached
+front end."""
 
 from __future__ import annotations
 
 from typing import Any
 
+from rich.markup import escape
 from rich.text import Text
 from textual.app import ComposeResult
 from textual.containers import Vertical
-from textual.message import Message
-from textual.widgets import RichLog, Static
+from textual.widgets import Static
 
-from dotshell.console import Session
-from dotshell.tui.interpreter import Interpreter
+from dotshell.tui.messages import ActionDone
 from dotshell.tui.widgets.console_input import ConsoleInput
+from dotshell.tui.widgets.reflow_log import ReflowLog
 
 BANNER = ("Python console on the live session: rig, profile, run, session, np, dotshell; "
-          "connect(), jog(deg), move_to(deg), snap(), project(name), patterns(), decode(), "
-          "scan(), pause(), resume(), abort(). Enter runs, a blank line ends a block, ↑/↓ "
-          "history, ctrl+c interrupts.")
-STYLES = {"out": "", "err": "yellow", "result": "cyan", "error": "red", "input": "bold"}
-
-
-class ConsoleOutput(Message):
-    def __init__(self, kind: str, text: str) -> None:
-        super().__init__()
-        self.kind, self.text = kind, text
-
-
-class ConsoleFinished(Message):
-    def __init__(self, ok: bool) -> None:
-        super().__init__()
-        self.ok = ok
+          "connect(), jog(deg), move_to(deg), home(), snap(), project(name), patterns(), "
+          "decode(), scan(), pause(), resume(), abort(), stop(). Enter runs, a blank line ends a "
+          "block, "
+          "↑/↓ history, Tab completes, ctrl+c interrupts; input() and help() ask here.")
+STYLES = {"out": "", "err": "yellow", "result": "cyan", "error": "red", "input": "bold",
+          "note": "dim"}
+READY = "ready"
 
 
 class ConsolePanel(Vertical):
-    """Output pane, status line and input box over one :class:`Interpreter`."""
+    """Output pane, status line and input box; the interpreter runs in the server."""
 
-    def __init__(self, session: Session, **kwargs: Any) -> None:
+    def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
-        self.session = session
-        self.interpreter = Interpreter(session.namespace(),
-                                       lambda kind, text: self.post_message(ConsoleOutput(kind, text)),
-                                       on_interrupt=self._abort_scan)
         self.transcript: list[tuple[str, str]] = []
         self._partial = {"out": "", "err": ""}
 
     def compose(self) -> ComposeResult:
-        yield RichLog(id="console-out", wrap=True, markup=False, highlight=False, max_lines=5000,
-                      min_width=20)
-        yield Static("ready", id="console-status")
+        output = ReflowLog(id="console-out")
+        output.can_focus = False  # the input keeps the focus (page up/down scroll this)
+        yield output
+        yield Static(READY, id="console-status")
         yield ConsoleInput(id="console-in")
 
     def on_mount(self) -> None:
-        self._write("out", BANNER + "\n")
+        self.write("note", BANNER + "\n")
 
-    def _abort_scan(self) -> bool:
-        if self.session.state in ("running", "paused"):
-            self.session.abort()
-            return True
-        return False
+    @property
+    def session(self) -> Any:
+        return self.app.session  # type: ignore[attr-defined]
+
+    @property
+    def box(self) -> ConsoleInput:
+        return self.query_one(ConsoleInput)
+
+    def _status(self, markup: str) -> None:
+        self.query_one("#console-status", Static).update(markup)
 
     # ---- output -------------------------------------------------------------------------------
 
-    def _write(self, kind: str, text: str) -> None:
+    def write(self, kind: str, text: str) -> None:
         """Show ``text``; stdout/stderr are shown a whole line at a time."""
         self.transcript.append((kind, text))
-        log = self.query_one(RichLog)
+        log = self.query_one(ReflowLog)
         if kind in self._partial:
             text = self._partial[kind] + text
             *lines, self._partial[kind] = text.split("\n")
             for line in lines:
-                log.write(Text(line, style=STYLES[kind]))
+                log.add(Text(line, style=STYLES[kind]))
         else:
             self._flush_partial()
-            log.write(Text(text.rstrip("\n"), style=STYLES[kind]))
+            if kind == "input":
+                text = "\n".join(("... " if i else ">>> ") + line
+                                 for i, line in enumerate(text.split("\n")))
+            log.add(Text(text.rstrip("\n"), style=STYLES.get(kind, "")))
 
     def _flush_partial(self) -> None:
         for kind, rest in self._partial.items():
             if rest:
-                self.query_one(RichLog).write(Text(rest, style=STYLES[kind]))
+                self.query_one(ReflowLog).add(Text(rest, style=STYLES[kind]))
                 self._partial[kind] = ""
-
-    def on_console_output(self, message: ConsoleOutput) -> None:
-        self._write(message.kind, message.text)
 
     @property
     def output_text(self) -> str:
@@ -92,37 +87,71 @@ class ConsolePanel(Vertical):
         return "".join(t if k in self._partial else t.rstrip("\n") + "\n"
                        for k, t in self.transcript)
 
-    # ---- running ------------------------------------------------------------------------------
+    # ---- what the server says -----------------------------------------------------------------
 
-    def on_console_input_submitted(self, message: ConsoleInput.Submitted) -> None:
-        box = self.query_one(ConsoleInput)
-        if box.busy:
-            self.query_one("#console-status", Static).update(
-                "[yellow]still running the previous input — ctrl+c interrupts it[/]")
-            box.text = message.source
-            return
-        prompt = "\n".join(("... " if i else ">>> ") + line
-                           for i, line in enumerate(message.source.split("\n")))
-        self._write("input", prompt)
-        box.busy = True
-        self.query_one("#console-status", Static).update("[b]running…[/] ctrl+c interrupts")
-        self.run_worker(lambda: self._run(message.source), thread=True, group="console",
-                        exit_on_error=False)
+    def handle(self, message: dict[str, Any]) -> None:
+        kind = message.get("type")
+        if kind == "console":
+            if message["kind"] == "input":
+                self._set_busy(True)
+            self.write(message["kind"], message["text"])
+        elif kind == "console_input":
+            self.box.waiting_prompt = message.get("prompt", "")
+            prompt = message.get("prompt") or ""
+            self._status(f"[b]input()[/] {escape(prompt)}   — Enter sends the line, ctrl+d ends "
+                         "the input, ctrl+c interrupts")
+        elif kind == "console_done":
+            self._flush_partial()
+            self.box.waiting_prompt = None
+            self._set_busy(False)
+            self._status(READY if message.get("ok") else
+                         "[red]the input raised an error (traceback above)[/]")
 
-    def _run(self, source: str) -> None:
-        ok = self.interpreter.run(source)
-        self.post_message(ConsoleFinished(ok))
-
-    def on_console_finished(self, message: ConsoleFinished) -> None:
-        self._flush_partial()
-        self.query_one(ConsoleInput).busy = False
-        self.query_one("#console-status", Static).update(
-            "ready" if message.ok else "[red]the input raised an error (traceback above)[/]")
-
-    def on_console_input_interrupt(self, message: ConsoleInput.Interrupt) -> None:
-        if self.interpreter.interrupt():
-            self.query_one("#console-status", Static).update("[yellow]interrupting…[/]")
+    def _set_busy(self, busy: bool) -> None:
+        self.box.busy = busy
+        if busy and self.box.waiting_prompt is None:
+            self._status("[b]running…[/] ctrl+c interrupts")
 
     @property
     def busy(self) -> bool:
-        return self.query_one(ConsoleInput).busy
+        return self.box.busy
+
+    # ---- input --------------------------------------------------------------------------------
+
+    def _request(self, label: str, fn: Any, *args: Any) -> None:
+        self.app.run_session_action(label, fn, *args, reply_to=self)  # type: ignore[attr-defined]
+
+    def on_console_input_submitted(self, message: ConsoleInput.Submitted) -> None:
+        if self.box.busy:
+            self._status("[yellow]still running the previous input — ctrl+c interrupts it[/]")
+            self.box.text = message.source
+            return
+        self.box.busy = True
+        self._request("console", self.session.console_run, message.source)
+
+    def on_console_input_reply(self, message: ConsoleInput.Reply) -> None:
+        self.box.waiting_prompt = None
+        self._status("[b]running…[/] ctrl+c interrupts")
+        self._request("console reply", self.session.console_reply, message.line)
+
+    def on_console_input_interrupt(self, message: ConsoleInput.Interrupt) -> None:
+        self._status("[yellow]interrupting…[/]")
+        self._request("interrupt", self.session.console_interrupt)
+
+    def on_console_input_page(self, message: ConsoleInput.Page) -> None:
+        output = self.query_one(ReflowLog)
+        (output.scroll_page_up if message.up else output.scroll_page_down)(animate=False)
+
+    def on_console_input_complete_request(self, message: ConsoleInput.CompleteRequest) -> None:
+        self._request("complete", self.session.complete, message.text)
+
+    def on_action_done(self, message: ActionDone) -> None:
+        if message.error:
+            if message.label == "console":
+                self.box.busy = False
+            self._status(f"[red]{escape(message.label)}: {escape(message.error)}[/]")
+        elif message.label == "complete":
+            token, matches = message.result["token"], message.result["matches"]
+            self.box.apply_completion(token, matches)
+            if len(matches) > 1:
+                self.write("note", "  ".join(matches))

@@ -25,6 +25,32 @@ except Exception:  # ImportError, or a terminal query failing in an odd environm
     _ti_renderable = None
 
 
+def cell_aspect() -> float:
+    """Height / width of a terminal cell (about 2); from the terminal when textual-image asked
+    it, else 2."""
+    if _ti_renderable is not None:
+        try:
+            from textual_image._terminal import get_cell_size
+
+            size = get_cell_size()
+            if size.width > 0 and size.height > 0:
+                return size.height / size.width
+        except Exception:  # no answer from the terminal: the usual shape
+            pass
+    return 2.0
+
+
+def fit_cells(width_px: int, height_px: int, cols: int, rows: int,
+              aspect: float = 2.0) -> tuple[int, int]:
+    """The largest (columns, rows) of cells, at most ``cols`` × ``rows``, that show an image of
+    ``width_px`` × ``height_px`` with its aspect ratio (cells ``aspect`` times taller than wide)."""
+    if width_px <= 0 or height_px <= 0 or cols <= 0 or rows <= 0:
+        return 0, 0
+    scale = min(cols / width_px, rows * aspect / height_px)
+    return (max(1, min(cols, round(width_px * scale))),
+            max(1, min(rows, round(height_px * scale / aspect))))
+
+
 def fit_size(width_px: int, height_px: int, cols: int, rows: int) -> tuple[int, int]:
     """Largest (columns, pixel rows) an image fits in with half blocks: each cell shows one
     pixel across and two down (terminal cells are about twice as tall as wide)."""

@@ -1,4 +1,5 @@
-"""The Log panel: the session's events (the scan's and the rig's), filterable by level."""
+"""The Log panel: the session's events (the scan's, every rig action, the server's notes),
+filterable by level. Lines keep their wrapping right however the tab was hidden or resized."""
 
 from __future__ import annotations
 
@@ -10,13 +11,15 @@ from rich.text import Text
 from textual.app import ComposeResult
 from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
-from textual.widgets import Label, RichLog, Select
+from textual.widgets import Label, Select
 
 from dotshell.events import Event
-from dotshell.tui.text import LEVELS, describe_event
+from dotshell.server.describe import LEVELS, describe_event
+from dotshell.tui.widgets.reflow_log import ReflowLog
 
 LEVEL_STYLE = {"debug": "dim", "info": "", "warning": "yellow", "error": "bold red"}
 MAX_ENTRIES = 20000
+SHOWN = 5000
 
 
 @dataclass(frozen=True)
@@ -41,8 +44,7 @@ class LogPanel(Vertical):
             yield Label("show from level ")
             yield Select([(lv, lv) for lv in LEVELS], value=self.min_level, allow_blank=False,
                          id="log-level")
-        yield RichLog(id="log-view", wrap=True, markup=False, highlight=False, max_lines=5000,
-                      min_width=20)
+        yield ReflowLog(max_entries=SHOWN, id="log-view")
 
     def visible(self) -> list[LogEntry]:
         floor = LEVELS.index(self.min_level)
@@ -50,30 +52,32 @@ class LogPanel(Vertical):
 
     def add_event(self, ev: Event) -> None:
         level, text = describe_event(ev)
+        self.add(level, text, ev.time)
+
+    def add(self, level: str, text: str, when: float | None = None) -> None:
+        """One line (also for the front end's own notes, which the server does not see)."""
         if level not in LEVELS:
             level = "info"
-        entry = LogEntry(ev.time, level, text)
+        entry = LogEntry(when or time.time(), level, text)
         self.entries.append(entry)
         del self.entries[:-MAX_ENTRIES]
         if LEVELS.index(level) >= LEVELS.index(self.min_level):
-            self._write(entry)
+            self.query_one(ReflowLog).add(self._line(entry))
 
-    def _write(self, e: LogEntry) -> None:
+    @staticmethod
+    def _line(e: LogEntry) -> Text:
         stamp = time.strftime("%H:%M:%S", time.localtime(e.time))
         line = Text()
         line.append(f"{stamp} {e.level:<7} ", style="dim")
         line.append(e.text, style=LEVEL_STYLE[e.level])
-        self.query_one(RichLog).write(line)
+        return line
 
     def set_level(self, level: str) -> None:
         self.min_level = level
         select = self.query_one(Select)
         if select.value != level:
             select.value = level
-        log = self.query_one(RichLog)
-        log.clear()
-        for e in self.visible()[-5000:]:
-            self._write(e)
+        self.query_one(ReflowLog).replace(self._line(e) for e in self.visible()[-SHOWN:])
 
     def on_select_changed(self, event: Select.Changed) -> None:
         if isinstance(event.value, str) and event.value != self.min_level:

@@ -1,32 +1,27 @@
-"""The plugins screen: every backend by role, name, plugin and distribution, and the plugins
-that failed to load — what ``dotshell plugins`` prints."""
+"""The plugins screen: every backend of the server's plugin manager by role, name, plugin and
+distribution, and the plugins that failed to load — what ``dotshell plugins`` prints."""
 
 from __future__ import annotations
 
+from typing import Any
+
+from rich.markup import escape
 from textual.app import ComposeResult
 from textual.binding import Binding
 from textual.containers import Vertical
 from textual.screen import Screen
 from textual.widgets import DataTable, Footer, Static
 
-from dotshell.backends import ROLES
-from dotshell.plugins import PluginManager
-
-
-def backend_rows(pm: PluginManager) -> list[tuple[str, str, str, str, str]]:
-    """(role, name, plugin, distribution, summary) of every backend, by role then name."""
-    return [(role, name, info.plugin, info.distribution, info.backend.summary)
-            for role in ROLES for name, info in sorted(pm.backends(role).items())]
-
 
 class PluginsScreen(Screen):
-    """Backends and plugin load errors; escape goes back."""
+    """Backends and plugin load errors (the server's ``plugins`` reply); escape goes back."""
 
     BINDINGS = [Binding("escape,q", "app.pop_screen", "Back")]
 
-    def __init__(self, pm: PluginManager) -> None:
+    def __init__(self, listing: dict[str, Any]) -> None:
         super().__init__()
-        self.pm = pm
+        self.rows: list[list[str]] = listing["backends"]
+        self.errors: list[str] = listing["errors"]
 
     def compose(self) -> ComposeResult:
         with Vertical(id="plugins"):
@@ -38,7 +33,7 @@ class PluginsScreen(Screen):
     def on_mount(self) -> None:
         table = self.query_one(DataTable)
         table.add_columns("role", "name", "plugin", "distribution", "summary")
-        table.add_rows(backend_rows(self.pm))
-        errors = "\n".join(f"failed to load: {e}" for e in self.pm.load_errors)
+        table.add_rows([tuple(r) for r in self.rows])
+        errors = "\n".join(f"failed to load: {escape(e)}" for e in self.errors)
         self.query_one("#plugins-errors", Static).update(errors or "[green]all plugins loaded[/]")
         table.focus()

@@ -1,5 +1,6 @@
-"""The profile picker: profiles found next to the current one and in ./profiles, or any path
-typed in; Enter loads it."""
+"""The profile picker: profiles found next to the current one, in ./profiles and in the
+directories the user's config lists (``profile_dirs``, docs/server.md), or any path typed in;
+Enter loads it."""
 
 from __future__ import annotations
 
@@ -11,15 +12,14 @@ from textual.containers import Vertical
 from textual.screen import ModalScreen
 from textual.widgets import Input, OptionList, Static
 
-from dotshell.console import Session
-from dotshell.tui.text import short_path
+from dotshell.server.describe import short_path
 
 
-def find_profiles(session: Session) -> list[str]:
-    """``*.toml`` next to the session's profile and in ./profiles, each once, sorted."""
-    dirs = [Path("profiles")]
-    if session.profile_path is not None:
-        dirs.insert(0, session.profile_path.parent)
+def find_profiles(current: str | Path | None, extra_dirs: list[Path] = ()) -> list[str]:
+    """``*.toml`` next to ``current``, in ./profiles and in ``extra_dirs``, each once, sorted."""
+    dirs = [Path("profiles"), *extra_dirs]
+    if current is not None:
+        dirs.insert(0, Path(current).parent)
     found: dict[Path, str] = {}
     for d in dirs:
         if d.is_dir():
@@ -33,10 +33,10 @@ class ProfilePicker(ModalScreen[str | None]):
 
     BINDINGS = [Binding("escape", "cancel", "Cancel")]
 
-    def __init__(self, session: Session) -> None:
+    def __init__(self, current: str | None, extra_dirs: list[Path] = ()) -> None:
         super().__init__()
-        self.paths = find_profiles(session)
-        self.current = short_path(session.profile_path) if session.profile_path else None
+        self.paths = find_profiles(current, list(extra_dirs))
+        self.current = short_path(current) if current else None
 
     def compose(self) -> ComposeResult:
         with Vertical(classes="dialog", id="picker"):

@@ -1,41 +1,53 @@
 """The Rig panel: every device of the profile with its backend, connection and live status, and
-the keys that drive them (connect, jog, analyzer, exposure, snap, project, decode)."""
+the keys that drive them (connect, jog, go to, analyzer, exposure, snap, project, decode).
+
+Safety: no navigation key (arrows, tab, home/end, page up/down) moves hardware — jogging is on
+``[`` and ``]``; key repeat collapses into one move (:mod:`dotshell.tui.jog`); escape stops
+every moving device at once. Prompts start from the device's current value.
+"""
 
 from __future__ import annotations
 
 from typing import Any
 
+from rich.console import Group
 from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 from textual.app import ComposeResult
 from textual.binding import Binding
 from textual.containers import Vertical
+from textual.events import Resize
 from textual.widgets import Static
 
-from dotshell.console import DecodeResult, Session, Snapshot
-from dotshell.profile import DEVICE_ROLES
+from dotshell.server.describe import short_path
+from dotshell.tui.jog import JogQueue
 from dotshell.tui.messages import ActionDone
-from dotshell.tui.text import describe_status, short_path
+from dotshell.tui.text import describe_status
 from dotshell.tui.widgets.choice import ChoiceScreen
 from dotshell.tui.widgets.prompt import PromptScreen
 
-HELP = ("[b]c[/] connect  [b]d[/] disconnect  [b]←/→[/] jog ∓step  [b]+/-[/] step  "
-        "[b]g[/] go to angle  [b]a[/] analyzer  [b]e[/] exposure  [b]space[/] snap  "
-        "[b]p[/] project  [b]m[/] decode map")
+ROLES = ("camera", "projector", "stage", "analyzer", "light_source")
+HELP = ("[b]c[/] connect  [b]d[/] disconnect  [b][ ][/] jog ∓step  [b]+ -[/] step  "
+        "[b]g[/] go to  [b]h[/] home  [b]a[/] analyzer  [b]e[/] exposure  [b]space[/] snap  "
+        "[b]p[/] project  "
+        "[b]m[/] decode map  [b]esc[/] stop")
+#: Below this width the device table is stacked: one device per two lines.
+STACK_BELOW = 80
 
 
 class RigPanel(Vertical, can_focus=True):
-    """Device table and rig keys; every action runs in a worker via the app."""
+    """Device table and rig keys; every action is a request to the server, run in a worker."""
 
     BINDINGS = [
         Binding("c", "connect", "Connect"),
         Binding("d", "disconnect", "Disconnect", show=False),
-        Binding("left", "jog(-1)", "Jog −"),
-        Binding("right", "jog(1)", "Jog +"),
+        Binding("left_square_bracket", "jog(-1)", "Jog −", key_display="["),
+        Binding("right_square_bracket", "jog(1)", "Jog +", key_display="]"),
         Binding("plus,equals_sign", "step(2)", "Step ×2", show=False),
         Binding("minus", "step(0.5)", "Step ÷2", show=False),
         Binding("g", "goto", "Go to", show=False),
+        Binding("h", "home", "Home", show=False),
         Binding("a", "analyzer", "Analyzer", show=False),
         Binding("e", "exposure", "Exposure", show=False),
         Binding("space", "snap", "Snap"),
@@ -48,6 +60,8 @@ class RigPanel(Vertical, can_focus=True):
         self.step_deg = 5.0
         self.last_result = ""
         self.last_error = ""
+        self.rows: list[dict[str, Any]] = []
+        self.jogs = JogQueue(lambda deg: self._do("jog", self.session.jog, deg))
 
     def compose(self) -> ComposeResult:
         yield Static(id="rig-title")
@@ -57,19 +71,24 @@ class RigPanel(Vertical, can_focus=True):
         yield Static(HELP, id="rig-help", classes="help")
 
     @property
-    def session(self) -> Session:
+    def session(self) -> Any:
         return self.app.session  # type: ignore[attr-defined]
 
     # ---- display ------------------------------------------------------------------------------
 
-    def show_profile(self, session: Session) -> None:
-        p = session.profile
-        title = (f"[b]{escape(p.name)}[/]  {escape(short_path(p.source))}" if p else
+    def show_profile(self) -> None:
+        p = self.session.profile
+        title = (f"[b]{escape(p['name'])}[/]  {escape(short_path(p['source']))}" if p else
                  "[b]no profile loaded[/] — press ctrl+o to pick one")
         self.query_one("#rig-title", Static).update(f"{title}   jog step {self.step_deg:g}°")
-        self.show_rows([], session)
+        self.show_rows(self.rows)
 
-    def show_rows(self, rows: list[dict[str, Any]], session: Session) -> None:
+    def show_rows(self, rows: list[dict[str, Any]]) -> None:
+        self.rows = rows
+        projected = self.session.projected
+        if self.app.size.width < STACK_BELOW:
+            self.query_one("#rig-table", Static).update(self._stacked(rows, projected))
+            return
         table = Table(box=None, expand=True, pad_edge=False, header_style="bold")
         table.add_column("device", no_wrap=True)
         table.add_column("backend", no_wrap=True)
@@ -77,15 +96,35 @@ class RigPanel(Vertical, can_focus=True):
         table.add_column("status", ratio=1)
         for row in rows:
             state = Text("connected", "green") if row["connected"] else Text("closed", "dim")
-            status = describe_status(row["role"], row["status"], session.projected)
-            style = "red" if status.startswith("error") else ""
-            table.add_row(row["role"], row["backend"], state, Text(status, style))
-        configured = {r["role"] for r in rows}
-        absent = [r for r in DEVICE_ROLES if r not in configured]
+            status = describe_status(row["role"], row["status"], projected)
+            table.add_row(row["role"], row["backend"], state,
+                          Text(status, "red" if status.startswith("error") else ""))
+        absent = self._absent(rows)
+        note = Text(f"not in profile: {', '.join(absent)}" if rows and absent else "", "dim")
+        self.query_one("#rig-table", Static).update(Group(table, note))
+
+    def _stacked(self, rows: list[dict[str, Any]], projected: str | None) -> Text:
+        out = Text()
+        for row in rows:
+            mark = ("● ", "green") if row["connected"] else ("○ ", "dim")
+            out.append(*mark)
+            out.append(f"{row['role']} ", "bold")
+            out.append(f"{row['backend']}\n", "dim")
+            status = describe_status(row["role"], row["status"], projected)
+            out.append(f"  {status}\n" if status else "",
+                       "red" if status.startswith("error") else "")
+        absent = self._absent(rows)
         if rows and absent:
-            table.add_row(Text(", ".join(absent), "dim"), Text("—", "dim"),
-                          Text("not in profile", "dim"), "")
-        self.query_one("#rig-table", Static).update(table)
+            out.append(f"not in profile: {', '.join(absent)}", "dim")
+        return out
+
+    @staticmethod
+    def _absent(rows: list[dict[str, Any]]) -> list[str]:
+        configured = {r["role"] for r in rows}
+        return [r for r in ROLES if r not in configured]
+
+    def on_resize(self, event: Resize) -> None:
+        self.show_rows(self.rows)
 
     def show_result(self, text: str, error: str = "") -> None:
         self.last_result, self.last_error = text, error
@@ -93,29 +132,41 @@ class RigPanel(Vertical, can_focus=True):
         self.query_one("#rig-error", Static).update(escape(error))
 
     def on_action_done(self, message: ActionDone) -> None:
+        if message.label == "jog":
+            self.jogs.done()
+        if message.label == "patterns" and not message.error:
+            return  # the chooser opens
         if message.error:
             self.show_result("", f"{message.label}: {message.error}")
         else:
             self.show_result(self._describe(message.label, message.result))
 
-    def _describe(self, label: str, result: Any) -> str:
-        if isinstance(result, Snapshot):
-            f = result.frame
-            return (f"snap at {result.angle_deg:.2f}°: {f.shape[1]}×{f.shape[0]} {f.dtype}, "
-                    f"mean {float(f.mean()):.0f} DN → {short_path(result.path)}")
-        if isinstance(result, DecodeResult):
-            pct = 100.0 * result.decoded_pixels / max(result.total_pixels, 1)
-            return (f"decoded {result.decoded_pixels} of {result.total_pixels} pixels "
-                    f"({pct:.1f} %) → {short_path(result.preview)}")
-        if label in ("jog", "go to"):
+    @staticmethod
+    def _describe(label: str, result: Any) -> str:
+        if label == "snap":
+            return (f"snap at {result['angle_deg']:.2f}°: {result['width']}×{result['height']} "
+                    f"{result['dtype']}, mean {result['mean']:.0f} DN → "
+                    f"{short_path(result['path'])}")
+        if label == "decode map":
+            pct = 100.0 * result["decoded_pixels"] / max(result["total_pixels"], 1)
+            return (f"decoded {result['decoded_pixels']} of {result['total_pixels']} pixels "
+                    f"({pct:.1f} %) → {short_path(result['preview'])}")
+        if label in ("jog", "go to", "home") and isinstance(result, (int, float)):
             return f"stage at {result:.2f}°"
-        if isinstance(result, dict) and label == "connect":
+        if label == "connect" and isinstance(result, dict):
             return f"connected: {', '.join(result)}"
         return f"{label}: done" if result is None else f"{label}: {result}"
 
+    def current(self, role: str, key: str, fallback: float) -> float:
+        """A device's current value from the last status (``fallback`` when unknown)."""
+        for row in self.rows:
+            if row["role"] == role and isinstance(row["status"].get(key), (int, float)):
+                return float(row["status"][key])
+        return fallback
+
     # ---- keys ---------------------------------------------------------------------------------
 
-    def _do(self, label: str, fn, *args: Any) -> None:
+    def _do(self, label: str, fn: Any, *args: Any) -> None:
         self.show_result(f"{label}…")
         self.app.run_session_action(label, fn, *args, reply_to=self)  # type: ignore[attr-defined]
 
@@ -126,14 +177,18 @@ class RigPanel(Vertical, can_focus=True):
         self._do("disconnect", self.session.disconnect)
 
     def action_jog(self, direction: int) -> None:
-        self._do("jog", self.session.jog, direction * self.step_deg)
+        self.jogs.press(direction * self.step_deg)
+
+    def stop(self) -> None:
+        """The stop key: forget pending jogs, stop every moving device (and a scan)."""
+        self.jogs.cancel()
+        self._do("stop", self.session.stop)
 
     def action_step(self, factor: float) -> None:
         self.step_deg = min(180.0, max(0.125, self.step_deg * factor))
-        self.show_profile(self.session)
-        self.app.refresh_status()  # type: ignore[attr-defined]
+        self.show_profile()
 
-    def _ask(self, question: str, value: str, label: str, fn) -> None:
+    def _ask(self, question: str, value: float, label: str, fn: Any) -> None:
         def answered(text: str | None) -> None:
             if text is None:
                 return
@@ -144,33 +199,39 @@ class RigPanel(Vertical, can_focus=True):
                 return
             self._do(label, fn, number)
 
-        self.app.push_screen(PromptScreen(question, value), answered)
+        self.app.push_screen(PromptScreen(question, f"{value:g}"), answered)
 
     def action_goto(self) -> None:
-        self._ask("Stage angle (degrees, absolute):", "0", "go to", self.session.move_to)
+        self._ask("Stage angle (degrees, absolute):", self.current("stage", "angle_deg", 0.0),
+                  "go to", self.session.move_to)
+
+    def action_home(self) -> None:
+        self._do("home", self.session.home)
 
     def action_analyzer(self) -> None:
-        self._ask("Analyzer angle (degrees):", "0", "analyzer", self.session.set_analyzer)
+        self._ask("Analyzer angle (degrees):", self.current("analyzer", "angle_deg", 0.0),
+                  "analyzer", self.session.set_analyzer)
 
     def action_exposure(self) -> None:
-        self._ask("Camera exposure (ms):", "20", "exposure", self.session.set_exposure)
+        p = self.session.profile
+        self._ask("Camera exposure (ms):",
+                  self.current("camera", "exposure_ms", p["exposure_ms"] if p else 20.0),
+                  "exposure", self.session.set_exposure)
 
     def action_snap(self) -> None:
         self._do("snap", self.session.snap)
 
     def action_decode(self) -> None:
-        self._do("decode", self.session.decode)
+        self._do("decode map", self.session.decode)
 
     def action_project(self) -> None:
-        try:
-            names = self.session.patterns()
-        except Exception as exc:  # no profile / coding plugin failure: say so in place
-            self.show_result("", f"project: {exc}")
-            return
+        def listed(names: list[str]) -> None:
+            def chosen(name: str | None) -> None:
+                if name:
+                    self._do("project", self.session.project, name)
 
-        def chosen(name: str | None) -> None:
-            if name:
-                self._do("project", self.session.project, name)
+            self.app.push_screen(ChoiceScreen("Project which pattern?", names,
+                                              self.session.projected), chosen)
 
-        self.app.push_screen(ChoiceScreen("Project which pattern?", names,
-                                          self.session.projected), chosen)
+        self.app.run_session_action("patterns", self.session.patterns,  # type: ignore[attr-defined]
+                                    then=listed, reply_to=self)

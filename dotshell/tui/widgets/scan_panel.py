@@ -1,8 +1,11 @@
 """The Scan panel: the profile's scan, start / pause / resume / abort, progress per view and
-frame with ETA, the current pipeline step, the result, and errors in place."""
+frame with ETA, the current pipeline step, the result, and errors in place. View numbers are
+1-based, as on the progress bar. Aborting a scan that has run for more than a minute asks first.
+"""
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 from rich.markup import escape
@@ -11,14 +14,16 @@ from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
 from textual.widgets import Label, ProgressBar, Static
 
-from dotshell.console import Session
+from dotshell.server.describe import short_path
+from dotshell.server.progress import ScanTracker, format_seconds
 from dotshell.tui.messages import ActionDone
-from dotshell.tui.progress import ScanTracker, format_seconds
-from dotshell.tui.text import short_path
+from dotshell.tui.widgets.confirm import ConfirmScreen
 
-HELP = "[b]s[/] start  [b]p[/] pause / resume  [b]x[/] abort (frames are kept)"
+HELP = "[b]s[/] start  [b]p[/] pause / resume  [b]x[/] abort (frames are kept)  [b]esc[/] stop"
 STATE_STYLE = {"running": "green", "paused": "yellow", "stopping": "yellow", "completed": "green",
                "aborted": "yellow", "failed": "red"}
+#: A scan older than this (seconds, pauses excluded) is only aborted after a confirmation.
+CONFIRM_ABORT_AFTER_S = 60.0
 
 
 class ScanPanel(Vertical, can_focus=True):
@@ -50,16 +55,18 @@ class ScanPanel(Vertical, can_focus=True):
         yield Static(HELP, classes="help")
 
     @property
-    def session(self) -> Session:
+    def session(self) -> Any:
         return self.app.session  # type: ignore[attr-defined]
 
-    def show_tracker(self, t: ScanTracker, session: Session, now_s: float) -> None:
-        self._show_plan(session)
-        state = session.state if session.scanning else t.status
+    def show_tracker(self, t: ScanTracker, now_s: float) -> None:
+        self._show_plan()
+        session = self.session
+        state = session.session_state if session.scanning else t.shown_status
         style = STATE_STYLE.get(state, "")
         line = f"state [{style}]{state}[/]" if style else f"state {state}"
         if t.active or session.scanning:
-            line += (f"   step [b]{escape(t.step or '…')}[/]   view {max(t.current_view, 0)}"
+            view = f"{t.current_view + 1}/{t.n_views}" if t.current_view >= 0 else "…"
+            line += (f"   step [b]{escape(t.step or '…')}[/]   view {view}"
                      f"   elapsed {format_seconds(t.active_seconds(now_s))}"
                      f"   ETA {format_seconds(t.eta_s(now_s))}")
         self.query_one("#scan-state", Static).update(line)
@@ -70,18 +77,17 @@ class ScanPanel(Vertical, can_focus=True):
         self.query_one("#views-count", Label).update(f"{t.views_done}/{t.n_views}")
         self.query_one("#frames-count", Label).update(f"{t.frames_done}/{t.frames_total}")
         self.query_one("#scan-result", Static).update(self._result(t))
-        error = self.failure or (t.error if t.status == "failed" else "")
+        error = self.failure or (t.error if t.shown_status == "failed" else "")
+        if t.shown_status == "failed" and t.status == "completed":
+            error = error or "the scan produced no points: check the previews, the lighting, " \
+                             "the calibration and [processing.roi]."
         self.query_one("#scan-error", Static).update(escape(error))
 
-    def _show_plan(self, session: Session) -> None:
-        p = session.profile
-        if p is None:
-            text = "no profile loaded — ctrl+o"
-        else:
-            scan = p.data["scan"]
-            text = (f"[b]{escape(p.name)}[/]: {len(p.angles_deg())} views, exposure "
-                    f"{scan['exposure_ms']:g} ms, coding {escape(p.role('coding')['backend'])} "
-                    f"→ {escape(short_path(session.out_dir))}/")
+    def _show_plan(self) -> None:
+        p = self.session.profile
+        text = "no profile loaded — ctrl+o" if p is None else (
+            f"[b]{escape(p['name'])}[/]: {p['views']} views, exposure {p['exposure_ms']:g} ms, "
+            f"coding {escape(p['coding'])} → {escape(short_path(self.session.state['out_dir']))}/")
         self.query_one("#scan-plan", Static).update(text)
 
     @staticmethod
@@ -101,22 +107,43 @@ class ScanPanel(Vertical, can_focus=True):
 
     # ---- keys ---------------------------------------------------------------------------------
 
+    def _do(self, label: str, fn: Any) -> None:
+        self.app.run_session_action(label, fn, reply_to=self)  # type: ignore[attr-defined]
+
     def action_start(self) -> None:
         self.failure = ""
-        self.app.start_scan(reply_to=self)  # type: ignore[attr-defined]
+        self._do("scan", self.session.scan)
 
     def action_pause(self) -> None:
-        if self.session.state == "paused":
-            self.session.resume()
+        if self.session.session_state == "paused":
+            self._do("resume", self.session.resume)
         else:
-            self.session.pause()
-        self.app.show_scan()  # type: ignore[attr-defined]
+            self._do("pause", self.session.pause)
 
-    def action_abort(self) -> None:
-        self.session.abort()
-        self.app.show_scan()  # type: ignore[attr-defined]
+    def action_abort(self, stop_devices: bool = False) -> None:
+        """Abort the scan (and with ``stop_devices``, the stop key, stop every moving device
+        at once); a scan older than a minute is only aborted after a yes."""
+        tracker: ScanTracker = self.app.tracker  # type: ignore[attr-defined]
+        if not self.session.scanning:
+            return
+        label, fn = ("stop", self.session.stop) if stop_devices else ("abort", self.session.abort)
+        running_s = tracker.active_seconds(time.time())
+        if running_s <= CONFIRM_ABORT_AFTER_S:
+            self._do(label, fn)
+            return
+
+        def answer(yes: bool | None) -> None:
+            if yes:
+                self._do(label, fn)
+
+        self.app.push_screen(ConfirmScreen(
+            f"The scan has run for {format_seconds(running_s)}. Abort it?\nFrames captured so "
+            "far are kept and the run is marked aborted.", yes="Abort the scan",
+            no="Keep scanning"), answer)
 
     def on_action_done(self, message: ActionDone) -> None:
         if message.label == "scan":
             self.failure = message.error
-            self.app.show_scan()  # type: ignore[attr-defined]
+        elif message.error:
+            self.failure = f"{message.label}: {message.error}"
+        self.app.show_scan()  # type: ignore[attr-defined]

@@ -1,4 +1,5 @@
-"""The sidebar shown from 100 columns on: the rig's devices and the scan at a glance."""
+"""The sidebar shown from 100 columns on: the server, the rig's devices and the scan at a
+glance."""
 
 from __future__ import annotations
 
@@ -9,19 +10,28 @@ from textual.app import ComposeResult
 from textual.containers import Vertical
 from textual.widgets import Static
 
-from dotshell.console import Session
-from dotshell.tui.progress import ScanTracker, format_seconds
+from dotshell.server.progress import ScanTracker, format_seconds
 from dotshell.tui.text import describe_status
 
 
 class Summary(Vertical):
-    """Compact device and scan status, redrawn by the app."""
+    """Compact server, device and scan status, redrawn by the app."""
 
     def compose(self) -> ComposeResult:
+        yield Static("[b]Server[/]", classes="summary-title")
+        yield Static(id="summary-server")
         yield Static("[b]Rig[/]", classes="summary-title")
         yield Static(id="summary-rig")
         yield Static("[b]Scan[/]", classes="summary-title")
         yield Static(id="summary-scan")
+
+    def show_server(self, session: Any) -> None:
+        state = session.state
+        c = state.get("controller")
+        who = ("you control" if session.in_control else
+               f"{c['client']}#{c['id']} controls" if c else "nobody controls")
+        self.query_one("#summary-server", Static).update(
+            f"{escape(session.server_name)}\n{who}; {len(state.get('clients', []))} attached")
 
     def show_rows(self, rows: list[dict[str, Any]]) -> None:
         lines = []
@@ -31,8 +41,8 @@ class Summary(Vertical):
             lines.append(f"{mark} {row['role']}" + (f"\n   {escape(status)}" if status else ""))
         self.query_one("#summary-rig", Static).update("\n".join(lines) or "[dim]no devices[/]")
 
-    def show_scan(self, t: ScanTracker, session: Session, now_s: float) -> None:
-        state = session.state if session.scanning else t.status
+    def show_scan(self, t: ScanTracker, session: Any, now_s: float) -> None:
+        state = session.session_state if session.scanning else t.shown_status
         lines = [f"state {state}"]
         if t.n_views:
             lines.append(f"views {t.views_done}/{t.n_views}")

@@ -1,21 +1,27 @@
-"""Scan progress as front ends show it, folded from the event stream (pure: events in, numbers
-out; the clock is passed in so it is testable)."""
+"""Scan progress as people read it, folded from the event stream (pure: events in, numbers out).
+The server keeps one for ``dotshell status``; each front end keeps its own, started from the
+server's copy when it attaches. Times are the events' own Unix times, so a front end that
+attaches in the middle of a scan (or replays its events) computes the same elapsed time and ETA
+as one that watched from the start."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
 from dotshell.events import (Event, FrameCaptured, Message, ScanFinished, ScanPaused,
                              ScanResumed, ScanStarted, StepStarted, ViewCaptured,
                              ViewReconstructed)
+from dotshell.server.describe import shown_status
 
 
 @dataclass
 class ScanTracker:
     """Counts of one scan and its ETA. ``status`` is ``idle`` before the first scan, then
     ``running``/``paused`` and finally the run's status (``completed``, ``aborted``,
-    ``failed``)."""
+    ``failed``). ``current_view`` is 0-based like the run directory (-1 before the first
+    frame); show ``current_view + 1``."""
 
     status: str = "idle"
     run_dir: str = ""
@@ -30,8 +36,10 @@ class ScanTracker:
     error: str = ""
     summary: dict[str, Any] = field(default_factory=dict)
     started_s: float | None = None
+    first_frame_s: float | None = None
     finished_s: float | None = None
     paused_s: float = 0.0
+    paused_before_first_frame_s: float = 0.0
     paused_since_s: float | None = None
 
     @property
@@ -42,13 +50,22 @@ class ScanTracker:
     def active(self) -> bool:
         return self.status in ("running", "paused")
 
-    def update(self, ev: Event, now_s: float) -> None:
-        """Fold one event in; ``now_s`` is a monotonic clock reading in seconds."""
+    @property
+    def shown_status(self) -> str:
+        """The status to show: a completed scan without a single point reads ``failed``."""
+        return shown_status(self.status, self.summary)
+
+    def update(self, ev: Event, now_s: float | None = None) -> None:
+        """Fold one event in; ``now_s`` (Unix seconds) defaults to the event's own time."""
+        now_s = ev.time if now_s is None else now_s
         if isinstance(ev, ScanStarted):
             self.__init__()  # type: ignore[misc]  # a new scan starts from zero
             self.status, self.run_dir, self.started_s = "running", ev.run_dir, now_s
             self.n_views, self.frames_per_view = ev.n_views, ev.frames_per_view
         elif isinstance(ev, FrameCaptured):
+            if self.first_frame_s is None:
+                self.first_frame_s = now_s
+                self.paused_before_first_frame_s = self._paused_total(now_s)
             self.frames_done += 1
             self.current_view = ev.view
         elif isinstance(ev, ViewCaptured):
@@ -76,21 +93,33 @@ class ScanTracker:
             self.paused_s += now_s - self.paused_since_s
             self.paused_since_s = None
 
+    def _paused_total(self, now_s: float) -> float:
+        return self.paused_s + (now_s - self.paused_since_s if self.paused_since_s else 0.0)
+
     def active_seconds(self, now_s: float) -> float:
-        """Time spent scanning so far, pauses excluded."""
+        """Time spent scanning so far (seconds), pauses excluded."""
         if self.started_s is None:
             return 0.0
         end = self.finished_s if self.finished_s is not None else now_s
-        paused = self.paused_s + (now_s - self.paused_since_s if self.paused_since_s else 0.0)
-        return max(0.0, end - self.started_s - paused)
+        return max(0.0, end - self.started_s - self._paused_total(end))
 
     def eta_s(self, now_s: float) -> float | None:
-        """Seconds left, from the mean time per frame so far (reconstruction included); None
-        before the first frame or when not running."""
-        if self.status not in ("running", "paused") or self.frames_done == 0:
+        """Seconds left: the mean time per frame since the first frame (so the warm-up —
+        connecting, calibration, flat field — does not count; reconstruction between views
+        does) times the frames left. None before the second frame or when not running."""
+        if not self.active or self.frames_done < 2 or self.first_frame_s is None:
             return None
-        left = self.frames_total - self.frames_done
-        return self.active_seconds(now_s) / self.frames_done * max(left, 0)
+        paused = self._paused_total(now_s) - self.paused_before_first_frame_s
+        per_frame = max(0.0, now_s - self.first_frame_s - paused) / (self.frames_done - 1)
+        return per_frame * max(self.frames_total - self.frames_done, 0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "ScanTracker":
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in names})
 
 
 def format_seconds(seconds: float | None) -> str:

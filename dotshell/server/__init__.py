@@ -1,0 +1,12 @@
+"""The rig server: one :class:`~dotshell.console.Session` (rig, scans, console namespace, event
+log) held by a background process that owns the devices. Front ends — ``dotshell tui``,
+``attach``, ``status``, ``scan --detach``, ``stop`` — talk to it over a Unix-domain socket in the
+user's runtime directory and receive the events ``events.jsonl`` records, so a front end that
+dies (a dropped SSH session) takes nothing with it. The wire format is in docs/server.md.
+
+Modules: :mod:`.paths` (where sockets, logs and the user config live), :mod:`.protocol` (the
+wire format), :mod:`.server` (the process), :mod:`.commands` (what each request does),
+:mod:`.console` (the Python console run inside the server), :mod:`.client` (the front ends'
+side), :mod:`.launch` (starting a detached server), :mod:`.progress` and :mod:`.describe`
+(scan progress and event lines as people read them).
+"""

@@ -1,0 +1,68 @@
+"""Finding the rig server a command means, and starting one in the background.
+
+A started server runs ``dotshell serve`` in a new session (no controlling terminal, so a
+dropped SSH connection never reaches it), with stdin from /dev/null and its output appended to
+``server.out`` in its state directory.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from dotshell.server.paths import alive, running_servers, server_log_dir, server_name, socket_path
+from dotshell.server.protocol import ServerError
+
+#: How long a new server may take to listen (seconds): imports, plugins, the profile, the rig.
+START_TIMEOUT_S = 120.0
+
+
+def locate(profile: str | Path | None = None, name: str | None = None,
+           sock: str | Path | None = None) -> Path | None:
+    """The socket a command means: ``sock``, else the server ``name``, else the server of
+    ``profile``, else the only running server (None when none runs; ServerError when several
+    do and nothing says which)."""
+    if sock is not None:
+        return Path(sock)
+    if name is not None:
+        return socket_path(name)
+    if profile is not None:
+        return socket_path(server_name(profile))
+    running = running_servers()
+    if len(running) > 1:
+        names = ", ".join(p.stem for p in running)
+        raise ServerError(f"several rig servers run ({names}); name one with --server NAME or "
+                          "give its profile.")
+    return running[0] if running else None
+
+
+def start_server(profile: str | Path | None, *, sock: Path, out: str | Path,
+                 overrides: list[str] | tuple[str, ...] = (), exit_when_idle: bool = True,
+                 strict_plugins: bool = False) -> int:
+    """Start ``dotshell serve`` detached on ``sock`` and wait until it answers; returns its pid.
+    ServerError (with the end of its output) when it exits or does not answer in time."""
+    name = sock.stem
+    out_file = server_log_dir(name) / "server.out"
+    cmd = [sys.executable, "-m", "dotshell.cli", *(["--strict-plugins"] if strict_plugins else []),
+           "serve", *([str(Path(profile).expanduser().resolve())] if profile else []),
+           "--out", str(Path(out).expanduser().resolve()), "--socket", str(sock),
+           *[arg for o in overrides for arg in ("--set", o)],
+           *(["--exit-when-idle"] if exit_when_idle else [])]
+    with open(out_file, "ab") as f:
+        proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=f, stderr=subprocess.STDOUT,
+                                start_new_session=True, close_fds=True, cwd=os.getcwd())
+    t0 = time.monotonic()
+    while not alive(sock):
+        code = proc.poll()
+        if code is not None or time.monotonic() - t0 > START_TIMEOUT_S:
+            if code is None:
+                proc.terminate()
+            tail = out_file.read_text(errors="replace")[-2000:].strip()
+            why = f"exit code {code}" if code is not None else f"no answer in {START_TIMEOUT_S} s"
+            raise ServerError(f"the rig server did not start ({why}); its output ({out_file}):"
+                              f"\n{tail}")
+        time.sleep(0.1)
+    return proc.pid

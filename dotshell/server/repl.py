@@ -1,0 +1,136 @@
+"""The Python console inside the rig server: one :class:`Interpreter` on the session's
+namespace, shared by every front end. Input comes from the client in control; output, results,
+tracebacks and ``input()`` prompts go to every client as ``console`` / ``console_input`` /
+``console_done`` messages (batched, so a printing loop cannot flood a slow terminal); the
+history is kept in the user's state directory across servers and restarts."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+from dotshell.console import Session, SessionBusy, readable_repr
+from dotshell.server.interpreter import Interpreter
+
+#: Inputs kept in the history file and offered to ↑/↓.
+HISTORY_SIZE = 1000
+#: Output is sent at most this often (seconds) and in pieces of at most this many characters.
+FLUSH_S = 0.05
+FLUSH_CHARS = 64 * 1024
+
+
+def read_history(path: Path | None) -> list[str]:
+    """The last :data:`HISTORY_SIZE` inputs of a history file (JSON lines); [] when absent or
+    unreadable lines are skipped."""
+    if path is None or not path.is_file():
+        return []
+    out = []
+    for line in path.read_text(encoding="utf-8", errors="replace").splitlines():
+        try:
+            entry = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(entry, dict) and isinstance(entry.get("source"), str):
+            out.append(entry["source"])
+    return out[-HISTORY_SIZE:]
+
+
+class ServerConsole:
+    """The console service. ``send(message)`` delivers a message to every client."""
+
+    def __init__(self, session: Session, send: Callable[[dict[str, Any]], None],
+                 history_file: Path | None = None) -> None:
+        self.session = session
+        self.send = send
+        self.history_file = history_file
+        self.history = read_history(history_file)
+        self.interpreter = Interpreter(session.namespace(), self._write,
+                                       on_interrupt=self._abort_scan, on_input=self._ask,
+                                       display=readable_repr)
+        self._pending: list[tuple[str, str]] = []
+        self._pending_lock = threading.Lock()
+        self._timer: threading.Timer | None = None
+        self._thread: threading.Thread | None = None
+
+    @property
+    def busy(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    @property
+    def waiting_prompt(self) -> str | None:
+        return self.interpreter.waiting_prompt
+
+    def run(self, source: str) -> int:
+        """Start running ``source`` on the console thread; returns its input number."""
+        if self.busy:
+            raise SessionBusy("the console is still running the previous input; interrupt it "
+                              "first (ctrl+c in the TUI).")
+        self._remember(source)
+        self.send({"type": "console", "kind": "input", "text": source})
+        self._thread = threading.Thread(target=self._run, args=(source,), daemon=True,
+                                        name="dotshell-console")
+        self._thread.start()
+        return self.interpreter.count + 1
+
+    def _run(self, source: str) -> None:
+        ok = self.interpreter.run(source)
+        self._flush()
+        self.send({"type": "console_done", "ok": ok})
+
+    def _remember(self, source: str) -> None:
+        if not self.history or self.history[-1] != source:
+            self.history.append(source)
+            del self.history[:-HISTORY_SIZE]
+            if self.history_file is not None:
+                with open(self.history_file, "a", encoding="utf-8") as f:
+                    f.write(json.dumps({"time": time.time(), "source": source}) + "\n")
+
+    # ---- output, batched ----------------------------------------------------------------------
+
+    def _write(self, kind: str, text: str) -> None:
+        with self._pending_lock:
+            if self._pending and self._pending[-1][0] == kind:
+                self._pending[-1] = (kind, self._pending[-1][1] + text)
+            else:
+                self._pending.append((kind, text))
+            big = sum(len(t) for _, t in self._pending) >= FLUSH_CHARS
+            if not big and self._timer is None:
+                self._timer = threading.Timer(FLUSH_S, self._flush)
+                self._timer.daemon = True
+                self._timer.start()
+        if big or kind in ("result", "error"):
+            self._flush()
+
+    def _flush(self) -> None:
+        with self._pending_lock:
+            pending, self._pending = self._pending, []
+            if self._timer is not None:
+                self._timer.cancel()
+                self._timer = None
+        for kind, text in pending:
+            self.send({"type": "console", "kind": kind, "text": text})
+
+    # ---- input(), interrupts, completion -------------------------------------------------------
+
+    def _ask(self, prompt: str) -> None:
+        self._flush()
+        self.send({"type": "console_input", "prompt": prompt})
+
+    def reply(self, line: str | None) -> bool:
+        return self.interpreter.reply(line)
+
+    def interrupt(self) -> bool:
+        return self.interpreter.interrupt()
+
+    def _abort_scan(self) -> bool:
+        if self.session.state in ("running", "paused"):
+            self.session.abort()
+            return True
+        return False
+
+    def complete(self, text: str) -> dict[str, Any]:
+        token, matches = self.interpreter.complete(text)
+        return {"token": token, "matches": matches}
