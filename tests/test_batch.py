@@ -202,17 +202,21 @@ def _batch_process(runs: Path, scheduler: str, out: Path) -> subprocess.Popen:
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
 def test_a_stopped_batch_is_finished_by_running_it_again(cluster, study, serial, tmp_path, sig):
-    runs = copy_study(study, tmp_path / "study")
     key = batch_key("reconstruct", {})
-    proc = _batch_process(tmp_path / "study", cluster, tmp_path)
-    t0 = time.time()
-    while not any(is_finished(RunStore(r), key) for r in runs):
-        assert proc.poll() is None, proc.communicate()
-        assert time.time() - t0 < 300, "no run finished"
-        time.sleep(0.02)
-    proc.send_signal(sig)
-    _, err = proc.communicate()
-    finished = [r for r in runs if is_finished(RunStore(r), key)]
+    for attempt in range(3):  # the runs end close together: stop again if all ended at once
+        study_dir = tmp_path / f"study{attempt}"
+        runs = copy_study(study, study_dir)
+        proc = _batch_process(study_dir, cluster, tmp_path)
+        t0 = time.time()
+        while not any(is_finished(RunStore(r), key) for r in runs):
+            assert proc.poll() is None, proc.communicate()
+            assert time.time() - t0 < 300, "no run finished"
+            time.sleep(0.02)
+        proc.send_signal(sig)
+        _, err = proc.communicate()
+        finished = [r for r in runs if is_finished(RunStore(r), key)]
+        if len(finished) < N_RUNS:
+            break
     assert 1 <= len(finished) < N_RUNS
     states = {r.name: effective_status(r, RunStore(r).manifest)[0] for r in runs}
     assert "running" not in states.values()  # a dead client's runs are never reported running
@@ -226,7 +230,7 @@ def test_a_stopped_batch_is_finished_by_running_it_again(cluster, study, serial,
             last = json.loads((r / "manifest.json").read_text())["jobs"][-1]
             assert last["status"] == "aborted" and "SIGTERM" in last["reason"], last
 
-    outcomes = run_batch("reconstruct", [str(tmp_path / "study")], _pm(), scheduler=cluster)
+    outcomes = run_batch("reconstruct", [str(study_dir)], _pm(), scheduler=cluster)
     by_run = {o.run.name: o for o in outcomes}
     assert sorted(r.name for r in finished) == sorted(
         n for n, o in by_run.items() if o.status == "skipped")
