@@ -16,9 +16,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/dotshell scan profiles/sim-metal-cylinder.toml --out runs
 
-## test: the test suite (reduced resolutions; a few minutes on 2 cores)
+## test: the test suite (reduced resolutions; a few minutes on 2 cores). Two worker processes,
+## a test file per worker at a time (module fixtures are built once), each on one BLAS/OpenMP
+## thread so the two share the cores instead of oversubscribing them. TEST_WORKERS=0: one process.
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q
+	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 ## bench: speed and memory figures against peers measured in the same run
 bench: $(STAMP)

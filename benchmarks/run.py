@@ -17,6 +17,9 @@
    (``acquisition_rate.py``): frames per second, seconds per 42-frame view, their ratio.
 6. An idle ``dotshell tui`` attached to its rig server after a 4-view scan: resident memory and
    CPU; peer: a bare Textual app on the same pseudo-terminal (``bench_tui.py``).
+7. A study of 12 copies of that scan re-processed serially vs by ``dotshell batch`` on a
+   2-worker local Dask cluster, and a model of the scaling to N workers (:mod:`batch_bench`;
+   ``--skip-batch`` leaves it out).
 
 Every figure is printed beside the baseline recorded in ``benchmarks/baseline.json`` (the figures
 before issue 16, same machine). Results go to ``bench-results/latest.json``
@@ -43,6 +46,7 @@ import cv2
 import numpy as np
 
 import acquisition_rate
+import batch_bench
 import decoders
 import frame_io
 from bench_profile import ROOT, load_bench_profile
@@ -243,6 +247,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5, help="repeats of each timing (min, median)")
     ap.add_argument("--skip-scan", action="store_true", help="sections 1 to 3 only")
     ap.add_argument("--skip-tui", action="store_true", help="without the idle-TUI section")
+    ap.add_argument("--skip-batch", action="store_true",
+                    help="no section 7 (12 runs serially vs a 2-worker Dask cluster)")
     args = ap.parse_args()
     configure_process()  # as the dotshell command runs
     pm = get_plugin_manager()
@@ -285,6 +291,10 @@ def main() -> None:
 
             results["tui"] = run_tui_bench(args.quick)
             print_tui(results["tui"])
+        if not args.skip_scan and not args.skip_batch:
+            results["batch"] = batch_bench.bench_batch(Path(results["scan"]["run_dir"]), work,
+                                                       args.quick)
+            batch_bench.print_batch(results["batch"])
     results["machine"]["loadavg_1min_end"] = os.getloadavg()[0]
     print(f"\n1-min load average at end {os.getloadavg()[0]:.2f} (other work on the machine "
           "skews every figure above; the sides of each comparison ran interleaved)")

@@ -387,6 +387,9 @@ def build_parser() -> argparse.ArgumentParser:
     add_normalize_parser(sub, _pm)
     from dotshell.cli_devices import add_device_parsers; add_device_parsers(sub, _pm)  # noqa: E702
     from dotshell.cli_frames import add_frames_parser; add_frames_parser(sub)  # noqa: E702
+    from dotshell.cli_batch import add_batch_parser
+
+    add_batch_parser(sub, _pm)
 
     def session_args(sp):
         sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

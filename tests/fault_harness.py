@@ -309,7 +309,9 @@ needs_tmpfs = pytest.mark.skipif(not tmpfs_available(), reason="cannot mount a p
 _INSIDE = r"""
 import json, subprocess, sys
 from pathlib import Path
+sys.path.insert(0, TESTS)
 from dotshell.cli import main
+from fault_harness import frames_on_disk
 out, steps = Path(sys.argv[1]), json.loads(sys.argv[2])
 code = None
 for step in steps:
@@ -322,24 +324,9 @@ for step in steps:
 report = {"code": code, "runs": []}
 for m in sorted(out.rglob("manifest.json")):
     run = m.parent
-    views = {}
-    for p in (run / "frames").glob("view_*"):
-        if p.suffix == ".tif":  # whole pages of the stack, counted by tifffile
-            import tifffile
-            n = 0
-            try:
-                size = p.stat().st_size
-                with tifffile.TiffFile(p) as tif:
-                    for page in tif.pages:  # whole: its data inside the file
-                        if page.dataoffsets[-1] + page.databytecounts[-1] > size:
-                            break
-                        n += 1
-            except Exception:
-                pass
-            views[p.stem] = n
-        elif p.is_dir():
-            views[p.name] = len(list(p.glob("*.png")))
-    report["runs"].append({"manifest": json.loads(m.read_text()), "frames": views,
+    manifest = json.loads(m.read_text())
+    views = {f"view_{v['index']:03d}": frames_on_disk(run, v["index"]) for v in manifest["views"]}
+    report["runs"].append({"manifest": manifest, "frames": views,
                            "tmp": [str(p) for p in run.rglob(".*.tmp")]})
 print("REPORT " + json.dumps(report))
 """
@@ -352,7 +339,7 @@ def in_tmpfs(mount: Path, options: str, steps: list[list[str]]) -> tuple[dict, s
     ``code`` is the last command's exit code."""
     mount.mkdir(parents=True, exist_ok=True)
     script = mount.parent / "inside.py"
-    script.write_text(_INSIDE)
+    script.write_text(_INSIDE.replace("TESTS", repr(str(Path(__file__).parent)), 1))
     inner = (f"mount -t tmpfs -o {options} tmpfs {shlex.quote(str(mount))} && "
              f"{shlex.quote(sys.executable)} {shlex.quote(str(script))} "
              f"{shlex.quote(str(mount))} {shlex.quote(json.dumps(steps))}")

@@ -53,7 +53,7 @@ SILENT = (DeviceTimeout, r"no reply to .* within 0.3 s.*Check that the .* is pow
 LOST = (DeviceLostError, r"the port failed while .*unplugged, powered off or reset.*reconnect = "
                          r"false")
 CASES = [(emu, fault) for emu, (_, _, _, faults) in BACKENDS.items()
-         for fault in {*faults, "silence", "garbage", "vanish"}]
+         for fault in sorted({*faults, "silence", "garbage", "vanish"})]
 
 
 def connected(pm, emu, role, backend, timeout_s=1.5):

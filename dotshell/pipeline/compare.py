@@ -53,12 +53,14 @@ def run_row(store: RunStore) -> dict[str, Any]:
     }
 
 
-def write_csv(rows: list[dict[str, Any]], path: Path) -> Path:
+def write_csv(rows: list[dict[str, Any]], path: Path,
+              columns: tuple[str, ...] = COLUMNS) -> Path:
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=COLUMNS, extrasaction="ignore")
+    w = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")
     w.writeheader()
     for r in rows:
-        w.writerow({k: (f"{r[k]:.4f}" if isinstance(r[k], float) else r[k]) for k in COLUMNS})
+        w.writerow({k: (f"{r[k]:.4f}" if isinstance(r.get(k), float) else r.get(k))
+                    for k in columns})
     atomic_write_text(path, buf.getvalue())
     return path
 
@@ -94,6 +96,13 @@ def write_plot(stores: list[RunStore], rows: list[dict[str, Any]], path: Path,
         bottom.set_ylabel("relative error [%]")
         bottom.set_xlabel("height z [mm]")
         bottom.legend(fontsize=8)
+    return save_figure(fig, path)
+
+
+def save_figure(fig: Any, path: Path) -> Path:
+    """Write a matplotlib figure as a PNG (atomically) and close it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)

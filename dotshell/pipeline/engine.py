@@ -10,6 +10,9 @@ except that a successful one makes a fully captured run ``completed``. :func:`pr
 :mod:`dotshell.pipeline.steps` that the targets need into a new generation and publishes it
 (:mod:`dotshell.pipeline.generations`); products the job does not change are carried over,
 products that would be stale are dropped, so a published generation is always consistent.
+:func:`process` is three parts that may run in different processes: :func:`prepare` (plan and
+carry over, under the job's lock), :func:`run_steps` (the steps, e.g. on a batch's workers, which
+need no lock: only the job writes its generation) and :func:`publish` (by the job's process).
 """
 
 from __future__ import annotations
@@ -17,6 +20,8 @@ from __future__ import annotations
 import os
 import socket
 import time
+from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from dotshell import __version__
@@ -25,7 +30,7 @@ from dotshell.events import EventBus, StepStarted
 from dotshell.pipeline.generations import (Generation, ProductStore, current_number,
                                            published, remove_unpublished)
 from dotshell.pipeline.lifecycle import Interrupted, RunLock, effective_status
-from dotshell.pipeline.steps import STEPS, StepContext
+from dotshell.pipeline.steps import STEP_BY_NAME, STEPS, StepContext
 from dotshell.plugins import PluginManager
 from dotshell.profile import Profile
 from dotshell.store import RunStore
@@ -35,10 +40,13 @@ class RunJob:
     """Context manager: the lifecycle of one job on one run (see the module docstring)."""
 
     def __init__(self, store: RunStore, command: str, bus: EventBus | None = None,
-                 create: Callable[[], None] | None = None) -> None:
+                 create: Callable[[], None] | None = None, batch: str | None = None) -> None:
         """``create``: writes a new run's first files (profile, manifest) once the lock is
-        held, so no other process ever sees a new run without its writer."""
+        held, so no other process ever sees a new run without its writer. ``batch``: the key
+        of the study batch this job belongs to, recorded with the job (``dotshell batch``
+        skips runs whose history holds it completed)."""
         self.create = create
+        self.batch = batch
         self.store = store
         self.command = command
         self.bus = bus or EventBus()
@@ -50,6 +58,13 @@ class RunJob:
         self.started = 0.0
 
     def __enter__(self) -> "RunJob":
+        return self.open()
+
+    def __exit__(self, exc_type: Any, exc: BaseException | None, tb: Any) -> None:
+        self.close(exc)
+
+    def open(self) -> "RunJob":
+        """Take the run's lock and record ``running`` (what ``with RunJob(...)`` does first)."""
         self.lock.acquire(self.command)
         try:
             if self.create is not None:
@@ -66,7 +81,8 @@ class RunJob:
             self.started = time.time()
             self.store.update_manifest(status="running", reason="", job={
                 "command": self.command, "pid": os.getpid(), "host": socket.gethostname(),
-                "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "dotshell": __version__})
+                "started": time.strftime("%Y-%m-%dT%H:%M:%S"), "dotshell": __version__,
+                **self._batch_entry()})
         except BaseException:
             self.store.release_reserve()
             self.lock.release()
@@ -77,7 +93,9 @@ class RunJob:
         """Decide the job's final state (recorded when the job's block ends)."""
         self.status, self.reason = status, reason
 
-    def __exit__(self, exc_type: Any, exc: BaseException | None, tb: Any) -> None:
+    def close(self, exc: BaseException | None = None) -> None:
+        """Record the job's outcome (``exc``: what ended it, if anything) and release the
+        lock (what the end of a ``with RunJob(...)`` block does)."""
         try:
             if exc is not None:
                 self.status, self.reason = outcome_of(exc)
@@ -85,15 +103,17 @@ class RunJob:
                 self.status = "completed"
             if self.status != "completed" and not self.captures:
                 cur = current_number(self.store.root)
-                if cur is not None:
+                if cur is not None and cur == self.generation:  # stopped after publishing
+                    self.reason += f" (after its generation {cur} was published)"
+                elif cur is not None:
                     self.reason += (f" (nothing published: generation {cur} is unchanged and "
                                     "still the run's products)")
             if self.generation is not None and not published(self.store.root, self.generation):
                 remove_unpublished(self.store.root, only=self.generation)
                 self.generation = None
             self._history({"command": self.command, "status": self.status,
-                           "reason": self.reason, "generation": self.generation})
-            self.store.update_manifest(**self.run_state(), job=None)
+                           "reason": self.reason, "generation": self.generation,
+                           **self._batch_entry()}, **self.run_state(), job=None)
         finally:
             self.store.release_reserve()
             self.lock.release()
@@ -114,12 +134,17 @@ class RunJob:
             return {"status": "completed", "reason": ""}
         return {"status": status, "reason": reason}
 
-    def _history(self, entry: dict[str, Any]) -> None:
+    def _batch_entry(self) -> dict[str, str]:
+        return {"batch": self.batch} if self.batch else {}
+
+    def _history(self, entry: dict[str, Any], **changes: Any) -> None:
+        """Append ``entry`` to the manifest's ``jobs``, with ``changes`` in the same write (a
+        kill never leaves a job recorded without the run state it implies)."""
         m = self.store.manifest
         entry = {**entry, "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}
         if self.started:
             entry["seconds"] = round(time.time() - self.started, 3)
-        self.store.update_manifest(jobs=[*m.get("jobs", []), entry])
+        self.store.update_manifest(jobs=[*m.get("jobs", []), entry], **changes)
 
 
 def outcome_of(exc: BaseException) -> tuple[str, str]:
@@ -169,52 +194,134 @@ def plan(targets: Iterable[str], ctx: StepContext, base: set[str]) -> tuple[list
     return run, carry, dropped
 
 
-def process(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[str],
-            options: dict[str, Any] | None = None, final_status: str = "completed",
-            generation: Generation | None = None) -> dict[str, Any]:
-    """Make ``targets`` (and whatever they need) in a new generation of ``job``'s run and
-    publish it; returns the published report. ``generation``: one the caller already started
-    writing into (a scan writes views while it captures)."""
+@dataclass
+class JobWork:
+    """A job's planned work, ready to run wherever the run directory is visible (a batch worker
+    as well as the job's own process): the run, the generation being written, the steps to run
+    in order, the command's options, and the report and product files carried over from the
+    base generation. Small and picklable; :func:`prepare` makes it under the run's lock,
+    :func:`run_steps` executes (some of) its steps, :func:`publish` publishes the result."""
+
+    run_root: Path
+    generation: int
+    base: int | None
+    steps: list[str]
+    dropped: list[str]
+    options: dict[str, Any]
+    report: dict[str, Any]
+    files: dict[str, list[str]]
+    timings: dict[str, float]
+
+    def generation_of(self, run: RunStore) -> Generation:
+        return Generation(run, self.generation, self.base)
+
+
+@dataclass
+class StepsDone:
+    """What :func:`run_steps` made: report sections, product files and step seconds."""
+
+    report: dict[str, Any] = field(default_factory=dict)
+    files: dict[str, list[str]] = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def prepare(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[str],
+            options: dict[str, Any] | None = None,
+            generation: Generation | None = None) -> JobWork:
+    """Start ``job``'s generation (``generation``: one the caller already writes into, as a
+    scan does), plan the steps ``targets`` need and carry the unchanged products over.
+    Runs in the process that holds the run's lock."""
     gen = generation or Generation.start(job.store)
     job.generation = gen.number
     if gen.missing_base is not None:
         job.bus.warn(f"{job.store.root}/current points to gen/{gen.missing_base:03d}, which is "
                      f"missing (deleted?); generation {gen.number} makes every product again "
                      "from the frames.")
-    store = ProductStore(job.store, gen.dir)
-    ctx = StepContext(store, profile, pm, job.bus, dict(options or {}))
-    ctx.timings.update(ctx.options.pop("timings", {}))
-    prewritten: dict[str, set[str]] = ctx.options.pop("prewritten", {})
-    base = set(gen.base_products())
-    run, carry, dropped = plan(targets, ctx, base)
+    options = dict(options or {})
+    ctx = StepContext(ProductStore(job.store, gen.dir), profile, pm, job.bus, options)
+    run, carry, dropped = plan(targets, ctx, set(gen.base_products()))
     gen.carry(carry)
     base_report = gen.base_report()
     report: dict[str, Any] = {"profile": profile.name, "generation": gen.number,
                               "based_on": gen.base, "command": job.command}
     for name in carry:
         report.update({k: base_report[k] for k in sections_of(name) if k in base_report})
-    for name in run:
-        step = next(s for s in STEPS if s.name == name)
+    timings = dict(base_report.get("timings_s", {})) if carry else {}
+    return JobWork(job.store.root, gen.number, gen.base, run, dropped, options, report,
+                   dict(gen.files), timings)
+
+
+def run_steps(work: JobWork, profile: Profile, pm: PluginManager, bus: EventBus,
+              names: Iterable[str] | None = None,
+              extra: dict[str, Any] | None = None) -> StepsDone:
+    """Run ``names`` (default: all of ``work.steps``, in that order) into the job's generation.
+    Needs no lock: only the job writes its generation. ``extra`` adds options for these steps:
+    ``reconstructed`` (view → record of views already made), ``prewritten`` (product → files
+    already in the generation that belong to it), ``timings`` (seconds already measured)."""
+    names = list(work.steps if names is None else names)
+    run = RunStore(work.run_root)
+    gen = work.generation_of(run)
+    gen.files = {p: list(f) for p, f in work.files.items()}
+    options = {**work.options, **(extra or {})}
+    ctx = StepContext(ProductStore(run, gen.dir), profile, pm, bus, options)
+    ctx.timings.update(options.pop("timings", {}))
+    prewritten: dict[str, set[str]] = options.pop("prewritten", {})
+    done = StepsDone()
+    for name in names:
         before = gen.listing() - prewritten.get(name, set())
         t0 = time.perf_counter()
-        report.update(step.run(ctx))
+        done.report.update(STEP_BY_NAME[name].run(ctx))
         ctx.timings.setdefault(_timing_name(name), time.perf_counter() - t0)
         gen.record(name, before)
-    timings = dict(base_report.get("timings_s", {})) if carry else {}
-    timings.update({k: round(s, 3) for k, s in ctx.timings.items()})
+        if name in gen.files:
+            done.files[name] = gen.files[name]
+    done.timings = dict(ctx.timings)
+    return done
+
+
+def publish(job: RunJob, work: JobWork, done: Iterable[StepsDone],
+            final_status: str = "completed") -> dict[str, Any]:
+    """Publish ``work``'s generation with what its steps made (``done``, in step order);
+    returns the report. Only the job holding the run's lock publishes."""
+    if not job.lock.held or job.store.root != work.run_root:
+        raise RunError(f"{work.run_root}: generation {work.generation} can only be published "
+                       "by the job that holds the run's lock.")
+    gen = work.generation_of(job.store)
+    gen.files = {p: list(f) for p, f in work.files.items()}
+    report = dict(work.report)
+    timings = dict(work.timings)
+    for part in done:
+        report.update(part.report)
+        gen.files.update(part.files)
+        timings.update({k: round(s, 3) for k, s in part.timings.items()})
     report["timings_s"] = timings
-    if dropped:
-        report["dropped"] = dropped
-        job.bus.warn(f"generation {gen.number}: {', '.join(dropped)} of generation {gen.base} "
-                     "would be stale after this change and were left out; re-make them if "
-                     "needed (e.g. `dotshell mesh RUN`).")
+    if work.dropped:
+        report["dropped"] = work.dropped
+        job.bus.warn(f"generation {gen.number}: {', '.join(work.dropped)} of generation "
+                     f"{gen.base} would be stale after this change and were left out; re-make "
+                     "them if needed (e.g. `dotshell mesh RUN`).")
     report["status"] = final_status
-    if job.command not in ("scan", "resume"):
+    if not job.captures:
         report["reprocessed"] = True
     job.bus.emit(StepStarted(step="publish"))
     gen.report = report
     gen.publish()
     return report
+
+
+def process(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[str],
+            options: dict[str, Any] | None = None, final_status: str = "completed",
+            generation: Generation | None = None) -> dict[str, Any]:
+    """Make ``targets`` (and whatever they need) in a new generation of ``job``'s run and
+    publish it, all in this process; returns the published report. ``generation``: one the
+    caller already started writing into (a scan writes views while it captures). Options
+    ``reconstructed``, ``prewritten`` and ``timings`` are as in :func:`run_steps`."""
+    options = dict(options or {})
+    extra = {k: options.pop(k) for k in ("reconstructed", "prewritten", "timings")
+             if k in options}
+    work = prepare(job, profile, pm, targets, options, generation)
+    return publish(job, work, [run_steps(work, profile, pm, job.bus, extra=extra)],
+                   final_status)
 
 
 def sections_of(product: str) -> tuple[str, ...]:

@@ -107,8 +107,10 @@ class PoissonSurfaceMesher:
         pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
         pcd.normals = o3d.utility.Vector3dVector(normals)
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            # one thread: open3d's multi-threaded Poisson solve differs from run to run in
+            # the last bits, so meshes of the same cloud would not be the same bytes
             mesh, density = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-                pcd, depth=depth, scale=1.1, linear_fit=False)
+                pcd, depth=depth, scale=1.1, linear_fit=False, n_threads=1)
         density = np.asarray(density)
         if len(density) == 0:
             raise MeshError("Poisson reconstruction produced no surface from the cloud; it is "
