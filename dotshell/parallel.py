@@ -22,10 +22,15 @@ _LIMIT: int | None = None
 
 
 def workers() -> int:
-    """Threads a pass is split across: ``DOTSHELL_THREADS`` if set, else the cores."""
+    """Threads a pass is split across: ``DOTSHELL_THREADS`` if set, else ``OMP_NUM_THREADS``
+    (as ``make test`` sets for its worker processes), else the cores."""
     if _LIMIT is not None:
         return _LIMIT
-    return max(1, int(os.environ.get("DOTSHELL_THREADS", 0)) or os.cpu_count() or 1)
+    for name in ("DOTSHELL_THREADS", "OMP_NUM_THREADS"):
+        value = os.environ.get(name, "").strip()
+        if value.isdigit() and int(value) > 0:
+            return int(value)
+    return os.cpu_count() or 1
 
 
 @contextmanager
