@@ -5,6 +5,7 @@ import hashlib
 import json
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -187,6 +188,58 @@ def test_resume_after_sigkill_at_20_random_instants(reference, tmp_path):
              for i in range(20)]
     print("states found after SIGKILL:", {s: found.count(s) for s in set(found)})
     assert found.count("interrupted") >= 10
+
+
+def _killed_before_calibration(ref: Path, to: Path) -> Path:
+    """The state of a scan killed after its run appeared but before it saved its calibration:
+    the reference run with no calibration, no frames, no products, views uncaptured."""
+    subprocess.run(["cp", "-a", str(ref), str(to)], check=True)
+    for name in ("calibration.json", "frames", "gen", "current"):
+        p = to / name
+        if p.is_symlink() or p.is_file():
+            p.unlink()
+        elif p.is_dir():
+            shutil.rmtree(p)
+    for p in to.iterdir():
+        if p.is_symlink():
+            p.unlink()
+    m = manifest(to)
+    m.update(status="running", jobs=[])
+    m.pop("camera", None)
+    for v in m["views"]:
+        v.update(frames=0, complete=False)
+    (to / "manifest.json").write_text(json.dumps(m))
+    return to
+
+
+def test_resume_of_a_scan_killed_before_its_calibration_starts_it_afresh(reference, tmp_path):
+    from dotshell.pipeline.scan import resume_run
+    from dotshell.plugins import PluginManager
+
+    _, ref, ref_cloud = reference
+    run = _killed_before_calibration(ref, tmp_path / "early")
+    assert RunStore.open(run).status()[0] == "interrupted"
+    pm = PluginManager()
+    pm.load_entry_points()
+    result = resume_run(run, pm)
+    assert result.status == "completed", result.reason
+    assert np.array_equal(read_ply(run / "cloud.ply")[0], ref_cloud)
+    assert (run / "calibration.json").is_file()
+
+
+def test_resume_refuses_frames_without_a_calibration(reference, tmp_path):
+    from dotshell.cli import main
+
+    _, ref, _ = reference
+    run = tmp_path / "lost"
+    subprocess.run(["cp", "-a", str(ref), str(run)], check=True)
+    (run / "calibration.json").unlink()
+    m = manifest(run)
+    m["status"] = "failed"
+    (run / "manifest.json").write_text(json.dumps(m))
+    before = sorted(p.name for p in run.iterdir())
+    assert main(["resume", str(run)]) == 2
+    assert sorted(p.name for p in run.iterdir()) == before
 
 
 def test_resume_refuses_a_completed_run(reference):

@@ -164,7 +164,11 @@ def resume_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = No
                        "`dotshell reconstruct RUN`.")
     profile = load_run_profile(store, pm)
     coding = make_coding(profile, pm)
-    RigCalibration.load(store.path("calibration.json"))  # checked before the job starts
+    if store.path("calibration.json").is_file():
+        RigCalibration.load(store.path("calibration.json"))  # checked before the job starts
+    elif any(v["frames"] for v in store.manifest["views"]):
+        raise RunError(f"{store.root} has frames but no calibration.json; restore the run's "
+                       "calibration.json from a backup to resume it.")
     return _capture_and_process(store, profile, pm, bus, "resume", coding, stop, running, rig,
                                 None, None)
 
@@ -195,7 +199,9 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
                           stop: threading.Event | None, running: threading.Event | None,
                           rig: Rig | None, calibration_file: str | None) -> dict[str, Any]:
     store, bus = job.store, job.bus
-    resuming = job.command == "resume"
+    # a resumed run continues with its own calibration; one killed before it recorded any
+    # (nothing was captured yet) starts as a new scan would
+    resuming = job.command == "resume" and store.path("calibration.json").is_file()
     gen = Generation.start(store)
     job.generation = gen.number
     products = ProductStore(store, gen.dir)
