@@ -52,170 +52,21 @@ interpolation between them; others keep the integer value.
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
 
 from dotshell.coding import Correspondence, PatternFrame, label_reasons
-from dotshell.settings import Setting
+# the settings, the code geometry (bits, offsets, axes) and the result records are the live
+# module's; what is frozen here is the decoding itself
+from dotshell_codings.graycode import (_MAX_SUBPIXEL_SPAN, AUTO_DIRECT_MIN_SIGMAS,
+                                       SECOND_PASS_SHARE, SETTINGS_SCHEMA, AxisDecode,
+                                       FrameLevels, _Axis, _gray_to_binary)
 from dotshell_codings.robust import direct_global, full_scale, noise_sigma, robust_bits
+from dotshell_codings.xor import BASE_FROM_END, _unxor  # the XOR rule itself, unchanged
 
-SETTINGS_SCHEMA: dict[str, Setting] = {
-    "axes": Setting(
-        "str", "both", choices=("columns", "both"),
-        help="decode projector columns only, or columns and rows"),
-    "inverse": Setting(
-        "bool", True,
-        help="project each bit with its inverse and compare the pair (robust to albedo and "
-             "defocus); false: compare with the per-pixel (white + black) / 2"),
-    "classification": Setting(
-        "str", "robust", choices=("contrast", "robust"),
-        help="how each bit is decided: 'contrast' = pattern > inverse, bits weaker than "
-             "min_contrast mark the pixel low_contrast; 'robust' = Xu & Aliaga's rule with "
-             "direct/global separation (bit decided or uncertain); without inverses "
-             "'contrast' is used"),
-    "min_contrast": Setting(
-        "float", 0.1, min=0.0, max=1.0,
-        help="minimum |pattern - inverse| as a fraction of the pixel's white - black range "
-             "(without inverses: 2 |pattern - mid|); weaker bits mark the pixel low_contrast "
-             "(classification = 'contrast' only)"),
-    "direct_min": Setting(
-        "float", 0.0, min=0.0, max=1.0,
-        help="robust classification: minimum direct light L_d as a fraction of full scale; "
-             "below it every bit is uncertain. 0 = adaptive: 8 x the camera noise sigma "
-             "estimated from the black frame"),
-    "high_frequency_pairs": Setting(
-        "int", 2, min=1, max=8,
-        help="robust classification: the k finest pattern/inverse pairs of each axis used "
-             "for the direct/global separation"),
-    "black_level": Setting(
-        "float", 0.0, min=0.0, max=0.5,
-        help="robust classification: projector black level b relative to white as it "
-             "remains in the frames after the captured black frame is subtracted (0: the "
-             "black frame already carries it)"),
-    "shadow_threshold": Setting(
-        "float", 0.03, min=0.0, max=1.0,
-        help="minimum white - black as a fraction of the frames' full scale; below it the "
-             "pixel is shadow"),
-    "drop_low_bits": Setting(
-        "int", 0, min=0, max=15,
-        help="leave out this many finest bits (each halves the resolution and doubles the "
-             "finest stripe width)"),
-    "subpixel": Setting(
-        "bool", True, help="refine coordinates between sub-pixel stripe-edge positions"),
-    "centred": Setting(
-        "bool", True,
-        help="centre the code on the projector (pixel c carries code c + (2**n - N) // 2); "
-             "false: pixel c carries code c, as SLStudio and OpenCV's GrayCodePattern do"),
-    "bit_depth": Setting(
-        "int", 0, min=0, max=16,
-        help="significant bits of the camera frames, for the shadow threshold's full scale; "
-             "0 = automatic (8 for uint8; for uint16 the smallest depth holding the white "
-             "frame's maximum, at least 8; float32 frames: the white frame's 99.5th "
-             "percentile)"),
-}
-
-#: robust classification with direct_min = 0: L_d must exceed this many noise sigmas
-AUTO_DIRECT_MIN_SIGMAS = 8.0
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
-_MAX_SUBPIXEL_SPAN = 2  # anchors may be at most this many code steps apart
-#: refine along the second image direction too when the first leaves more than this share of
-#: the decoded pixels unrefined (stripes at an angle, curved stripes)
-SECOND_PASS_SHARE = 0.05
-
-
-def code_bits(size: int) -> int:
-    """Number of Gray-code bits ``ceil(log2 size)`` for a projector axis of ``size`` pixels."""
-    if size < 2:
-        raise ValueError(f"projector axis of {size} pixels is too small for a Gray code")
-    return int(math.ceil(math.log2(size)))
-
-
-def code_offset(size: int) -> int:
-    """Offset of the centred code: pixel ``c`` carries code value ``c + offset``."""
-    return ((1 << code_bits(size)) - size) // 2
-
-
-def _gray_to_binary(g: np.ndarray) -> np.ndarray:
-    b = g.copy()
-    shift = 1
-    while shift < 32:
-        b ^= b >> shift
-        shift <<= 1
-    return b
-
-
-class _Axis:
-    """Code geometry of one projector axis."""
-
-    def __init__(self, prefix: str, size: int, drop: int, centred: bool = True) -> None:
-        self.prefix = prefix
-        self.size = size
-        self.n = code_bits(size)
-        self.offset = code_offset(size) if centred else 0
-        self.drop = drop
-        self.nb = self.n - drop
-        if self.nb < 1:
-            raise ValueError(
-                f"drop_low_bits = {drop} leaves no bits for a projector {prefix} axis of "
-                f"{size} pixels ({self.n} bits); use at most {self.n - 1}")
-        self.block = 1 << drop
-
-    def names(self) -> list[str]:
-        out = []
-        for i in range(self.nb):
-            out += [f"{self.prefix}_{i:02d}", f"{self.prefix}_{i:02d}_inv"]
-        return out
-
-    def bit_stripes(self, i: int) -> np.ndarray:
-        """uint8 0/1 vector over projector pixels of projected bit ``i`` (MSB first)."""
-        v = np.arange(self.size, dtype=np.int64) + self.offset
-        g = v ^ (v >> 1)
-        return ((g >> (self.n - 1 - i)) & 1).astype(np.uint8)
-
-    def block_range(self, code: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Projector pixel range [lo, hi] of coarse code values (unclipped)."""
-        lo = code.astype(np.int64) * self.block - self.offset
-        return lo, lo + (self.block - 1)
-
-    def boundary(self, j: np.ndarray) -> np.ndarray:
-        """Projector coordinate of the boundary just before coarse code ``j``."""
-        return j.astype(np.float64) * self.block - self.offset - 0.5
-
-
-@dataclass
-class FrameLevels:
-    """Per-pixel levels of one view, from its white and black frames.
-
-    Attributes:
-        black: float32 black frame (subtracted before the robust classification).
-        range: float32 white - black.
-        shadow: bool, white - black below ``shadow_threshold`` × ``full_scale``.
-        full_scale: the frames' full-scale value (see :func:`robust.full_scale`).
-        noise: camera noise σ from the black frame (frame units).
-    """
-
-    black: np.ndarray
-    range: np.ndarray
-    shadow: np.ndarray
-    full_scale: float
-    noise: float
-
-
-@dataclass
-class AxisDecode:
-    """Integer decoding of one projector axis."""
-
-    axis: _Axis
-    first_pair: int  # index of the axis' first pattern (pair) after white and black
-    code: np.ndarray  # int32 coarse code value per pixel
-    integer: np.ndarray  # projector coordinate of the decoded block's centre (clipped)
-    weak: np.ndarray  # a weak/uncertain bit that is not tolerated
-    tolerated: np.ndarray
-    out_of_range: np.ndarray
 
 
 class GrayCode:
@@ -669,8 +520,6 @@ def make_graycode(settings: dict[str, Any] | None = None, context: Any = None) -
 # ---- XOR codes (plugins/dotshell_codings/xor.py of the same commit) ----
 
 #: base stripe width (projector pixels) → position of the base bit counted from the finest
-BASE_FROM_END = {2: 1, 4: 2}
-_BOX = (5, 5)
 
 
 class XorCode(GrayCode):
@@ -717,22 +566,6 @@ class XorCode(GrayCode):
                 continue
             x, x_weak = classify(first + i)
             yield _unxor(x, x_weak, base, base_weak)
-
-
-def _unxor(x: np.ndarray, x_weak: np.ndarray, base: np.ndarray, base_weak: np.ndarray,
-           ) -> tuple[np.ndarray, np.ndarray]:
-    """Gray bit = projected bit XOR base; where the base is weak, from agreeing neighbours."""
-    g = x ^ base
-    sure = ~x_weak & ~base_weak
-    if not base_weak.any():
-        return g, x_weak
-    ones = cv2.boxFilter((g & sure).view(np.uint8), cv2.CV_16U, _BOX, normalize=False)
-    zeros = cv2.boxFilter((~g & sure).view(np.uint8), cv2.CV_16U, _BOX, normalize=False)
-    fill_one = base_weak & (ones > 0) & (zeros == 0)
-    fill_zero = base_weak & (zeros > 0) & (ones == 0)
-    g = np.where(base_weak, fill_one, g)
-    weak = np.where(base_weak, ~(fill_one | fill_zero), x_weak)
-    return g, weak
 
 
 def xor_factory(base_stripe_px: int):
