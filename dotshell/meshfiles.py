@@ -190,7 +190,7 @@ def read_optodes(path: Path) -> Optodes:
     try:
         d = json.loads(path.read_text())
         o = Optodes(d["sources_mm"], d["detectors_mm"], d["links"])
-    except (ValueError, KeyError, TypeError, IndexError) as exc:  # JSON and shape errors
+    except (ValueError, KeyError, TypeError, IndexError, OverflowError) as exc:  # JSON, shape, size
         raise RunError(f"{path} is not a valid optodes file ({type(exc).__name__}: {exc}); "
                        "make it again with `dotshell mesh RUN`.") from None
     n_s, n_d = len(o.sources_mm), len(o.detectors_mm)

@@ -465,3 +465,13 @@ def test_frame_check(frame, bits):
         assert int(f.max()) < 1 << bits
 
     refused_or(lambda: spec.check(frame, "frame", "fix it"), ok)
+
+
+def test_optodes_with_a_link_past_any_integer_are_refused(tmp_path):
+    """Found by test_optodes_reader: a link of 9.2e18 overflowed the int64 conversion."""
+    from dotshell.meshfiles import read_optodes
+
+    path = tmp_path / "optodes.json"
+    path.write_text(json.dumps({**OPTODES, "links": 9.223372036854776e18}))
+    with pytest.raises(DotshellError, match="not a valid optodes file"):
+        read_optodes(path)
