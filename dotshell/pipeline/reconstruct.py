@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -61,8 +60,8 @@ def speckle_mask(pixels: np.ndarray, depth_mm: np.ndarray, shape: tuple[int, int
 @numba.njit(nogil=True, cache=True)
 def _in_cylinder(points, radius, z_min, z_max, out, start, stop):
     for i in range(start, stop):
-        z = points[i, 2]
-        out[i] = math.hypot(points[i, 0], points[i, 1]) <= radius and z_min <= z <= z_max
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        out[i] = x * x + y * y <= radius * radius and z_min <= z <= z_max
 
 
 @numba.njit(nogil=True, cache=True)
@@ -78,13 +77,19 @@ def _median_within(pixels, depth, img, max_jump, out, start, stop):
         x, y, d = pixels[i, 0], pixels[i, 1], depth[i]
         below = 0
         above = 0
-        for dy in range(-2, 3):
-            yy = min(max(y + dy, 0), h - 1)
-            for dx in range(-2, 3):
-                e = np.float64(img[yy, min(max(x + dx, 0), w - 1)]) - d
-                below += e <= max_jump
-                above += e >= -max_jump
-        out[i] = below >= 13 and above >= 13
+        passed = False
+        for k in range(25):  # the 5×5 neighbourhood, row by row
+            yy = min(max(y + k // 5 - 2, 0), h - 1)
+            e = np.float64(img[yy, min(max(x + k % 5 - 2, 0), w - 1)]) - d
+            below += e <= max_jump
+            above += e >= -max_jump
+            # decided as soon as both counts reach 13, or one of them no longer can
+            if below >= 13 and above >= 13:
+                passed = True
+                break
+            if below + 24 - k < 13 or above + 24 - k < 13:
+                break
+        out[i] = passed
 
 
 def check_frames(frames: Sequence[np.ndarray], calib: RigCalibration, view: int) -> None:

@@ -413,56 +413,45 @@ class GrayCode:
 
     def _coordinates(self, decoded: list["AxisDecode"], valid: np.ndarray, stack: np.ndarray,
                      rng: np.ndarray) -> tuple[list[np.ndarray], dict[str, int]]:
+        """Each axis's projector coordinate (float32, NaN where not decoded): the block centre,
+        refined to sub-pixel where the stripe edges allow (``subpixel``)."""
         coords = []
         refined: dict[str, int] = {}
         for d in decoded:
             coord = d.integer
             if self.subpixel:
-                fine, ok = self._refine_axis(d, valid, stack, rng)
-                np.copyto(coord, fine, where=ok)
-                refined[f"refined_{'column' if d.axis.prefix == 'col' else 'row'}"] = int(
-                    np.count_nonzero(ok))
-            coord[~valid] = np.nan
+                name = "column" if d.axis.prefix == "col" else "row"
+                refined[f"refined_{name}"] = self._refine_axis(d, valid, stack, rng, coord)
+            else:
+                coord[~valid] = np.nan
             coords.append(coord)
         return coords, refined
 
     def _refine_axis(self, d: "AxisDecode", valid: np.ndarray, stack: np.ndarray,
-                     rng: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Sub-pixel coordinates of one axis and where they exist: scanned along the image
+                     rng: np.ndarray, coord: np.ndarray) -> int:
+        """Refine ``coord`` (one axis's coarse coordinates) in place to sub-pixel and set it NaN
+        where not decoded; returns how many pixels were refined. Scanned along the image
         direction its stripes cross, then along the other where that leaves more than
         :data:`SECOND_PASS_SHARE` of the decoded pixels unrefined."""
         anchor, span = self.refine_anchors(d.axis)
         ax = d.axis
+        k = _kernels()
+        ok = np.empty(valid.shape, bool)
 
-        def refine(transpose: bool) -> tuple[np.ndarray, np.ndarray]:
-            h, w = valid.shape
-            shape = (h - 1, w) if transpose else (h, w - 1)
-            pos, val = np.empty(shape, np.float32), np.empty(shape, np.float32)
-            split(_kernels().anchors, shape[0], stack, self.inverse, rng, d.code, valid,
-                  transpose, ax.nb, ax.block, ax.offset, d.first_pair,
-                  -1 if anchor is None else anchor, pos, val)
-            fine = np.empty(valid.shape, np.float32)
-            ok = np.empty(valid.shape, bool)
-            if transpose:
-                blocks = -(-w // _kernels().COLUMN_BLOCK)
-                split(_kernels().interpolate_down, blocks, d.code, valid, pos, val, ax.block,
-                      ax.offset, span, fine, ok, np.empty((h, w), np.int32),
-                      np.empty((h, w), np.int32), min_chunk=1)
-            else:
-                split(_kernels().interpolate, h, d.code, valid, pos, val, ax.block, ax.offset,
-                      span, fine, ok)
-            return fine, ok
+        def refine(down: bool, first: bool) -> int:
+            kernel, tasks = ((k.refine_columns, -(-valid.shape[1] // k.COLUMN_BLOCK)) if down
+                             else (k.refine_rows, valid.shape[0]))
+            split(kernel, tasks, stack, self.inverse, rng, d.code, valid, ax.nb, ax.block,
+                  ax.offset, d.first_pair, -1 if anchor is None else anchor, span, first,
+                  coord, ok, min_chunk=1 if down else 16)
+            return int(np.count_nonzero(ok))
 
         across = stripes_cross_columns(d.code, valid)
-        fine, ok = refine(across)
-        left = valid & ~ok
+        n_ok = refine(across, True)
         n_valid = int(np.count_nonzero(valid))
-        if np.count_nonzero(left) > SECOND_PASS_SHARE * max(n_valid, 1):
-            fine2, ok2 = refine(not across)
-            more = left & ok2
-            np.copyto(fine, fine2, where=more)
-            ok |= more
-        return fine, ok
+        if n_valid - n_ok > SECOND_PASS_SHARE * max(n_valid, 1):
+            n_ok = refine(not across, False)
+        return n_ok
 
 
 def _kernels() -> Any:

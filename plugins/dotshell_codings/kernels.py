@@ -358,23 +358,6 @@ def _anchor(stack, inverse, rng, code, valid, y0, x0, y1, x1, s, nb, block, offs
     return pos, val
 
 
-@numba.njit(**_OPTS)
-def anchors(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndarray,
-            valid: np.ndarray, down: bool, nb: int, block: int, offset: int, first_pair: int,
-            anchor_bit: int, pos: np.ndarray, val: np.ndarray, start: int, stop: int) -> None:
-    """Stripe-edge anchors between horizontally adjacent pixels, (H, W − 1) outputs (``down``:
-    vertically adjacent, (H − 1, W)): position along the scan line and projector coordinate,
-    NaN where there is none. Rows are read along memory in both cases."""
-    for y in range(start, stop):
-        for x in range(pos.shape[1]):
-            if down:
-                pos[y, x], val[y, x] = _anchor(stack, inverse, rng, code, valid, y, x, y + 1, x,
-                                               y, nb, block, offset, first_pair, anchor_bit)
-            else:
-                pos[y, x], val[y, x] = _anchor(stack, inverse, rng, code, valid, y, x, y, x + 1,
-                                               x, nb, block, offset, first_pair, anchor_bit)
-
-
 @numba.njit(**_INNER)
 def _interpolate(i, c, pl, vl, pr, vr, block, offset, max_span):
     """Coordinate of sample ``i`` (code ``c``) between the anchors (pl, vl) and (pr, vr), and
@@ -390,93 +373,100 @@ def _interpolate(i, c, pl, vl, pr, vr, block, offset, max_span):
 
 
 @numba.njit(**_OPTS)
-def interpolate(code: np.ndarray, valid: np.ndarray, pos: np.ndarray, val: np.ndarray,
-                block: int, offset: int, max_span: int, fine: np.ndarray, ok: np.ndarray,
-                start: int, stop: int) -> None:
-    """Sub-pixel coordinates along the lines of line-major (H, W) ``code`` and ``valid`` from
-    the (H, W − 1) anchors between their samples (:func:`anchors`): a valid sample between two
-    anchors of its run of valid samples (at most ``max_span`` blocks apart, its own block
-    between them) is interpolated linearly. Outputs fine (float32, NaN where not refined) and
-    ok (bool), line-major."""
+def refine_rows(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndarray,
+                valid: np.ndarray, nb: int, block: int, offset: int, first_pair: int,
+                anchor_bit: int, max_span: int, first: bool, coord: np.ndarray,
+                ok: np.ndarray, start: int, stop: int) -> None:
+    """Sub-pixel coordinates along the camera rows ``start`` to ``stop``, in one pass: each
+    stripe edge between horizontally adjacent valid pixels (an anchor, :func:`_anchor`) is
+    found as the scan reaches it, and the samples since the previous anchor of the same run of
+    valid samples are placed linearly between the two (at most ``max_span`` blocks apart,
+    each sample's own block between them).
+
+    ``coord`` (H, W) float32 holds the coarse coordinate: refined samples get their sub-pixel
+    coordinate, invalid ones NaN, the rest keep theirs. ``ok`` (H, W) bool marks the refined
+    samples; ``first``: this is the axis's first pass (``ok`` is cleared), else samples
+    already refined (by the other direction's pass) are left as they are."""
     W = code.shape[1]
+    nan32 = np.float32(np.nan)
     for y in range(start, stop):
-        left = np.empty(W, np.int64)
-        last_bad = np.empty(W, np.int64)
-        lft = -1
+        prev = -1
+        prev_pos = np.float32(0.0)
+        prev_val = np.float32(0.0)
         bad = -1
         for x in range(W):
-            if x >= 1 and not np.isnan(pos[y, x - 1]):
-                lft = x - 1
+            if first:
+                ok[y, x] = False
             if not valid[y, x]:
                 bad = x
-            left[x] = lft
-            last_bad[x] = bad
-        rgt = W
-        nxt = W
-        for x in range(W - 1, -1, -1):
-            if x <= W - 2 and not np.isnan(pos[y, x]):
-                rgt = x
-            if not valid[y, x]:
-                nxt = x
-            lf = left[x]
-            f = np.float32(np.nan)
-            good = False
-            if valid[y, x] and lf > last_bad[x] and rgt < nxt and lf >= 0 and rgt < W - 1:
-                f, good = _interpolate(x, code[y, x], pos[y, lf], val[y, lf], pos[y, rgt],
-                                       val[y, rgt], block, offset, max_span)
-            fine[y, x] = f
-            ok[y, x] = good
+                coord[y, x] = nan32
+                continue
+            if x + 1 == W:
+                continue
+            pos, val = _anchor(stack, inverse, rng, code, valid, y, x, y, x + 1, x, nb, block,
+                               offset, first_pair, anchor_bit)
+            if np.isnan(pos):
+                continue
+            if prev >= 0 and bad <= prev:
+                for i in range(prev + 1, x + 1):
+                    if not ok[y, i]:
+                        f, good = _interpolate(i, code[y, i], prev_pos, prev_val, pos, val,
+                                               block, offset, max_span)
+                        if good:
+                            coord[y, i] = f
+                            ok[y, i] = True
+            prev, prev_pos, prev_val = x, pos, val
 
 
-#: camera columns scanned together by :func:`interpolate_down` (one task of its parallel loop)
+#: camera columns scanned together by :func:`refine_columns` (one task of its parallel loop)
 COLUMN_BLOCK = 64
 
 
 @numba.njit(**_OPTS)
-def interpolate_down(code: np.ndarray, valid: np.ndarray, pos: np.ndarray, val: np.ndarray,
-                     block: int, offset: int, max_span: int, fine: np.ndarray, ok: np.ndarray,
-                     left: np.ndarray, last_bad: np.ndarray, start: int, stop: int) -> None:
-    """:func:`interpolate` along the camera columns, from (H − 1, W) anchors, without
-    transposing: blocks ``start`` to ``stop`` of :data:`COLUMN_BLOCK` columns are scanned row
-    by row, so that every read runs along memory (``left``, ``last_bad``: (H, W) int32
-    scratch)."""
+def refine_columns(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndarray,
+                   valid: np.ndarray, nb: int, block: int, offset: int, first_pair: int,
+                   anchor_bit: int, max_span: int, first: bool, coord: np.ndarray,
+                   ok: np.ndarray, start: int, stop: int) -> None:
+    """:func:`refine_rows` down the camera columns, without transposing: blocks ``start`` to
+    ``stop`` of :data:`COLUMN_BLOCK` columns are scanned row by row, so that every read runs
+    along memory, with each column's scan state (previous anchor, last invalid sample) kept
+    apart."""
     H, W = code.shape
+    nan32 = np.float32(np.nan)
+    prev = np.empty(COLUMN_BLOCK, np.int64)
+    prev_pos = np.empty(COLUMN_BLOCK, np.float32)
+    prev_val = np.empty(COLUMN_BLOCK, np.float32)
+    bad = np.empty(COLUMN_BLOCK, np.int64)
     for blk in range(start, stop):
         x0 = blk * COLUMN_BLOCK
         x1 = min(W, x0 + COLUMN_BLOCK)
-        lft = np.empty(COLUMN_BLOCK, np.int32)
-        bad = np.empty(COLUMN_BLOCK, np.int32)
-        for j in range(COLUMN_BLOCK):
-            lft[j] = -1
-            bad[j] = -1
+        prev[:] = -1
+        bad[:] = -1
         for y in range(H):
             for x in range(x0, x1):
                 j = x - x0
-                if y >= 1 and not np.isnan(pos[y - 1, x]):
-                    lft[j] = y - 1
+                if first:
+                    ok[y, x] = False
                 if not valid[y, x]:
                     bad[j] = y
-                left[y, x] = lft[j]
-                last_bad[y, x] = bad[j]
-        for j in range(COLUMN_BLOCK):
-            lft[j] = H  # now the right anchor
-            bad[j] = H  # now the next invalid sample
-        for y in range(H - 1, -1, -1):
-            for x in range(x0, x1):
-                j = x - x0
-                if y <= H - 2 and not np.isnan(pos[y, x]):
-                    lft[j] = y
-                if not valid[y, x]:
-                    bad[j] = y
-                lf = left[y, x]
-                rg = lft[j]
-                f = np.float32(np.nan)
-                good = False
-                if valid[y, x] and lf > last_bad[y, x] and rg < bad[j] and lf >= 0 and rg < H - 1:
-                    f, good = _interpolate(y, code[y, x], pos[lf, x], val[lf, x], pos[rg, x],
-                                           val[rg, x], block, offset, max_span)
-                fine[y, x] = f
-                ok[y, x] = good
+                    coord[y, x] = nan32
+                    continue
+                if y + 1 == H:
+                    continue
+                pos, val = _anchor(stack, inverse, rng, code, valid, y, x, y + 1, x, y, nb,
+                                   block, offset, first_pair, anchor_bit)
+                if np.isnan(pos):
+                    continue
+                p = prev[j]
+                if p >= 0 and bad[j] <= p:
+                    for i in range(p + 1, y + 1):
+                        if not ok[i, x]:
+                            f, good = _interpolate(i, code[i, x], prev_pos[j], prev_val[j],
+                                                   pos, val, block, offset, max_span)
+                            if good:
+                                coord[i, x] = f
+                                ok[i, x] = True
+                prev[j], prev_pos[j], prev_val[j] = y, pos, val
 
 
 @numba.njit(**_OPTS)
