@@ -245,25 +245,27 @@ def _on_edge(value, weak, y, x, bit):
     return max(a, b, c, d) == 1 and (a == 0 or b == 0 or c == 0 or d == 0)
 
 
+#: bits of :func:`assemble`'s per-pixel flags
+BAD, TOLERATED, OUT_OF_RANGE = 1, 2, 4
+
+
 @numba.njit(**_OPTS)
 def assemble(value: np.ndarray, weak: np.ndarray, shadow: np.ndarray, nb: int, block: int,
-             offset: int, size: int, code: np.ndarray, integer: np.ndarray, bad: np.ndarray,
-             tolerated: np.ndarray, oor: np.ndarray, start: int, stop: int) -> None:
+             offset: int, size: int, code: np.ndarray, integer: np.ndarray, flags: np.ndarray,
+             start: int, stop: int) -> None:
     """Coarse code of one axis from its packed Gray bits (see ``graycode._decode_axis``'s rule:
     one weak bit is tolerated on its own stripe edge, where it moves the code by one step).
 
     Outputs (H, W): code int32, integer float32 (projector coordinate of the block centre,
-    clipped), bad (weak and not tolerated), tolerated, oor (block off the projector); all 0
-    in ``shadow`` (never decoded)."""
+    clipped), flags uint8: :data:`BAD` (weak and not tolerated), :data:`TOLERATED`,
+    :data:`OUT_OF_RANGE` (block off the projector); all 0 in ``shadow`` (never decoded)."""
     W = value.shape[1]
     for y in range(start, stop):
         for x in range(W):
             if shadow[y, x]:
                 code[y, x] = 0
                 integer[y, x] = 0
-                bad[y, x] = False
-                tolerated[y, x] = False
-                oor[y, x] = False
+                flags[y, x] = 0
                 continue
             b = np.int64(value[y, x])
             b ^= b >> 1
@@ -274,17 +276,50 @@ def assemble(value: np.ndarray, weak: np.ndarray, shadow: np.ndarray, nb: int, b
             c = np.int32(b)
             code[y, x] = c
             wk = weak[y, x]
-            ok = False
-            if wk != 0 and (wk & (wk - np.uint32(1))) == 0:  # exactly one weak bit
-                mask = np.int32(wk) * 2 - 1  # flipping that bit of the Gray code: binary bits k..0
-                flipped = c ^ mask
-                ok = abs(flipped - c) == 1 and _on_edge(value, weak, y, x, wk)
-            tolerated[y, x] = ok
-            bad[y, x] = wk != 0 and not ok
+            f = 0
+            if wk != 0:
+                f = BAD
+                if (wk & (wk - np.uint32(1))) == 0:  # exactly one weak bit
+                    mask = np.int32(wk) * 2 - 1  # flipping that Gray bit: binary bits k..0
+                    flipped = c ^ mask
+                    if abs(flipped - c) == 1 and _on_edge(value, weak, y, x, wk):
+                        f = TOLERATED
             lo = np.int64(c) * block - offset
             hi = lo + (block - 1)
-            oor[y, x] = hi < 0 or lo > size - 1
+            if hi < 0 or lo > size - 1:
+                f |= OUT_OF_RANGE
+            flags[y, x] = f
             integer[y, x] = np.float32(0.5 * (max(lo, 0) + min(hi, size - 1)))
+
+
+@numba.njit(**_OPTS)
+def verdict(shadow: np.ndarray, no_direct: np.ndarray, flags: np.ndarray, valid: np.ndarray,
+            reason: np.ndarray, counts: np.ndarray, start: int, stop: int) -> None:
+    """Each pixel's fate from the axes' (A, H, W) :func:`assemble` flags: reason 0 decoded
+    (``valid``), 1 shadow, 2 a bit undecided (weak and not tolerated on any axis, or no direct
+    light), 3 off the projector, the first that holds. ``counts`` (H, 5) int64: per row, the
+    pixels of each reason and (column 4) the decoded pixels with a tolerated bit."""
+    n_axes, _, W = flags.shape
+    for y in range(start, stop):
+        for k in range(5):
+            counts[y, k] = 0
+        for x in range(W):
+            f = 0
+            for a in range(n_axes):
+                f |= flags[a, y, x]
+            if shadow[y, x]:
+                r = 1
+            elif f & BAD or no_direct[y, x]:
+                r = 2
+            elif f & OUT_OF_RANGE:
+                r = 3
+            else:
+                r = 0
+                if f & TOLERATED:
+                    counts[y, 4] += 1
+            reason[y, x] = r
+            valid[y, x] = r == 0
+            counts[y, r] += 1
 
 
 @numba.njit(**_OPTS)
