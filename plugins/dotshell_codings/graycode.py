@@ -415,11 +415,10 @@ class GrayCode:
         ok = np.empty(valid.shape, bool)
 
         def refine(down: bool, first: bool) -> int:
-            kernel, tasks = ((k.refine_columns, -(-valid.shape[1] // k.COLUMN_BLOCK)) if down
-                             else (k.refine_rows, valid.shape[0]))
-            split(kernel, tasks, stack, self.inverse, rng, d.code, valid, ax.nb, ax.block,
-                  ax.offset, d.first_pair, -1 if anchor is None else anchor, span, first,
-                  coord, ok, min_chunk=1 if down else 16)
+            kernel = k.refine_columns if down else k.refine_rows
+            split(kernel, valid.shape[1] if down else valid.shape[0], stack, self.inverse, rng,
+                  d.code, valid, ax.nb, ax.block, ax.offset, d.first_pair,
+                  -1 if anchor is None else anchor, span, first, coord, ok)
             return int(np.count_nonzero(ok))
 
         across = stripes_cross_columns(d.code, valid)

@@ -453,55 +453,46 @@ def refine_rows(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndar
             prev, prev_pos, prev_val = x, pos, val
 
 
-#: camera columns scanned together by :func:`refine_columns` (one task of its parallel loop)
-COLUMN_BLOCK = 64
-
-
 @numba.njit(**_OPTS)
 def refine_columns(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndarray,
                    valid: np.ndarray, nb: int, block: int, offset: int, first_pair: int,
                    anchor_bit: int, max_span: int, first: bool, coord: np.ndarray,
                    ok: np.ndarray, start: int, stop: int) -> None:
-    """:func:`refine_rows` down the camera columns, without transposing: blocks ``start`` to
-    ``stop`` of :data:`COLUMN_BLOCK` columns are scanned row by row, so that every read runs
-    along memory, with each column's scan state (previous anchor, last invalid sample) kept
-    apart."""
-    H, W = code.shape
+    """:func:`refine_rows` down the camera columns ``start`` to ``stop``, without transposing:
+    the image is scanned row by row, so that every read runs along memory, with each column's
+    scan state (previous anchor, last invalid sample) kept apart."""
+    H = code.shape[0]
     nan32 = np.float32(np.nan)
-    prev = np.empty(COLUMN_BLOCK, np.int64)
-    prev_pos = np.empty(COLUMN_BLOCK, np.float32)
-    prev_val = np.empty(COLUMN_BLOCK, np.float32)
-    bad = np.empty(COLUMN_BLOCK, np.int64)
-    for blk in range(start, stop):
-        x0 = blk * COLUMN_BLOCK
-        x1 = min(W, x0 + COLUMN_BLOCK)
-        prev[:] = -1
-        bad[:] = -1
-        for y in range(H):
-            for x in range(x0, x1):
-                j = x - x0
-                if first:
-                    ok[y, x] = False
-                if not valid[y, x]:
-                    bad[j] = y
-                    coord[y, x] = nan32
-                    continue
-                if y + 1 == H:
-                    continue
-                pos, val = _anchor(stack, inverse, rng, code, valid, y, x, y + 1, x, y, nb,
-                                   block, offset, first_pair, anchor_bit)
-                if np.isnan(pos):
-                    continue
-                p = prev[j]
-                if p >= 0 and bad[j] <= p:
-                    for i in range(p + 1, y + 1):
-                        if not ok[i, x]:
-                            f, good = _interpolate(i, code[i, x], prev_pos[j], prev_val[j],
-                                                   pos, val, block, offset, max_span)
-                            if good:
-                                coord[i, x] = f
-                                ok[i, x] = True
-                prev[j], prev_pos[j], prev_val[j] = y, pos, val
+    n = stop - start
+    prev = np.full(n, -1, np.int64)
+    prev_pos = np.empty(n, np.float32)
+    prev_val = np.empty(n, np.float32)
+    bad = np.full(n, -1, np.int64)
+    for y in range(H):
+        for x in range(start, stop):
+            j = x - start
+            if first:
+                ok[y, x] = False
+            if not valid[y, x]:
+                bad[j] = y
+                coord[y, x] = nan32
+                continue
+            if y + 1 == H:
+                continue
+            pos, val = _anchor(stack, inverse, rng, code, valid, y, x, y + 1, x, y, nb,
+                               block, offset, first_pair, anchor_bit)
+            if np.isnan(pos):
+                continue
+            p = prev[j]
+            if p >= 0 and bad[j] <= p:
+                for i in range(p + 1, y + 1):
+                    if not ok[i, x]:
+                        f, good = _interpolate(i, code[i, x], prev_pos[j], prev_val[j],
+                                               pos, val, block, offset, max_span)
+                        if good:
+                            coord[i, x] = f
+                            ok[i, x] = True
+            prev[j], prev_pos[j], prev_val[j] = y, pos, val
 
 
 @numba.njit(**_OPTS)
