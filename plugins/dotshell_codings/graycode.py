@@ -413,11 +413,12 @@ class GrayCode:
         ax = d.axis
         k = _kernels()
         ok = np.empty(valid.shape, bool)
+        flip = k.flip_table(ax.nb)
 
         def refine(down: bool, first: bool) -> int:
             kernel = k.refine_columns if down else k.refine_rows
             split(kernel, valid.shape[1] if down else valid.shape[0], stack, self.inverse, rng,
-                  d.code, valid, ax.nb, ax.block, ax.offset, d.first_pair,
+                  d.code, valid, flip, ax.block, ax.offset, d.first_pair,
                   -1 if anchor is None else anchor, span, first, coord, ok)
             return int(np.count_nonzero(ok))
 

@@ -1,6 +1,6 @@
 """Compiled per-pixel loops of the binary codings' decoder (numba; split by rows across cores).
 
-The decoder of :mod:`dotshell_codings.graycode` runs in three passes over a view, each a loop
+The decoder of :mod:`dotshell_codings.graycode` runs in a few passes over a view, each a loop
 compiled here, with no image-sized temporary per bit:
 
 * :func:`classify` reads every frame once, row by row, and decides each projected bit of each
@@ -9,10 +9,12 @@ compiled here, with no image-sized temporary per bit:
   (``weak``), most significant bit first — the arithmetic is the decoder's documented rule in
   float32 exactly as numpy evaluated it before (NEP 50: Python scalars cast to float32);
 * :func:`assemble` turns the words into the coarse code (gray → binary, the one-weak-bit edge
-  tolerance with its 4-neighbour check, out-of-range test);
-* :func:`anchors` finds the sub-pixel stripe edges between adjacent valid pixels, reading the
-  pattern/inverse frames only there, and :func:`interpolate` / :func:`interpolate_down` place
-  every pixel between its anchors along the camera rows / columns.
+  tolerance with its 4-neighbour check, out-of-range test) with a flag byte per pixel, and
+  :func:`verdict` combines the axes' flags into each pixel's reason and the counts;
+* :func:`refine_rows` / :func:`refine_columns` scan each camera row / column once: the
+  sub-pixel stripe edges (anchors) between adjacent valid pixels are found as the scan reaches
+  them, reading the pattern/inverse frames only there, and the pixels since the previous
+  anchor are placed linearly between the two, in place in the coordinate map.
 
 Why numba (docs/performance.md, "Decode and triangulation"): numpy needs a full-size
 temporary per operation and per bit (the decoder made ~40 passes over 1.3 M-pixel arrays per
@@ -364,25 +366,34 @@ def _d(stack, inverse, fp, y, x, rng):
     return (p - q) / max(rng[y, x], np.float32(1e-6))
 
 
+@numba.njit(**_OPTS)
+def flip_table(nb: int) -> np.ndarray:
+    """(2^nb + 2,) int64: the projected bit (MSB-first index) that flips on entering each
+    coarse code (:func:`_flip_bit`), looked up per anchor instead of counting its zeros."""
+    table = np.empty((1 << nb) + 2, np.int64)
+    for j in range(table.shape[0]):
+        table[j] = _flip_bit(j, nb)
+    return table
+
+
 @numba.njit(**_INNER)
-def _anchor(stack, inverse, rng, code, valid, y0, x0, y1, x1, s, nb, block, offset,
-            first_pair, anchor_bit):
+def _anchor(stack, inverse, rng, code, y0, x0, y1, x1, s, flip, block, offset, first_pair,
+            anchor_bit):
     """(position along the scan line, projector coordinate) of the stripe edge between the
-    adjacent pixels (y0, x0) = sample ``s`` and (y1, x1) = sample ``s + 1``, or NaN, NaN."""
+    adjacent valid pixels (y0, x0) = sample ``s`` and (y1, x1) = sample ``s + 1``, or NaN,
+    NaN (``flip``: :func:`flip_table` of the axis)."""
     nan32 = np.float32(np.nan)
-    if not (valid[y0, x0] and valid[y1, x1]):
-        return nan32, nan32
     a, b = code[y0, x0], code[y1, x1]
     k = abs(b - a)
     if k == 0 or k > 2 or (anchor_bit >= 0 and k != 1):
         return nan32, nan32
     base = np.int64(min(a, b))
-    if anchor_bit >= 0 and _flip_bit(base + 1, nb) != anchor_bit:
+    if anchor_bit >= 0 and flip[base + 1] != anchor_bit:
         return nan32, nan32
     per_bit = 2 if inverse else 1
     t = np.float32(0.0)
     for step in range(1, k + 1):
-        fp = 2 + per_bit * (first_pair + _flip_bit(base + step, nb))
+        fp = 2 + per_bit * (first_pair + flip[base + step])
         d0 = _d(stack, inverse, fp, y0, x0, rng)
         d1 = _d(stack, inverse, fp, y1, x1, rng)
         den = d0 - d1
@@ -409,7 +420,7 @@ def _interpolate(i, c, pl, vl, pr, vr, block, offset, max_span):
 
 @numba.njit(**_OPTS)
 def refine_rows(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndarray,
-                valid: np.ndarray, nb: int, block: int, offset: int, first_pair: int,
+                valid: np.ndarray, flip: np.ndarray, block: int, offset: int, first_pair: int,
                 anchor_bit: int, max_span: int, first: bool, coord: np.ndarray,
                 ok: np.ndarray, start: int, stop: int) -> None:
     """Sub-pixel coordinates along the camera rows ``start`` to ``stop``, in one pass: each
@@ -429,35 +440,36 @@ def refine_rows(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndar
         prev_pos = np.float32(0.0)
         prev_val = np.float32(0.0)
         bad = -1
+        valid_y, code_y, coord_y, ok_y = valid[y], code[y], coord[y], ok[y]
         for x in range(W):
             if first:
-                ok[y, x] = False
-            if not valid[y, x]:
+                ok_y[x] = False
+            if not valid_y[x]:
                 bad = x
-                coord[y, x] = nan32
+                coord_y[x] = nan32
                 continue
-            if x + 1 == W:
+            if x + 1 == W or not valid_y[x + 1]:
                 continue
-            pos, val = _anchor(stack, inverse, rng, code, valid, y, x, y, x + 1, x, nb, block,
+            pos, val = _anchor(stack, inverse, rng, code, y, x, y, x + 1, x, flip, block,
                                offset, first_pair, anchor_bit)
             if np.isnan(pos):
                 continue
             if prev >= 0 and bad <= prev:
                 for i in range(prev + 1, x + 1):
-                    if not ok[y, i]:
-                        f, good = _interpolate(i, code[y, i], prev_pos, prev_val, pos, val,
+                    if not ok_y[i]:
+                        f, good = _interpolate(i, code_y[i], prev_pos, prev_val, pos, val,
                                                block, offset, max_span)
                         if good:
-                            coord[y, i] = f
-                            ok[y, i] = True
+                            coord_y[i] = f
+                            ok_y[i] = True
             prev, prev_pos, prev_val = x, pos, val
 
 
 @numba.njit(**_OPTS)
 def refine_columns(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndarray,
-                   valid: np.ndarray, nb: int, block: int, offset: int, first_pair: int,
-                   anchor_bit: int, max_span: int, first: bool, coord: np.ndarray,
-                   ok: np.ndarray, start: int, stop: int) -> None:
+                   valid: np.ndarray, flip: np.ndarray, block: int, offset: int,
+                   first_pair: int, anchor_bit: int, max_span: int, first: bool,
+                   coord: np.ndarray, ok: np.ndarray, start: int, stop: int) -> None:
     """:func:`refine_rows` down the camera columns ``start`` to ``stop``, without transposing:
     the image is scanned row by row, so that every read runs along memory, with each column's
     scan state (previous anchor, last invalid sample) kept apart."""
@@ -477,10 +489,10 @@ def refine_columns(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.n
                 bad[j] = y
                 coord[y, x] = nan32
                 continue
-            if y + 1 == H:
+            if y + 1 == H or not valid[y + 1, x]:
                 continue
-            pos, val = _anchor(stack, inverse, rng, code, valid, y, x, y + 1, x, y, nb,
-                               block, offset, first_pair, anchor_bit)
+            pos, val = _anchor(stack, inverse, rng, code, y, x, y + 1, x, y, flip, block,
+                               offset, first_pair, anchor_bit)
             if np.isnan(pos):
                 continue
             p = prev[j]
