@@ -154,6 +154,25 @@ class ImagePoints:
     counts: dict[str, int]
 
 
+@dataclass
+class ImageSolve:
+    """Every decoded pixel of one camera image solved (:func:`solve_image`), kept or not.
+
+    Attributes:
+        pixels: (N, 2) int32 camera pixels (x, y), in raster order.
+        points: (N, 3) float64 points in the requested frame (mm), NaN where not kept.
+        depth: (N,) camera-frame depth z (mm), NaN where not kept.
+        kept: (N,) bool, the points that passed the solve's checks.
+        counts: ``triangulated``, ``row_rejected``, ``grazing`` over the decoded pixels.
+    """
+
+    pixels: np.ndarray
+    points: np.ndarray
+    depth: np.ndarray
+    kept: np.ndarray
+    counts: dict[str, int]
+
+
 def triangulate_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
                       calib: RigCalibration, row_tolerance_px: float = 1.5,
                       min_ray_angle_deg: float = 5.0, to_frame: np.ndarray | None = None,
@@ -163,6 +182,17 @@ def triangulate_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | N
 
     ``to_frame``: optional (3, 4) affine map [A | b] taking camera-frame points (row vectors)
     to the output frame, ``p_out = A @ p + b``; default the camera frame."""
+    sol = solve_image(valid, column, row, calib, row_tolerance_px, min_ray_angle_deg, to_frame,
+                      iterations)
+    return ImagePoints(*select(sol.kept, sol.pixels, sol.points, sol.depth), sol.counts)
+
+
+def solve_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
+                calib: RigCalibration, row_tolerance_px: float = 1.5,
+                min_ray_angle_deg: float = 5.0, to_frame: np.ndarray | None = None,
+                iterations: int = 3) -> ImageSolve:
+    """:func:`triangulate_image` without the selection: every ``valid`` pixel's solve, for a
+    caller that filters the points further and selects once."""
     h, w = valid.shape
     rays = camera_ray_grid(calib.camera)
     if rays.shape[:2] != (h, w):
@@ -181,11 +211,11 @@ def triangulate_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | N
     split(_solve_image, h, valid, column, rows, row is not None, iterations, rays, start,
           affine, *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(), pts, depth,
           pixels, flags)
-    keep = flags == KEPT
-    counts = {"triangulated": int(np.count_nonzero(keep)),
-              "row_rejected": int(np.count_nonzero(flags == ROW_REJECTED)),
-              "grazing": int(np.count_nonzero(flags == GRAZING))}
-    return ImagePoints(*select(keep, pixels, pts, depth), counts)
+    counts = np.bincount(flags, minlength=4)
+    return ImageSolve(pixels, pts, depth, flags == KEPT,
+                      {"triangulated": int(counts[KEPT]),
+                       "row_rejected": int(counts[ROW_REJECTED]),
+                       "grazing": int(counts[GRAZING])})
 
 
 def select(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
