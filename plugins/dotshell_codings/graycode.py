@@ -509,8 +509,10 @@ def _decode_axis(ax: _Axis, first: int, gray: np.ndarray, weak: np.ndarray,
 def stripes_cross_columns(code: np.ndarray, valid: np.ndarray) -> bool:
     """True when the decoded code changes more often down the camera columns than along the
     camera rows, i.e. the stripes lie closer to the image rows (refine along the columns)."""
-    along_rows, along_cols = _kernels().changes(code, valid)
-    return along_cols > along_rows
+    counts = np.empty((code.shape[0], 2), np.int64)
+    split(_kernels().changes, code.shape[0], code, valid, counts)
+    along_rows, along_cols = counts.sum(axis=0)
+    return bool(along_cols > along_rows)
 
 
 def make_graycode(settings: dict[str, Any] | None = None, context: Any = None) -> GrayCode:

@@ -325,12 +325,14 @@ def verdict(shadow: np.ndarray, no_direct: np.ndarray, flags: np.ndarray, valid:
 
 
 @numba.njit(**_OPTS)
-def changes(code: np.ndarray, valid: np.ndarray) -> tuple[int, int]:
-    """(code changes along the camera rows, down the camera columns) between valid pixels."""
+def changes(code: np.ndarray, valid: np.ndarray, counts: np.ndarray, start: int,
+            stop: int) -> None:
+    """Per row y of ``start`` to ``stop``: code changes between valid pixels along the camera
+    row (``counts[y, 0]``) and down to the next row (``counts[y, 1]``)."""
     H, W = code.shape
-    along_rows = 0
-    along_cols = 0
-    for y in range(H):
+    for y in range(start, stop):
+        along_rows = 0
+        along_cols = 0
         for x in range(W):
             if not valid[y, x]:
                 continue
@@ -338,7 +340,8 @@ def changes(code: np.ndarray, valid: np.ndarray) -> tuple[int, int]:
                 along_rows += 1
             if y + 1 < H and valid[y + 1, x] and code[y + 1, x] != code[y, x]:
                 along_cols += 1
-    return along_rows, along_cols
+        counts[y, 0] = along_rows
+        counts[y, 1] = along_cols
 
 
 @numba.njit(**_INNER)
