@@ -1,5 +1,7 @@
 """FEM meshes: the surface and tetrahedral mesh types the meshers exchange, and their geometry
-and quality measures (pure numpy; lengths in mm, volumes in mm³, angles in degrees).
+and quality measures (numpy; lengths in mm, volumes in mm³, angles in degrees), and the
+sparsity pattern linear-element matrices on them share. The loops over elements (boundary
+faces, the pattern) are compiled, in :mod:`dotshell.fem_kernels`.
 
 Conventions:
 
@@ -59,6 +61,12 @@ class TetMesh:
     def boundary_faces(self) -> np.ndarray:
         """Outward faces used by one tetrahedron (computed once: ``tets`` is not changed)."""
         return boundary_faces(self.tets)
+
+    @cached_property
+    def matrix_pattern(self) -> MatrixPattern:
+        """Where linear-element matrices on this mesh have entries (computed once: ``tets``
+        is not changed)."""
+        return matrix_pattern(self.tets, self.boundary_faces, len(self.nodes))
 
     @property
     def boundary_nodes(self) -> np.ndarray:
@@ -148,18 +156,54 @@ def orient_positive(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:
 
 
 def boundary_faces(tets: np.ndarray) -> np.ndarray:
-    """Faces used by exactly one tetrahedron, ordered so their normals point out of it
+    """Faces (F, 3) used by exactly one tetrahedron, ordered so their normals point out of it
     (tets positively oriented)."""
-    # faces opposite to node 3, 2, 1, 0, each ordered to face outward of a positive tet
-    faces = tets[:, [0, 2, 1, 0, 1, 3, 1, 2, 3, 0, 3, 2]].reshape(-1, 3)
-    key = np.sort(faces, axis=1)
-    n = int(key.max()) + 1 if len(key) else 0
-    if n < 1 << 21:  # one int64 per face: a 1-D unique, ~100x faster than unique(axis=0)
-        key = (key[:, 0] * n + key[:, 1]) * n + key[:, 2]
-        _, inv, count = np.unique(key, return_inverse=True, return_counts=True)
-    else:
-        _, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    return faces[count[inv.ravel()] == 1]
+    from dotshell import fem_kernels  # numba: imported at first use
+
+    tets = np.asarray(tets, np.int64).reshape(-1, 4)
+    if len(tets) == 0:
+        return np.empty((0, 3), np.int64)
+    t, f = np.nonzero(fem_kernels.unshared_faces(tets, int(tets.max()) + 1))
+    return tets[t[:, None], fem_kernels.TET_FACES[f]]
+
+
+@dataclass(frozen=True)
+class MatrixPattern:
+    """Sparsity pattern (CSR, sorted rows) of linear-element matrices on a mesh — the node
+    pairs that share a tetrahedron — and where each element's block goes in the data array:
+    ``tet_slots`` (M, 4, 4) for the tetrahedra, ``face_slots`` (F, 3, 3) for the boundary
+    faces (in :attr:`TetMesh.boundary_faces` order)."""
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    tet_slots: np.ndarray
+    face_slots: np.ndarray
+
+    @property
+    def nnz(self) -> int:
+        """Number of stored entries."""
+        return len(self.indices)
+
+    def matrix(self, data: np.ndarray) -> Any:
+        """The (N, N) ``scipy.sparse.csr_matrix`` with this pattern and ``data`` (nnz,)."""
+        import scipy.sparse as sp
+
+        n = len(self.indptr) - 1
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(n, n))
+
+
+def matrix_pattern(tets: np.ndarray, faces: np.ndarray, n_nodes: int) -> MatrixPattern:
+    """The :class:`MatrixPattern` of tetrahedra (M, 4) with boundary faces (F, 3) (faces of
+    those tetrahedra) on ``n_nodes`` nodes."""
+    from dotshell import fem_kernels  # numba: imported at first use
+
+    tets = np.asarray(tets).reshape(-1, 4)
+    if 12 * len(tets) + n_nodes >= 2 ** 31:
+        raise MeshError(f"a mesh of {len(tets)} tetrahedra is too large for the FEM assembly "
+                        "(int32 indices); mesh with a larger node_distance_mm.")
+    indptr, indices, tet_slots = fem_kernels.node_pairs_pattern(tets.astype(np.int32), n_nodes)
+    return MatrixPattern(indptr, indices, tet_slots,
+                         fem_kernels.block_positions(indptr, indices, faces))
 
 
 _EDGES = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))

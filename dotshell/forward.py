@@ -59,39 +59,33 @@ def _per_node(value, n: int, name: str) -> np.ndarray:
     return v
 
 
-def _gradients(nodes: np.ndarray, tets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Gradients (M, 4, 3) of the linear shape functions and element volumes (M,) mm³."""
-    p0 = nodes[tets[:, 0]]
-    e1, e2, e3 = (nodes[tets[:, k]] - p0 for k in (1, 2, 3))  # the rows of the Jacobian J
-    c23, c31, c12 = np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)
-    det = np.einsum("ij,ij->i", e1, c23)
-    vol = det / 6.0
-    if (vol <= 0).any():
-        raise MeshError(f"{int((vol <= 0).sum())} elements are inverted or flat; the FEM needs "
-                        "positively oriented tetrahedra (re-run `dotshell mesh`).")
-    # ∇λ1..λ3 are the columns of J⁻¹: (e2×e3, e3×e1, e1×e2) / det (no batched LAPACK inverse)
-    g123 = np.stack([c23, c31, c12], axis=1) / det[:, None, None]
-    g0 = -g123.sum(axis=1, keepdims=True)
-    return np.concatenate([g0, g123], axis=1), vol
+def boundary_blocks(nodes: np.ndarray, faces: np.ndarray, A: float) -> np.ndarray:
+    """(F, 3, 3) Robin boundary term ``(1/2A) ∮ vi vj`` of each face: area (mm²) / 12 / 2A ×
+    (1 + δij)."""
+    v = nodes[faces]
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    return (area / 12.0 / (2.0 * A))[:, None, None] * (np.ones((3, 3)) + np.eye(3))
 
 
 def system_matrix(mesh: TetMesh, mua: np.ndarray, kappa: np.ndarray, A: float) -> sp.csr_matrix:
-    """(K + M + B) for per-node μa (1/mm) and κ (mm), element values = node means."""
-    n = len(mesh.nodes)
-    t = mesh.tets
-    grads, vol = _gradients(mesh.nodes, t)
-    k_el = kappa[t].mean(axis=1)
-    mua_el = mua[t].mean(axis=1)
-    stiff = np.einsum("m,mik,mjk->mij", k_el * vol, grads, grads)
-    mass = (mua_el * vol / 20.0)[:, None, None] * (np.ones((4, 4)) + np.eye(4))
-    f = mesh.boundary_faces
-    v = mesh.nodes[f]
-    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
-    bnd = (area / 12.0 / (2.0 * A))[:, None, None] * (np.ones((3, 3)) + np.eye(3))
-    rows = np.concatenate([np.repeat(t, 4, axis=1).ravel(), np.repeat(f, 3, axis=1).ravel()])
-    cols = np.concatenate([np.tile(t, (1, 4)).ravel(), np.tile(f, (1, 3)).ravel()])
-    data = np.concatenate([(stiff + mass).ravel(), bnd.ravel()])
-    return sp.coo_matrix((data, (rows, cols)), shape=(n, n)).tocsr()  # duplicates summed
+    """(K + M + B) for per-node μa (1/mm) and κ (mm), element values = node means, assembled
+    into the mesh's :attr:`~dotshell.fem.TetMesh.matrix_pattern`.
+
+    Raises:
+        MeshError: an element is inverted or flat.
+    """
+    from dotshell.fem_kernels import add_diffusion_elements  # numba: imported at first use
+
+    pattern = mesh.matrix_pattern
+    data = np.zeros(pattern.nnz)
+    bad = add_diffusion_elements(data, pattern.tet_slots, mesh.nodes, mesh.tets,
+                                 np.asarray(kappa, float), np.asarray(mua, float))
+    if bad:
+        raise MeshError(f"{bad} elements are inverted or flat; the FEM needs positively "
+                        "oriented tetrahedra (re-run `dotshell mesh`).")
+    face_blocks = boundary_blocks(mesh.nodes, mesh.boundary_faces, A)
+    np.add.at(data, pattern.face_slots.ravel(), face_blocks.ravel())
+    return pattern.matrix(data)
 
 
 def solve_cw(mesh: TetMesh, source_mm, mua_per_mm=None, musp_per_mm=None,

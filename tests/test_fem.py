@@ -9,7 +9,8 @@ from dotshell.fem import (MeshError, TetMesh, TriangleSurface, boundary_faces,
                           closed_manifold_problems, element_containing, enclosed_volume_mm3,
                           joe_liu_quality, min_dihedral_deg, orient_positive, quality_report,
                           signed_volumes_mm3)
-from dotshell.forward import (move_inside, robin_A, solve_cw, sphere_point_source_fluence)
+from dotshell.forward import (move_inside, robin_A, solve_cw, sphere_point_source_fluence,
+                              system_matrix)
 
 REGULAR = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
 
@@ -51,6 +52,78 @@ def test_robin_factor_matches_fresnel_values():
     assert robin_A(1.4) > robin_A(1.33)
 
 
+def cube_grid(n: int, jitter_mm: float = 0.0, seed: int = 0) -> TetMesh:
+    """n × n × n unit cubes (mm), each split into the 6 tetrahedra around its main diagonal
+    (Kuhn's subdivision, conforming between cubes): 12 n² boundary faces. Interior nodes moved
+    by up to ``jitter_mm`` so that no two elements are alike."""
+    axis = np.arange(n + 1)
+    grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+    index = lambda p: (p[..., 0] * (n + 1) + p[..., 1]) * (n + 1) + p[..., 2]  # noqa: E731
+    corners = np.stack(np.meshgrid(*[np.arange(n)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    unit = np.eye(3, dtype=int)
+    tets = []
+    for a, b, _ in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        path = [np.zeros(3, int), unit[a], unit[a] + unit[b], np.ones(3, int)]
+        tets.append(np.stack([index(corners + step) for step in path], axis=1))
+    nodes = grid.astype(float)
+    inner = ((grid > 0) & (grid < n)).all(axis=1)
+    nodes[inner] += np.random.default_rng(seed).uniform(-jitter_mm, jitter_mm, (inner.sum(), 3))
+    return TetMesh(nodes, orient_positive(nodes, np.concatenate(tets)))
+
+
+def coo_system_matrix(mesh: TetMesh, mua: np.ndarray, kappa: np.ndarray, A: float):
+    """The system matrix built the straightforward way (dotshell's before issue 16): boundary
+    faces by np.unique of the sorted face rows, element matrices by einsum, COO → CSR."""
+    import scipy.sparse as sp
+
+    t = mesh.tets
+    faces = t[:, [0, 2, 1, 0, 1, 3, 1, 2, 3, 0, 3, 2]].reshape(-1, 3)
+    _, inv, count = np.unique(np.sort(faces, axis=1), axis=0, return_inverse=True,
+                              return_counts=True)
+    f = faces[count[inv.ravel()] == 1]
+    p = mesh.nodes[t]
+    jac = np.stack([p[:, k] - p[:, 0] for k in (1, 2, 3)], axis=1)  # rows e1, e2, e3
+    g123 = np.linalg.inv(jac).transpose(0, 2, 1)  # ∇λk: the columns of J⁻¹
+    grads = np.concatenate([-g123.sum(axis=1, keepdims=True), g123], axis=1)
+    vol = np.linalg.det(jac) / 6.0
+    stiff = np.einsum("m,mik,mjk->mij", kappa[t].mean(axis=1) * vol, grads, grads)
+    mass = (mua[t].mean(axis=1) * vol / 20.0)[:, None, None] * (np.ones((4, 4)) + np.eye(4))
+    v = mesh.nodes[f]
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    bnd = (area / 12.0 / (2.0 * A))[:, None, None] * (np.ones((3, 3)) + np.eye(3))
+    rows = np.concatenate([np.repeat(t, 4, axis=1).ravel(), np.repeat(f, 3, axis=1).ravel()])
+    cols = np.concatenate([np.tile(t, (1, 4)).ravel(), np.tile(f, (1, 3)).ravel()])
+    data = np.concatenate([(stiff + mass).ravel(), bnd.ravel()])
+    n = len(mesh.nodes)
+    return sp.coo_matrix((data, (rows, cols)), shape=(n, n)).tocsr(), f
+
+
+def assert_same_system(mesh: TetMesh, seed: int = 1) -> None:
+    """system_matrix equals coo_system_matrix to rounding, with the same pattern and the same
+    boundary faces (as node sets and in orientation)."""
+    rng = np.random.default_rng(seed)
+    n = len(mesh.nodes)
+    mua, kappa = rng.uniform(0.005, 0.05, n), rng.uniform(0.2, 0.4, n)
+    expected, faces = coo_system_matrix(mesh, mua, kappa, 2.35)
+    got = system_matrix(mesh, mua, kappa, 2.35)
+    assert np.array_equal(got.indptr, expected.indptr)
+    assert np.array_equal(got.indices, expected.indices)
+    assert np.abs(got.data - expected.data).max() <= 1e-13 * np.abs(expected.data).max()
+    assert sorted(map(tuple, mesh.boundary_faces)) == sorted(map(tuple, faces))
+
+
+@pytest.mark.parametrize("n", [1, 3])
+def test_boundary_faces_and_assembly_of_a_cube_grid(n):
+    mesh = cube_grid(n, jitter_mm=0.1)
+    assert len(mesh.tets) == 6 * n ** 3
+    assert signed_volumes_mm3(mesh.nodes, mesh.tets).sum() == pytest.approx(n ** 3)  # none flipped
+    assert len(mesh.boundary_faces) == 12 * n ** 2
+    surf = TriangleSurface(mesh.nodes, mesh.boundary_faces)
+    assert closed_manifold_problems(surf) == []
+    assert enclosed_volume_mm3(surf) == pytest.approx(n ** 3)  # outward, the grid's volume
+    assert_same_system(mesh)
+
+
 @pytest.fixture(scope="module")
 def sphere_mesh():
     """Sphere of radius 10 mm: icosphere surface (0.66 mm edges) + tetgen at 1.2 mm."""
@@ -62,6 +135,10 @@ def sphere_mesh():
     ico = pv.Icosphere(radius=10.0, nsub=4)
     surf = TriangleSurface(ico.points, ico.faces.reshape(-1, 4)[:, 1:])
     return TetgenVolumeMesher(validate_settings(SETTINGS, {}, "test")).volume(surf, 1.2), surf
+
+
+def test_assembly_matches_coo_construction_on_the_sphere(sphere_mesh):
+    assert_same_system(sphere_mesh[0])
 
 
 def test_sphere_mesh_quality(sphere_mesh):
@@ -93,8 +170,6 @@ def test_conjugate_gradient_agrees_with_sparse_lu(sphere_mesh):
     """The Jacobi-CG solve of solve_cw against a direct sparse LU of the same system, with a
     heterogeneous μa (a 3× absorbing inclusion) and the source off-centre."""
     from scipy.sparse.linalg import splu
-
-    from dotshell.forward import system_matrix
 
     mesh, _ = sphere_mesh
     mua = np.where(np.linalg.norm(mesh.nodes - [4.0, 0.0, 0.0], axis=1) < 3.0, 0.03, 0.01)
