@@ -270,11 +270,10 @@ def element_containing(mesh: TetMesh, point_mm: np.ndarray) -> tuple[int, np.nda
     Raises:
         MeshError: the point is outside the mesh.
     """
+    from dotshell.fem_kernels import boxes_holding  # numba: imported at first use
+
     point = np.asarray(point_mm, float).reshape(3)
-    a, b, c, d = (mesh.nodes[mesh.tets[:, i]] for i in range(4))
-    lo = np.minimum(np.minimum(a, b), np.minimum(c, d))
-    hi = np.maximum(np.maximum(a, b), np.maximum(c, d))
-    near = np.flatnonzero(((lo <= point + 1e-6) & (hi >= point - 1e-6)).all(axis=1))
+    near = boxes_holding(mesh.nodes, mesh.tets, point, 1e-6)
     p = mesh.nodes[mesh.tets[near]]  # the tetrahedra whose bounding box holds the point
     T = np.stack([p[:, 1] - p[:, 0], p[:, 2] - p[:, 0], p[:, 3] - p[:, 0]], axis=2)
     rhs = point[None, :] - p[:, 0]

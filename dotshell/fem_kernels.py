@@ -1,6 +1,6 @@
 """Compiled loops (numba) of the finite-element assembly: boundary faces, the sparsity pattern
-of a tetrahedral mesh with the position of every element's entries in it, and the diffusion
-element matrices added into a matrix's data array.
+of a tetrahedral mesh with the position of every element's entries in it, the diffusion
+element matrices added into a matrix's data array, and the tetrahedra near a point.
 
 Why compiled (docs/performance.md, "Forward solve"): assembling the system of a 31 k-node mesh
 with numpy took ~0.7 s of CPU — an ``np.unique`` sort of 700 k face keys for the boundary,
@@ -157,6 +157,29 @@ def block_positions(indptr: np.ndarray, indices: np.ndarray, elements: np.ndarra
                 found = lo < indptr[row + 1] and indices[lo] == col
                 out[e, i, j] = lo if found else -1
     return out
+
+
+@numba.njit(**_OPTS)
+def boxes_holding(nodes: np.ndarray, tets: np.ndarray, point: np.ndarray,
+                  margin: float) -> np.ndarray:
+    """Indices (ascending) of the tetrahedra whose bounding box, grown by ``margin`` (mm),
+    holds ``point`` (3,) mm."""
+    out = np.empty(len(tets), np.int64)
+    count = 0
+    for t in range(len(tets)):
+        inside = True
+        for c in range(3):
+            lo = min(min(nodes[tets[t, 0], c], nodes[tets[t, 1], c]),
+                     min(nodes[tets[t, 2], c], nodes[tets[t, 3], c]))
+            hi = max(max(nodes[tets[t, 0], c], nodes[tets[t, 1], c]),
+                     max(nodes[tets[t, 2], c], nodes[tets[t, 3], c]))
+            if lo > point[c] + margin or hi < point[c] - margin:
+                inside = False
+                break
+        if inside:
+            out[count] = t
+            count += 1
+    return out[:count].copy()
 
 
 @numba.njit(nogil=True, cache=True, inline="always")

@@ -122,6 +122,10 @@ def test_boundary_faces_and_assembly_of_a_cube_grid(n):
     assert closed_manifold_problems(surf) == []
     assert enclosed_volume_mm3(surf) == pytest.approx(n ** 3)  # outward, the grid's volume
     assert_same_system(mesh)
+    flipped = TetMesh(mesh.nodes, mesh.tets[:, [0, 1, 3, 2]])
+    with pytest.raises(MeshError, match=f"{6 * n ** 3} elements are inverted"):
+        system_matrix(flipped, np.full(len(mesh.nodes), 0.01), np.full(len(mesh.nodes), 0.3),
+                      2.35)
 
 
 @pytest.fixture(scope="module")
