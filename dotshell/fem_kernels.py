@@ -8,13 +8,15 @@ with numpy took ~0.7 s of CPU — an ``np.unique`` sort of 700 k face keys for t
 sorts 2.9 M entries to sum duplicates — against a CG solve of ~0.2 s. Here every pass is linear
 in the mesh size: faces are grouped by their smallest node (a counting sort), the pattern is
 built node by node from the tetrahedra around each node, and each element's matrix is computed
-and added into the CSR data array at positions found once per mesh, in one pass. The meshes' node numbering
-(TetGen's) has no locality, so these loops are bound by scattered memory reads: they read and
-write int32 where int64 is not needed, and copy each node's tetrahedra next to each other.
+and added into the CSR data array at positions found once per mesh, in one pass. The meshes'
+node numbering (TetGen's) has no locality, so these loops are bound by scattered memory reads:
+they read and write int32 where int64 is not needed, and copy each node's tetrahedra next to
+each other.
 
 :mod:`dotshell.fem` and :mod:`dotshell.forward` import this module at first use: numba's import
-costs ~0.5 s, which commands that only read meshes don't pay (``cache=True`` keeps the
-compiled code in ``__pycache__``).
+costs ~0.5 s, which code that only reads meshes doesn't pay. ``cache=True`` keeps the compiled
+code in ``__pycache__`` (the first compile takes ~8 s); a process still pays numba's
+initialization, ~0.6 s, at its first compiled call.
 """
 
 from __future__ import annotations
@@ -65,9 +67,9 @@ def _face_nodes(tets: np.ndarray, t: int, f: int) -> tuple[int, int, int]:
 @numba.njit(**_OPTS)
 def unshared_faces(tets: np.ndarray, n_nodes: int) -> np.ndarray:
     """(M, 4) bool: face f (:data:`TET_FACES` order) of tetrahedron t belongs to no other
-    tetrahedron — the boundary (``tets`` (M, 4) on ``n_nodes`` nodes). Faces are grouped by their smallest node (a counting sort
-    that moves each face's other two nodes, packed in one int64, next to its group's) and
-    compared within the group."""
+    tetrahedron — the boundary (``tets`` (M, 4) on ``n_nodes`` nodes). Faces are grouped by
+    their smallest node (a counting sort that moves each face's other two nodes, packed in one
+    int64, next to its group's) and compared within the group."""
     m = len(tets)
     start = np.zeros(n_nodes + 1, np.int64)
     for t in range(m):
@@ -227,6 +229,8 @@ def add_diffusion_elements(data: np.ndarray, slots: np.ndarray, nodes: np.ndarra
         mv = mua_mean / 4.0 * vol / 20.0
         for a in range(4):
             for b in range(4):
-                dot = grad[a, 0] * grad[b, 0] + grad[a, 1] * grad[b, 1] + grad[a, 2] * grad[b, 2]
+                dot = 0.0
+                for c in range(3):
+                    dot += grad[a, c] * grad[b, c]
                 data[slots[t, a, b]] += kv * dot + (2.0 * mv if a == b else mv)
     return bad
