@@ -411,6 +411,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The ``dotshell`` command on ``argv``; its exit status. Run as the command (``argv``
+    None), the process ends here once the work is done, without the interpreter's teardown
+    (:func:`dotshell.runtime.exit_now`); called with ``argv`` (tests, scripts) it returns."""
+    code = run_command(argv)
+    if argv is None:
+        from dotshell.runtime import exit_now
+
+        exit_now(code)
+    return code
+
+
+def run_command(argv: list[str] | None = None) -> int:
     from dotshell.pipeline.lifecycle import interrupt_reason, interrupts
     from dotshell.runtime import configure_process
 
