@@ -126,3 +126,17 @@ def test_installed_command_reconstructs_a_run_and_exits_with_its_status(small_sc
     r = subprocess.run([*exe, "reconstruct", str(tmp_path / "nothing")], capture_output=True,
                        text=True, cwd=ROOT, timeout=300)
     assert r.returncode == 2 and "error:" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_imports_ahead_start_with_the_step_that_makes_their_last_input():
+    """While the cloud is merged, the validation's and the previews' modules are imported in
+    the background (their last input is the cloud); no other step starts it."""
+    from dotshell.pipeline.steps import import_ahead
+
+    names = ["calibration", "views", "cloud", "validation", "previews"]
+    assert import_ahead(names, "views") is None and import_ahead(names, "previews") is None
+    assert import_ahead(["calibration", "views", "cloud", "mesh"], "cloud") is None
+    thread = import_ahead(names, "cloud")
+    assert thread is not None and thread.daemon
+    thread.join(120)
+    assert {"pyvista.plotting", "scipy.optimize"} <= set(sys.modules)

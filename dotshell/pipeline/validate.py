@@ -34,19 +34,23 @@ def field_band_mm(calib: RigCalibration, height_mm: float, step_mm: float = 0.25
 def cylinder_report(points: np.ndarray, calib: RigCalibration, v: dict[str, Any],
                     roi: dict[str, float]) -> dict[str, Any]:
     """Relative radius error of every lateral-surface point about the turntable axis (as the
-    paper does), a free cylinder fit, and the covered share of the measurable lateral area."""
+    paper does), a free cylinder fit, and the covered share of the measurable lateral area.
+    ``points`` (N, 3, mm) float32 or float64; the arithmetic is float64 either way (float32
+    coordinates are widened exactly, piece by piece, without a float64 copy of the cloud)."""
     R = v["radius_mm"]
     lo, hi = field_band_mm(calib, v["height_mm"])
     lo = max(lo, roi["z_min_mm"]) + v["edge_margin_mm"]
     hi = min(hi, roi["z_max_mm"], v["height_mm"]) - v["edge_margin_mm"]
+    z = np.asarray(points[:, 2], np.float64)
     # np.compress: the same rows as boolean indexing, 4-8x faster on (N, 3) clouds
-    lateral = np.compress((points[:, 2] >= lo) & (points[:, 2] <= hi), points, axis=0)
+    lateral = np.compress((z >= lo) & (z <= hi), points, axis=0)
+    del z
     if len(lateral) < 10 or hi <= lo:
         return {"shape": "cylinder", "error": "fewer than 10 points on the lateral surface",
                 "points": int(len(lateral)), "band_mm": [lo, hi]}
     # Every temporary here is tens of MB: each fresh one costs more in page faults than its
     # arithmetic, so the figures are computed in place (the same operations, the same values).
-    dr = np.hypot(lateral[:, 0], lateral[:, 1])
+    dr = np.hypot(lateral[:, 0], lateral[:, 1], dtype=np.float64)
     dr -= R  # r - R
     rel = dr / R
     mean_signed = float(np.mean(rel) * 100)
@@ -54,13 +58,13 @@ def cylinder_report(points: np.ndarray, calib: RigCalibration, v: dict[str, Any]
     rms = float(np.sqrt(np.mean(np.square(dr))))
     nt = int(round(360.0 / v["cell_deg"]))
     nz = max(1, int(np.ceil((hi - lo) / v["cell_mm"])))
-    theta = np.arctan2(lateral[:, 1], lateral[:, 0])  # the angle's arithmetic in place:
+    theta = np.arctan2(lateral[:, 1], lateral[:, 0], dtype=np.float64)  # the angle's arithmetic in place:
     np.remainder(np.degrees(theta, out=theta), 360.0, out=theta)  # degrees in [0, 360)
     theta /= 360.0
     theta *= nt
     ti = theta.astype(int)
     np.minimum(ti, nt - 1, out=ti)
-    zf = np.subtract(lateral[:, 2], lo, out=theta)  # (z - lo) / (hi - lo) * nz
+    zf = np.subtract(lateral[:, 2], lo, out=theta, dtype=np.float64)  # (z - lo) / (hi - lo) * nz
     zf /= hi - lo
     zf *= nz
     zi = zf.astype(int)
