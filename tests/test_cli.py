@@ -140,3 +140,17 @@ def test_imports_ahead_start_with_the_step_that_makes_their_last_input():
     assert thread is not None and thread.daemon
     thread.join(120)
     assert {"pyvista.plotting", "scipy.optimize"} <= set(sys.modules)
+
+
+def test_a_users_script_ends_with_pythons_exit_so_what_it_left_open_is_written(tmp_path):
+    """`dotshell script` runs a user's code: it keeps Python's own exit (cli.NORMAL_EXIT), whose
+    teardown closes a file a module the script imported wrote and never closed (the commands'
+    fast exit would lose what is still in its buffer)."""
+    (tmp_path / "helper.py").write_text(
+        f"log = open({str(tmp_path / 'out.txt')!r}, 'w')\nlog.write('kept')\n")
+    script = tmp_path / "use_helper.py"
+    script.write_text(f"import sys\nsys.path.insert(0, {str(tmp_path)!r})\nimport helper\n")
+    r = subprocess.run([sys.executable, "-m", "dotshell.cli", "script", str(script)],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "out.txt").read_text() == "kept"

@@ -58,8 +58,9 @@ def cylinder_report(points: np.ndarray, calib: RigCalibration, v: dict[str, Any]
     rms = float(np.sqrt(np.mean(np.square(dr))))
     nt = int(round(360.0 / v["cell_deg"]))
     nz = max(1, int(np.ceil((hi - lo) / v["cell_mm"])))
-    theta = np.arctan2(lateral[:, 1], lateral[:, 0], dtype=np.float64)  # the angle's arithmetic in place:
-    np.remainder(np.degrees(theta, out=theta), 360.0, out=theta)  # degrees in [0, 360)
+    # the angle's arithmetic in place: degrees in [0, 360), then the cell index
+    theta = np.arctan2(lateral[:, 1], lateral[:, 0], dtype=np.float64)
+    np.remainder(np.degrees(theta, out=theta), 360.0, out=theta)
     theta /= 360.0
     theta *= nt
     ti = theta.astype(int)
