@@ -20,6 +20,8 @@
 7. A study of 12 copies of that scan re-processed serially vs by ``dotshell batch`` on a
    2-worker local Dask cluster, and a model of the scaling to N workers (:mod:`batch_bench`;
    ``--skip-batch`` leaves it out).
+8. ``dotshell forward``'s CW solve (Jacobi CG) on the agar cylinder's ~31 k-node volume mesh
+   against ``splu`` (COLAMD) of the same system, interleaved (:mod:`forward_bench`; no scan).
 
 Every figure is printed beside the baseline recorded in ``benchmarks/baseline.json`` (the figures
 before issue 16, same machine). Results go to ``bench-results/latest.json``
@@ -48,6 +50,7 @@ import numpy as np
 import acquisition_rate
 import batch_bench
 import decoders
+import forward_bench
 import frame_io
 from bench_profile import ROOT, load_bench_profile
 from dotshell import parallel
@@ -295,6 +298,9 @@ def main() -> None:
             results["batch"] = batch_bench.bench_batch(Path(results["scan"]["run_dir"]), work,
                                                        args.quick)
             batch_bench.print_batch(results["batch"])
+        results["forward"] = forward_bench.measure(work, args.quick, args.repeats,
+                                                   args.repeats if args.quick else 2)
+        forward_bench.print_forward(results["forward"])
     results["machine"]["loadavg_1min_end"] = os.getloadavg()[0]
     print(f"\n1-min load average at end {os.getloadavg()[0]:.2f} (other work on the machine "
           "skews every figure above; the sides of each comparison ran interleaved)")
