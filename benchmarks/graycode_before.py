@@ -52,21 +52,35 @@ interpolation between them; others keep the integer value.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import cv2
 import numpy as np
 
 from dotshell.coding import Correspondence, PatternFrame, label_reasons
-# the settings, the code geometry (bits, offsets, axes) and the result records are the live
-# module's; what is frozen here is the decoding itself
+# the settings, the code geometry (bits, offsets, axes) and the levels record are the live
+# module's; what is frozen here is the decoding itself (with its per-axis record)
 from dotshell_codings.graycode import (_MAX_SUBPIXEL_SPAN, AUTO_DIRECT_MIN_SIGMAS,
-                                       SECOND_PASS_SHARE, SETTINGS_SCHEMA, AxisDecode,
-                                       FrameLevels, _Axis, _gray_to_binary)
+                                       SECOND_PASS_SHARE, SETTINGS_SCHEMA, FrameLevels, _Axis,
+                                       _gray_to_binary)
 from dotshell_codings.robust import direct_global, full_scale, noise_sigma, robust_bits
 from dotshell_codings.xor import BASE_FROM_END, _unxor  # the XOR rule itself, unchanged
 
 _CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+
+
+@dataclass
+class AxisDecode:
+    """Integer decoding of one projector axis (as the decoder before part 2 kept it)."""
+
+    axis: _Axis
+    first_pair: int  # index of the axis' first pattern (pair) after white and black
+    code: np.ndarray  # int32 coarse code value per pixel
+    integer: np.ndarray  # float32 projector coordinate of the decoded block's centre (clipped)
+    weak: np.ndarray  # a weak/uncertain bit that is not tolerated
+    tolerated: np.ndarray
+    out_of_range: np.ndarray
 
 
 class GrayCode:

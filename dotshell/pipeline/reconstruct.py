@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -13,7 +12,8 @@ import numpy as np
 from dotshell.coding import Correspondence, PatternCoding
 from dotshell.errors import CalibrationError, ReconstructionError
 from dotshell.geometry.calibration import RigCalibration
-from dotshell.geometry.triangulate import ImagePoints, select, triangulate_image
+from dotshell.geometry.triangulate import (ImagePoints, ImageSolve, select, solve_image,
+                                           triangulate_image)
 from dotshell.parallel import split
 
 
@@ -40,11 +40,13 @@ def in_roi(points: np.ndarray, roi: dict[str, float]) -> np.ndarray:
 
 
 def speckle_mask(pixels: np.ndarray, depth_mm: np.ndarray, shape: tuple[int, int],
-                 max_jump_mm: float) -> np.ndarray:
+                 max_jump_mm: float, kept: np.ndarray | None = None) -> np.ndarray:
     """True for points whose depth agrees with the median of their 5×5 camera neighbourhood
     within ``max_jump_mm`` (isolated decoding errors — speckles — fail). Pixels without
     points count as depth 0 (float32 depths, the image border replicated, as OpenCV's
     ``medianBlur`` of the depth image), so a point needs mostly valid neighbours to pass.
+    ``kept``: only these points are points (the others are neither in the depth image nor
+    tested, and get False).
 
     Computed per point without sorting: the median m of the 25 values lies within
     [d − j, d + j] exactly when at least 13 values v have ``v − d ≤ j`` and at least 13 have
@@ -52,39 +54,55 @@ def speckle_mask(pixels: np.ndarray, depth_mm: np.ndarray, shape: tuple[int, int
     img = np.zeros(shape, np.float32)
     pixels = np.ascontiguousarray(pixels)
     depth = np.ascontiguousarray(depth_mm, np.float64)
-    split(_scatter, len(depth), pixels, depth, img)
+    kept = np.ones(len(depth), bool) if kept is None else np.ascontiguousarray(kept, bool)
+    split(_scatter, len(depth), pixels, depth, kept, img)
     out = np.empty(len(depth), bool)
-    split(_median_within, len(depth), pixels, depth, img, float(max_jump_mm), out)
+    split(_median_within, len(depth), pixels, depth, kept, img, float(max_jump_mm), out)
     return out
 
 
 @numba.njit(nogil=True, cache=True)
 def _in_cylinder(points, radius, z_min, z_max, out, start, stop):
     for i in range(start, stop):
-        z = points[i, 2]
-        out[i] = math.hypot(points[i, 0], points[i, 1]) <= radius and z_min <= z <= z_max
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        out[i] = x * x + y * y <= radius * radius and z_min <= z <= z_max
 
 
 @numba.njit(nogil=True, cache=True)
-def _scatter(pixels, depth, img, start, stop):
+def _scatter(pixels, depth, kept, img, start, stop):
     for i in range(start, stop):
-        img[pixels[i, 1], pixels[i, 0]] = depth[i]
+        if kept[i]:
+            img[pixels[i, 1], pixels[i, 0]] = depth[i]
 
 
 @numba.njit(nogil=True, cache=True)
-def _median_within(pixels, depth, img, max_jump, out, start, stop):
+def _median_within(pixels, depth, kept, img, max_jump, out, start, stop):
     h, w = img.shape
+    j = max_jump
     for i in range(start, stop):
+        if not kept[i]:
+            out[i] = False
+            continue
         x, y, d = pixels[i, 0], pixels[i, 1], depth[i]
+        x0, x1 = max(x - 2, 0), max(x - 1, 0)
+        x3, x4 = min(x + 1, w - 1), min(x + 2, w - 1)
         below = 0
         above = 0
-        for dy in range(-2, 3):
-            yy = min(max(y + dy, 0), h - 1)
-            for dx in range(-2, 3):
-                e = np.float64(img[yy, min(max(x + dx, 0), w - 1)]) - d
-                below += e <= max_jump
-                above += e >= -max_jump
-        out[i] = below >= 13 and above >= 13
+        passed = False
+        for r in range(5):  # the 5×5 neighbourhood row by row, the five reads unrolled
+            row = img[min(max(y + r - 2, 0), h - 1)]
+            e0, e1, e2 = (np.float64(row[x0]) - d, np.float64(row[x1]) - d,
+                          np.float64(row[x]) - d)
+            e3, e4 = np.float64(row[x3]) - d, np.float64(row[x4]) - d
+            below += (e0 <= j) + (e1 <= j) + (e2 <= j) + (e3 <= j) + (e4 <= j)
+            above += (e0 >= -j) + (e1 >= -j) + (e2 >= -j) + (e3 >= -j) + (e4 >= -j)
+            # decided once both counts reach 13, or one of them no longer can
+            if below >= 13 and above >= 13:
+                passed = True
+                break
+            if min(below, above) + 20 - 5 * r < 13:
+                break
+        out[i] = passed
 
 
 def check_frames(frames: Sequence[np.ndarray], calib: RigCalibration, view: int) -> None:
@@ -104,6 +122,14 @@ def triangulate_pixels(corr: Correspondence, calib: RigCalibration, processing: 
                              row_tolerance_px=processing["row_tolerance_px"],
                              min_ray_angle_deg=processing["min_ray_angle_deg"],
                              to_frame=to_frame)
+
+
+def solve_pixels(corr: Correspondence, calib: RigCalibration, processing: dict[str, Any],
+                 to_frame: np.ndarray | None = None) -> ImageSolve:
+    """:func:`triangulate_pixels` before the kept points are selected."""
+    return solve_image(corr.valid, corr.column, corr.row, calib,
+                       row_tolerance_px=processing["row_tolerance_px"],
+                       min_ray_angle_deg=processing["min_ray_angle_deg"], to_frame=to_frame)
 
 
 def triangulate_correspondence(corr: Correspondence, calib: RigCalibration,
@@ -197,15 +223,16 @@ def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
     t0 = time.perf_counter()
     corr = coding.decode(frames, calib.projector.size)
     t1 = time.perf_counter()
-    tri = triangulate_pixels(corr, calib, processing, sample_frame_map(calib, angle_deg))
-    smooth = np.ones(len(tri.points), bool)
+    tri = solve_pixels(corr, calib, processing, sample_frame_map(calib, angle_deg))
+    smooth = tri.kept
     if processing["max_depth_jump_mm"] > 0:
         smooth = speckle_mask(tri.pixels, tri.depth, frames[0].shape[:2],
-                              processing["max_depth_jump_mm"])
-    inside = in_roi(tri.points, processing["roi"])
+                              processing["max_depth_jump_mm"], tri.kept)
+    inside = in_roi(tri.points, processing["roi"])  # False for points not kept (NaN)
     keep = smooth & inside
     t2 = time.perf_counter()
-    stats = {**corr.stats, **tri.counts, "speckle": int(np.count_nonzero(~smooth)),
+    stats = {**corr.stats, **tri.counts,
+             "speckle": int(np.count_nonzero(tri.kept & ~smooth)),
              "outside_roi": int(np.count_nonzero(smooth & ~inside)),
              "points": int(np.count_nonzero(keep))}
     pixels, points = select(keep, tri.pixels, tri.points)

@@ -51,7 +51,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from dotshell.coding import Correspondence, PatternFrame, label_reasons
+from dotshell.coding import Correspondence, PatternFrame
 from dotshell.settings import Setting
 from dotshell.parallel import split
 from dotshell_codings.robust import full_scale, noise_sigma
@@ -205,9 +205,6 @@ class AxisDecode:
     first_pair: int  # index of the axis' first pattern (pair) after white and black
     code: np.ndarray  # int32 coarse code value per pixel
     integer: np.ndarray  # float32 projector coordinate of the decoded block's centre (clipped)
-    weak: np.ndarray  # a weak/uncertain bit that is not tolerated
-    tolerated: np.ndarray
-    out_of_range: np.ndarray
 
 
 class GrayCode:
@@ -316,48 +313,27 @@ class GrayCode:
         axes = self._axes(projector_size)
         stack, full = self._stack(frames, axes)
         bits = self._classify(stack, axes, full)
+        h, w = bits.shadow.shape
+        flags = np.empty((len(axes), h, w), np.uint8)
         decoded = []
         for a, ax in enumerate(axes):
             gray, weak = self.gray_words(ax, bits.value[a], bits.weak[a])
             decoded.append(_decode_axis(ax, sum(x.nb for x in axes[:a]), gray, weak,
-                                        bits.shadow))
-        shadow = bits.shadow
-        weak = np.zeros(shadow.shape, bool)
-        out_of_range = np.zeros(shadow.shape, bool)
-        for d in decoded:
-            weak |= d.weak
-            out_of_range |= d.out_of_range
-        uncertain = np.zeros(shadow.shape, bool)
-        if self.classification == "robust":
-            uncertain = (weak | bits.no_direct) & ~shadow
-            low_contrast = np.zeros(shadow.shape, bool)
-        else:
-            low_contrast = weak & ~shadow
-        out_of_range &= ~(shadow | low_contrast | uncertain)
-        valid = ~(shadow | low_contrast | uncertain | out_of_range)
+                                        bits.shadow, flags[a]))
+        valid = np.empty((h, w), bool)
+        reason = np.empty((h, w), np.uint8)
+        counts = np.empty((h, 5), np.int64)
+        split(_kernels().verdict, h, bits.shadow, bits.no_direct, flags, valid, reason, counts)
+        n = [int(c) for c in counts.sum(axis=0)]
         coords, refined = self._coordinates(decoded, valid, stack, bits.range)
-        tolerated = np.zeros(shadow.shape, bool)
-        for d in decoded:
-            tolerated |= d.tolerated
-        stats = {
-            "pixels": int(valid.size),
-            "decoded": int(np.count_nonzero(valid)),
-            "shadow": int(np.count_nonzero(shadow)),
-            "low_contrast": int(np.count_nonzero(low_contrast)),
-            "uncertain": int(np.count_nonzero(uncertain)),
-            "out_of_range": int(np.count_nonzero(out_of_range)),
-            "edge_tolerated": int(np.count_nonzero(tolerated & valid)),
-        }
+        poor = "uncertain" if self.classification == "robust" else "low_contrast"
+        stats = {"pixels": int(valid.size), "decoded": n[0], "shadow": n[1], "low_contrast": 0,
+                 "uncertain": 0, "out_of_range": n[3], "edge_tolerated": n[4]}
+        stats[poor] = n[2]
         stats.update(refined)
-        masks = {"shadow": shadow, "low_contrast": low_contrast, "uncertain": uncertain,
-                 "out_of_range": out_of_range}
-        if self.classification == "robust":
-            del masks["low_contrast"]
-        else:
-            del masks["uncertain"]
-        reason, names = label_reasons(valid, masks)
         return Correspondence(column=coords[0], row=coords[1] if len(coords) > 1 else None,
-                              valid=valid, stats=stats, reason=reason, reason_names=names)
+                              valid=valid, stats=stats, reason=reason,
+                              reason_names=("decoded", "shadow", poor, "out_of_range"))
 
     def _classify(self, stack: np.ndarray, axes: list[_Axis], full: float) -> "ClassifiedBits":
         """Every projected bit of every pixel decided in one pass over the frames
@@ -413,56 +389,45 @@ class GrayCode:
 
     def _coordinates(self, decoded: list["AxisDecode"], valid: np.ndarray, stack: np.ndarray,
                      rng: np.ndarray) -> tuple[list[np.ndarray], dict[str, int]]:
+        """Each axis's projector coordinate (float32, NaN where not decoded): the block centre,
+        refined to sub-pixel where the stripe edges allow (``subpixel``)."""
         coords = []
         refined: dict[str, int] = {}
         for d in decoded:
             coord = d.integer
             if self.subpixel:
-                fine, ok = self._refine_axis(d, valid, stack, rng)
-                np.copyto(coord, fine, where=ok)
-                refined[f"refined_{'column' if d.axis.prefix == 'col' else 'row'}"] = int(
-                    np.count_nonzero(ok))
-            coord[~valid] = np.nan
+                name = "column" if d.axis.prefix == "col" else "row"
+                refined[f"refined_{name}"] = self._refine_axis(d, valid, stack, rng, coord)
+            else:
+                coord[~valid] = np.nan
             coords.append(coord)
         return coords, refined
 
     def _refine_axis(self, d: "AxisDecode", valid: np.ndarray, stack: np.ndarray,
-                     rng: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Sub-pixel coordinates of one axis and where they exist: scanned along the image
+                     rng: np.ndarray, coord: np.ndarray) -> int:
+        """Refine ``coord`` (one axis's coarse coordinates) in place to sub-pixel and set it NaN
+        where not decoded; returns how many pixels were refined. Scanned along the image
         direction its stripes cross, then along the other where that leaves more than
         :data:`SECOND_PASS_SHARE` of the decoded pixels unrefined."""
         anchor, span = self.refine_anchors(d.axis)
         ax = d.axis
+        k = _kernels()
+        ok = np.empty(valid.shape, bool)
+        flip = k.flip_table(ax.nb)
 
-        def refine(transpose: bool) -> tuple[np.ndarray, np.ndarray]:
-            h, w = valid.shape
-            shape = (h - 1, w) if transpose else (h, w - 1)
-            pos, val = np.empty(shape, np.float32), np.empty(shape, np.float32)
-            split(_kernels().anchors, shape[0], stack, self.inverse, rng, d.code, valid,
-                  transpose, ax.nb, ax.block, ax.offset, d.first_pair,
-                  -1 if anchor is None else anchor, pos, val)
-            fine = np.empty(valid.shape, np.float32)
-            ok = np.empty(valid.shape, bool)
-            if transpose:
-                blocks = -(-w // _kernels().COLUMN_BLOCK)
-                split(_kernels().interpolate_down, blocks, d.code, valid, pos, val, ax.block,
-                      ax.offset, span, fine, ok, np.empty((h, w), np.int32),
-                      np.empty((h, w), np.int32), min_chunk=1)
-            else:
-                split(_kernels().interpolate, h, d.code, valid, pos, val, ax.block, ax.offset,
-                      span, fine, ok)
-            return fine, ok
+        def refine(down: bool, first: bool) -> int:
+            kernel = k.refine_columns if down else k.refine_rows
+            split(kernel, valid.shape[1] if down else valid.shape[0], stack, self.inverse, rng,
+                  d.code, valid, flip, ax.block, ax.offset, d.first_pair,
+                  -1 if anchor is None else anchor, span, first, coord, ok)
+            return int(np.count_nonzero(ok))
 
         across = stripes_cross_columns(d.code, valid)
-        fine, ok = refine(across)
-        left = valid & ~ok
+        n_ok = refine(across, True)
         n_valid = int(np.count_nonzero(valid))
-        if np.count_nonzero(left) > SECOND_PASS_SHARE * max(n_valid, 1):
-            fine2, ok2 = refine(not across)
-            more = left & ok2
-            np.copyto(fine, fine2, where=more)
-            ok |= more
-        return fine, ok
+        if n_valid - n_ok > SECOND_PASS_SHARE * max(n_valid, 1):
+            n_ok = refine(not across, False)
+        return n_ok
 
 
 def _kernels() -> Any:
@@ -525,27 +490,29 @@ class ClassifiedBits:
 
 
 def _decode_axis(ax: _Axis, first: int, gray: np.ndarray, weak: np.ndarray,
-                 shadow: np.ndarray) -> AxisDecode:
-    """Coarse code of one axis from its packed Gray bits (:func:`kernels.assemble`).
+                 shadow: np.ndarray, flags: np.ndarray) -> AxisDecode:
+    """Coarse code of one axis from its packed Gray bits (:func:`kernels.assemble`), with its
+    per-pixel flags written into ``flags`` (H, W) uint8.
 
     A single weak bit is harmless when flipping it moves the code by one step and the pixel
     is on that bit's stripe edge (a 4-neighbour where the bit is surely 1 and one where it is
-    surely 0); more weak bits, or one off its edge, make the pixel ``weak``. Shadow pixels are
+    surely 0); more weak bits, or one off its edge, make the pixel bad. Shadow pixels are
     not decoded (code 0, no flag)."""
     shape = gray.shape
     code = np.empty(shape, np.int32)
     integer = np.empty(shape, np.float32)
-    bad, tolerated, oor = (np.empty(shape, bool) for _ in range(3))
     split(_kernels().assemble, shape[0], gray, weak, shadow, ax.nb, ax.block, ax.offset,
-          ax.size, code, integer, bad, tolerated, oor)
-    return AxisDecode(ax, first, code, integer, bad, tolerated, oor)
+          ax.size, code, integer, flags)
+    return AxisDecode(ax, first, code, integer)
 
 
 def stripes_cross_columns(code: np.ndarray, valid: np.ndarray) -> bool:
     """True when the decoded code changes more often down the camera columns than along the
     camera rows, i.e. the stripes lie closer to the image rows (refine along the columns)."""
-    along_rows, along_cols = _kernels().changes(code, valid)
-    return along_cols > along_rows
+    counts = np.empty((code.shape[0], 2), np.int64)
+    split(_kernels().changes, code.shape[0], code, valid, counts)
+    along_rows, along_cols = counts.sum(axis=0)
+    return bool(along_cols > along_rows)
 
 
 def make_graycode(settings: dict[str, Any] | None = None, context: Any = None) -> GrayCode:

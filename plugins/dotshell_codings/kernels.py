@@ -1,6 +1,6 @@
 """Compiled per-pixel loops of the binary codings' decoder (numba; split by rows across cores).
 
-The decoder of :mod:`dotshell_codings.graycode` runs in three passes over a view, each a loop
+The decoder of :mod:`dotshell_codings.graycode` runs in a few passes over a view, each a loop
 compiled here, with no image-sized temporary per bit:
 
 * :func:`classify` reads every frame once, row by row, and decides each projected bit of each
@@ -9,10 +9,12 @@ compiled here, with no image-sized temporary per bit:
   (``weak``), most significant bit first — the arithmetic is the decoder's documented rule in
   float32 exactly as numpy evaluated it before (NEP 50: Python scalars cast to float32);
 * :func:`assemble` turns the words into the coarse code (gray → binary, the one-weak-bit edge
-  tolerance with its 4-neighbour check, out-of-range test);
-* :func:`anchors` finds the sub-pixel stripe edges between adjacent valid pixels, reading the
-  pattern/inverse frames only there, and :func:`interpolate` / :func:`interpolate_down` place
-  every pixel between its anchors along the camera rows / columns.
+  tolerance with its 4-neighbour check, out-of-range test) with a flag byte per pixel, and
+  :func:`verdict` combines the axes' flags into each pixel's reason and the counts;
+* :func:`refine_rows` / :func:`refine_columns` scan each camera row / column once: the
+  sub-pixel stripe edges (anchors) between adjacent valid pixels are found as the scan reaches
+  them, reading the pattern/inverse frames only there, and the pixels since the previous
+  anchor are placed linearly between the two, in place in the coordinate map.
 
 Why numba (docs/performance.md, "Decode and triangulation"): numpy needs a full-size
 temporary per operation and per bit (the decoder made ~40 passes over 1.3 M-pixel arrays per
@@ -245,25 +247,27 @@ def _on_edge(value, weak, y, x, bit):
     return max(a, b, c, d) == 1 and (a == 0 or b == 0 or c == 0 or d == 0)
 
 
+#: bits of :func:`assemble`'s per-pixel flags
+BAD, TOLERATED, OUT_OF_RANGE = 1, 2, 4
+
+
 @numba.njit(**_OPTS)
 def assemble(value: np.ndarray, weak: np.ndarray, shadow: np.ndarray, nb: int, block: int,
-             offset: int, size: int, code: np.ndarray, integer: np.ndarray, bad: np.ndarray,
-             tolerated: np.ndarray, oor: np.ndarray, start: int, stop: int) -> None:
+             offset: int, size: int, code: np.ndarray, integer: np.ndarray, flags: np.ndarray,
+             start: int, stop: int) -> None:
     """Coarse code of one axis from its packed Gray bits (see ``graycode._decode_axis``'s rule:
     one weak bit is tolerated on its own stripe edge, where it moves the code by one step).
 
     Outputs (H, W): code int32, integer float32 (projector coordinate of the block centre,
-    clipped), bad (weak and not tolerated), tolerated, oor (block off the projector); all 0
-    in ``shadow`` (never decoded)."""
+    clipped), flags uint8: :data:`BAD` (weak and not tolerated), :data:`TOLERATED`,
+    :data:`OUT_OF_RANGE` (block off the projector); all 0 in ``shadow`` (never decoded)."""
     W = value.shape[1]
     for y in range(start, stop):
         for x in range(W):
             if shadow[y, x]:
                 code[y, x] = 0
                 integer[y, x] = 0
-                bad[y, x] = False
-                tolerated[y, x] = False
-                oor[y, x] = False
+                flags[y, x] = 0
                 continue
             b = np.int64(value[y, x])
             b ^= b >> 1
@@ -274,26 +278,61 @@ def assemble(value: np.ndarray, weak: np.ndarray, shadow: np.ndarray, nb: int, b
             c = np.int32(b)
             code[y, x] = c
             wk = weak[y, x]
-            ok = False
-            if wk != 0 and (wk & (wk - np.uint32(1))) == 0:  # exactly one weak bit
-                mask = np.int32(wk) * 2 - 1  # flipping that bit of the Gray code: binary bits k..0
-                flipped = c ^ mask
-                ok = abs(flipped - c) == 1 and _on_edge(value, weak, y, x, wk)
-            tolerated[y, x] = ok
-            bad[y, x] = wk != 0 and not ok
+            f = 0
+            if wk != 0:
+                f = BAD
+                if (wk & (wk - np.uint32(1))) == 0:  # exactly one weak bit
+                    mask = np.int32(wk) * 2 - 1  # flipping that Gray bit: binary bits k..0
+                    flipped = c ^ mask
+                    if abs(flipped - c) == 1 and _on_edge(value, weak, y, x, wk):
+                        f = TOLERATED
             lo = np.int64(c) * block - offset
             hi = lo + (block - 1)
-            oor[y, x] = hi < 0 or lo > size - 1
+            if hi < 0 or lo > size - 1:
+                f |= OUT_OF_RANGE
+            flags[y, x] = f
             integer[y, x] = np.float32(0.5 * (max(lo, 0) + min(hi, size - 1)))
 
 
 @numba.njit(**_OPTS)
-def changes(code: np.ndarray, valid: np.ndarray) -> tuple[int, int]:
-    """(code changes along the camera rows, down the camera columns) between valid pixels."""
+def verdict(shadow: np.ndarray, no_direct: np.ndarray, flags: np.ndarray, valid: np.ndarray,
+            reason: np.ndarray, counts: np.ndarray, start: int, stop: int) -> None:
+    """Each pixel's fate from the axes' (A, H, W) :func:`assemble` flags: reason 0 decoded
+    (``valid``), 1 shadow, 2 a bit undecided (weak and not tolerated on any axis, or no direct
+    light), 3 off the projector, the first that holds. ``counts`` (H, 5) int64: per row, the
+    pixels of each reason and (column 4) the decoded pixels with a tolerated bit."""
+    n_axes, _, W = flags.shape
+    for y in range(start, stop):
+        for k in range(5):
+            counts[y, k] = 0
+        for x in range(W):
+            f = 0
+            for a in range(n_axes):
+                f |= flags[a, y, x]
+            if shadow[y, x]:
+                r = 1
+            elif f & BAD or no_direct[y, x]:
+                r = 2
+            elif f & OUT_OF_RANGE:
+                r = 3
+            else:
+                r = 0
+                if f & TOLERATED:
+                    counts[y, 4] += 1
+            reason[y, x] = r
+            valid[y, x] = r == 0
+            counts[y, r] += 1
+
+
+@numba.njit(**_OPTS)
+def changes(code: np.ndarray, valid: np.ndarray, counts: np.ndarray, start: int,
+            stop: int) -> None:
+    """Per row y of ``start`` to ``stop``: code changes between valid pixels along the camera
+    row (``counts[y, 0]``) and down to the next row (``counts[y, 1]``)."""
     H, W = code.shape
-    along_rows = 0
-    along_cols = 0
-    for y in range(H):
+    for y in range(start, stop):
+        along_rows = 0
+        along_cols = 0
         for x in range(W):
             if not valid[y, x]:
                 continue
@@ -301,7 +340,8 @@ def changes(code: np.ndarray, valid: np.ndarray) -> tuple[int, int]:
                 along_rows += 1
             if y + 1 < H and valid[y + 1, x] and code[y + 1, x] != code[y, x]:
                 along_cols += 1
-    return along_rows, along_cols
+        counts[y, 0] = along_rows
+        counts[y, 1] = along_cols
 
 
 @numba.njit(**_INNER)
@@ -329,25 +369,34 @@ def _d(stack, inverse, fp, y, x, rng):
     return (p - q) / max(rng[y, x], np.float32(1e-6))
 
 
+@numba.njit(**_OPTS)
+def flip_table(nb: int) -> np.ndarray:
+    """(2^nb + 2,) int64: the projected bit (MSB-first index) that flips on entering each
+    coarse code (:func:`_flip_bit`), looked up per anchor instead of counting its zeros."""
+    table = np.empty((1 << nb) + 2, np.int64)
+    for j in range(table.shape[0]):
+        table[j] = _flip_bit(j, nb)
+    return table
+
+
 @numba.njit(**_INNER)
-def _anchor(stack, inverse, rng, code, valid, y0, x0, y1, x1, s, nb, block, offset,
-            first_pair, anchor_bit):
+def _anchor(stack, inverse, rng, code, y0, x0, y1, x1, s, flip, block, offset, first_pair,
+            anchor_bit):
     """(position along the scan line, projector coordinate) of the stripe edge between the
-    adjacent pixels (y0, x0) = sample ``s`` and (y1, x1) = sample ``s + 1``, or NaN, NaN."""
+    adjacent valid pixels (y0, x0) = sample ``s`` and (y1, x1) = sample ``s + 1``, or NaN,
+    NaN (``flip``: :func:`flip_table` of the axis)."""
     nan32 = np.float32(np.nan)
-    if not (valid[y0, x0] and valid[y1, x1]):
-        return nan32, nan32
     a, b = code[y0, x0], code[y1, x1]
     k = abs(b - a)
     if k == 0 or k > 2 or (anchor_bit >= 0 and k != 1):
         return nan32, nan32
     base = np.int64(min(a, b))
-    if anchor_bit >= 0 and _flip_bit(base + 1, nb) != anchor_bit:
+    if anchor_bit >= 0 and flip[base + 1] != anchor_bit:
         return nan32, nan32
     per_bit = 2 if inverse else 1
     t = np.float32(0.0)
     for step in range(1, k + 1):
-        fp = 2 + per_bit * (first_pair + _flip_bit(base + step, nb))
+        fp = 2 + per_bit * (first_pair + flip[base + step])
         d0 = _d(stack, inverse, fp, y0, x0, rng)
         d1 = _d(stack, inverse, fp, y1, x1, rng)
         den = d0 - d1
@@ -356,23 +405,6 @@ def _anchor(stack, inverse, rng, code, valid, y0, x0, y1, x1, s, nb, block, offs
     pos = np.float32(np.float64(s) + np.float64(t / np.float32(k)))
     val = np.float32((base + 1) * block - offset - 0.5 + 0.5 * (k - 1) * block)
     return pos, val
-
-
-@numba.njit(**_OPTS)
-def anchors(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndarray,
-            valid: np.ndarray, down: bool, nb: int, block: int, offset: int, first_pair: int,
-            anchor_bit: int, pos: np.ndarray, val: np.ndarray, start: int, stop: int) -> None:
-    """Stripe-edge anchors between horizontally adjacent pixels, (H, W − 1) outputs (``down``:
-    vertically adjacent, (H − 1, W)): position along the scan line and projector coordinate,
-    NaN where there is none. Rows are read along memory in both cases."""
-    for y in range(start, stop):
-        for x in range(pos.shape[1]):
-            if down:
-                pos[y, x], val[y, x] = _anchor(stack, inverse, rng, code, valid, y, x, y + 1, x,
-                                               y, nb, block, offset, first_pair, anchor_bit)
-            else:
-                pos[y, x], val[y, x] = _anchor(stack, inverse, rng, code, valid, y, x, y, x + 1,
-                                               x, nb, block, offset, first_pair, anchor_bit)
 
 
 @numba.njit(**_INNER)
@@ -390,93 +422,92 @@ def _interpolate(i, c, pl, vl, pr, vr, block, offset, max_span):
 
 
 @numba.njit(**_OPTS)
-def interpolate(code: np.ndarray, valid: np.ndarray, pos: np.ndarray, val: np.ndarray,
-                block: int, offset: int, max_span: int, fine: np.ndarray, ok: np.ndarray,
-                start: int, stop: int) -> None:
-    """Sub-pixel coordinates along the lines of line-major (H, W) ``code`` and ``valid`` from
-    the (H, W − 1) anchors between their samples (:func:`anchors`): a valid sample between two
-    anchors of its run of valid samples (at most ``max_span`` blocks apart, its own block
-    between them) is interpolated linearly. Outputs fine (float32, NaN where not refined) and
-    ok (bool), line-major."""
+def refine_rows(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndarray,
+                valid: np.ndarray, flip: np.ndarray, block: int, offset: int, first_pair: int,
+                anchor_bit: int, max_span: int, first: bool, coord: np.ndarray,
+                ok: np.ndarray, start: int, stop: int) -> None:
+    """Sub-pixel coordinates along the camera rows ``start`` to ``stop``, in one pass: each
+    stripe edge between horizontally adjacent valid pixels (an anchor, :func:`_anchor`) is
+    found as the scan reaches it, and the samples since the previous anchor of the same run of
+    valid samples are placed linearly between the two (at most ``max_span`` blocks apart,
+    each sample's own block between them).
+
+    ``coord`` (H, W) float32 holds the coarse coordinate: refined samples get their sub-pixel
+    coordinate, invalid ones NaN, the rest keep theirs. ``ok`` (H, W) bool marks the refined
+    samples; ``first``: this is the axis's first pass (``ok`` is cleared), else samples
+    already refined (by the other direction's pass) are left as they are."""
     W = code.shape[1]
+    nan32 = np.float32(np.nan)
     for y in range(start, stop):
-        left = np.empty(W, np.int64)
-        last_bad = np.empty(W, np.int64)
-        lft = -1
+        prev = -1
+        prev_pos = np.float32(0.0)
+        prev_val = np.float32(0.0)
         bad = -1
+        valid_y, code_y, coord_y, ok_y = valid[y], code[y], coord[y], ok[y]
         for x in range(W):
-            if x >= 1 and not np.isnan(pos[y, x - 1]):
-                lft = x - 1
-            if not valid[y, x]:
+            if first:
+                ok_y[x] = False
+            if not valid_y[x]:
                 bad = x
-            left[x] = lft
-            last_bad[x] = bad
-        rgt = W
-        nxt = W
-        for x in range(W - 1, -1, -1):
-            if x <= W - 2 and not np.isnan(pos[y, x]):
-                rgt = x
-            if not valid[y, x]:
-                nxt = x
-            lf = left[x]
-            f = np.float32(np.nan)
-            good = False
-            if valid[y, x] and lf > last_bad[x] and rgt < nxt and lf >= 0 and rgt < W - 1:
-                f, good = _interpolate(x, code[y, x], pos[y, lf], val[y, lf], pos[y, rgt],
-                                       val[y, rgt], block, offset, max_span)
-            fine[y, x] = f
-            ok[y, x] = good
-
-
-#: camera columns scanned together by :func:`interpolate_down` (one task of its parallel loop)
-COLUMN_BLOCK = 64
+                coord_y[x] = nan32
+                continue
+            if x + 1 == W or not valid_y[x + 1]:
+                continue
+            pos, val = _anchor(stack, inverse, rng, code, y, x, y, x + 1, x, flip, block,
+                               offset, first_pair, anchor_bit)
+            if np.isnan(pos):
+                continue
+            if prev >= 0 and bad <= prev:
+                for i in range(prev + 1, x + 1):
+                    if not ok_y[i]:
+                        f, good = _interpolate(i, code_y[i], prev_pos, prev_val, pos, val,
+                                               block, offset, max_span)
+                        if good:
+                            coord_y[i] = f
+                            ok_y[i] = True
+            prev, prev_pos, prev_val = x, pos, val
 
 
 @numba.njit(**_OPTS)
-def interpolate_down(code: np.ndarray, valid: np.ndarray, pos: np.ndarray, val: np.ndarray,
-                     block: int, offset: int, max_span: int, fine: np.ndarray, ok: np.ndarray,
-                     left: np.ndarray, last_bad: np.ndarray, start: int, stop: int) -> None:
-    """:func:`interpolate` along the camera columns, from (H − 1, W) anchors, without
-    transposing: blocks ``start`` to ``stop`` of :data:`COLUMN_BLOCK` columns are scanned row
-    by row, so that every read runs along memory (``left``, ``last_bad``: (H, W) int32
-    scratch)."""
-    H, W = code.shape
-    for blk in range(start, stop):
-        x0 = blk * COLUMN_BLOCK
-        x1 = min(W, x0 + COLUMN_BLOCK)
-        lft = np.empty(COLUMN_BLOCK, np.int32)
-        bad = np.empty(COLUMN_BLOCK, np.int32)
-        for j in range(COLUMN_BLOCK):
-            lft[j] = -1
-            bad[j] = -1
-        for y in range(H):
-            for x in range(x0, x1):
-                j = x - x0
-                if y >= 1 and not np.isnan(pos[y - 1, x]):
-                    lft[j] = y - 1
-                if not valid[y, x]:
-                    bad[j] = y
-                left[y, x] = lft[j]
-                last_bad[y, x] = bad[j]
-        for j in range(COLUMN_BLOCK):
-            lft[j] = H  # now the right anchor
-            bad[j] = H  # now the next invalid sample
-        for y in range(H - 1, -1, -1):
-            for x in range(x0, x1):
-                j = x - x0
-                if y <= H - 2 and not np.isnan(pos[y, x]):
-                    lft[j] = y
-                if not valid[y, x]:
-                    bad[j] = y
-                lf = left[y, x]
-                rg = lft[j]
-                f = np.float32(np.nan)
-                good = False
-                if valid[y, x] and lf > last_bad[y, x] and rg < bad[j] and lf >= 0 and rg < H - 1:
-                    f, good = _interpolate(y, code[y, x], pos[lf, x], val[lf, x], pos[rg, x],
-                                           val[rg, x], block, offset, max_span)
-                fine[y, x] = f
-                ok[y, x] = good
+def refine_columns(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndarray,
+                   valid: np.ndarray, flip: np.ndarray, block: int, offset: int,
+                   first_pair: int, anchor_bit: int, max_span: int, first: bool,
+                   coord: np.ndarray, ok: np.ndarray, start: int, stop: int) -> None:
+    """:func:`refine_rows` down the camera columns ``start`` to ``stop``, without transposing:
+    the image is scanned row by row, so that every read runs along memory, with each column's
+    scan state (previous anchor, last invalid sample) kept apart."""
+    H = code.shape[0]
+    nan32 = np.float32(np.nan)
+    n = stop - start
+    prev = np.full(n, -1, np.int64)
+    prev_pos = np.empty(n, np.float32)
+    prev_val = np.empty(n, np.float32)
+    bad = np.full(n, -1, np.int64)
+    for y in range(H):
+        for x in range(start, stop):
+            j = x - start
+            if first:
+                ok[y, x] = False
+            if not valid[y, x]:
+                bad[j] = y
+                coord[y, x] = nan32
+                continue
+            if y + 1 == H or not valid[y + 1, x]:
+                continue
+            pos, val = _anchor(stack, inverse, rng, code, y, x, y + 1, x, y, flip, block,
+                               offset, first_pair, anchor_bit)
+            if np.isnan(pos):
+                continue
+            p = prev[j]
+            if p >= 0 and bad[j] <= p:
+                for i in range(p + 1, y + 1):
+                    if not ok[i, x]:
+                        f, good = _interpolate(i, code[i, x], prev_pos[j], prev_val[j],
+                                               pos, val, block, offset, max_span)
+                        if good:
+                            coord[i, x] = f
+                            ok[i, x] = True
+            prev[j], prev_pos[j], prev_val[j] = y, pos, val
 
 
 @numba.njit(**_OPTS)
