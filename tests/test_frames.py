@@ -108,6 +108,24 @@ def test_page_reader_reads_any_uncompressed_stack_and_stops_where_a_file_is_cut(
         store.read_one(0)
 
 
+def test_a_page_linked_before_its_directory_is_written_is_not_yet_there(tmp_path):
+    """A reader of a view being written can find the next page linked while its directory is
+    still zeros: the stack then holds the pages before it (it was read as a damaged page)."""
+    frames = _frames()
+    path = tmp_path / "frames" / "view_000.tif"
+    path.parent.mkdir()
+    with tifffile.TiffWriter(path) as tw:
+        for name, f in zip(NAMES, frames):
+            tw.write(f, metadata=None, description=name)
+    with tifffile.TiffFile(path) as tf:
+        last = tf.pages[3].offset
+    data = bytearray(path.read_bytes())
+    data[last:last + 2 + 12 * 12] = bytes(2 + 12 * 12)  # its entry count and entries
+    path.write_bytes(bytes(data))
+    store = TiffFrameStore(tmp_path, 0, NAMES)
+    assert store.count() == 3 and np.array_equal(store.read_one(2), frames[2])
+
+
 def test_frame_store_refuses_bad_input_with_clear_errors(tmp_path):
     store = TiffFrameStore(tmp_path, 0, NAMES)
     with pytest.raises(RunError, match="frame 1 .'black'. arrived after 0 frames"):
