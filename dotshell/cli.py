@@ -410,16 +410,39 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    from dotshell.pipeline.lifecycle import interrupt_reason, interrupts
-    from dotshell.runtime import configure_process
+#: commands that run a user's code or hold a session: they end with Python's own exit, which
+#: flushes and closes whatever those left open
+NORMAL_EXIT = frozenset({"script", "serve", "tui", "attach", "emulate"})
 
+
+def main(argv: list[str] | None = None) -> int:
+    """The ``dotshell`` command on ``argv``; its exit status. Run as the command (``argv``
+    None), the process ends here once the work is done, without the interpreter's teardown
+    (:func:`dotshell.runtime.exit_now`; not for :data:`NORMAL_EXIT`); called with ``argv``
+    (tests, scripts) it returns."""
+    args = parse_args(argv)
+    code = run_command(args)
+    if argv is None and args.command not in NORMAL_EXIT:
+        from dotshell.runtime import exit_now
+
+        exit_now(code)
+    return code
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     argv = list(sys.argv[1:] if argv is None else argv)
     head = argv[:argv.index("--")] if "--" in argv else argv  # --debug anywhere before `--`
     debug = "--debug" in head
     argv = [a for a in head if a != "--debug"] + argv[len(head):]
     args = build_parser().parse_args(argv)
     args.debug = args.debug or debug
+    return args
+
+
+def run_command(args: argparse.Namespace) -> int:
+    from dotshell.pipeline.lifecycle import interrupt_reason, interrupts
+    from dotshell.runtime import configure_process
+
     configure_process()  # BLAS on one thread, large blocks unmapped when freed
     try:
         with interrupts(notify=lambda text: err.print(f"[yellow]{escape(text)}[/]")):

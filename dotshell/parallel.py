@@ -61,6 +61,14 @@ def _pool() -> ThreadPoolExecutor:
     return _POOL
 
 
+def shutdown() -> None:
+    """Stop the pool's threads (idle between passes); a later pass starts a new pool."""
+    global _POOL
+    pool, _POOL = _POOL, None
+    if pool is not None:
+        pool.shutdown(wait=True)
+
+
 def split(kernel: Callable[..., Any], n: int, *args: Any, min_chunk: int = 16) -> None:
     """Run ``kernel(*args, start, stop)`` over ``range(n)`` cut into one contiguous range per
     worker (ranges of at least ``min_chunk``); returns when all are done, re-raising the first

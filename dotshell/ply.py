@@ -31,8 +31,10 @@ def write_ply(path: Path, points: np.ndarray, **scalars: np.ndarray) -> Path:
     return Path(path)
 
 
-def read_ply(path: Path, finite: bool = True) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """Read a PLY written by :func:`write_ply`: (points (N, 3) float64, scalars by name).
+def read_ply(path: Path, finite: bool = True,
+             float_type: type = np.float64) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Read a PLY written by :func:`write_ply`: (points (N, 3) float64, scalars by name);
+    ``float_type=np.float32``: the points as stored, without widening them.
 
     Any other content — not a PLY, another format or property type, a header that does not
     match the data, non-finite points (unless ``finite`` is False, for clouds made elsewhere) —
@@ -50,7 +52,7 @@ def read_ply(path: Path, finite: bool = True) -> tuple[np.ndarray, dict[str, np.
         raise _damaged(path, f"it holds {len(body)} bytes of vertex data, the header's {n} "
                              f"vertices need {n * dtype.itemsize}")
     rec = np.frombuffer(body, dtype=dtype, count=n)
-    pts = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(np.float64)
+    pts = np.column_stack([rec["x"], rec["y"], rec["z"]]).astype(float_type, copy=False)
     if finite and not np.isfinite(pts).all():
         bad = int((~np.isfinite(pts).all(axis=1)).sum())
         raise _damaged(path, f"{bad} of its {n} points have non-finite coordinates (NaN or "

@@ -52,6 +52,16 @@ def _prepare_offscreen() -> None:
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 
+def import_renderer() -> None:
+    """Import pyvista's plotting (with VTK and matplotlib, ~2 s of CPU on 2 cores). Workflows
+    call it in the background while the cloud is merged and validated
+    (:func:`dotshell.pipeline.steps.import_ahead`); renderers call it before using pyvista: an
+    import statement waits for a module another thread is importing, where pyvista's lazy
+    attributes (``pv.Plotter``) would fail on a half-imported ``pyvista.plotting``."""
+    _prepare_offscreen()
+    import pyvista.plotting  # noqa: F401
+
+
 def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
                   title: str = "", scalar_name: str = "z [mm]",
                   clim: tuple[float, float] | None = None, cmap: str = "viridis",
@@ -60,7 +70,7 @@ def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
 
     ``camera``: (eye, focal point, view-up) to look along, zoomed to fit the cloud, with
     eye-dome lighting (for single-view clouds); default an isometric view with axes."""
-    _prepare_offscreen()
+    import_renderer()  # waits for the import if another thread is making it (import_ahead)
     import pyvista as pv
 
     if len(points) > PREVIEW_POINTS:  # a 900 px image shows no more; VTK copies are large
@@ -71,7 +81,7 @@ def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
     pl = pv.Plotter(off_screen=True, window_size=(900, 900))
     try:
         pl.set_background("white")
-        cloud[scalar_name] = points[:, 2] if scalars is None else scalars
+        cloud[scalar_name] = np.asarray(points[:, 2] if scalars is None else scalars, np.float64)
         pl.add_mesh(cloud, scalars=scalar_name, point_size=2, render_points_as_spheres=False,
                     cmap=cmap, clim=clim, scalar_bar_args={"color": "black"})
         if title:
@@ -105,17 +115,18 @@ def screenshot(plotter, path: Path) -> Path:
 
 
 def cloud_previews(store, points: np.ndarray, profile, bus) -> dict[str, Any]:
-    """``previews/cloud.png`` of the merged cloud (by radius error for a cylinder, by height
-    otherwise); returns {name: path relative to the run's products} and warns if skipped."""
+    """``previews/cloud.png`` of the merged cloud (``points`` (N, 3) mm, float32 or float64;
+    by radius error for a cylinder, by height otherwise); returns {name: path relative to the
+    run's products} and warns if skipped."""
     out: dict[str, Any] = {}
     pdir = store.path("previews")
     pdir.mkdir(parents=True, exist_ok=True)
-    r = np.hypot(points[:, 0], points[:, 1])
     v = profile.data["validation"]
     style: dict[str, Any] = {}
-    if v["shape"] == "cylinder":
-        scal, name = r - v["radius_mm"], "radius error [mm]"
-        c = max(0.01, 4 * float(np.median(np.abs(scal))))  # robust: the cap saturates
+    if v["shape"] == "cylinder":  # float64 arithmetic on float32 or float64 points (mm)
+        scal, name = np.hypot(points[:, 0], points[:, 1], dtype=np.float64), "radius error [mm]"
+        scal -= v["radius_mm"]
+        c = max(0.01, 4 * float(np.median(np.abs(scal), overwrite_input=True)))  # the cap saturates
         style = {"clim": (-c, c), "cmap": "coolwarm"}
     else:
         scal, name = points[:, 2], "z [mm]"

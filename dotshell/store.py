@@ -410,11 +410,12 @@ class RunStore:
             return self.path("transillumination", f"{name}.png")
         return self.path("transillumination", f"view_{view:03d}", f"{name}.png")
 
-    def read_frames(self, view: int, spec: FrameSpec | None = None,
-                    fix: str = "") -> np.ndarray:
+    def read_frames(self, view: int, spec: FrameSpec | None = None, fix: str = "",
+                    out: np.ndarray | None = None) -> np.ndarray:
         """All frames of a view in capture order, as written: (frames, height, width); with a
-        ``spec``, each checked against it (see :meth:`FrameStore.read_all`)."""
-        return self.frames(view).read_all(spec, fix)
+        ``spec``, each checked against it; ``out``: an array to reuse (see
+        :meth:`FrameStore.read_all`)."""
+        return self.frames(view).read_all(spec, fix, out)
 
     # ---- events -----------------------------------------------------------------------------
 

@@ -86,6 +86,8 @@ def _read_ifd(f: BinaryIO, lay: _Layout, offset: int, size: int
         return None, 0
     f.seek(offset)
     n = struct.unpack(lay.order + lay.count, f.read(csize))[0]
+    if n == 0:  # linked but not written yet (a writer appending it): no directory is empty
+        return None, 0
     body = f.read(n * lay.entry + struct.calcsize(lay.offset))
     if len(body) < n * lay.entry + struct.calcsize(lay.offset):
         return None, 0

@@ -1,4 +1,5 @@
 import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -91,8 +92,53 @@ def small_scan(tmp_path_factory):
     return result, events
 
 
+#: The test files that take longest on one worker (most first; measured with
+#: ``pytest -n 2 --dist loadfile --junitxml``, summed by file). They are handed out first, so the
+#: two workers of ``make test`` finish together instead of one running a long file alone at the
+#: end (xdist's default order, most tests first, put these few-test files last).
+LONGEST_FIRST = ("test_tui.py", "test_normalize.py", "test_batch.py", "test_tui_pty.py",
+                 "test_lifecycle.py", "test_calib_sim.py", "test_device_runs.py", "test_mesh.py",
+                 "test_pdi.py", "test_faults.py", "test_hardware_scans.py",
+                 "test_calib_captures.py", "test_readers.py", "test_tui_snapshots.py")
+
+
 def pytest_collection_modifyitems(config, items):
-    """Full-resolution (slow) checks may run for many minutes: no per-test timeout there."""
+    """Full-resolution (slow) checks may run for many minutes: no per-test timeout there.
+    Files in :data:`LONGEST_FIRST` order come first (each file's tests keep their order)."""
     for item in items:
         if item.get_closest_marker("slow") is not None:
             item.add_marker(pytest.mark.timeout(0))
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
+
+# ---- numba kernels compiled once, before the xdist workers run tests ---------------------------
+
+def _is_xdist_controller(config) -> bool:
+    return not hasattr(config, "workerinput") and bool(getattr(config.option, "numprocesses", 0))
+
+
+def pytest_configure(config):
+    """In the xdist controller: hand the files out in collection order, and compile the numba
+    kernels into their on-disk cache in a subprocess (tests/compile_kernels.py) while the
+    workers start and collect; the first worker to finish collecting waits for it
+    (:func:`pytest_xdist_node_collection_finished`)."""
+    if _is_xdist_controller(config):
+        config.option.loadscopereorder = False  # keep the LONGEST_FIRST order (--dist loadfile)
+        config._dotshell_compile = subprocess.Popen(
+            [sys.executable, str(ROOT / "tests" / "compile_kernels.py")],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_node_collection_finished(node, ids):
+    """No test is handed out before the kernels are in the cache (else each worker compiles
+    them again, ~35 s each)."""
+    proc = getattr(node.config, "_dotshell_compile", None)
+    if proc is None:
+        return
+    node.config._dotshell_compile = None
+    out, _ = proc.communicate()
+    if proc.returncode != 0:  # the tests that decode will fail and say why; say it here too
+        node.config.get_terminal_writer().line(
+            f"tests/compile_kernels.py failed (exit {proc.returncode}):\n{out}", red=True)

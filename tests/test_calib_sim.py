@@ -50,16 +50,23 @@ def small_capture(tmp_path_factory):
     return prof, run
 
 
+@pytest.fixture(scope="module")
+def small_solution(small_capture):
+    """The capture solved once (calibration.json written into it), for the tests that read the
+    solve's result; the solve of each damaged copy and of the command line are their own."""
+    prof, run = small_capture
+    return solve(run, prof.data["calibrate"], _pm())
+
+
 def _copy(run: Path, tmp: Path) -> Path:
     dst = tmp / "copy"
     shutil.copytree(run, dst, symlinks=True)
     return dst
 
 
-def test_small_calibration_against_ground_truth(small_capture):
-    prof, run = small_capture
-    res = solve(run, prof.data["calibrate"], _pm())
-    r = res.report
+def test_small_calibration_against_ground_truth(small_capture, small_solution):
+    _, run = small_capture
+    r = small_solution.report
     g = r["ground_truth"]
     print(json.dumps({k: r[k] for k in ("rms_px", "left_out", "ground_truth")}, indent=1))
     assert set(r["rms_px"]) == {"camera", "projector", "stereo", "turntable"}
@@ -84,11 +91,11 @@ def test_small_calibration_against_ground_truth(small_capture):
         assert name in r["poses"]
 
 
-def test_small_cylinder_scan_with_measured_calibration(small_capture, tmp_path):
+def test_small_cylinder_scan_with_measured_calibration(small_capture, small_solution,
+                                                       tmp_path):
     from dotshell.pipeline.scan import scan
 
     prof, run = small_capture
-    solve(run, prof.data["calibrate"], _pm())
     pm = _pm()
     measured = scan(prof, pm, tmp_path, calibration_file=str(run / "calibration.json"))
     vm = measured.report["validation"]

@@ -1,5 +1,7 @@
 """The dotshell command: user errors are one paragraph with exit code 2, never a traceback."""
 
+import json
+import shutil
 import subprocess
 import sys
 
@@ -100,3 +102,55 @@ def test_installed_command_scans_with_override_and_prints_table(tmp_path):
     runs = list((tmp_path / "runs").iterdir())
     assert len(runs) == 1 and (runs[0] / "cloud.ply").is_file()
     assert not (runs[0] / "previews").exists()
+
+
+def test_installed_command_reconstructs_a_run_and_exits_with_its_status(small_scan, tmp_path):
+    """`dotshell reconstruct` as a user runs it: the process ends without the interpreter's
+    teardown (dotshell.runtime.exit_now), yet everything is there — the published report
+    with the same cloud and figures, the previews, the printed table through a pipe — and a
+    user error still exits 2."""
+    before = json.loads((small_scan[0].run_dir / "current" / "report.json").read_text())
+    run = shutil.copytree(small_scan[0].run_dir, tmp_path / "run", symlinks=True)
+    exe = [sys.executable, "-m", "dotshell.cli"]
+    r = subprocess.run([*exe, "reconstruct", str(run)], capture_output=True, text=True,
+                       cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "Mean relative error" in r.stdout and r.stdout.rstrip().endswith("(status: completed)")
+    report = json.loads((run / "current" / "report.json").read_text())
+    assert report["generation"] == before["generation"] + 1
+    assert report["cloud"]["points"] == before["cloud"]["points"] > 0
+    for key in ("mean_rel_error_pct", "std_rel_error_pct", "coverage_pct"):
+        assert report["validation"][key] == before["validation"][key]
+    assert set(report["previews"]) == set(before["previews"]) >= {"cloud", "columns", "frame"}
+    assert all((run / "current" / p).stat().st_size > 1000 for p in report["previews"].values())
+    r = subprocess.run([*exe, "reconstruct", str(tmp_path / "nothing")], capture_output=True,
+                       text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 2 and "error:" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_imports_ahead_start_with_the_step_that_makes_their_last_input():
+    """While the cloud is merged, the validation's and the previews' modules are imported in
+    the background (their last input is the cloud); no other step starts it."""
+    from dotshell.pipeline.steps import import_ahead
+
+    names = ["calibration", "views", "cloud", "validation", "previews"]
+    assert import_ahead(names, "views") is None and import_ahead(names, "previews") is None
+    assert import_ahead(["calibration", "views", "cloud", "mesh"], "cloud") is None
+    thread = import_ahead(names, "cloud")
+    assert thread is not None and thread.daemon
+    thread.join(120)
+    assert {"pyvista.plotting", "scipy.optimize"} <= set(sys.modules)
+
+
+def test_a_users_script_ends_with_pythons_exit_so_what_it_left_open_is_written(tmp_path):
+    """`dotshell script` runs a user's code: it keeps Python's own exit (cli.NORMAL_EXIT), whose
+    teardown closes a file a module the script imported wrote and never closed (the commands'
+    fast exit would lose what is still in its buffer)."""
+    (tmp_path / "helper.py").write_text(
+        f"log = open({str(tmp_path / 'out.txt')!r}, 'w')\nlog.write('kept')\n")
+    script = tmp_path / "use_helper.py"
+    script.write_text(f"import sys\nsys.path.insert(0, {str(tmp_path)!r})\nimport helper\n")
+    r = subprocess.run([sys.executable, "-m", "dotshell.cli", "script", str(script)],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "out.txt").read_text() == "kept"

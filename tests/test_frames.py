@@ -9,7 +9,8 @@ import pytest
 import tifffile
 
 from dotshell.cli import main
-from dotshell.errors import RunError
+from dotshell.errors import FrameError, RunError
+from dotshell.framecheck import FrameSpec
 from dotshell.frames import PngFrameStore, TiffFrameStore, open_frames
 from dotshell.pipeline.scan import reconstruct_run
 from dotshell.plugins import PluginManager
@@ -37,6 +38,35 @@ def test_tiff_stack_roundtrips_and_reads_one_frame(tmp_path, dtype):
     all_ = back.read_all()
     assert all_.dtype == dtype and np.array_equal(all_, frames)
     assert np.array_equal(back.read_one(3), frames[3])
+
+
+def test_a_view_is_read_over_the_previous_views_array_and_still_checked(tmp_path):
+    """`reconstruct` reads each view into the previous view's array (no fresh 110 MB array a
+    view): the same frames as a fresh read; an array of another shape or a read-only one is
+    not used; a value past the bit depth is refused either way, naming its frame."""
+    views = [_frames(), _frames()[::-1].copy()]
+    for v, frames in enumerate(views):
+        store = TiffFrameStore(tmp_path, v, NAMES)
+        for i, f in enumerate(frames):
+            store.append(i, f)
+        store.close()
+    spec = FrameSpec(14, 9, 12)
+    first = TiffFrameStore(tmp_path, 0, NAMES).read_all(spec)
+    second = TiffFrameStore(tmp_path, 1, NAMES).read_all(spec, out=first)
+    assert second is first and np.array_equal(second, views[1])
+    assert TiffFrameStore(tmp_path, 0, NAMES).read_all(spec, out=first[:2]) is not first
+    frozen = first.view()
+    frozen.flags.writeable = False
+    again = TiffFrameStore(tmp_path, 0, NAMES).read_all(spec, out=frozen)
+    assert again is not frozen and np.array_equal(again, views[0])
+    loud = views[0].copy()
+    loud[2, 4, 5] = 4096  # 13 bit
+    store = TiffFrameStore(tmp_path, 2, NAMES)
+    for i, f in enumerate(loud):
+        store.append(i, f)
+    store.close()
+    with pytest.raises(FrameError, match="frame 'col_00' .page 2. of .*holds values up to 4096"):
+        TiffFrameStore(tmp_path, 2, NAMES).read_all(spec, out=first)
 
 
 def test_frames_of_a_view_cut_short_stay_readable(tmp_path):
@@ -76,6 +106,24 @@ def test_page_reader_reads_any_uncompressed_stack_and_stops_where_a_file_is_cut(
     tifffile.imwrite(path, frames[0], compression="zlib", metadata=None, description="white")
     with pytest.raises(RunError, match="page 0 is not an uncompressed 8/16-bit"):
         store.read_one(0)
+
+
+def test_a_page_linked_before_its_directory_is_written_is_not_yet_there(tmp_path):
+    """A reader of a view being written can find the next page linked while its directory is
+    still zeros: the stack then holds the pages before it (it was read as a damaged page)."""
+    frames = _frames()
+    path = tmp_path / "frames" / "view_000.tif"
+    path.parent.mkdir()
+    with tifffile.TiffWriter(path) as tw:
+        for name, f in zip(NAMES, frames):
+            tw.write(f, metadata=None, description=name)
+    with tifffile.TiffFile(path) as tf:
+        last = tf.pages[3].offset
+    data = bytearray(path.read_bytes())
+    data[last:last + 2 + 12 * 12] = bytes(2 + 12 * 12)  # its entry count and entries
+    path.write_bytes(bytes(data))
+    store = TiffFrameStore(tmp_path, 0, NAMES)
+    assert store.count() == 3 and np.array_equal(store.read_one(2), frames[2])
 
 
 def test_frame_store_refuses_bad_input_with_clear_errors(tmp_path):

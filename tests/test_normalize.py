@@ -294,6 +294,11 @@ def test_saturated_frames_are_named_and_their_nodes_masked(tmp_path):
 
     raw = transillumination_profile(exposure_ms=40.0, views=[0], targets_mm=[[0.0, 10.0]])
     raw["scan"]["views"] = 4
+    # a 2 mm mesh (a quarter of the nodes, a third of the scan's time) and no previews: the
+    # saturation is in the frames, the nodes only have to map onto them
+    raw["mesh"]["node_distance_mm"] = 2.0
+    raw["mesh"]["previews"] = False
+    raw["outputs"] = {"previews": False}
     pm = PluginManager()
     pm.load_entry_points()
     warnings = []
@@ -302,5 +307,5 @@ def test_saturated_frames_are_named_and_their_nodes_masked(tmp_path):
     result = scan(load_profile(write_profile(tmp_path / "p.toml", raw), pm), pm,
                   tmp_path / "runs", bus=bus)
     n = result.report["normalize"]
-    assert n["masked_total"]["saturated"] > 100
+    assert n["masked_total"]["saturated"] > 50  # measured 122 of 523 nodes (470 at 1 mm)
     assert any("view_000/src_00.png" in w and "saturated pixels" in w for w in warnings)

@@ -299,7 +299,7 @@ async def test_leaving_the_console_with_f_keys_never_bounces_back(server):
         focus_at_switch = []
         app.watch(tabs, "active", lambda active: focus_at_switch.append(
             (active, app.screen.focused)), init=False)
-        for i in range(20):
+        for i in range(9):  # each tab 3 times; the focus at every switch is checked below
             await pilot.press("f6")
             await pilot.pause(0.1)
             assert tabs.active == "console" and app.focused is app.panel(ConsoleInput)
@@ -312,7 +312,7 @@ async def test_leaving_the_console_with_f_keys_never_bounces_back(server):
             active, focused = focus_at_switch[-1]
             assert active == tab and pane in focused.ancestors_with_self, \
                 f"repetition {i + 1}: the tab switched while {focused} had the focus"
-        assert len(focus_at_switch) == 40  # every switch was seen, none bounced
+        assert len(focus_at_switch) == 18  # every switch was seen, none bounced
         # number keys do the same, and the console takes digits as text
         await pilot.press("5")
         await pilot.pause()

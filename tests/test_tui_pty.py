@@ -140,7 +140,7 @@ def test_tui_without_a_terminal_refuses_at_once(profile, tmp_path):
 def test_leaving_the_console_with_f_keys_in_a_terminal(profile, tmp_path):
     """The bug showed in real terminals: F2/F3/F4 after a wait on the Console tab bounced back
     to it (13 of 15 tries; a race with the input's cursor blink, so it shows on some tries
-    only: test_tui.py checks the cause on every switch, 20 times). 6 repetitions with waits."""
+    only: test_tui.py checks the cause on every switch, 18 switches). 6 repetitions with waits."""
     shown = {"rig": "jog step", "scan": "x abort", "preview": "no preview yet"}
     term = PtyScreen(tui_command(profile, tmp_path), tmp_path)
     try:

@@ -25,7 +25,6 @@ import numpy as np
 from dotshell.errors import CalibrationError, RunError
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.opencv_io import load_any_calibration
-from dotshell.pipeline.reconstruct import no_points_error, triangulate_correspondence
 from dotshell.settings import Setting, validate_settings
 
 SHIPPED_LAYOUTS = Path(__file__).resolve().parents[2] / "layouts"
@@ -329,6 +328,10 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
     corr = seq.coding.decode(frames, layout.projector_size)
     t2 = time.perf_counter()
     proc = {"min_ray_angle_deg": 5.0, "row_tolerance_px": 1.5, **(processing or {})}
+    # here, not at the top: the command's parser reads this module (SHIPPED_LAYOUTS), and the
+    # triangulation's compiled loops (numba, ~1 s to import) are for reconstructing only
+    from dotshell.pipeline.reconstruct import no_points_error, triangulate_correspondence
+
     _, points, stats = triangulate_correspondence(corr, calib, proc)
     t3 = time.perf_counter()
     if len(points) == 0:

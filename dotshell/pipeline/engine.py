@@ -30,7 +30,7 @@ from dotshell.events import EventBus, StepStarted
 from dotshell.pipeline.generations import (Generation, ProductStore, current_number,
                                            published, remove_unpublished)
 from dotshell.pipeline.lifecycle import Interrupted, RunLock, effective_status
-from dotshell.pipeline.steps import STEP_BY_NAME, STEPS, StepContext
+from dotshell.pipeline.steps import STEP_BY_NAME, STEPS, StepContext, import_ahead
 from dotshell.plugins import PluginManager
 from dotshell.profile import Profile
 from dotshell.store import RunStore
@@ -268,6 +268,7 @@ def run_steps(work: JobWork, profile: Profile, pm: PluginManager, bus: EventBus,
     prewritten: dict[str, set[str]] = options.pop("prewritten", {})
     done = StepsDone()
     for name in names:
+        import_ahead(names, name)
         before = gen.listing() - prewritten.get(name, set())
         t0 = time.perf_counter()
         done.report.update(STEP_BY_NAME[name].run(ctx))

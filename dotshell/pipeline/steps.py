@@ -19,6 +19,7 @@ next view is captured and a batch schedules on its workers.
 from __future__ import annotations
 
 import json
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,6 +51,9 @@ class StepContext:
     options: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     _calib: RigCalibration | None = None
+    #: the merged cloud as ``cloud.ply`` holds it ((N, 3) float32, mm), kept by the merge for
+    #: the steps after it in this process (reading the 5.5 M-point file again cost ~0.5 s each)
+    cloud: np.ndarray | None = None
 
     @property
     def calibration(self) -> RigCalibration:
@@ -66,6 +70,9 @@ class Step:
     run: Callable[[StepContext], dict[str, Any]]
     #: whether the step belongs in a run made with this profile (when not asked for directly)
     wanted: Callable[[StepContext, set[str]], bool] = lambda ctx, base: True
+    #: imports what the step needs (seconds of CPU); run in the background while the step
+    #: that makes its last input runs (:func:`import_ahead`)
+    imports: Callable[[], None] | None = None
 
 
 def make_coding(profile: Profile, pm: PluginManager):
@@ -142,10 +149,12 @@ def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: 
     return store_view(store, vc, frames[0] if len(frames) else None, profile, calib, bus)
 
 
-def stored_frames(store: RunStore, view: int, calib: RigCalibration) -> np.ndarray:
+def stored_frames(store: RunStore, view: int, calib: RigCalibration,
+                  out: np.ndarray | None = None) -> np.ndarray:
     """A view's frames from the run's files, each checked against the run's frames (the
     manifest's ``camera``; for runs made before it was recorded, the calibration's camera size
-    and the depth of the view's first frame)."""
+    and the depth of the view's first frame). ``out``: the previous view's frames, read over
+    when the same size (:meth:`~dotshell.frames.FrameStore.read_all`)."""
     recorded = store.manifest.get("camera")
     if recorded is not None:
         spec = FrameSpec.from_dict(recorded)
@@ -153,7 +162,7 @@ def stored_frames(store: RunStore, view: int, calib: RigCalibration) -> np.ndarr
         first = store.frames(view).read_one(0)
         spec = FrameSpec(*calib.camera.size, 8 if first.dtype == np.uint8 else 16)
     return store.read_frames(view, spec, "Restore the run's frames from a backup, or "
-                             "re-capture the view.")
+                             "re-capture the view.", out)
 
 
 def view_angle(view: dict[str, Any]) -> float:
@@ -176,6 +185,7 @@ def views_step(ctx: StepContext) -> dict[str, Any]:
             f"{sum(v['frames'] for v in views)} frames on disk): there is nothing to "
             f"reconstruct. Capture the missing views with `dotshell resume {store.run_root}`.")
     coding = None
+    frames = None  # one view's frames at a time, read over the previous view's (same array)
     ctx.bus.emit(StepStarted(step="reconstruct", total=len(views)))
     for n, v in enumerate(views, 1):
         if not v.get("complete"):
@@ -184,8 +194,10 @@ def views_step(ctx: StepContext) -> dict[str, Any]:
             continue
         if v["index"] not in done:
             coding = coding or make_coding(ctx.profile, ctx.pm)
+            frames = stored_frames(store, v["index"], ctx.calibration, frames)
             done[v["index"]] = reconstruct_one_view(store, v["index"], view_angle(v),
-                                                    ctx.profile, coding, ctx.calibration, ctx.bus)
+                                                    ctx.profile, coding, ctx.calibration, ctx.bus,
+                                                    frames)
         ctx.bus.emit(StepProgress(step="reconstruct", done=n, total=len(views)))
     records = [done[i] for i in sorted(done)]
     seconds = [read_view_record(store, r["view"]).get("seconds", {}) for r in records]
@@ -212,13 +224,16 @@ def stored_views(store: RunStore) -> list[int]:
 def cloud_step(ctx: StepContext) -> dict[str, Any]:
     ctx.bus.emit(StepStarted(step="merge"))
     views = stored_views(ctx.store)
-    parts = [(v, read_ply(ctx.store.path("views", f"{view_stem(v)}.ply"))[0]) for v in views]
-    n = sum(len(p) for _, p in parts)
+    parts = [read_ply(ctx.store.path("views", f"{view_stem(v)}.ply"), float_type=np.float32)[0]
+             for v in views]  # float32 as stored: the merged file holds the same values
+    n = sum(len(p) for p in parts)
     if n == 0:
         raise _no_points(ctx, views)
-    points = np.concatenate([p for _, p in parts])
-    ids = np.concatenate([np.full(len(p), v) for v, p in parts])
+    points = np.concatenate(parts)
+    ids = np.repeat(np.asarray(views, np.float32), [len(p) for p in parts])
+    del parts
     write_ply(ctx.store.path("cloud.ply"), points, view=ids)
+    ctx.cloud = points
     return {"cloud": {"path": "cloud.ply", "points": int(n)}}
 
 
@@ -250,8 +265,12 @@ def _no_points(ctx: StepContext, views: list[int]) -> ReconstructionError:
         "the sample's size and the calibration's turntable axis.")
 
 
-def load_cloud(store: RunStore) -> np.ndarray:
-    return read_ply(store.path("cloud.ply"))[0]
+def load_cloud(ctx: StepContext) -> np.ndarray:
+    """The merged cloud (N, 3) in mm: float32 as the merge left it in this process, else
+    ``cloud.ply`` read as float64 (the same values; the steps' arithmetic is float64)."""
+    if ctx.cloud is not None:
+        return ctx.cloud
+    return read_ply(ctx.store.path("cloud.ply"))[0]
 
 
 def validation_step(ctx: StepContext) -> dict[str, Any]:
@@ -259,7 +278,7 @@ def validation_step(ctx: StepContext) -> dict[str, Any]:
 
     ctx.bus.emit(StepStarted(step="validate"))
     v = ctx.profile.data["validation"]
-    return {"validation": cylinder_report(load_cloud(ctx.store), ctx.calibration, v,
+    return {"validation": cylinder_report(load_cloud(ctx), ctx.calibration, v,
                                           ctx.profile.data["processing"]["roi"])}
 
 
@@ -273,7 +292,7 @@ def previews_step(ctx: StepContext) -> dict[str, Any]:
     if not out:
         ctx.bus.warn(f"frame previews skipped: view {ctx.profile.data['outputs']['preview_view']}"
                      " ([outputs] preview_view) was not reconstructed")
-    out.update(cloud_previews(ctx.store, load_cloud(ctx.store), ctx.profile, ctx.bus))
+    out.update(cloud_previews(ctx.store, load_cloud(ctx), ctx.profile, ctx.bus))
     return {"previews": out}
 
 
@@ -317,14 +336,24 @@ def _has_transillumination(ctx: StepContext) -> bool:
     return bool(entry.get("views"))
 
 
+def _import_fit() -> None:
+    import dotshell.pipeline.validate  # noqa: F401  (scipy.optimize)
+
+
+def _import_renderer() -> None:
+    from dotshell.render import import_renderer
+
+    import_renderer()
+
+
 STEPS: tuple[Step, ...] = (
     Step("calibration", (), calibration_step),
     Step("views", ("calibration",), views_step),
     Step("cloud", ("views",), cloud_step),
     Step("validation", ("cloud", "calibration"), validation_step,
-         lambda ctx, base: ctx.profile.data["validation"]["shape"] == "cylinder"),
+         lambda ctx, base: ctx.profile.data["validation"]["shape"] == "cylinder", _import_fit),
     Step("previews", ("cloud", "views"), previews_step,
-         lambda ctx, base: bool(ctx.profile.data["outputs"]["previews"])),
+         lambda ctx, base: bool(ctx.profile.data["outputs"]["previews"]), _import_renderer),
     Step("mesh", ("cloud", "calibration"), mesh_step,
          lambda ctx, base: "mesh" in base or bool(ctx.profile.data["mesh"]["after_scan"])),
     Step("normalize", ("mesh", "calibration"), normalize_step,
@@ -336,3 +365,30 @@ STEPS: tuple[Step, ...] = (
     Step("forward", ("mesh",), forward_step, lambda ctx, base: "forward" in base),
 )
 STEP_BY_NAME = {s.name: s for s in STEPS}
+
+
+def import_ahead(names: Sequence[str], current: str) -> threading.Thread | None:
+    """Start importing, in one background thread, what the steps of ``names`` after
+    ``current`` need when ``current`` makes the last of their inputs (e.g. pyvista and VTK for
+    the previews, scipy's optimizer for the validation, while the cloud is merged and
+    validated: ~2 s of the demo's `reconstruct` on 2 cores). A failed import is left for the
+    step itself to meet and report. Returns the thread, or None when there is nothing to do."""
+    order = list(names)
+    later = order[order.index(current) + 1:]
+    work = [STEP_BY_NAME[n].imports for n in later if STEP_BY_NAME[n].imports is not None
+            and current == max((r for r in STEP_BY_NAME[n].reads if r in order),
+                               key=order.index, default=None)]
+    if not work:
+        return None
+
+    def run() -> None:
+        for fn in work:
+            try:
+                fn()
+            except Exception:  # noqa: BLE001 - the step imports again and reports it
+                pass
+
+    thread = threading.Thread(target=run, name="dotshell-import-ahead", daemon=True)
+    thread.start()
+    return thread
+

@@ -34,38 +34,62 @@ def field_band_mm(calib: RigCalibration, height_mm: float, step_mm: float = 0.25
 def cylinder_report(points: np.ndarray, calib: RigCalibration, v: dict[str, Any],
                     roi: dict[str, float]) -> dict[str, Any]:
     """Relative radius error of every lateral-surface point about the turntable axis (as the
-    paper does), a free cylinder fit, and the covered share of the measurable lateral area."""
+    paper does), a free cylinder fit, and the covered share of the measurable lateral area.
+    ``points`` (N, 3, mm) float32 or float64; the arithmetic is float64 either way (float32
+    coordinates are widened exactly, piece by piece, without a float64 copy of the cloud)."""
     R = v["radius_mm"]
     lo, hi = field_band_mm(calib, v["height_mm"])
     lo = max(lo, roi["z_min_mm"]) + v["edge_margin_mm"]
     hi = min(hi, roi["z_max_mm"], v["height_mm"]) - v["edge_margin_mm"]
-    lateral = points[(points[:, 2] >= lo) & (points[:, 2] <= hi)]
+    z = np.asarray(points[:, 2], np.float64)
+    # np.compress: the same rows as boolean indexing, 4-8x faster on (N, 3) clouds
+    lateral = np.compress((z >= lo) & (z <= hi), points, axis=0)
+    del z
     if len(lateral) < 10 or hi <= lo:
         return {"shape": "cylinder", "error": "fewer than 10 points on the lateral surface",
                 "points": int(len(lateral)), "band_mm": [lo, hi]}
-    r = np.hypot(lateral[:, 0], lateral[:, 1])
-    rel = (r - R) / R
-    theta = np.degrees(np.arctan2(lateral[:, 1], lateral[:, 0])) % 360.0
+    # Every temporary here is tens of MB: each fresh one costs more in page faults than its
+    # arithmetic, so the figures are computed in place (the same operations, the same values).
+    dr = np.hypot(lateral[:, 0], lateral[:, 1], dtype=np.float64)
+    dr -= R  # r - R
+    rel = dr / R
+    mean_signed = float(np.mean(rel) * 100)
+    abs_rel = np.abs(rel, out=rel)
+    rms = float(np.sqrt(np.mean(np.square(dr))))
     nt = int(round(360.0 / v["cell_deg"]))
     nz = max(1, int(np.ceil((hi - lo) / v["cell_mm"])))
-    ti = np.minimum((theta / 360.0 * nt).astype(int), nt - 1)
-    zi = np.minimum(((lateral[:, 2] - lo) / (hi - lo) * nz).astype(int), nz - 1)
+    # the angle's arithmetic in place: degrees in [0, 360), then the cell index
+    theta = np.arctan2(lateral[:, 1], lateral[:, 0], dtype=np.float64)
+    np.remainder(np.degrees(theta, out=theta), 360.0, out=theta)
+    theta /= 360.0
+    theta *= nt
+    ti = theta.astype(int)
+    np.minimum(ti, nt - 1, out=ti)
+    zf = np.subtract(lateral[:, 2], lo, out=theta, dtype=np.float64)  # (z - lo) / (hi - lo) * nz
+    zf /= hi - lo
+    zf *= nz
+    zi = zf.astype(int)
+    np.minimum(zi, nz - 1, out=zi)
+    del theta, zf
     covered = np.zeros((nt, nz), bool)
     covered[ti, zi] = True
+    del ti, zi
     sample = lateral
     if len(lateral) > FIT_SAMPLE:  # the fit's figures settle long before millions of points
         sample = lateral[np.random.default_rng(0).choice(len(lateral), FIT_SAMPLE, replace=False)]
+    del lateral
     fit = fit_cylinder(sample)
     return {
         "shape": "cylinder",
         "true_radius_mm": R,
         "band_mm": [round(lo, 3), round(hi, 3)],
-        "points": int(len(lateral)),
-        "mean_rel_error_pct": float(np.mean(np.abs(rel)) * 100),
-        "std_rel_error_pct": float(np.std(np.abs(rel)) * 100),
-        "mean_signed_rel_error_pct": float(np.mean(rel) * 100),
-        "rms_radius_error_mm": float(np.sqrt(np.mean((r - R) ** 2))),
-        "p95_abs_radius_error_mm": float(np.percentile(np.abs(r - R), 95)),
+        "points": int(len(dr)),
+        "mean_rel_error_pct": float(np.mean(abs_rel) * 100),
+        "std_rel_error_pct": float(np.std(abs_rel) * 100),
+        "mean_signed_rel_error_pct": mean_signed,
+        "rms_radius_error_mm": rms,
+        "p95_abs_radius_error_mm": float(np.percentile(np.abs(dr, out=dr), 95,
+                                                       overwrite_input=True)),
         "coverage_pct": float(covered.mean() * 100),
         "fit": {"radius_mm": fit.radius_mm, "points_used": int(len(sample)), "rms_mm": fit.rms_mm,
                 "axis_tilt_deg": float(np.degrees(np.arccos(min(1.0, abs(fit.axis[2]))))),
