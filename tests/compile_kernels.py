@@ -8,8 +8,8 @@ decoded a frame; scans run in subprocesses compiled them again, which also stret
 those tests measure. Compiled here once, every worker and subprocess loads them from the cache.
 
 The kernels are reached through the product's own entry points (a tiny scan: uint16 frames
-decoded, triangulated, reconstructed; and a decode of uint8 and float32 frames), so the
-signatures compiled are exactly the ones the pipeline asks for.
+decoded, triangulated, reconstructed; a decode of uint8 and float32 frames; a forward solve on
+one tetrahedron), so the signatures compiled are exactly the ones the pipeline asks for.
 
 Run: ``python tests/compile_kernels.py`` (prints the seconds it took).
 """
@@ -49,6 +49,20 @@ def compile_kernels() -> None:
     images = [p.image for p in coding.patterns(proj)]
     for frames in (images, [im.astype(np.float32) for im in images]):
         coding.decode(frames, proj)
+    _compile_fem_kernels()
+
+
+def _compile_fem_kernels() -> None:
+    """The FEM assembly's kernels (:mod:`dotshell.fem_kernels`) through ``solve_cw`` on one
+    tetrahedron (the forward solve of test_fem, test_sim_transillum and the mesh pipeline)."""
+    import numpy as np
+
+    from dotshell.fem import TetMesh, orient_positive
+    from dotshell.forward import solve_cw
+
+    nodes = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
+    mesh = TetMesh(nodes, orient_positive(nodes, np.array([[0, 1, 2, 3]])))
+    solve_cw(mesh, [0.0, 0.0, 0.0], 0.01, 1.0, 1.33)
 
 
 if __name__ == "__main__":
