@@ -12,8 +12,7 @@ import numpy as np
 from dotshell.coding import Correspondence, PatternCoding
 from dotshell.errors import CalibrationError, ReconstructionError
 from dotshell.geometry.calibration import RigCalibration
-from dotshell.geometry.triangulate import (ImagePoints, ImageSolve, select, solve_image,
-                                           triangulate_image)
+from dotshell.geometry.triangulate import ImageSolve, select, solve_image
 from dotshell.parallel import split
 
 
@@ -114,19 +113,10 @@ def check_frames(frames: Sequence[np.ndarray], calib: RigCalibration, view: int)
             "at this resolution.")
 
 
-def triangulate_pixels(corr: Correspondence, calib: RigCalibration, processing: dict[str, Any],
-                       to_frame: np.ndarray | None = None) -> ImagePoints:
-    """Triangulate every valid pixel of a correspondence (points in the camera frame, or in
-    the frame of the (3, 4) affine map ``to_frame``)."""
-    return triangulate_image(corr.valid, corr.column, corr.row, calib,
-                             row_tolerance_px=processing["row_tolerance_px"],
-                             min_ray_angle_deg=processing["min_ray_angle_deg"],
-                             to_frame=to_frame)
-
-
 def solve_pixels(corr: Correspondence, calib: RigCalibration, processing: dict[str, Any],
                  to_frame: np.ndarray | None = None) -> ImageSolve:
-    """:func:`triangulate_pixels` before the kept points are selected."""
+    """Solve every valid pixel of a correspondence (points in the camera frame, or in the frame
+    of the (3, 4) affine map ``to_frame``), kept or not (:func:`solve_image`)."""
     return solve_image(corr.valid, corr.column, corr.row, calib,
                        row_tolerance_px=processing["row_tolerance_px"],
                        min_ray_angle_deg=processing["min_ray_angle_deg"], to_frame=to_frame)
@@ -139,8 +129,9 @@ def triangulate_correspondence(corr: Correspondence, calib: RigCalibration,
 
     Returns the camera pixels (N, 2) (x, y) kept, their camera-frame points (N, 3) in mm, and
     the counts ``triangulated``, ``row_rejected``, ``grazing``."""
-    tri = triangulate_pixels(corr, calib, processing)
-    return tri.pixels, tri.points, tri.counts
+    sol = solve_pixels(corr, calib, processing)
+    pixels, points = select(sol.kept, sol.pixels, sol.points)
+    return pixels, points, sol.counts
 
 
 def sample_frame_map(calib: RigCalibration, angle_deg: float) -> np.ndarray:
