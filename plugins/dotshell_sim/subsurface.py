@@ -30,8 +30,8 @@ import math
 from collections import OrderedDict
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
-from scipy.ndimage import gaussian_filter, map_coordinates
 from scipy.optimize import nnls
 
 
@@ -121,7 +121,22 @@ class _Component:
     voxel_mm: float
     shape: tuple[int, int, int]
     source_index: np.ndarray      # linear voxel index per source
-    receiver_coords: np.ndarray   # (3, R) fractional voxel coordinates per receiver
+    receiver_corner: np.ndarray   # (R,) linear index of the voxel below each receiver
+    receiver_frac: np.ndarray     # (3, R) float32 position within that voxel (0..1 per axis)
+
+    def read(self, grid: np.ndarray) -> np.ndarray:
+        """Trilinear interpolation of ``grid`` (of this component's shape) at the receivers
+        (``map_coordinates(order=1)``; the receivers lie inside the grid by construction)."""
+        g = grid.ravel()
+        s0, s1 = self.shape[1] * self.shape[2], self.shape[2]
+        f0, f1, f2 = self.receiver_frac
+        out = np.zeros(len(self.receiver_corner), np.float32)
+        for d0, w0 in ((0, 1 - f0), (s0, f0)):
+            for d1, w1 in ((0, 1 - f1), (s1, f1)):
+                w01 = w0 * w1
+                i = self.receiver_corner + (d0 + d1)
+                out += w01 * (g[i] * (1 - f2) + g[i + 1] * f2)
+        return out
 
 
 #: Bytes of exitance images a view keeps, by projector radiance: a PDI scan renders every pattern
@@ -165,8 +180,11 @@ class SubsurfaceView:
             shape = tuple(int(v) for v in np.ceil((hi - lo) / vox).astype(int) + 2)
             si = np.clip(np.round((source_points - lo) / vox).astype(int), 0, np.array(shape) - 1)
             lin = np.ravel_multi_index(si.T, shape)
-            rc = ((np.asarray(receiver_points) - lo) / vox).T
-            self.components.append(_Component(float(sigma), float(weight), vox, shape, lin, rc))
+            rc = (np.asarray(receiver_points, float).reshape(-1, 3) - lo) / vox
+            corner = np.clip(np.floor(rc).astype(np.int64), 0, np.array(shape) - 2)
+            frac = (rc - corner).T.astype(np.float32)
+            self.components.append(_Component(float(sigma), float(weight), vox, shape, lin,
+                                              np.ravel_multi_index(corner.T, shape), frac))
         self._exitances: OrderedDict[bytes, np.ndarray] = OrderedDict()
 
     def exitance(self, radiance: np.ndarray) -> np.ndarray:
@@ -196,10 +214,32 @@ class SubsurfaceView:
         total = np.zeros(len(self.receiver_pixels))
         for c in self.components:
             grid = np.bincount(c.source_index, weights=flux, minlength=int(np.prod(c.shape)))
-            grid = gaussian_filter(grid.reshape(c.shape) / c.voxel_mm ** 3, c.sigma_mm / c.voxel_mm,
-                                   mode="constant", truncate=3.5)
-            total += c.weight * math.sqrt(2 * math.pi) * c.sigma_mm * map_coordinates(
-                grid, c.receiver_coords, order=1, mode="constant")
+            grid = gaussian_blur_3d((grid / c.voxel_mm ** 3).astype(np.float32).reshape(c.shape),
+                                    c.sigma_mm / c.voxel_mm)
+            total += c.weight * math.sqrt(2 * math.pi) * c.sigma_mm * c.read(grid)
         out = np.zeros(self.image_shape[0] * self.image_shape[1], np.float32)
         np.add.at(out, self.receiver_pixels, (total * self.receiver_weight).astype(np.float32))
         return out.reshape(self.image_shape)
+
+
+def gaussian_blur_3d(grid: np.ndarray, sigma_voxels: float, truncate: float = 3.5) -> np.ndarray:
+    """Normalized 3-D Gaussian blur of a float32 voxel grid (zeros outside), σ in voxels, the
+    kernel cut at ``truncate``·σ: ``scipy.ndimage.gaussian_filter(mode="constant")``'s result
+    to float32 precision, as three 1-D passes of OpenCV's separable filter (about 3x less CPU
+    than scipy's float64 filter on the 1.8 M-voxel grids of a reduced agar view). Blurs
+    ``grid`` in place and returns it."""
+    radius = int(truncate * sigma_voxels + 0.5)
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    k = np.exp(-0.5 * (x / sigma_voxels) ** 2)
+    k = (k / k.sum()).astype(np.float32)
+    one = np.ones(1, np.float32)
+    n0, n1, n2 = grid.shape
+    border = cv2.BORDER_CONSTANT
+    # last axis: rows of (n0·n1, n2); first axis: columns of (n0, n1·n2); middle: slice by slice
+    grid[...] = cv2.sepFilter2D(grid.reshape(n0 * n1, n2), -1, k, one,
+                                borderType=border).reshape(grid.shape)
+    grid[...] = cv2.sepFilter2D(grid.reshape(n0, n1 * n2), -1, one, k,
+                                borderType=border).reshape(grid.shape)
+    for i in range(n0):
+        grid[i] = cv2.sepFilter2D(grid[i], -1, one, k, borderType=border)
+    return grid
