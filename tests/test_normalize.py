@@ -164,7 +164,8 @@ def transillumination_profile(exposure_ms: float = 2.0, **trans) -> dict:
     raw["light_source"] = {"backend": "sim-laser", "settings": {}}
     raw["transillumination"] = {"enabled": True, "exposure_ms": exposure_ms, "views": [0, 3],
                                 "targets_mm": [[0.0, 10.0], [2.0, 15.0]], **trans}
-    raw["mesh"] = {"after_scan": True, "node_distance_mm": 1.0,
+    # the mesh's previews are test_mesh.py's: here the mesh is only the surface to normalize on
+    raw["mesh"] = {"after_scan": True, "node_distance_mm": 1.0, "previews": False,
                    "optics": {"refractive_index": 1.4},
                    "optodes": {"detectors_mm": [[7.7, 0.0, 15.0], [-7.7, 0.0, 15.0]]}}
     return raw
@@ -297,7 +298,6 @@ def test_saturated_frames_are_named_and_their_nodes_masked(tmp_path):
     # a 2 mm mesh (a quarter of the nodes, a third of the scan's time) and no previews: the
     # saturation is in the frames, the nodes only have to map onto them
     raw["mesh"]["node_distance_mm"] = 2.0
-    raw["mesh"]["previews"] = False
     raw["outputs"] = {"previews": False}
     pm = PluginManager()
     pm.load_entry_points()
