@@ -42,6 +42,10 @@ _OPTS = dict(nogil=True, cache=True, error_model="numpy")
 #: helpers called per pixel are inlined: a compiled call passing arrays pays reference counting
 _INNER = dict(nogil=True, cache=True, error_model="numpy", inline="always")
 
+#: a pass's work on one row (called per row: compiled once for the passes and the one-pass
+#: decoder alike, where inlining them made the one-pass kernel take minutes to compile)
+_ROW = dict(nogil=True, cache=True, error_model="numpy")
+
 #: classification rules of :func:`classify`
 CONTRAST, ROBUST = 0, 1
 
@@ -79,7 +83,7 @@ def classify(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarray,
                       shadow[y], no_direct[y], spans)
 
 
-@numba.njit(**_INNER)
+@numba.njit(**_ROW)
 def _classify_row(stack, y, inverse, mode, axis_bits, sep, high, shadow_thr, m, min_contrast,
                   contrast_scale, one_minus_b, lg_scale, b_level, value, weak, vy, r, sh, nd,
                   spans):
@@ -292,7 +296,7 @@ def assemble(value: np.ndarray, weak: np.ndarray, shadow: np.ndarray, nb: int, b
                       offset, size, code[y], integer[y], flags[y])
 
 
-@numba.njit(**_INNER)
+@numba.njit(**_ROW)
 def _assemble_row(value, weak, up, here, down, shadow, nb, block, offset, size, code, integer,
                   flags):
     """Row ``here`` of the words ``value``/``weak`` (R, W) into the rows ``code``,
@@ -351,7 +355,7 @@ def verdict(shadow: np.ndarray, no_direct: np.ndarray, flags: np.ndarray, valid:
         _verdict_row(shadow[y], no_direct[y], flags, y, valid[y], reason[y], counts[y])
 
 
-@numba.njit(**_INNER)
+@numba.njit(**_ROW)
 def _verdict_row(shadow, no_direct, flags, fy, valid, reason, counts):
     """:func:`verdict` of one row: flags (A, R, W) at row ``fy``, the other arguments rows."""
     n_axes = flags.shape[0]
@@ -385,7 +389,7 @@ def changes(code: np.ndarray, valid: np.ndarray, counts: np.ndarray, start: int,
         _changes_row(code, valid, y, counts[y])
 
 
-@numba.njit(**_INNER)
+@numba.njit(**_ROW)
 def _changes_row(code, valid, y, counts):
     H, W = code.shape
     along_rows = 0
@@ -498,7 +502,7 @@ def refine_rows(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndar
                     anchor_bit, max_span, first, coord, ok, y)
 
 
-@numba.njit(**_INNER)
+@numba.njit(**_ROW)
 def _refine_row(stack, inverse, rng, code, valid, flip, block, offset, first_pair, anchor_bit,
                 max_span, first, coord, ok, y):
     """Row ``y`` of :func:`refine_rows`."""
@@ -553,7 +557,7 @@ PREV, BAD_ROW, FIRST, BAD_BEFORE_FIRST = 0, 1, 2, 3  # scan_i: rows, −1 for no
 PREV_POS, PREV_VAL, FIRST_POS, FIRST_VAL = 0, 1, 2, 3  # scan_f: the anchors' position, value
 
 
-@numba.njit(**_INNER)
+@numba.njit(**_ROW)
 def _column_step(stack, inverse, rng, code, valid, flip, block, offset, first_pair, anchor_bit,
                  max_span, first, coord, ok, y, start, stop, scan_i, scan_f):
     """Row ``y`` of the scans down the columns ``start`` to ``stop`` (:func:`refine_columns`),
@@ -689,7 +693,7 @@ def decode_rows(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarr
                 scan_i[band], scan_f[band], H - 1)
 
 
-@numba.njit(**_INNER)
+@numba.njit(**_ROW)
 def _behind(stack, inverse, rng, axes, flips, down, code, coord, ok, valid, changed, scan_i,
             scan_f, y):
     """What :func:`decode_rows` does one row behind: row ``y``'s step of the column scans
