@@ -112,10 +112,34 @@ def enclosed_volume_mm3(surface: TriangleSurface) -> float:
     return float(np.einsum("ij,ij->i", v[:, 0], np.cross(v[:, 1], v[:, 2])).sum() / 6.0)
 
 
+def unique_rows(rows: np.ndarray, return_inverse: bool = False,
+                return_counts: bool = False) -> tuple[np.ndarray, ...]:
+    """``np.unique(rows, axis=0, return_inverse=..., return_counts=...)`` for rows of
+    non-negative integers (node indices): the same rows in the same order, found as one int64
+    key per row (numpy's row-wise unique compares the rows as bytes, about 5x slower on a
+    Poisson surface's edges). Falls back to numpy's when the keys would not fit."""
+    rows = np.asarray(rows)
+    n_cols = rows.shape[1] if rows.ndim == 2 else 0
+    base = int(rows.max()) + 1 if rows.size else 0
+    if rows.size == 0 or rows.min() < 0 or base ** n_cols >= 1 << 62:
+        return np.unique(rows, axis=0, return_inverse=return_inverse,
+                         return_counts=return_counts)
+    keys = np.zeros(len(rows), np.int64)
+    for j in range(n_cols):
+        keys = keys * base + rows[:, j]
+    found = np.unique(keys, return_inverse=return_inverse, return_counts=return_counts)
+    found = found if isinstance(found, tuple) else (found,)
+    cols, rest = [], found[0]
+    for _ in range(n_cols):
+        rest, col = np.divmod(rest, base)
+        cols.append(col)
+    return (np.column_stack(cols[::-1]).astype(rows.dtype), *found[1:])
+
+
 def edge_use(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Undirected edges (E, 2) and how many triangles use each."""
     e = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    return np.unique(e, axis=0, return_counts=True)
+    return unique_rows(e, return_counts=True)
 
 
 def closed_manifold_problems(surface: TriangleSurface) -> list[str]:
@@ -130,7 +154,7 @@ def closed_manifold_problems(surface: TriangleSurface) -> list[str]:
     if (count > 2).any():
         problems.append(f"{int((count > 2).sum())} edges shared by more than two triangles")
     directed = t[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-    _, dcount = np.unique(directed, axis=0, return_counts=True)
+    _, dcount = unique_rows(directed, return_counts=True)
     if (dcount > 1).any():
         problems.append(f"{int((dcount > 1).sum())} edges with inconsistent orientation")
     if not problems and enclosed_volume_mm3(surface) <= 0:

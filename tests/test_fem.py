@@ -8,7 +8,7 @@ import pytest
 from dotshell.fem import (MeshError, TetMesh, TriangleSurface, boundary_faces,
                           closed_manifold_problems, element_containing, enclosed_volume_mm3,
                           joe_liu_quality, min_dihedral_deg, orient_positive, quality_report,
-                          signed_volumes_mm3)
+                          signed_volumes_mm3, unique_rows)
 from dotshell.forward import (move_inside, robin_A, solve_cw, sphere_point_source_fluence,
                               system_matrix)
 
@@ -195,3 +195,16 @@ def test_forward_rejects_bad_input(sphere_mesh):
         solve_cw(mesh, [0.0, 0.0, 0.0], 0.01, 0.0, 1.33)
     inside = move_inside(mesh, [0.0, 0.0, 10.5], 1.0)
     assert np.linalg.norm(inside) == pytest.approx(9.0, abs=0.05)
+
+
+@pytest.mark.parametrize("shape, high, dtype", [((5000, 2), 300, np.int64),
+                                                ((4000, 3), 40, np.int32), ((0, 3), 1, np.int64)])
+def test_unique_rows_is_numpys_row_unique(shape, high, dtype):
+    rows = np.random.default_rng(3).integers(0, high, shape).astype(dtype)
+    want = np.unique(rows, axis=0, return_inverse=True, return_counts=True)
+    got = unique_rows(rows, return_inverse=True, return_counts=True)
+    assert got[0].dtype == want[0].dtype and got[0].shape == want[0].shape
+    for a, b in zip(got, want):
+        assert np.array_equal(np.ravel(a), np.ravel(b))
+    if len(rows):
+        assert (want[2] > 1).any()  # the rows repeat: the counts are checked

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from dotshell.fem import (MeshError, TetMesh, TriangleSurface, closed_manifold_problems,
-                          joe_liu_quality, orient_positive)
+                          joe_liu_quality, orient_positive, unique_rows)
 from dotshell.settings import Setting
 
 SETTINGS: dict[str, Setting] = {
@@ -80,7 +80,7 @@ def peel_boundary_slivers(nodes: np.ndarray, tets: np.ndarray, min_quality: floa
     volume by its own, near-zero volume and leaves a closed boundary."""
     for _ in range(rounds):
         key = np.sort(tets[:, [0, 1, 2, 0, 1, 3, 0, 2, 3, 1, 2, 3]].reshape(-1, 3), axis=1)
-        _, inv, count = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+        _, inv, count = unique_rows(key, return_inverse=True, return_counts=True)
         on_surface = (count[inv.ravel()] == 1).reshape(-1, 4).sum(axis=1)
         drop = (on_surface >= 2) & (joe_liu_quality(nodes, tets) < min_quality)
         if not drop.any():
