@@ -53,7 +53,7 @@ import numpy as np
 
 from dotshell.coding import Correspondence, PatternFrame
 from dotshell.settings import Setting
-from dotshell.parallel import split
+from dotshell.parallel import bands, split, split_bands
 from dotshell_codings.robust import full_scale, noise_sigma
 
 SETTINGS_SCHEMA: dict[str, Setting] = {
@@ -312,7 +312,26 @@ class GrayCode:
     def decode(self, frames: Sequence[np.ndarray], projector_size: tuple[int, int]) -> Correspondence:
         axes = self._axes(projector_size)
         stack, full = self._stack(frames, axes)
-        bits = self._classify(stack, axes, full)
+        rule = self._rule(stack, axes, full)
+        if self.subpixel and type(self).gray_words is GrayCode.gray_words:
+            valid, reason, counts, coords, refined = self._decode_in_one_pass(stack, axes, rule)
+        else:
+            valid, reason, counts, coords, refined = self._decode_in_passes(stack, axes, rule)
+        n = [int(c) for c in counts.sum(axis=0)]
+        poor = "uncertain" if self.classification == "robust" else "low_contrast"
+        stats = {"pixels": int(valid.size), "decoded": n[0], "shadow": n[1], "low_contrast": 0,
+                 "uncertain": 0, "out_of_range": n[3], "edge_tolerated": n[4]}
+        stats[poor] = n[2]
+        stats.update(refined)
+        return Correspondence(column=coords[0], row=coords[1] if len(coords) > 1 else None,
+                              valid=valid, stats=stats, reason=reason,
+                              reason_names=("decoded", "shadow", poor, "out_of_range"))
+
+    def _decode_in_passes(self, stack: np.ndarray, axes: list[_Axis], rule: tuple) -> tuple:
+        """(valid, reason, per-row counts, coordinates, refined counts), pass after pass over
+        the whole view: for codings whose projected bits are not Gray bits
+        (:meth:`gray_words`), or without sub-pixel refinement."""
+        bits = self._classify(stack, rule)
         h, w = bits.shadow.shape
         flags = np.empty((len(axes), h, w), np.uint8)
         decoded = []
@@ -324,21 +343,60 @@ class GrayCode:
         reason = np.empty((h, w), np.uint8)
         counts = np.empty((h, 5), np.int64)
         split(_kernels().verdict, h, bits.shadow, bits.no_direct, flags, valid, reason, counts)
-        n = [int(c) for c in counts.sum(axis=0)]
         coords, refined = self._coordinates(decoded, valid, stack, bits.range)
-        poor = "uncertain" if self.classification == "robust" else "low_contrast"
-        stats = {"pixels": int(valid.size), "decoded": n[0], "shadow": n[1], "low_contrast": 0,
-                 "uncertain": 0, "out_of_range": n[3], "edge_tolerated": n[4]}
-        stats[poor] = n[2]
-        stats.update(refined)
-        return Correspondence(column=coords[0], row=coords[1] if len(coords) > 1 else None,
-                              valid=valid, stats=stats, reason=reason,
-                              reason_names=("decoded", "shadow", poor, "out_of_range"))
+        return valid, reason, counts, coords, refined
 
-    def _classify(self, stack: np.ndarray, axes: list[_Axis], full: float) -> "ClassifiedBits":
-        """Every projected bit of every pixel decided in one pass over the frames
-        (:func:`kernels.classify`), with the levels and thresholds of the rule (``full``: the
-        frames' full scale)."""
+    def _decode_in_one_pass(self, stack: np.ndarray, axes: list[_Axis], rule: tuple) -> tuple:
+        """:meth:`_decode_in_passes`' result from one pass over the view
+        (:func:`kernels.decode_rows`, a band of rows per core, joined by
+        :func:`kernels.stitch_columns`): each axis is refined across its stripes the way its
+        projector axis suggests (columns along the camera rows, rows down the columns); where
+        the decoded codes say otherwise (:func:`stripes_cross_columns`' rule, on the same
+        pass's counts), that axis is refined again the other way, as in passes."""
+        k = _kernels()
+        h, w = stack.shape[1:]
+        n_axes = len(axes)
+        firsts = np.cumsum([0] + [ax.nb for ax in axes])[:-1]
+        settings = np.zeros((n_axes, 6), np.int64)
+        tables = [k.flip_table(ax.nb) for ax in axes]
+        flips = np.zeros((n_axes, max(len(t) for t in tables)), np.int64)
+        for a, ax in enumerate(axes):
+            anchor, span = self.refine_anchors(ax)
+            settings[a] = (ax.block, ax.offset, ax.size, firsts[a],
+                           -1 if anchor is None else anchor, span)
+            flips[a, :len(tables[a])] = tables[a]
+        down = np.array([ax.prefix != "col" for ax in axes])
+        code = np.empty((n_axes, h, w), np.int32)
+        coord = np.empty((n_axes, h, w), np.float32)
+        ok = np.empty((n_axes, h, w), bool)
+        valid = np.empty((h, w), bool)
+        reason = np.empty((h, w), np.uint8)
+        counts = np.empty((h, 5), np.int64)
+        changed = np.empty((n_axes, h, 2), np.int64)
+        rng = np.empty((h, w), np.float32)
+        shadow = np.empty((h, w), bool)
+        no_direct = np.empty((h, w), bool)
+        bounds = bands(h)
+        scan_i = np.empty((len(bounds) - 1, n_axes, 4, w), np.int64)
+        scan_f = np.empty((len(bounds) - 1, n_axes, 4, w), np.float32)
+        split_bands(k.decode_rows, bounds, *rule, settings, flips, down, code, coord, ok, valid,
+                    reason, counts, changed, rng, shadow, no_direct, scan_i, scan_f)
+        k.stitch_columns(stack, self.inverse, rng, settings, flips, down, code, coord, ok, valid,
+                         changed, scan_i, scan_f, np.array(bounds, np.int64))
+        refined = {}
+        for a, ax in enumerate(axes):
+            along_rows, along_cols = changed[a].sum(axis=0)
+            across = bool(along_cols > along_rows)
+            if across != down[a]:  # refined the wrong way: start again from the block centres
+                split(k.block_centres, h, code[a], valid, ax.block, ax.offset, ax.size, coord[a])
+            d = AxisDecode(ax, int(firsts[a]), code[a], coord[a])
+            refined[f"refined_{_axis_name(ax)}"] = self._refine_axis(
+                d, valid, stack, rng, coord[a], ok[a], across, done=across == down[a])
+        return valid, reason, counts, list(coord), refined
+
+    def _rule(self, stack: np.ndarray, axes: list[_Axis], full: float) -> tuple:
+        """The arguments of :func:`kernels.classify` before its outputs: the stack, then the
+        levels and thresholds of the rule (``full``: the frames' full scale)."""
         n_pairs = sum(ax.nb for ax in axes)
         sep = np.zeros(n_pairs, bool)
         high = np.zeros(n_pairs, bool)
@@ -357,18 +415,24 @@ class GrayCode:
         b = self.black_level
         if not 0.0 <= b < 1.0:
             raise ValueError(f"black level ratio must be in [0, 1), not {b}")
-        h, w = stack.shape[1:]
-        out = ClassifiedBits(np.empty((len(axes), h, w), np.uint32),
-                             np.empty((len(axes), h, w), np.uint32), np.empty((h, w), np.float32),
-                             np.empty((h, w), bool), np.empty((h, w), bool))
         f32 = np.float32
         k = _kernels()
-        split(k.classify, h, stack, self.inverse, k.ROBUST if robust else k.CONTRAST,
-              np.array([ax.nb for ax in axes], np.int64), sep, high,
-              f32(self.shadow_threshold * full), f32(m), f32(self.min_contrast),
-              f32(self.min_contrast * (1.0 if self.inverse else 0.5)),
-              f32(1.0 - b), f32(2.0 / (1.0 - b * b)), f32(b),
-              out.value, out.weak, out.range, out.shadow, out.no_direct)
+        return (stack, self.inverse, k.ROBUST if robust else k.CONTRAST,
+                np.array([ax.nb for ax in axes], np.int64), sep, high,
+                f32(self.shadow_threshold * full), f32(m), f32(self.min_contrast),
+                f32(self.min_contrast * (1.0 if self.inverse else 0.5)),
+                f32(1.0 - b), f32(2.0 / (1.0 - b * b)), f32(b))
+
+    def _classify(self, stack: np.ndarray, rule: tuple) -> "ClassifiedBits":
+        """Every projected bit of every pixel decided in one pass over the frames
+        (:func:`kernels.classify`; ``rule``: :meth:`_rule`)."""
+        n_axes = len(rule[3])
+        h, w = stack.shape[1:]
+        out = ClassifiedBits(np.empty((n_axes, h, w), np.uint32),
+                             np.empty((n_axes, h, w), np.uint32), np.empty((h, w), np.float32),
+                             np.empty((h, w), bool), np.empty((h, w), bool))
+        split(_kernels().classify, h, *rule, out.value, out.weak, out.range, out.shadow,
+              out.no_direct)
         return out
 
     def high_frequency_bits(self, ax: _Axis) -> list[int]:
@@ -396,23 +460,26 @@ class GrayCode:
         for d in decoded:
             coord = d.integer
             if self.subpixel:
-                name = "column" if d.axis.prefix == "col" else "row"
-                refined[f"refined_{name}"] = self._refine_axis(d, valid, stack, rng, coord)
+                across = stripes_cross_columns(d.code, valid)
+                refined[f"refined_{_axis_name(d.axis)}"] = self._refine_axis(
+                    d, valid, stack, rng, coord, np.empty(valid.shape, bool), across, False)
             else:
                 coord[~valid] = np.nan
             coords.append(coord)
         return coords, refined
 
     def _refine_axis(self, d: "AxisDecode", valid: np.ndarray, stack: np.ndarray,
-                     rng: np.ndarray, coord: np.ndarray) -> int:
+                     rng: np.ndarray, coord: np.ndarray, ok: np.ndarray, across: bool,
+                     done: bool) -> int:
         """Refine ``coord`` (one axis's coarse coordinates) in place to sub-pixel and set it NaN
-        where not decoded; returns how many pixels were refined. Scanned along the image
-        direction its stripes cross, then along the other where that leaves more than
-        :data:`SECOND_PASS_SHARE` of the decoded pixels unrefined."""
+        where not decoded; returns how many pixels were refined (marked in ``ok``). Scanned
+        along the image direction its stripes cross (down the columns if ``across``, see
+        :func:`stripes_cross_columns`), then along the other where that leaves more than
+        :data:`SECOND_PASS_SHARE` of the decoded pixels unrefined. ``done``: the first scan
+        already ran (:func:`kernels.decode_rows`), with ``ok`` its refined pixels."""
         anchor, span = self.refine_anchors(d.axis)
         ax = d.axis
         k = _kernels()
-        ok = np.empty(valid.shape, bool)
         flip = k.flip_table(ax.nb)
 
         def refine(down: bool, first: bool) -> int:
@@ -422,12 +489,15 @@ class GrayCode:
                   -1 if anchor is None else anchor, span, first, coord, ok)
             return int(np.count_nonzero(ok))
 
-        across = stripes_cross_columns(d.code, valid)
-        n_ok = refine(across, True)
+        n_ok = int(np.count_nonzero(ok)) if done else refine(across, True)
         n_valid = int(np.count_nonzero(valid))
         if n_valid - n_ok > SECOND_PASS_SHARE * max(n_valid, 1):
             n_ok = refine(not across, False)
         return n_ok
+
+
+def _axis_name(ax: _Axis) -> str:
+    return "column" if ax.prefix == "col" else "row"
 
 
 def _kernels() -> Any:
