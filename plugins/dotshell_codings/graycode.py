@@ -10,7 +10,7 @@ Bits are projected most significant first. For a projector axis of ``N`` pixels 
 of the projector. ``drop_low_bits = m`` leaves out the ``m`` finest bits; the decoded value is
 then the coarse code ``v >> m``, i.e. a block of ``2**m`` projector pixels.
 
-Decoding (per pixel, in compiled passes over the view: :mod:`dotshell_codings.kernels`):
+Decoding (per pixel, in one compiled pass over the view: :mod:`dotshell_codings.kernels`):
 
 * bit = pattern > inverse (or pattern > (white + black) / 2 without inverses);
 * ``shadow``: white - black < ``shadow_threshold`` * full scale;
@@ -313,10 +313,12 @@ class GrayCode:
         axes = self._axes(projector_size)
         stack, full = self._stack(frames, axes)
         rule = self._rule(stack, axes, full)
-        if self.subpixel and type(self).gray_words is GrayCode.gray_words:
-            valid, reason, counts, coords, refined = self._decode_in_one_pass(stack, axes, rule)
-        else:
-            valid, reason, counts, coords, refined = self._decode_in_passes(stack, axes, rule)
+        words = None
+        if type(self).gray_words is not GrayCode.gray_words:
+            words = self._classify(stack, rule)
+            for a, ax in enumerate(axes):
+                words.value[a], words.weak[a] = self.gray_words(ax, words.value[a], words.weak[a])
+        valid, reason, counts, coords, refined = self._decode_rows(stack, axes, rule, words)
         n = [int(c) for c in counts.sum(axis=0)]
         poor = "uncertain" if self.classification == "robust" else "low_contrast"
         stats = {"pixels": int(valid.size), "decoded": n[0], "shadow": n[1], "low_contrast": 0,
@@ -327,32 +329,18 @@ class GrayCode:
                               valid=valid, stats=stats, reason=reason,
                               reason_names=("decoded", "shadow", poor, "out_of_range"))
 
-    def _decode_in_passes(self, stack: np.ndarray, axes: list[_Axis], rule: tuple) -> tuple:
-        """(valid, reason, per-row counts, coordinates, refined counts), pass after pass over
-        the whole view: for codings whose projected bits are not Gray bits
-        (:meth:`gray_words`), or without sub-pixel refinement."""
-        bits = self._classify(stack, rule)
-        h, w = bits.shadow.shape
-        flags = np.empty((len(axes), h, w), np.uint8)
-        decoded = []
-        for a, ax in enumerate(axes):
-            gray, weak = self.gray_words(ax, bits.value[a], bits.weak[a])
-            decoded.append(_decode_axis(ax, sum(x.nb for x in axes[:a]), gray, weak,
-                                        bits.shadow, flags[a]))
-        valid = np.empty((h, w), bool)
-        reason = np.empty((h, w), np.uint8)
-        counts = np.empty((h, 5), np.int64)
-        split(_kernels().verdict, h, bits.shadow, bits.no_direct, flags, valid, reason, counts)
-        coords, refined = self._coordinates(decoded, valid, stack, bits.range)
-        return valid, reason, counts, coords, refined
+    def _decode_rows(self, stack: np.ndarray, axes: list[_Axis], rule: tuple,
+                     words: "ClassifiedBits | None") -> tuple:
+        """(valid, reason, per-row counts (H, 5), each axis's coordinates, refined counts)
+        from one pass over the view (:func:`kernels.decode_rows`, a band of rows per core,
+        the bands joined in order afterwards); ``words``: the Gray words, when the projected
+        bits are not Gray bits (else they are made in the pass).
 
-    def _decode_in_one_pass(self, stack: np.ndarray, axes: list[_Axis], rule: tuple) -> tuple:
-        """:meth:`_decode_in_passes`' result from one pass over the view
-        (:func:`kernels.decode_rows`, a band of rows per core, joined by
-        :func:`kernels.stitch_columns`): each axis is refined across its stripes the way its
-        projector axis suggests (columns along the camera rows, rows down the columns); where
-        the decoded codes say otherwise (:func:`stripes_cross_columns`' rule, on the same
-        pass's counts), that axis is refined again the other way, as in passes."""
+        Each axis is first refined across its stripes the way its projector axis suggests:
+        columns along the camera rows, rows down the camera columns. Where the decoded codes
+        change more often the other way (counted in the same pass), the stripes lie the other
+        way across the image (a camera turned by 90°): that axis is refined again the other
+        way, from the block centres."""
         k = _kernels()
         h, w = stack.shape[1:]
         n_axes = len(axes)
@@ -366,6 +354,14 @@ class GrayCode:
                            -1 if anchor is None else anchor, span)
             flips[a, :len(tables[a])] = tables[a]
         down = np.array([ax.prefix != "col" for ax in axes])
+        if words is None:
+            words = ClassifiedBits(np.empty((n_axes, 0, w), np.uint32),
+                                   np.empty((n_axes, 0, w), np.uint32),
+                                   np.empty((h, w), np.float32), np.empty((h, w), bool),
+                                   np.empty((h, w), bool))
+            classified = False
+        else:
+            classified = True
         code = np.empty((n_axes, h, w), np.int32)
         coord = np.empty((n_axes, h, w), np.float32)
         ok = np.empty((n_axes, h, w), bool)
@@ -373,25 +369,26 @@ class GrayCode:
         reason = np.empty((h, w), np.uint8)
         counts = np.empty((h, 5), np.int64)
         changed = np.empty((n_axes, h, 2), np.int64)
-        rng = np.empty((h, w), np.float32)
-        shadow = np.empty((h, w), bool)
-        no_direct = np.empty((h, w), bool)
         bounds = bands(h)
         scan_i = np.empty((len(bounds) - 1, n_axes, 4, w), np.int64)
         scan_f = np.empty((len(bounds) - 1, n_axes, 4, w), np.float32)
-        split_bands(k.decode_rows, bounds, *rule, settings, flips, down, code, coord, ok, valid,
-                    reason, counts, changed, rng, shadow, no_direct, scan_i, scan_f)
-        k.stitch_columns(stack, self.inverse, rng, settings, flips, down, code, coord, ok, valid,
-                         changed, scan_i, scan_f, np.array(bounds, np.int64))
+        args = (*rule, settings, flips, down, self.subpixel, classified, words.value, words.weak,
+                code, coord, ok, valid, reason, counts, changed, words.range, words.shadow,
+                words.no_direct, scan_i, scan_f)
+        split_bands(k.decode_rows, bounds, *args, k.BAND)
+        for band in range(1, len(bounds) - 1):
+            k.decode_rows(*args, k.JOIN, band, bounds[band], bounds[band + 1])
         refined = {}
         for a, ax in enumerate(axes):
+            if not self.subpixel:
+                continue
             along_rows, along_cols = changed[a].sum(axis=0)
             across = bool(along_cols > along_rows)
             if across != down[a]:  # refined the wrong way: start again from the block centres
                 split(k.block_centres, h, code[a], valid, ax.block, ax.offset, ax.size, coord[a])
             d = AxisDecode(ax, int(firsts[a]), code[a], coord[a])
             refined[f"refined_{_axis_name(ax)}"] = self._refine_axis(
-                d, valid, stack, rng, coord[a], ok[a], across, done=across == down[a])
+                d, valid, stack, words.range, coord[a], ok[a], across, done=across == down[a])
         return valid, reason, counts, list(coord), refined
 
     def _rule(self, stack: np.ndarray, axes: list[_Axis], full: float) -> tuple:
@@ -451,32 +448,15 @@ class GrayCode:
         spacing in code steps)."""
         return None, _MAX_SUBPIXEL_SPAN
 
-    def _coordinates(self, decoded: list["AxisDecode"], valid: np.ndarray, stack: np.ndarray,
-                     rng: np.ndarray) -> tuple[list[np.ndarray], dict[str, int]]:
-        """Each axis's projector coordinate (float32, NaN where not decoded): the block centre,
-        refined to sub-pixel where the stripe edges allow (``subpixel``)."""
-        coords = []
-        refined: dict[str, int] = {}
-        for d in decoded:
-            coord = d.integer
-            if self.subpixel:
-                across = stripes_cross_columns(d.code, valid)
-                refined[f"refined_{_axis_name(d.axis)}"] = self._refine_axis(
-                    d, valid, stack, rng, coord, np.empty(valid.shape, bool), across, False)
-            else:
-                coord[~valid] = np.nan
-            coords.append(coord)
-        return coords, refined
-
     def _refine_axis(self, d: "AxisDecode", valid: np.ndarray, stack: np.ndarray,
                      rng: np.ndarray, coord: np.ndarray, ok: np.ndarray, across: bool,
                      done: bool) -> int:
         """Refine ``coord`` (one axis's coarse coordinates) in place to sub-pixel and set it NaN
         where not decoded; returns how many pixels were refined (marked in ``ok``). Scanned
-        along the image direction its stripes cross (down the columns if ``across``, see
-        :func:`stripes_cross_columns`), then along the other where that leaves more than
-        :data:`SECOND_PASS_SHARE` of the decoded pixels unrefined. ``done``: the first scan
-        already ran (:func:`kernels.decode_rows`), with ``ok`` its refined pixels."""
+        along the image direction its stripes cross (down the columns if ``across``: its
+        code changes more often down them), then along the other where that leaves more
+        than :data:`SECOND_PASS_SHARE` of the decoded pixels unrefined. ``done``: the first
+        scan already ran (:func:`kernels.decode_rows`), with ``ok`` its refined pixels."""
         anchor, span = self.refine_anchors(d.axis)
         ax = d.axis
         k = _kernels()
@@ -557,32 +537,6 @@ class ClassifiedBits:
     range: np.ndarray
     shadow: np.ndarray
     no_direct: np.ndarray
-
-
-def _decode_axis(ax: _Axis, first: int, gray: np.ndarray, weak: np.ndarray,
-                 shadow: np.ndarray, flags: np.ndarray) -> AxisDecode:
-    """Coarse code of one axis from its packed Gray bits (:func:`kernels.assemble`), with its
-    per-pixel flags written into ``flags`` (H, W) uint8.
-
-    A single weak bit is harmless when flipping it moves the code by one step and the pixel
-    is on that bit's stripe edge (a 4-neighbour where the bit is surely 1 and one where it is
-    surely 0); more weak bits, or one off its edge, make the pixel bad. Shadow pixels are
-    not decoded (code 0, no flag)."""
-    shape = gray.shape
-    code = np.empty(shape, np.int32)
-    integer = np.empty(shape, np.float32)
-    split(_kernels().assemble, shape[0], gray, weak, shadow, ax.nb, ax.block, ax.offset,
-          ax.size, code, integer, flags)
-    return AxisDecode(ax, first, code, integer)
-
-
-def stripes_cross_columns(code: np.ndarray, valid: np.ndarray) -> bool:
-    """True when the decoded code changes more often down the camera columns than along the
-    camera rows, i.e. the stripes lie closer to the image rows (refine along the columns)."""
-    counts = np.empty((code.shape[0], 2), np.int64)
-    split(_kernels().changes, code.shape[0], code, valid, counts)
-    along_rows, along_cols = counts.sum(axis=0)
-    return bool(along_cols > along_rows)
 
 
 def make_graycode(settings: dict[str, Any] | None = None, context: Any = None) -> GrayCode:

@@ -1,27 +1,34 @@
 """Compiled per-pixel loops of the binary codings' decoder (numba; split by rows across cores).
 
-The decoder of :mod:`dotshell_codings.graycode` runs in a few passes over a view, each a loop
-compiled here, with no image-sized temporary per bit:
+The decoder of :mod:`dotshell_codings.graycode` makes one pass over a view
+(:func:`decode_rows`), a band of rows per core, with no image-sized temporary per bit. Row by
+row it:
 
-* :func:`classify` reads every frame once, row by row, and decides each projected bit of each
-  pixel (the contrast rule or Xu & Aliaga's robust rule after the direct/global separation),
-  packing the bits into one word per axis (``value``) and one for the undecided ones
-  (``weak``), most significant bit first — the arithmetic is the decoder's documented rule in
-  float32 exactly as numpy evaluated it before (NEP 50: Python scalars cast to float32);
-* :func:`assemble` turns the words into the coarse code (gray → binary, the one-weak-bit edge
-  tolerance with its 4-neighbour check, out-of-range test) with a flag byte per pixel, and
-  :func:`verdict` combines the axes' flags into each pixel's reason and the counts;
-* :func:`refine_rows` / :func:`refine_columns` scan each camera row / column once: the
-  sub-pixel stripe edges (anchors) between adjacent valid pixels are found as the scan reaches
-  them, reading the pattern/inverse frames only there, and the pixels since the previous
-  anchor are placed linearly between the two, in place in the coordinate map;
-* :func:`decode_rows` does all of the above for a band of rows in one pass, each row's
-  assembly, verdict and refinement right after its classification, while its frames are still
-  in the cache, with the bits kept in a three-row ring instead of image-sized words; the bands
-  (one per core) are joined by :func:`stitch_columns`. The passes above stay for the codings
-  whose projected bits are not Gray bits, and for the rare view whose stripes lie the other
-  way than their projector axis suggests. Each pass is written once, as a row function
-  (``_classify_row`` …) that both call.
+* classifies (:func:`_classify_row`): reads every frame's row once and decides each projected
+  bit of each pixel (the contrast rule or Xu & Aliaga's robust rule after the direct/global
+  separation), packing the bits into one word per axis (``value``) and one for the undecided
+  ones (``weak``), most significant bit first — the arithmetic is the decoder's documented rule
+  in float32 exactly as numpy evaluated it before (NEP 50: Python scalars cast to float32);
+  the words live in a three-row ring;
+* assembles the coarse code one row behind (:func:`_assemble_row`: gray → binary, the
+  one-weak-bit edge tolerance with its 4-neighbour check, out-of-range test) with a flag byte
+  per pixel, which :func:`_verdict_row` combines into each pixel's reason and the counts;
+* refines to sub-pixel while the row's frames are still in the cache: along the row
+  (:func:`_refine_row`) or, one row behind, a step of the scans down the columns
+  (:func:`_column_step`). Each scan finds the stripe edges (anchors) between adjacent valid
+  pixels as it reaches them, reading the pattern/inverse frames only there, and places the
+  pixels since the previous anchor linearly between the two, in place in the coordinate map.
+  The column scans cross the bands' borders: the bands are joined afterwards, in order
+  (:func:`_join`), as one scan down the whole column would have gone.
+
+Two passes over the whole view remain, written with the same row functions:
+:func:`classify` for the codings whose projected bits are not Gray bits (their words are
+converted, then given to :func:`decode_rows`), and :func:`refine_rows` /
+:func:`refine_columns` for the rare view whose stripes lie the other way across the image
+than their projector axis suggests, and for a second refinement across the first.
+
+The row functions are compiled on their own and called per row; inlined into the one-pass
+kernel they made it take ~100 s of CPU to compile.
 
 Why numba (docs/performance.md, "Decode and triangulation"): numpy needs a full-size
 temporary per operation and per bit (the decoder made ~40 passes over 1.3 M-pixel arrays per
@@ -42,8 +49,7 @@ _OPTS = dict(nogil=True, cache=True, error_model="numpy")
 #: helpers called per pixel are inlined: a compiled call passing arrays pays reference counting
 _INNER = dict(nogil=True, cache=True, error_model="numpy", inline="always")
 
-#: a pass's work on one row (called per row: compiled once for the passes and the one-pass
-#: decoder alike, where inlining them made the one-pass kernel take minutes to compile)
+#: a pass's work on one row (called per row, compiled once for every kernel that calls it)
 _ROW = dict(nogil=True, cache=True, error_model="numpy")
 
 #: classification rules of :func:`classify`
@@ -268,7 +274,7 @@ def _on_edge(value, weak, up, here, down, x, bit):
     return max(a, b, c, d) == 1 and (a == 0 or b == 0 or c == 0 or d == 0)
 
 
-#: bits of :func:`assemble`'s per-pixel flags
+#: bits of the per-pixel flags of :func:`_assemble_row`
 BAD, TOLERATED, OUT_OF_RANGE = 1, 2, 4
 
 
@@ -280,28 +286,18 @@ def _centre(c, block, offset, size):
     return np.float32(0.5 * (max(lo, 0) + min(hi, size - 1)))
 
 
-@numba.njit(**_OPTS)
-def assemble(value: np.ndarray, weak: np.ndarray, shadow: np.ndarray, nb: int, block: int,
-             offset: int, size: int, code: np.ndarray, integer: np.ndarray, flags: np.ndarray,
-             start: int, stop: int) -> None:
-    """Coarse code of one axis from its packed Gray bits (see ``graycode._decode_axis``'s rule:
-    one weak bit is tolerated on its own stripe edge, where it moves the code by one step).
-
-    Outputs (H, W): code int32, integer float32 (projector coordinate of the block centre,
-    clipped), flags uint8: :data:`BAD` (weak and not tolerated), :data:`TOLERATED`,
-    :data:`OUT_OF_RANGE` (block off the projector); all 0 in ``shadow`` (never decoded)."""
-    H = value.shape[0]
-    for y in range(start, stop):
-        _assemble_row(value, weak, y - 1, y, y + 1 if y + 1 < H else -1, shadow[y], nb, block,
-                      offset, size, code[y], integer[y], flags[y])
-
-
 @numba.njit(**_ROW)
 def _assemble_row(value, weak, up, here, down, shadow, nb, block, offset, size, code, integer,
                   flags):
-    """Row ``here`` of the words ``value``/``weak`` (R, W) into the rows ``code``,
-    ``integer``, ``flags`` (W,) (:func:`assemble`; ``up``/``down``: the rows above and
-    below, −1 at the image border)."""
+    """Coarse code of one axis, one row, from its packed Gray words: row ``here`` of
+    ``value``/``weak`` (R, W) (``up``/``down``: the rows above and below, −1 at the image
+    border) into the rows ``code`` int32, ``integer`` float32 (projector coordinate of the
+    block centre, clipped) and ``flags`` uint8 (W,): :data:`BAD` (weak and not tolerated),
+    :data:`TOLERATED`, :data:`OUT_OF_RANGE` (block off the projector); all 0 in ``shadow``
+    (never decoded). Gray → binary by prefix XOR. A single weak bit is harmless when flipping
+    it moves the code by one step and the pixel is on that bit's stripe edge (a 4-neighbour
+    where the bit is surely 1 and one where it is surely 0); more weak bits, or one off its
+    edge, make the pixel bad."""
     top = size - 1
     for x in range(value.shape[1]):
         if shadow[x]:
@@ -337,27 +333,20 @@ def _assemble_row(value, weak, up, here, down, shadow, nb, block, offset, size, 
 def block_centres(code: np.ndarray, valid: np.ndarray, block: int, offset: int, size: int,
                   coord: np.ndarray, start: int, stop: int) -> None:
     """``coord`` (H, W) float32 = the block centre of ``code`` at the valid pixels (the coarse
-    coordinates :func:`assemble` gave them), rows ``start`` to ``stop``."""
+    coordinates :func:`_assemble_row` gave them), rows ``start`` to ``stop``."""
     for y in range(start, stop):
         for x in range(code.shape[1]):
             if valid[y, x]:
                 coord[y, x] = _centre(code[y, x], block, offset, size)
 
 
-@numba.njit(**_OPTS)
-def verdict(shadow: np.ndarray, no_direct: np.ndarray, flags: np.ndarray, valid: np.ndarray,
-            reason: np.ndarray, counts: np.ndarray, start: int, stop: int) -> None:
-    """Each pixel's fate from the axes' (A, H, W) :func:`assemble` flags: reason 0 decoded
-    (``valid``), 1 shadow, 2 a bit undecided (weak and not tolerated on any axis, or no direct
-    light), 3 off the projector, the first that holds. ``counts`` (H, 5) int64: per row, the
-    pixels of each reason and (column 4) the decoded pixels with a tolerated bit."""
-    for y in range(start, stop):
-        _verdict_row(shadow[y], no_direct[y], flags, y, valid[y], reason[y], counts[y])
-
-
 @numba.njit(**_ROW)
 def _verdict_row(shadow, no_direct, flags, fy, valid, reason, counts):
-    """:func:`verdict` of one row: flags (A, R, W) at row ``fy``, the other arguments rows."""
+    """Each pixel's fate in one row from the axes' flags (A, R, W) at row ``fy``
+    (:func:`_assemble_row`): ``reason`` 0 decoded (``valid``), 1 shadow, 2 a bit undecided
+    (weak and not tolerated on any axis, or no direct light), 3 off the projector, the first
+    that holds; ``counts`` (5,): the pixels of each reason and (4) the decoded pixels with a
+    tolerated bit. The other arguments are rows (W,)."""
     n_axes = flags.shape[0]
     for k in range(5):
         counts[k] = 0
@@ -380,17 +369,10 @@ def _verdict_row(shadow, no_direct, flags, fy, valid, reason, counts):
         counts[r] += 1
 
 
-@numba.njit(**_OPTS)
-def changes(code: np.ndarray, valid: np.ndarray, counts: np.ndarray, start: int,
-            stop: int) -> None:
-    """Per row y of ``start`` to ``stop``: code changes between valid pixels along the camera
-    row (``counts[y, 0]``) and down to the next row (``counts[y, 1]``)."""
-    for y in range(start, stop):
-        _changes_row(code, valid, y, counts[y])
-
-
 @numba.njit(**_ROW)
 def _changes_row(code, valid, y, counts):
+    """Code changes between valid pixels of row ``y``: along the row (``counts[0]``) and
+    down to the next row (``counts[1]``)."""
     H, W = code.shape
     along_rows = 0
     along_cols = 0
@@ -564,7 +546,7 @@ def _column_step(stack, inverse, rng, code, valid, flip, block, offset, first_pa
     with each column's state in ``scan_i`` (4, n) int64 / ``scan_f`` (4, n) float32 (rows
     :data:`PREV` …): the previous anchor (row, position, value), the last invalid row, and the
     scan's first anchor with the last invalid row before it (what a scan started mid-image
-    leaves for :func:`stitch_columns`)."""
+    leaves for :func:`_join`)."""
     H = code.shape[0]
     nan32 = np.float32(np.nan)
     for x in range(start, stop):
@@ -611,52 +593,69 @@ def _fill_column(code, coord, ok, x, p, y, pl, vl, pr, vr, block, offset, max_sp
 #: columns of :func:`decode_rows`' per-axis settings (``axes``, (A, 6) int64)
 BLOCK, OFFSET, SIZE, FIRST_PAIR, ANCHOR_BIT, MAX_SPAN = range(6)
 
+#: phases of :func:`decode_rows`
+BAND, JOIN = 0, 1
+
 
 @numba.njit(**_OPTS)
 def decode_rows(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarray,
                 sep: np.ndarray, high: np.ndarray, shadow_thr: np.float32, m: np.float32,
                 min_contrast: np.float32, contrast_scale: np.float32, one_minus_b: np.float32,
                 lg_scale: np.float32, b_level: np.float32, axes: np.ndarray, flips: np.ndarray,
-                down: np.ndarray, code: np.ndarray, coord: np.ndarray, ok: np.ndarray,
+                down: np.ndarray, refine: bool, classified: bool, value: np.ndarray,
+                weak: np.ndarray, code: np.ndarray, coord: np.ndarray, ok: np.ndarray,
                 valid: np.ndarray, reason: np.ndarray, counts: np.ndarray, changed: np.ndarray,
                 rng: np.ndarray, shadow: np.ndarray, no_direct: np.ndarray, scan_i: np.ndarray,
-                scan_f: np.ndarray, band: int, start: int, stop: int) -> None:
-    """The whole decode of the rows ``start`` to ``stop`` (one band of a view) in one pass:
-    each row is classified (:func:`classify`) one row ahead of its assembly (:func:`assemble`,
-    which looks at the rows above and below), its verdict (:func:`verdict`) and sub-pixel
-    refinement follow at once, while the row's frames are still in the cache, and the scans
-    down the columns (:func:`refine_columns`) and the code-change counts (:func:`changes`)
-    one row behind. The projected bits live only in a three-row ring, not in image-sized
-    words. Rows just outside the band are classified again here (into the ring) rather than
-    read from the neighbouring band's thread.
+                scan_f: np.ndarray, phase: int, band: int, start: int, stop: int) -> None:
+    """The decode of a band of rows, ``start`` to ``stop``, in one pass (``phase`` =
+    :data:`BAND`): each row is classified (:func:`_classify_row`) one row ahead of its
+    assembly (:func:`_assemble_row`, which looks at the rows above and below); its verdict and
+    sub-pixel refinement along the row follow at once, while the row's frames are still in
+    the cache; the scans down the columns and the code-change counts run one row behind
+    (:func:`_behind`). The projected bits live in a three-row ring, not in image-sized words;
+    the rows just outside the band are classified again into the ring rather than read from
+    the neighbouring band's thread. ``phase`` = :data:`JOIN` joins band ``band`` (first row
+    ``start``) to the bands above it, once they are all done (:func:`_join`).
 
     Args (the classification's as :func:`classify`'s, then):
         axes: (A, 6) int64 per axis: block, offset, size, first pair, anchor bit (−1: all),
             max anchor span (columns :data:`BLOCK` …).
         flips: (A, T) int64, each axis's :func:`flip_table` (padded).
         down: (A,) bool, the axis is refined down the columns (else along the rows).
+        refine: sub-pixel refinement (else the block centres, NaN where not decoded).
+        classified: the Gray words are given in ``value``/``weak`` (A, H, W) with ``rng``,
+            ``shadow``, ``no_direct`` (a coding whose projected bits are not Gray bits:
+            :func:`classify`, then its own conversion), else they are made here
+            (``value``/``weak`` unused).
         code, coord, ok: (A, H, W) int32 / float32 / bool outputs: coarse code, projector
             coordinate (sub-pixel where refined, NaN where not decoded), refined.
-        valid, reason, counts: as :func:`verdict`'s; changed: (A, H, 2) as :func:`changes`'.
-        rng, shadow, no_direct: (H, W) as :func:`classify`'s.
-        scan_i, scan_f: (B, A, 4, W) the column scans' state per band (:func:`_column_step`),
-            finished across the bands by :func:`stitch_columns`.
-        band, start, stop: this band's index and rows. The band's last row is left to
-            :func:`stitch_columns` by the column scans and the change counts (it needs the next
-            band's first row), except in the last band.
+        valid, reason, counts: (H, W) bool, (H, W) uint8, (H, 5) int64 (:func:`_verdict_row`).
+        changed: (A, H, 2) int64 code changes per row (:func:`_changes_row`).
+        rng, shadow, no_direct: (H, W) as :func:`classify`'s (outputs unless ``classified``).
+        scan_i, scan_f: (B, A, 4, W) the column scans' state per band (:func:`_column_step`).
+        phase, band, start, stop: as above. In its pass, a band leaves its last row's column
+            steps and change counts to the join (they need the next band's first row), except
+            the last band.
     """
+    if phase == JOIN:
+        _join(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid, changed,
+              scan_i, scan_f, band, start)
+        return
     n_axes = axis_bits.shape[0]
     H, W = rng.shape
-    value = np.zeros((n_axes, 3, W), np.uint32)
-    weak = np.zeros((n_axes, 3, W), np.uint32)
+    if not classified:
+        value = np.zeros((n_axes, 3, W), np.uint32)
+        weak = np.zeros((n_axes, 3, W), np.uint32)
     flags = np.empty((n_axes, 1, W), np.uint8)
     halo_r = np.empty(W, np.float32)
     halo_sh = np.empty(W, np.bool_)
     halo_nd = np.empty(W, np.bool_)
     spans = np.empty(W + 2, np.int64)
+    nan32 = np.float32(np.nan)
     scan_i[band] = -1
     scan_f[band] = 0
-    for y in range(max(start - 1, 0), min(start + 1, H)):
+    first = max(start - 1, 0) if not classified else H  # the ring's first two rows
+    for y in range(first, min(start + 1, H)):
         inside = y >= start
         _classify_row(stack, y, inverse, mode, axis_bits, sep, high, shadow_thr, m,
                       min_contrast, contrast_scale, one_minus_b, lg_scale, b_level, value,
@@ -665,80 +664,79 @@ def decode_rows(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarr
                       spans)
     for y in range(start, stop):
         n = y + 1
-        if n < H:
+        if n < H and not classified:
             inside = n < stop
             _classify_row(stack, n, inverse, mode, axis_bits, sep, high, shadow_thr, m,
                           min_contrast, contrast_scale, one_minus_b, lg_scale, b_level, value,
                           weak, n % 3, rng[n] if inside else halo_r,
                           shadow[n] if inside else halo_sh,
                           no_direct[n] if inside else halo_nd, spans)
-        up = (y - 1) % 3 if y > 0 else -1
-        dn = n % 3 if n < H else -1
+        up = -1 if y == 0 else (y - 1) if classified else (y - 1) % 3
+        dn = -1 if n == H else n if classified else n % 3
+        here = y if classified else y % 3
         for a in range(n_axes):
-            _assemble_row(value[a], weak[a], up, y % 3, dn, shadow[y], axis_bits[a],
+            _assemble_row(value[a], weak[a], up, here, dn, shadow[y], axis_bits[a],
                           axes[a, BLOCK], axes[a, OFFSET], axes[a, SIZE], code[a, y],
                           coord[a, y], flags[a, 0])
             ok[a, y, :] = False
         _verdict_row(shadow[y], no_direct[y], flags, 0, valid[y], reason[y], counts[y])
         for a in range(n_axes):
-            if not down[a]:
+            if not refine:
+                for x in range(W):
+                    if not valid[y, x]:
+                        coord[a, y, x] = nan32
+            elif not down[a]:
                 _refine_row(stack, inverse, rng, code[a], valid, flips[a], axes[a, BLOCK],
                             axes[a, OFFSET], axes[a, FIRST_PAIR], axes[a, ANCHOR_BIT],
                             axes[a, MAX_SPAN], False, coord[a], ok[a], y)
         if y > start:
-            _behind(stack, inverse, rng, axes, flips, down, code, coord, ok, valid, changed,
-                    scan_i[band], scan_f[band], y - 1)
+            _behind(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid,
+                    changed, scan_i[band], scan_f[band], y - 1)
     if stop == H:
-        _behind(stack, inverse, rng, axes, flips, down, code, coord, ok, valid, changed,
+        _behind(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid, changed,
                 scan_i[band], scan_f[band], H - 1)
 
 
 @numba.njit(**_ROW)
-def _behind(stack, inverse, rng, axes, flips, down, code, coord, ok, valid, changed, scan_i,
-            scan_f, y):
-    """What :func:`decode_rows` does one row behind: row ``y``'s step of the column scans
-    (state ``scan_i``/``scan_f`` (A, 4, W)) and its code-change counts."""
+def _behind(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid, changed,
+            scan_i, scan_f, y):
+    """What :func:`decode_rows` does one row behind: row ``y``'s code-change counts and
+    (``refine``) its step of the column scans (state ``scan_i``/``scan_f`` (A, 4, W))."""
     for a in range(code.shape[0]):
         _changes_row(code[a], valid, y, changed[a, y])
-        if down[a]:
+        if refine and down[a]:
             _column_step(stack, inverse, rng, code[a], valid, flips[a], axes[a, BLOCK],
                          axes[a, OFFSET], axes[a, FIRST_PAIR], axes[a, ANCHOR_BIT],
                          axes[a, MAX_SPAN], False, coord[a], ok[a], y, 0, code.shape[2],
                          scan_i[a], scan_f[a])
 
 
-@numba.njit(**_OPTS)
-def stitch_columns(stack: np.ndarray, inverse: bool, rng: np.ndarray, axes: np.ndarray,
-                   flips: np.ndarray, down: np.ndarray, code: np.ndarray, coord: np.ndarray,
-                   ok: np.ndarray, valid: np.ndarray, changed: np.ndarray, scan_i: np.ndarray,
-                   scan_f: np.ndarray, bounds: np.ndarray) -> None:
-    """Join the bands of :func:`decode_rows` (``bounds``: their first rows, then H), in
-    order: each band's last row gets its column-scan step and change counts, the samples
-    between the scan's last anchor above a band and its first anchor inside it are placed
-    (as one scan down the whole column would have), and the scan goes on with the band's
-    state. ``scan_i``/``scan_f`` of band 0 carry the state (overwritten)."""
-    W = code.shape[2]
-    for b in range(1, bounds.shape[0] - 1):
-        y = bounds[b] - 1
-        _behind(stack, inverse, rng, axes, flips, down, code, coord, ok, valid, changed,
-                scan_i[0], scan_f[0], y)
-        for a in range(code.shape[0]):
-            if not down[a]:
-                continue
-            si, sf, bi, bf = scan_i[0, a], scan_f[0, a], scan_i[b, a], scan_f[b, a]
-            for x in range(W):
-                if bi[FIRST, x] >= 0:
-                    p = si[PREV, x]
-                    bad = bi[BAD_BEFORE_FIRST, x] if bi[BAD_BEFORE_FIRST, x] >= 0 else si[BAD_ROW, x]
-                    if p >= 0 and bad <= p:
-                        _fill_column(code[a], coord[a], ok[a], x, p, bi[FIRST, x],
-                                     sf[PREV_POS, x], sf[PREV_VAL, x], bf[FIRST_POS, x],
-                                     bf[FIRST_VAL, x], axes[a, BLOCK], axes[a, OFFSET],
-                                     axes[a, MAX_SPAN])
-                    si[PREV, x] = bi[PREV, x]
-                    sf[PREV_POS, x] = bf[PREV_POS, x]
-                    sf[PREV_VAL, x] = bf[PREV_VAL, x]
-                si[BAD_ROW, x] = max(si[BAD_ROW, x], bi[BAD_ROW, x])
+@numba.njit(**_ROW)
+def _join(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid, changed,
+          scan_i, scan_f, band, start):
+    """Join band ``band`` (first row ``start``) of :func:`decode_rows` to the bands above it,
+    done in order after all bands' passes: the band above gets its last row's column steps
+    and change counts; the samples between each column scan's last anchor above and its first
+    anchor in this band are placed, as one scan down the whole column would have; the scan
+    goes on with this band's state. Band 0's ``scan_i``/``scan_f`` carry the state."""
+    _behind(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid, changed,
+            scan_i[0], scan_f[0], start - 1)
+    for a in range(code.shape[0]):
+        if not (refine and down[a]):
+            continue
+        si, sf, bi, bf = scan_i[0, a], scan_f[0, a], scan_i[band, a], scan_f[band, a]
+        for x in range(code.shape[2]):
+            if bi[FIRST, x] >= 0:
+                p = si[PREV, x]
+                bad = bi[BAD_BEFORE_FIRST, x] if bi[BAD_BEFORE_FIRST, x] >= 0 else si[BAD_ROW, x]
+                if p >= 0 and bad <= p:
+                    _fill_column(code[a], coord[a], ok[a], x, p, bi[FIRST, x], sf[PREV_POS, x],
+                                 sf[PREV_VAL, x], bf[FIRST_POS, x], bf[FIRST_VAL, x],
+                                 axes[a, BLOCK], axes[a, OFFSET], axes[a, MAX_SPAN])
+                si[PREV, x] = bi[PREV, x]
+                sf[PREV_POS, x] = bf[PREV_POS, x]
+                sf[PREV_VAL, x] = bf[PREV_VAL, x]
+            si[BAD_ROW, x] = max(si[BAD_ROW, x], bi[BAD_ROW, x])
 
 
 @numba.njit(**_OPTS)
