@@ -32,7 +32,6 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.optimize import nnls
 
 
 @dataclass(frozen=True)
@@ -103,6 +102,8 @@ def gaussian_mixture(s: Scattering, sigmas_mm=(0.6, 1.2, 2.4, 4.8, 9.6),
 
     Returns (sigmas_mm, weights, relative L2 error of the fit). Σ weights ≈ total diffuse
     reflectance."""
+    from scipy.optimize import nnls  # here: scipy is for scattering samples only (0.5 s to load)
+
     r = np.linspace(1e-3, r_max_mm, 4000)
     target = 2 * np.pi * r * dipole_profile(r, s)
     sig = np.asarray(sigmas_mm, float)
