@@ -21,7 +21,7 @@ import pytest
 
 from conftest import write_test_profile
 from dotshell.server.client import RemoteSession
-from dotshell.server.paths import server_name, socket_path
+from dotshell.server.paths import alive, server_name, socket_path
 from rig_server import user_dirs  # noqa: F401 (a fixture)
 
 COLS, ROWS = 80, 24
@@ -34,8 +34,20 @@ def profile(tmp_path, user_dirs):
     scan), the user's directories private to the test, the server stopped after."""
     path = write_test_profile(tmp_path, views=3, settle_ms=100.0)
     yield path
-    subprocess.run([sys.executable, "-m", "dotshell.cli", "stop", str(path), "--abort"],
-                   capture_output=True, timeout=300)
+    stop_server(socket_path(server_name(path)))
+
+
+def stop_server(sock):
+    """What ``dotshell stop PROFILE --abort`` does, from this process (no second interpreter
+    to start): the scan aborted, the rig closed, the server gone once it says bye."""
+    if not alive(sock):
+        return
+    session = RemoteSession(sock, "test")
+    try:
+        session.shutdown(abort=True)
+        assert session.closed.wait(300), "the server did not stop"
+    finally:
+        session.close()
 
 
 def tui_command(profile, tmp_path):
