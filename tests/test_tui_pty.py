@@ -13,13 +13,14 @@ import signal
 import subprocess
 import sys
 import time
+import tomllib
 import uuid
 
 import pexpect
 import pyte
 import pytest
 
-from conftest import write_test_profile
+from conftest import write_profile, write_test_profile
 from dotshell.server.client import RemoteSession
 from dotshell.server.paths import alive, server_name, socket_path
 from rig_server import user_dirs  # noqa: F401 (a fixture)
@@ -31,8 +32,12 @@ F_KEYS = {"f2": "\x1bOQ", "f3": "\x1bOR", "f4": "\x1bOS", "f6": "\x1b[17~"}
 @pytest.fixture
 def profile(tmp_path, user_dirs):
     """A tiny profile (0.1 s a frame, so a person — or a loaded machine — can follow the
-    scan), the user's directories private to the test, the server stopped after."""
+    scan; columns coded only: 16 frames a view, not 30), the user's directories private to
+    the test, the server stopped after."""
     path = write_test_profile(tmp_path, views=3, settle_ms=100.0)
+    raw = tomllib.loads(path.read_text())
+    raw["coding"]["settings"]["axes"] = "columns"
+    write_profile(path, raw)
     yield path
     stop_server(socket_path(server_name(path)))
 
