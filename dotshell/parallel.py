@@ -69,16 +69,36 @@ def shutdown() -> None:
         pool.shutdown(wait=True)
 
 
+def bands(n: int, min_chunk: int = 16) -> list[int]:
+    """Bounds of the contiguous ranges :func:`split` cuts ``range(n)`` into: one per worker,
+    each of at least ``min_chunk`` (range i is ``bounds[i]`` to ``bounds[i + 1]``)."""
+    parts = max(1, min(workers(), n // max(min_chunk, 1)))
+    return [n * i // parts for i in range(parts + 1)]
+
+
 def split(kernel: Callable[..., Any], n: int, *args: Any, min_chunk: int = 16) -> None:
     """Run ``kernel(*args, start, stop)`` over ``range(n)`` cut into one contiguous range per
-    worker (ranges of at least ``min_chunk``); returns when all are done, re-raising the first
-    error. The kernel must release the GIL (``nogil=True``) to run in parallel."""
-    parts = max(1, min(workers(), n // max(min_chunk, 1)))
-    if parts == 1:
-        kernel(*args, 0, n)
+    worker (:func:`bands`); returns when all are done, re-raising the first error. The
+    kernel must release the GIL (``nogil=True``) to run in parallel."""
+    _run(kernel, bands(n, min_chunk), args, False)
+
+
+def split_bands(kernel: Callable[..., Any], bounds: list[int], *args: Any) -> None:
+    """Run ``kernel(*args, i, bounds[i], bounds[i + 1])`` for every range i of ``bounds``
+    (:func:`bands`), in parallel as :func:`split` does: for kernels that keep per-range
+    state (indexed by i) for a serial pass that joins the ranges afterwards."""
+    _run(kernel, bounds, args, True)
+
+
+def _run(kernel: Callable[..., Any], bounds: list[int], args: tuple, numbered: bool) -> None:
+    def call(i: int) -> Any:
+        extra = (i, bounds[i], bounds[i + 1]) if numbered else (bounds[i], bounds[i + 1])
+        return kernel(*args, *extra)
+
+    if len(bounds) == 2:
+        call(0)
         return
-    bounds = [n * i // parts for i in range(parts + 1)]
-    futures = [_pool().submit(kernel, *args, a, b) for a, b in zip(bounds[1:-1], bounds[2:])]
-    kernel(*args, bounds[0], bounds[1])  # the calling thread takes the first range
+    futures = [_pool().submit(call, i) for i in range(1, len(bounds) - 1)]
+    call(0)  # the calling thread takes the first range
     for f in futures:
         f.result()

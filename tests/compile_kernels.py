@@ -8,7 +8,8 @@ decoded a frame; scans run in subprocesses compiled them again, which also stret
 those tests measure. Compiled here once, every worker and subprocess loads them from the cache.
 
 The kernels are reached through the product's own entry points (a tiny scan: uint16 frames
-decoded, triangulated, reconstructed; a decode of uint8 and float32 frames; a forward solve on
+decoded, triangulated, reconstructed; a decode of uint8 and float32 frames, in one pass and
+(XOR codes) in passes; a forward solve on
 one tetrahedron), so the signatures compiled are exactly the ones the pipeline asks for.
 
 Run: ``python tests/compile_kernels.py`` (prints the seconds it took).
@@ -47,8 +48,15 @@ def compile_kernels() -> None:
                               context=None)
     proj = (64, 16)
     images = [p.image for p in coding.patterns(proj)]
-    for frames in (images, [im.astype(np.float32) for im in images]):
-        coding.decode(frames, proj)
+    (xor,) = [b for b in dotshell_codings() if b.name == "xor02"]
+    xor_coding = xor.factory(settings=validate_settings(xor.settings_schema, {}, "compile"),
+                             context=None)
+    xor_images = [p.image for p in xor_coding.patterns(proj)]
+    for frames, xor_frames in ((images, xor_images),
+                               ([im.astype(np.float32) for im in images],
+                                [im.astype(np.float32) for im in xor_images])):
+        coding.decode(frames, proj)  # the one-pass decoder
+        xor_coding.decode(xor_frames, proj)  # the passes (XOR codes, stripes the other way)
     _compile_fem_kernels()
 
 

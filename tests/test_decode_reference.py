@@ -117,3 +117,26 @@ def test_frames_of_one_array_are_decoded_in_place():
     assert not np.shares_memory(copied, separate[0]) and np.array_equal(copied, stack)
     with pytest.raises(ValueError, match="one shape"):
         as_stack([stack[0], stack[1, :2]])
+
+
+@pytest.mark.parametrize("threads", [1, 3, 7])
+def test_the_one_pass_decoder_joins_its_bands_as_one_scan(threads, monkeypatch):
+    """The one-pass decoder (a band of rows per thread, joined afterwards) gives the frozen
+    decoder's result bit for bit however many bands the view is cut into, also when the
+    stripes lie the other way across the image than their projector axis suggests (the camera
+    turned by 90°: both axes are refined again the other way)."""
+    from dotshell import parallel
+    from dotshell_codings import kernels
+
+    redone = []
+    centres = kernels.block_centres
+    monkeypatch.setattr(kernels, "block_centres",
+                        lambda *a: redone.append(a[-1] - a[-2]) or centres(*a))
+    frames, _, _ = render(GrayCode(), cam=(200, 160), noise=3.0, blur=1.2)
+    turned = [np.ascontiguousarray(f.T) for f in frames]
+    with parallel.threads(threads):
+        assert len(parallel.bands(len(frames[0]))) - 1 == threads
+        both(GrayCode, before.GrayCode, frames)
+        assert not redone
+        both(GrayCode, before.GrayCode, turned)
+    assert sum(redone) == 2 * turned[0].shape[0]  # both axes, every row

@@ -10,7 +10,7 @@ Bits are projected most significant first. For a projector axis of ``N`` pixels 
 of the projector. ``drop_low_bits = m`` leaves out the ``m`` finest bits; the decoded value is
 then the coarse code ``v >> m``, i.e. a block of ``2**m`` projector pixels.
 
-Decoding (per pixel, in compiled passes over the view: :mod:`dotshell_codings.kernels`):
+Decoding (per pixel, in one compiled pass over the view: :mod:`dotshell_codings.kernels`):
 
 * bit = pattern > inverse (or pattern > (white + black) / 2 without inverses);
 * ``shadow``: white - black < ``shadow_threshold`` * full scale;
@@ -53,7 +53,7 @@ import numpy as np
 
 from dotshell.coding import Correspondence, PatternFrame
 from dotshell.settings import Setting
-from dotshell.parallel import split
+from dotshell.parallel import bands, split, split_bands
 from dotshell_codings.robust import full_scale, noise_sigma
 
 SETTINGS_SCHEMA: dict[str, Setting] = {
@@ -312,20 +312,14 @@ class GrayCode:
     def decode(self, frames: Sequence[np.ndarray], projector_size: tuple[int, int]) -> Correspondence:
         axes = self._axes(projector_size)
         stack, full = self._stack(frames, axes)
-        bits = self._classify(stack, axes, full)
-        h, w = bits.shadow.shape
-        flags = np.empty((len(axes), h, w), np.uint8)
-        decoded = []
-        for a, ax in enumerate(axes):
-            gray, weak = self.gray_words(ax, bits.value[a], bits.weak[a])
-            decoded.append(_decode_axis(ax, sum(x.nb for x in axes[:a]), gray, weak,
-                                        bits.shadow, flags[a]))
-        valid = np.empty((h, w), bool)
-        reason = np.empty((h, w), np.uint8)
-        counts = np.empty((h, 5), np.int64)
-        split(_kernels().verdict, h, bits.shadow, bits.no_direct, flags, valid, reason, counts)
+        rule = self._rule(stack, axes, full)
+        words = None
+        if type(self).gray_words is not GrayCode.gray_words:
+            words = self._classify(stack, rule)
+            for a, ax in enumerate(axes):
+                words.value[a], words.weak[a] = self.gray_words(ax, words.value[a], words.weak[a])
+        valid, reason, counts, coords, refined = self._decode_rows(stack, axes, rule, words)
         n = [int(c) for c in counts.sum(axis=0)]
-        coords, refined = self._coordinates(decoded, valid, stack, bits.range)
         poor = "uncertain" if self.classification == "robust" else "low_contrast"
         stats = {"pixels": int(valid.size), "decoded": n[0], "shadow": n[1], "low_contrast": 0,
                  "uncertain": 0, "out_of_range": n[3], "edge_tolerated": n[4]}
@@ -335,10 +329,71 @@ class GrayCode:
                               valid=valid, stats=stats, reason=reason,
                               reason_names=("decoded", "shadow", poor, "out_of_range"))
 
-    def _classify(self, stack: np.ndarray, axes: list[_Axis], full: float) -> "ClassifiedBits":
-        """Every projected bit of every pixel decided in one pass over the frames
-        (:func:`kernels.classify`), with the levels and thresholds of the rule (``full``: the
-        frames' full scale)."""
+    def _decode_rows(self, stack: np.ndarray, axes: list[_Axis], rule: tuple,
+                     words: "ClassifiedBits | None") -> tuple:
+        """(valid, reason, per-row counts (H, 5), each axis's coordinates, refined counts)
+        from one pass over the view (:func:`kernels.decode_rows`, a band of rows per core,
+        the bands joined in order afterwards); ``words``: the Gray words, when the projected
+        bits are not Gray bits (else they are made in the pass).
+
+        Each axis is first refined across its stripes the way its projector axis suggests:
+        columns along the camera rows, rows down the camera columns. Where the decoded codes
+        change more often the other way (counted in the same pass), the stripes lie the other
+        way across the image (a camera turned by 90°): that axis is refined again the other
+        way, from the block centres."""
+        k = _kernels()
+        h, w = stack.shape[1:]
+        n_axes = len(axes)
+        firsts = np.cumsum([0] + [ax.nb for ax in axes])[:-1]
+        settings = np.zeros((n_axes, 6), np.int64)
+        tables = [k.flip_table(ax.nb) for ax in axes]
+        flips = np.zeros((n_axes, max(len(t) for t in tables)), np.int64)
+        for a, ax in enumerate(axes):
+            anchor, span = self.refine_anchors(ax)
+            settings[a] = (ax.block, ax.offset, ax.size, firsts[a],
+                           -1 if anchor is None else anchor, span)
+            flips[a, :len(tables[a])] = tables[a]
+        down = np.array([ax.prefix != "col" for ax in axes])
+        if words is None:
+            words = ClassifiedBits(np.empty((n_axes, 0, w), np.uint32),
+                                   np.empty((n_axes, 0, w), np.uint32),
+                                   np.empty((h, w), np.float32), np.empty((h, w), bool),
+                                   np.empty((h, w), bool))
+            classified = False
+        else:
+            classified = True
+        code = np.empty((n_axes, h, w), np.int32)
+        coord = np.empty((n_axes, h, w), np.float32)
+        ok = np.empty((n_axes, h, w), bool)
+        valid = np.empty((h, w), bool)
+        reason = np.empty((h, w), np.uint8)
+        counts = np.empty((h, 5), np.int64)
+        changed = np.empty((n_axes, h, 2), np.int64)
+        bounds = bands(h)
+        scan_i = np.empty((len(bounds) - 1, n_axes, 4, w), np.int64)
+        scan_f = np.empty((len(bounds) - 1, n_axes, 4, w), np.float32)
+        args = (*rule, settings, flips, down, self.subpixel, classified, words.value, words.weak,
+                code, coord, ok, valid, reason, counts, changed, words.range, words.shadow,
+                words.no_direct, scan_i, scan_f)
+        split_bands(k.decode_rows, bounds, *args, k.BAND)
+        for band in range(1, len(bounds) - 1):
+            k.decode_rows(*args, k.JOIN, band, bounds[band], bounds[band + 1])
+        refined = {}
+        for a, ax in enumerate(axes):
+            if not self.subpixel:
+                continue
+            along_rows, along_cols = changed[a].sum(axis=0)
+            across = bool(along_cols > along_rows)
+            if across != down[a]:  # refined the wrong way: start again from the block centres
+                split(k.block_centres, h, code[a], valid, ax.block, ax.offset, ax.size, coord[a])
+            d = AxisDecode(ax, int(firsts[a]), code[a], coord[a])
+            refined[f"refined_{_axis_name(ax)}"] = self._refine_axis(
+                d, valid, stack, words.range, coord[a], ok[a], across, done=across == down[a])
+        return valid, reason, counts, list(coord), refined
+
+    def _rule(self, stack: np.ndarray, axes: list[_Axis], full: float) -> tuple:
+        """The arguments of :func:`kernels.classify` before its outputs: the stack, then the
+        levels and thresholds of the rule (``full``: the frames' full scale)."""
         n_pairs = sum(ax.nb for ax in axes)
         sep = np.zeros(n_pairs, bool)
         high = np.zeros(n_pairs, bool)
@@ -357,18 +412,24 @@ class GrayCode:
         b = self.black_level
         if not 0.0 <= b < 1.0:
             raise ValueError(f"black level ratio must be in [0, 1), not {b}")
-        h, w = stack.shape[1:]
-        out = ClassifiedBits(np.empty((len(axes), h, w), np.uint32),
-                             np.empty((len(axes), h, w), np.uint32), np.empty((h, w), np.float32),
-                             np.empty((h, w), bool), np.empty((h, w), bool))
         f32 = np.float32
         k = _kernels()
-        split(k.classify, h, stack, self.inverse, k.ROBUST if robust else k.CONTRAST,
-              np.array([ax.nb for ax in axes], np.int64), sep, high,
-              f32(self.shadow_threshold * full), f32(m), f32(self.min_contrast),
-              f32(self.min_contrast * (1.0 if self.inverse else 0.5)),
-              f32(1.0 - b), f32(2.0 / (1.0 - b * b)), f32(b),
-              out.value, out.weak, out.range, out.shadow, out.no_direct)
+        return (stack, self.inverse, k.ROBUST if robust else k.CONTRAST,
+                np.array([ax.nb for ax in axes], np.int64), sep, high,
+                f32(self.shadow_threshold * full), f32(m), f32(self.min_contrast),
+                f32(self.min_contrast * (1.0 if self.inverse else 0.5)),
+                f32(1.0 - b), f32(2.0 / (1.0 - b * b)), f32(b))
+
+    def _classify(self, stack: np.ndarray, rule: tuple) -> "ClassifiedBits":
+        """Every projected bit of every pixel decided in one pass over the frames
+        (:func:`kernels.classify`; ``rule``: :meth:`_rule`)."""
+        n_axes = len(rule[3])
+        h, w = stack.shape[1:]
+        out = ClassifiedBits(np.empty((n_axes, h, w), np.uint32),
+                             np.empty((n_axes, h, w), np.uint32), np.empty((h, w), np.float32),
+                             np.empty((h, w), bool), np.empty((h, w), bool))
+        split(_kernels().classify, h, *rule, out.value, out.weak, out.range, out.shadow,
+              out.no_direct)
         return out
 
     def high_frequency_bits(self, ax: _Axis) -> list[int]:
@@ -387,32 +448,18 @@ class GrayCode:
         spacing in code steps)."""
         return None, _MAX_SUBPIXEL_SPAN
 
-    def _coordinates(self, decoded: list["AxisDecode"], valid: np.ndarray, stack: np.ndarray,
-                     rng: np.ndarray) -> tuple[list[np.ndarray], dict[str, int]]:
-        """Each axis's projector coordinate (float32, NaN where not decoded): the block centre,
-        refined to sub-pixel where the stripe edges allow (``subpixel``)."""
-        coords = []
-        refined: dict[str, int] = {}
-        for d in decoded:
-            coord = d.integer
-            if self.subpixel:
-                name = "column" if d.axis.prefix == "col" else "row"
-                refined[f"refined_{name}"] = self._refine_axis(d, valid, stack, rng, coord)
-            else:
-                coord[~valid] = np.nan
-            coords.append(coord)
-        return coords, refined
-
     def _refine_axis(self, d: "AxisDecode", valid: np.ndarray, stack: np.ndarray,
-                     rng: np.ndarray, coord: np.ndarray) -> int:
+                     rng: np.ndarray, coord: np.ndarray, ok: np.ndarray, across: bool,
+                     done: bool) -> int:
         """Refine ``coord`` (one axis's coarse coordinates) in place to sub-pixel and set it NaN
-        where not decoded; returns how many pixels were refined. Scanned along the image
-        direction its stripes cross, then along the other where that leaves more than
-        :data:`SECOND_PASS_SHARE` of the decoded pixels unrefined."""
+        where not decoded; returns how many pixels were refined (marked in ``ok``). Scanned
+        along the image direction its stripes cross (down the columns if ``across``: its
+        code changes more often down them), then along the other where that leaves more
+        than :data:`SECOND_PASS_SHARE` of the decoded pixels unrefined. ``done``: the first
+        scan already ran (:func:`kernels.decode_rows`), with ``ok`` its refined pixels."""
         anchor, span = self.refine_anchors(d.axis)
         ax = d.axis
         k = _kernels()
-        ok = np.empty(valid.shape, bool)
         flip = k.flip_table(ax.nb)
 
         def refine(down: bool, first: bool) -> int:
@@ -422,12 +469,15 @@ class GrayCode:
                   -1 if anchor is None else anchor, span, first, coord, ok)
             return int(np.count_nonzero(ok))
 
-        across = stripes_cross_columns(d.code, valid)
-        n_ok = refine(across, True)
+        n_ok = int(np.count_nonzero(ok)) if done else refine(across, True)
         n_valid = int(np.count_nonzero(valid))
         if n_valid - n_ok > SECOND_PASS_SHARE * max(n_valid, 1):
             n_ok = refine(not across, False)
         return n_ok
+
+
+def _axis_name(ax: _Axis) -> str:
+    return "column" if ax.prefix == "col" else "row"
 
 
 def _kernels() -> Any:
@@ -487,32 +537,6 @@ class ClassifiedBits:
     range: np.ndarray
     shadow: np.ndarray
     no_direct: np.ndarray
-
-
-def _decode_axis(ax: _Axis, first: int, gray: np.ndarray, weak: np.ndarray,
-                 shadow: np.ndarray, flags: np.ndarray) -> AxisDecode:
-    """Coarse code of one axis from its packed Gray bits (:func:`kernels.assemble`), with its
-    per-pixel flags written into ``flags`` (H, W) uint8.
-
-    A single weak bit is harmless when flipping it moves the code by one step and the pixel
-    is on that bit's stripe edge (a 4-neighbour where the bit is surely 1 and one where it is
-    surely 0); more weak bits, or one off its edge, make the pixel bad. Shadow pixels are
-    not decoded (code 0, no flag)."""
-    shape = gray.shape
-    code = np.empty(shape, np.int32)
-    integer = np.empty(shape, np.float32)
-    split(_kernels().assemble, shape[0], gray, weak, shadow, ax.nb, ax.block, ax.offset,
-          ax.size, code, integer, flags)
-    return AxisDecode(ax, first, code, integer)
-
-
-def stripes_cross_columns(code: np.ndarray, valid: np.ndarray) -> bool:
-    """True when the decoded code changes more often down the camera columns than along the
-    camera rows, i.e. the stripes lie closer to the image rows (refine along the columns)."""
-    counts = np.empty((code.shape[0], 2), np.int64)
-    split(_kernels().changes, code.shape[0], code, valid, counts)
-    along_rows, along_cols = counts.sum(axis=0)
-    return bool(along_cols > along_rows)
 
 
 def make_graycode(settings: dict[str, Any] | None = None, context: Any = None) -> GrayCode:

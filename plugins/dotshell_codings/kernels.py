@@ -1,20 +1,34 @@
 """Compiled per-pixel loops of the binary codings' decoder (numba; split by rows across cores).
 
-The decoder of :mod:`dotshell_codings.graycode` runs in a few passes over a view, each a loop
-compiled here, with no image-sized temporary per bit:
+The decoder of :mod:`dotshell_codings.graycode` makes one pass over a view
+(:func:`decode_rows`), a band of rows per core, with no image-sized temporary per bit. Row by
+row it:
 
-* :func:`classify` reads every frame once, row by row, and decides each projected bit of each
-  pixel (the contrast rule or Xu & Aliaga's robust rule after the direct/global separation),
-  packing the bits into one word per axis (``value``) and one for the undecided ones
-  (``weak``), most significant bit first — the arithmetic is the decoder's documented rule in
-  float32 exactly as numpy evaluated it before (NEP 50: Python scalars cast to float32);
-* :func:`assemble` turns the words into the coarse code (gray → binary, the one-weak-bit edge
-  tolerance with its 4-neighbour check, out-of-range test) with a flag byte per pixel, and
-  :func:`verdict` combines the axes' flags into each pixel's reason and the counts;
-* :func:`refine_rows` / :func:`refine_columns` scan each camera row / column once: the
-  sub-pixel stripe edges (anchors) between adjacent valid pixels are found as the scan reaches
-  them, reading the pattern/inverse frames only there, and the pixels since the previous
-  anchor are placed linearly between the two, in place in the coordinate map.
+* classifies (:func:`_classify_row`): reads every frame's row once and decides each projected
+  bit of each pixel (the contrast rule or Xu & Aliaga's robust rule after the direct/global
+  separation), packing the bits into one word per axis (``value``) and one for the undecided
+  ones (``weak``), most significant bit first — the arithmetic is the decoder's documented rule
+  in float32 exactly as numpy evaluated it before (NEP 50: Python scalars cast to float32);
+  the words live in a three-row ring;
+* assembles the coarse code one row behind (:func:`_assemble_row`: gray → binary, the
+  one-weak-bit edge tolerance with its 4-neighbour check, out-of-range test) with a flag byte
+  per pixel, which :func:`_verdict_row` combines into each pixel's reason and the counts;
+* refines to sub-pixel while the row's frames are still in the cache: along the row
+  (:func:`_refine_row`) or, one row behind, a step of the scans down the columns
+  (:func:`_column_step`). Each scan finds the stripe edges (anchors) between adjacent valid
+  pixels as it reaches them, reading the pattern/inverse frames only there, and places the
+  pixels since the previous anchor linearly between the two, in place in the coordinate map.
+  The column scans cross the bands' borders: the bands are joined afterwards, in order
+  (:func:`_join`), as one scan down the whole column would have gone.
+
+Two passes over the whole view remain, written with the same row functions:
+:func:`classify` for the codings whose projected bits are not Gray bits (their words are
+converted, then given to :func:`decode_rows`), and :func:`refine_rows` /
+:func:`refine_columns` for the rare view whose stripes lie the other way across the image
+than their projector axis suggests, and for a second refinement across the first.
+
+The row functions are compiled on their own and called per row; inlined into the one-pass
+kernel they made it take ~100 s of CPU to compile.
 
 Why numba (docs/performance.md, "Decode and triangulation"): numpy needs a full-size
 temporary per operation and per bit (the decoder made ~40 passes over 1.3 M-pixel arrays per
@@ -34,6 +48,9 @@ _OPTS = dict(nogil=True, cache=True, error_model="numpy")
 
 #: helpers called per pixel are inlined: a compiled call passing arrays pays reference counting
 _INNER = dict(nogil=True, cache=True, error_model="numpy", inline="always")
+
+#: a pass's work on one row (called per row, compiled once for every kernel that calls it)
+_ROW = dict(nogil=True, cache=True, error_model="numpy")
 
 #: classification rules of :func:`classify`
 CONTRAST, ROBUST = 0, 1
@@ -65,68 +82,77 @@ def classify(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarray,
         shadow, no_direct: (H, W) bool outputs.
         start, stop: the rows to do.
     """
+    spans = np.empty(rng.shape[1] + 2, np.int64)
+    for y in range(start, stop):
+        _classify_row(stack, y, inverse, mode, axis_bits, sep, high, shadow_thr, m, min_contrast,
+                      contrast_scale, one_minus_b, lg_scale, b_level, value, weak, y, rng[y],
+                      shadow[y], no_direct[y], spans)
+
+
+@numba.njit(**_ROW)
+def _classify_row(stack, y, inverse, mode, axis_bits, sep, high, shadow_thr, m, min_contrast,
+                  contrast_scale, one_minus_b, lg_scale, b_level, value, weak, vy, r, sh, nd,
+                  spans):
+    """Row ``y`` of :func:`classify`: the words into ``value``/``weak`` (A, R, W) at row
+    ``vy``, white − black, shadow and no-direct into the rows ``r``, ``sh``, ``nd`` (W,)."""
     n_axes = axis_bits.shape[0]
     per_bit = 2 if inverse else 1
-    H, W = rng.shape
+    W = r.shape[0]
     zero = np.float32(0.0)
     half = np.float32(0.5)
-    spans = np.empty(W + 2, np.int64)
-    for y in range(start, stop):
-        black = np.empty(W, np.float32)
-        r = rng[y]
-        _levels(stack[0, y], stack[1, y], shadow_thr, black, r, shadow[y])
-        n_spans = _needed(stack, y, shadow_thr, shadow[y], spans)
-        ld = np.empty(W, np.float32)
-        lg = np.empty(W, np.float32)
-        thr = np.empty(W, np.float32)
-        nd = no_direct[y]
-        nd[:] = False
+    black = np.empty(W, np.float32)
+    _levels(stack[0, y], stack[1, y], shadow_thr, black, r, sh)
+    n_spans = _needed(stack, y, shadow_thr, sh, spans)
+    ld = np.empty(W, np.float32)
+    lg = np.empty(W, np.float32)
+    thr = np.empty(W, np.float32)
+    nd[:] = False
+    for a in range(n_axes):
+        value[a, vy, :] = 0
+        weak[a, vy, :] = 0
+    for sp in range(n_spans):
+        x0, x1 = spans[2 * sp], spans[2 * sp + 1]
+        if mode == ROBUST:
+            lmax = np.full(x1 - x0, -np.inf, np.float32)
+            lmin = np.full(x1 - x0, np.inf, np.float32)
+            for k in range(sep.shape[0]):
+                if sep[k]:
+                    for j in range(2):
+                        _extremes(stack[2 + per_bit * k + j, y, x0:x1], black[x0:x1],
+                                  lmax, lmin)
+            for x in range(x0, x1):
+                d = (lmax[x - x0] - lmin[x - x0]) / one_minus_b
+                g = lg_scale * (lmin[x - x0] - b_level * lmax[x - x0])
+                if g < 0:
+                    d = lmax[x - x0]
+                    g = zero
+                ld[x] = d
+                lg[x] = g
+                nd[x] = d < m
+                thr[x] = min_contrast * d
+        else:
+            for x in range(x0, x1):
+                thr[x] = contrast_scale * max(r[x], zero)
+                lg[x] = black[x] + half * r[x]  # the mid level, for frames without inverses
+        k = 0
         for a in range(n_axes):
-            value[a, y, :] = 0
-            weak[a, y, :] = 0
-        for sp in range(n_spans):
-            x0, x1 = spans[2 * sp], spans[2 * sp + 1]
-            if mode == ROBUST:
-                lmax = np.full(x1 - x0, -np.inf, np.float32)
-                lmin = np.full(x1 - x0, np.inf, np.float32)
-                for k in range(sep.shape[0]):
-                    if sep[k]:
-                        for j in range(2):
-                            _extremes(stack[2 + per_bit * k + j, y, x0:x1], black[x0:x1],
-                                      lmax, lmin)
-                for x in range(x0, x1):
-                    d = (lmax[x - x0] - lmin[x - x0]) / one_minus_b
-                    g = lg_scale * (lmin[x - x0] - b_level * lmax[x - x0])
-                    if g < 0:
-                        d = lmax[x - x0]
-                        g = zero
-                    ld[x] = d
-                    lg[x] = g
-                    nd[x] = d < m
-                    thr[x] = min_contrast * d
-            else:
-                for x in range(x0, x1):
-                    thr[x] = contrast_scale * max(r[x], zero)
-                    lg[x] = black[x] + half * r[x]  # the mid level, for frames without inverses
-            k = 0
-            for a in range(n_axes):
-                nb = axis_bits[a]
-                val = value[a, y, x0:x1]
-                wk = weak[a, y, x0:x1]
-                for i in range(nb):
-                    shift = np.uint32(nb - 1 - i)
-                    p = stack[2 + per_bit * k, y, x0:x1]
-                    q = stack[3 + per_bit * k, y, x0:x1] if inverse else stack[1, y, x0:x1]
-                    b_, t_, n_ = black[x0:x1], thr[x0:x1], nd[x0:x1]
-                    if mode == ROBUST and high[k]:
-                        _high_frequency(p, q, b_, t_, n_, shift, val, wk)
-                    elif mode == ROBUST:
-                        _robust(p, q, b_, ld[x0:x1], lg[x0:x1], m, shift, val, wk)
-                    elif inverse:
-                        _contrast(p, q, t_, shift, val, wk)
-                    else:
-                        _contrast_mid(p, lg[x0:x1], t_, shift, val, wk)
-                    k += 1
+            nb = axis_bits[a]
+            val = value[a, vy, x0:x1]
+            wk = weak[a, vy, x0:x1]
+            for i in range(nb):
+                shift = np.uint32(nb - 1 - i)
+                p = stack[2 + per_bit * k, y, x0:x1]
+                q = stack[3 + per_bit * k, y, x0:x1] if inverse else stack[1, y, x0:x1]
+                b_, t_, n_ = black[x0:x1], thr[x0:x1], nd[x0:x1]
+                if mode == ROBUST and high[k]:
+                    _high_frequency(p, q, b_, t_, n_, shift, val, wk)
+                elif mode == ROBUST:
+                    _robust(p, q, b_, ld[x0:x1], lg[x0:x1], m, shift, val, wk)
+                elif inverse:
+                    _contrast(p, q, t_, shift, val, wk)
+                else:
+                    _contrast_mid(p, lg[x0:x1], t_, shift, val, wk)
+                k += 1
 
 
 @numba.njit(**_INNER)
@@ -229,119 +255,136 @@ def _contrast_mid(p, mid, thr, shift, val, wk):
 
 
 @numba.njit(**_INNER)
-def _sure(value, weak, y, x, bit):
-    """0 or 1 where pixel (y, x) exists and has ``bit`` decided, else -1."""
-    H, W = value.shape
-    if y < 0 or y >= H or x < 0 or x >= W or weak[y, x] & bit:
+def _sure(value, weak, r, x, bit):
+    """0 or 1 where row ``r`` (−1: none) of the words has pixel ``x`` with ``bit`` decided,
+    else -1."""
+    if r < 0 or x < 0 or x >= value.shape[1] or weak[r, x] & bit:
         return -1
-    return 1 if value[y, x] & bit else 0
+    return 1 if value[r, x] & bit else 0
 
 
 @numba.njit(**_INNER)
-def _on_edge(value, weak, y, x, bit):
-    """A 4-neighbour of (y, x) has ``bit`` surely 1 and one has it surely 0."""
-    a = _sure(value, weak, y - 1, x, bit)
-    b = _sure(value, weak, y + 1, x, bit)
-    c = _sure(value, weak, y, x - 1, bit)
-    d = _sure(value, weak, y, x + 1, bit)
+def _on_edge(value, weak, up, here, down, x, bit):
+    """A 4-neighbour of pixel ``x`` of row ``here`` (rows ``up`` and ``down`` above and
+    below it, −1 at the image border) has ``bit`` surely 1 and one has it surely 0."""
+    a = _sure(value, weak, up, x, bit)
+    b = _sure(value, weak, down, x, bit)
+    c = _sure(value, weak, here, x - 1, bit)
+    d = _sure(value, weak, here, x + 1, bit)
     return max(a, b, c, d) == 1 and (a == 0 or b == 0 or c == 0 or d == 0)
 
 
-#: bits of :func:`assemble`'s per-pixel flags
+#: bits of the per-pixel flags of :func:`_assemble_row`
 BAD, TOLERATED, OUT_OF_RANGE = 1, 2, 4
 
 
-@numba.njit(**_OPTS)
-def assemble(value: np.ndarray, weak: np.ndarray, shadow: np.ndarray, nb: int, block: int,
-             offset: int, size: int, code: np.ndarray, integer: np.ndarray, flags: np.ndarray,
-             start: int, stop: int) -> None:
-    """Coarse code of one axis from its packed Gray bits (see ``graycode._decode_axis``'s rule:
-    one weak bit is tolerated on its own stripe edge, where it moves the code by one step).
+@numba.njit(**_INNER)
+def _centre(c, block, offset, size):
+    """Projector coordinate (float32) of the centre of coarse code ``c``'s block, clipped."""
+    lo = np.int64(c) * block - offset
+    hi = lo + (block - 1)
+    return np.float32(0.5 * (max(lo, 0) + min(hi, size - 1)))
 
-    Outputs (H, W): code int32, integer float32 (projector coordinate of the block centre,
-    clipped), flags uint8: :data:`BAD` (weak and not tolerated), :data:`TOLERATED`,
-    :data:`OUT_OF_RANGE` (block off the projector); all 0 in ``shadow`` (never decoded)."""
-    W = value.shape[1]
+
+@numba.njit(**_ROW)
+def _assemble_row(value, weak, up, here, down, shadow, nb, block, offset, size, code, integer,
+                  flags):
+    """Coarse code of one axis, one row, from its packed Gray words: row ``here`` of
+    ``value``/``weak`` (R, W) (``up``/``down``: the rows above and below, −1 at the image
+    border) into the rows ``code`` int32, ``integer`` float32 (projector coordinate of the
+    block centre, clipped) and ``flags`` uint8 (W,): :data:`BAD` (weak and not tolerated),
+    :data:`TOLERATED`, :data:`OUT_OF_RANGE` (block off the projector); all 0 in ``shadow``
+    (never decoded). Gray → binary by prefix XOR. A single weak bit is harmless when flipping
+    it moves the code by one step and the pixel is on that bit's stripe edge (a 4-neighbour
+    where the bit is surely 1 and one where it is surely 0); more weak bits, or one off its
+    edge, make the pixel bad."""
+    top = size - 1
+    for x in range(value.shape[1]):
+        if shadow[x]:
+            code[x] = 0
+            integer[x] = 0
+            flags[x] = 0
+            continue
+        b = np.int64(value[here, x])
+        b ^= b >> 1
+        b ^= b >> 2
+        b ^= b >> 4
+        b ^= b >> 8
+        b ^= b >> 16
+        c = np.int32(b)
+        code[x] = c
+        wk = weak[here, x]
+        f = 0
+        if wk != 0:
+            f = BAD
+            if (wk & (wk - np.uint32(1))) == 0:  # exactly one weak bit
+                mask = np.int32(wk) * 2 - 1  # flipping that Gray bit: binary bits k..0
+                flipped = c ^ mask
+                if abs(flipped - c) == 1 and _on_edge(value, weak, up, here, down, x, wk):
+                    f = TOLERATED
+        lo = np.int64(c) * block - offset
+        if lo + (block - 1) < 0 or lo > top:
+            f |= OUT_OF_RANGE
+        flags[x] = f
+        integer[x] = _centre(c, block, offset, size)
+
+
+@numba.njit(**_OPTS)
+def block_centres(code: np.ndarray, valid: np.ndarray, block: int, offset: int, size: int,
+                  coord: np.ndarray, start: int, stop: int) -> None:
+    """``coord`` (H, W) float32 = the block centre of ``code`` at the valid pixels (the coarse
+    coordinates :func:`_assemble_row` gave them), rows ``start`` to ``stop``."""
     for y in range(start, stop):
-        for x in range(W):
-            if shadow[y, x]:
-                code[y, x] = 0
-                integer[y, x] = 0
-                flags[y, x] = 0
-                continue
-            b = np.int64(value[y, x])
-            b ^= b >> 1
-            b ^= b >> 2
-            b ^= b >> 4
-            b ^= b >> 8
-            b ^= b >> 16
-            c = np.int32(b)
-            code[y, x] = c
-            wk = weak[y, x]
-            f = 0
-            if wk != 0:
-                f = BAD
-                if (wk & (wk - np.uint32(1))) == 0:  # exactly one weak bit
-                    mask = np.int32(wk) * 2 - 1  # flipping that Gray bit: binary bits k..0
-                    flipped = c ^ mask
-                    if abs(flipped - c) == 1 and _on_edge(value, weak, y, x, wk):
-                        f = TOLERATED
-            lo = np.int64(c) * block - offset
-            hi = lo + (block - 1)
-            if hi < 0 or lo > size - 1:
-                f |= OUT_OF_RANGE
-            flags[y, x] = f
-            integer[y, x] = np.float32(0.5 * (max(lo, 0) + min(hi, size - 1)))
+        for x in range(code.shape[1]):
+            if valid[y, x]:
+                coord[y, x] = _centre(code[y, x], block, offset, size)
 
 
-@numba.njit(**_OPTS)
-def verdict(shadow: np.ndarray, no_direct: np.ndarray, flags: np.ndarray, valid: np.ndarray,
-            reason: np.ndarray, counts: np.ndarray, start: int, stop: int) -> None:
-    """Each pixel's fate from the axes' (A, H, W) :func:`assemble` flags: reason 0 decoded
-    (``valid``), 1 shadow, 2 a bit undecided (weak and not tolerated on any axis, or no direct
-    light), 3 off the projector, the first that holds. ``counts`` (H, 5) int64: per row, the
-    pixels of each reason and (column 4) the decoded pixels with a tolerated bit."""
-    n_axes, _, W = flags.shape
-    for y in range(start, stop):
-        for k in range(5):
-            counts[y, k] = 0
-        for x in range(W):
-            f = 0
-            for a in range(n_axes):
-                f |= flags[a, y, x]
-            if shadow[y, x]:
-                r = 1
-            elif f & BAD or no_direct[y, x]:
-                r = 2
-            elif f & OUT_OF_RANGE:
-                r = 3
-            else:
-                r = 0
-                if f & TOLERATED:
-                    counts[y, 4] += 1
-            reason[y, x] = r
-            valid[y, x] = r == 0
-            counts[y, r] += 1
+@numba.njit(**_ROW)
+def _verdict_row(shadow, no_direct, flags, fy, valid, reason, counts):
+    """Each pixel's fate in one row from the axes' flags (A, R, W) at row ``fy``
+    (:func:`_assemble_row`): ``reason`` 0 decoded (``valid``), 1 shadow, 2 a bit undecided
+    (weak and not tolerated on any axis, or no direct light), 3 off the projector, the first
+    that holds; ``counts`` (5,): the pixels of each reason and (4) the decoded pixels with a
+    tolerated bit. The other arguments are rows (W,)."""
+    n_axes = flags.shape[0]
+    for k in range(5):
+        counts[k] = 0
+    for x in range(shadow.shape[0]):
+        f = 0
+        for a in range(n_axes):
+            f |= flags[a, fy, x]
+        if shadow[x]:
+            r = 1
+        elif f & BAD or no_direct[x]:
+            r = 2
+        elif f & OUT_OF_RANGE:
+            r = 3
+        else:
+            r = 0
+            if f & TOLERATED:
+                counts[4] += 1
+        reason[x] = r
+        valid[x] = r == 0
+        counts[r] += 1
 
 
-@numba.njit(**_OPTS)
-def changes(code: np.ndarray, valid: np.ndarray, counts: np.ndarray, start: int,
-            stop: int) -> None:
-    """Per row y of ``start`` to ``stop``: code changes between valid pixels along the camera
-    row (``counts[y, 0]``) and down to the next row (``counts[y, 1]``)."""
+@numba.njit(**_ROW)
+def _changes_row(code, valid, y, counts):
+    """Code changes between valid pixels of row ``y``: along the row (``counts[0]``) and
+    down to the next row (``counts[1]``)."""
     H, W = code.shape
-    for y in range(start, stop):
-        along_rows = 0
-        along_cols = 0
-        for x in range(W):
-            if not valid[y, x]:
-                continue
-            if x + 1 < W and valid[y, x + 1] and code[y, x + 1] != code[y, x]:
-                along_rows += 1
-            if y + 1 < H and valid[y + 1, x] and code[y + 1, x] != code[y, x]:
-                along_cols += 1
-        counts[y, 0] = along_rows
-        counts[y, 1] = along_cols
+    along_rows = 0
+    along_cols = 0
+    for x in range(W):
+        if not valid[y, x]:
+            continue
+        if x + 1 < W and valid[y, x + 1] and code[y, x + 1] != code[y, x]:
+            along_rows += 1
+        if y + 1 < H and valid[y + 1, x] and code[y + 1, x] != code[y, x]:
+            along_cols += 1
+    counts[0] = along_rows
+    counts[1] = along_cols
 
 
 @numba.njit(**_INNER)
@@ -436,36 +479,44 @@ def refine_rows(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndar
     coordinate, invalid ones NaN, the rest keep theirs. ``ok`` (H, W) bool marks the refined
     samples; ``first``: this is the axis's first pass (``ok`` is cleared), else samples
     already refined (by the other direction's pass) are left as they are."""
+    for y in range(start, stop):
+        _refine_row(stack, inverse, rng, code, valid, flip, block, offset, first_pair,
+                    anchor_bit, max_span, first, coord, ok, y)
+
+
+@numba.njit(**_ROW)
+def _refine_row(stack, inverse, rng, code, valid, flip, block, offset, first_pair, anchor_bit,
+                max_span, first, coord, ok, y):
+    """Row ``y`` of :func:`refine_rows`."""
     W = code.shape[1]
     nan32 = np.float32(np.nan)
-    for y in range(start, stop):
-        prev = -1
-        prev_pos = np.float32(0.0)
-        prev_val = np.float32(0.0)
-        bad = -1
-        valid_y, code_y, coord_y, ok_y = valid[y], code[y], coord[y], ok[y]
-        for x in range(W):
-            if first:
-                ok_y[x] = False
-            if not valid_y[x]:
-                bad = x
-                coord_y[x] = nan32
-                continue
-            if x + 1 == W or not valid_y[x + 1]:
-                continue
-            pos, val = _anchor(stack, inverse, rng, code, y, x, y, x + 1, x, flip, block,
-                               offset, first_pair, anchor_bit)
-            if np.isnan(pos):
-                continue
-            if prev >= 0 and bad <= prev:
-                for i in range(prev + 1, x + 1):
-                    if not ok_y[i]:
-                        f, good = _interpolate(i, code_y[i], prev_pos, prev_val, pos, val,
-                                               block, offset, max_span)
-                        if good:
-                            coord_y[i] = f
-                            ok_y[i] = True
-            prev, prev_pos, prev_val = x, pos, val
+    prev = -1
+    prev_pos = np.float32(0.0)
+    prev_val = np.float32(0.0)
+    bad = -1
+    valid_y, code_y, coord_y, ok_y = valid[y], code[y], coord[y], ok[y]
+    for x in range(W):
+        if first:
+            ok_y[x] = False
+        if not valid_y[x]:
+            bad = x
+            coord_y[x] = nan32
+            continue
+        if x + 1 == W or not valid_y[x + 1]:
+            continue
+        pos, val = _anchor(stack, inverse, rng, code, y, x, y, x + 1, x, flip, block,
+                           offset, first_pair, anchor_bit)
+        if np.isnan(pos):
+            continue
+        if prev >= 0 and bad <= prev:
+            for i in range(prev + 1, x + 1):
+                if not ok_y[i]:
+                    f, good = _interpolate(i, code_y[i], prev_pos, prev_val, pos, val,
+                                           block, offset, max_span)
+                    if good:
+                        coord_y[i] = f
+                        ok_y[i] = True
+        prev, prev_pos, prev_val = x, pos, val
 
 
 @numba.njit(**_OPTS)
@@ -475,39 +526,217 @@ def refine_columns(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.n
                    coord: np.ndarray, ok: np.ndarray, start: int, stop: int) -> None:
     """:func:`refine_rows` down the camera columns ``start`` to ``stop``, without transposing:
     the image is scanned row by row, so that every read runs along memory, with each column's
-    scan state (previous anchor, last invalid sample) kept apart."""
+    scan state (previous anchor, last invalid sample: :func:`_column_step`) kept apart."""
+    scan_i = np.full((4, stop - start), -1, np.int64)
+    scan_f = np.zeros((4, stop - start), np.float32)
+    for y in range(code.shape[0]):
+        _column_step(stack, inverse, rng, code, valid, flip, block, offset, first_pair,
+                     anchor_bit, max_span, first, coord, ok, y, start, stop, scan_i, scan_f)
+
+
+#: rows of a column scan's state (:func:`_column_step`): int64 ``scan_i`` and float32 ``scan_f``
+PREV, BAD_ROW, FIRST, BAD_BEFORE_FIRST = 0, 1, 2, 3  # scan_i: rows, −1 for none
+PREV_POS, PREV_VAL, FIRST_POS, FIRST_VAL = 0, 1, 2, 3  # scan_f: the anchors' position, value
+
+
+@numba.njit(**_ROW)
+def _column_step(stack, inverse, rng, code, valid, flip, block, offset, first_pair, anchor_bit,
+                 max_span, first, coord, ok, y, start, stop, scan_i, scan_f):
+    """Row ``y`` of the scans down the columns ``start`` to ``stop`` (:func:`refine_columns`),
+    with each column's state in ``scan_i`` (4, n) int64 / ``scan_f`` (4, n) float32 (rows
+    :data:`PREV` …): the previous anchor (row, position, value), the last invalid row, and the
+    scan's first anchor with the last invalid row before it (what a scan started mid-image
+    leaves for :func:`_join`)."""
     H = code.shape[0]
     nan32 = np.float32(np.nan)
-    n = stop - start
-    prev = np.full(n, -1, np.int64)
-    prev_pos = np.empty(n, np.float32)
-    prev_val = np.empty(n, np.float32)
-    bad = np.full(n, -1, np.int64)
-    for y in range(H):
-        for x in range(start, stop):
-            j = x - start
-            if first:
-                ok[y, x] = False
-            if not valid[y, x]:
-                bad[j] = y
-                coord[y, x] = nan32
-                continue
-            if y + 1 == H or not valid[y + 1, x]:
-                continue
-            pos, val = _anchor(stack, inverse, rng, code, y, x, y + 1, x, y, flip, block,
-                               offset, first_pair, anchor_bit)
-            if np.isnan(pos):
-                continue
-            p = prev[j]
-            if p >= 0 and bad[j] <= p:
-                for i in range(p + 1, y + 1):
-                    if not ok[i, x]:
-                        f, good = _interpolate(i, code[i, x], prev_pos[j], prev_val[j],
-                                               pos, val, block, offset, max_span)
-                        if good:
-                            coord[i, x] = f
-                            ok[i, x] = True
-            prev[j], prev_pos[j], prev_val[j] = y, pos, val
+    for x in range(start, stop):
+        j = x - start
+        if first:
+            ok[y, x] = False
+        if not valid[y, x]:
+            scan_i[BAD_ROW, j] = y
+            coord[y, x] = nan32
+            continue
+        if y + 1 == H or not valid[y + 1, x]:
+            continue
+        pos, val = _anchor(stack, inverse, rng, code, y, x, y + 1, x, y, flip, block,
+                           offset, first_pair, anchor_bit)
+        if np.isnan(pos):
+            continue
+        p = scan_i[PREV, j]
+        if p >= 0:
+            if scan_i[BAD_ROW, j] <= p:
+                _fill_column(code, coord, ok, x, p, y, scan_f[PREV_POS, j],
+                             scan_f[PREV_VAL, j], pos, val, block, offset, max_span)
+        elif scan_i[FIRST, j] < 0:
+            scan_i[FIRST, j] = y
+            scan_i[BAD_BEFORE_FIRST, j] = scan_i[BAD_ROW, j]
+            scan_f[FIRST_POS, j] = pos
+            scan_f[FIRST_VAL, j] = val
+        scan_i[PREV, j] = y
+        scan_f[PREV_POS, j] = pos
+        scan_f[PREV_VAL, j] = val
+
+
+@numba.njit(**_INNER)
+def _fill_column(code, coord, ok, x, p, y, pl, vl, pr, vr, block, offset, max_span):
+    """Samples ``p + 1`` to ``y`` of column ``x`` placed between the anchors at rows ``p``
+    (pl, vl) and ``y`` (pr, vr) (:func:`_interpolate`), except those already refined."""
+    for i in range(p + 1, y + 1):
+        if not ok[i, x]:
+            f, good = _interpolate(i, code[i, x], pl, vl, pr, vr, block, offset, max_span)
+            if good:
+                coord[i, x] = f
+                ok[i, x] = True
+
+
+#: columns of :func:`decode_rows`' per-axis settings (``axes``, (A, 6) int64)
+BLOCK, OFFSET, SIZE, FIRST_PAIR, ANCHOR_BIT, MAX_SPAN = range(6)
+
+#: phases of :func:`decode_rows`
+BAND, JOIN = 0, 1
+
+
+@numba.njit(**_OPTS)
+def decode_rows(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarray,
+                sep: np.ndarray, high: np.ndarray, shadow_thr: np.float32, m: np.float32,
+                min_contrast: np.float32, contrast_scale: np.float32, one_minus_b: np.float32,
+                lg_scale: np.float32, b_level: np.float32, axes: np.ndarray, flips: np.ndarray,
+                down: np.ndarray, refine: bool, classified: bool, value: np.ndarray,
+                weak: np.ndarray, code: np.ndarray, coord: np.ndarray, ok: np.ndarray,
+                valid: np.ndarray, reason: np.ndarray, counts: np.ndarray, changed: np.ndarray,
+                rng: np.ndarray, shadow: np.ndarray, no_direct: np.ndarray, scan_i: np.ndarray,
+                scan_f: np.ndarray, phase: int, band: int, start: int, stop: int) -> None:
+    """The decode of a band of rows, ``start`` to ``stop``, in one pass (``phase`` =
+    :data:`BAND`): each row is classified (:func:`_classify_row`) one row ahead of its
+    assembly (:func:`_assemble_row`, which looks at the rows above and below); its verdict and
+    sub-pixel refinement along the row follow at once, while the row's frames are still in
+    the cache; the scans down the columns and the code-change counts run one row behind
+    (:func:`_behind`). The projected bits live in a three-row ring, not in image-sized words;
+    the rows just outside the band are classified again into the ring rather than read from
+    the neighbouring band's thread. ``phase`` = :data:`JOIN` joins band ``band`` (first row
+    ``start``) to the bands above it, once they are all done (:func:`_join`).
+
+    Args (the classification's as :func:`classify`'s, then):
+        axes: (A, 6) int64 per axis: block, offset, size, first pair, anchor bit (−1: all),
+            max anchor span (columns :data:`BLOCK` …).
+        flips: (A, T) int64, each axis's :func:`flip_table` (padded).
+        down: (A,) bool, the axis is refined down the columns (else along the rows).
+        refine: sub-pixel refinement (else the block centres, NaN where not decoded).
+        classified: the Gray words are given in ``value``/``weak`` (A, H, W) with ``rng``,
+            ``shadow``, ``no_direct`` (a coding whose projected bits are not Gray bits:
+            :func:`classify`, then its own conversion), else they are made here
+            (``value``/``weak`` unused).
+        code, coord, ok: (A, H, W) int32 / float32 / bool outputs: coarse code, projector
+            coordinate (sub-pixel where refined, NaN where not decoded), refined.
+        valid, reason, counts: (H, W) bool, (H, W) uint8, (H, 5) int64 (:func:`_verdict_row`).
+        changed: (A, H, 2) int64 code changes per row (:func:`_changes_row`).
+        rng, shadow, no_direct: (H, W) as :func:`classify`'s (outputs unless ``classified``).
+        scan_i, scan_f: (B, A, 4, W) the column scans' state per band (:func:`_column_step`).
+        phase, band, start, stop: as above. In its pass, a band leaves its last row's column
+            steps and change counts to the join (they need the next band's first row), except
+            the last band.
+    """
+    if phase == JOIN:
+        _join(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid, changed,
+              scan_i, scan_f, band, start)
+        return
+    n_axes = axis_bits.shape[0]
+    H, W = rng.shape
+    if not classified:
+        value = np.zeros((n_axes, 3, W), np.uint32)
+        weak = np.zeros((n_axes, 3, W), np.uint32)
+    flags = np.empty((n_axes, 1, W), np.uint8)
+    halo_r = np.empty(W, np.float32)
+    halo_sh = np.empty(W, np.bool_)
+    halo_nd = np.empty(W, np.bool_)
+    spans = np.empty(W + 2, np.int64)
+    nan32 = np.float32(np.nan)
+    scan_i[band] = -1
+    scan_f[band] = 0
+    first = max(start - 1, 0) if not classified else H  # the ring's first two rows
+    for y in range(first, min(start + 1, H)):
+        inside = y >= start
+        _classify_row(stack, y, inverse, mode, axis_bits, sep, high, shadow_thr, m,
+                      min_contrast, contrast_scale, one_minus_b, lg_scale, b_level, value,
+                      weak, y % 3, rng[y] if inside else halo_r,
+                      shadow[y] if inside else halo_sh, no_direct[y] if inside else halo_nd,
+                      spans)
+    for y in range(start, stop):
+        n = y + 1
+        if n < H and not classified:
+            inside = n < stop
+            _classify_row(stack, n, inverse, mode, axis_bits, sep, high, shadow_thr, m,
+                          min_contrast, contrast_scale, one_minus_b, lg_scale, b_level, value,
+                          weak, n % 3, rng[n] if inside else halo_r,
+                          shadow[n] if inside else halo_sh,
+                          no_direct[n] if inside else halo_nd, spans)
+        up = -1 if y == 0 else (y - 1) if classified else (y - 1) % 3
+        dn = -1 if n == H else n if classified else n % 3
+        here = y if classified else y % 3
+        for a in range(n_axes):
+            _assemble_row(value[a], weak[a], up, here, dn, shadow[y], axis_bits[a],
+                          axes[a, BLOCK], axes[a, OFFSET], axes[a, SIZE], code[a, y],
+                          coord[a, y], flags[a, 0])
+            ok[a, y, :] = False
+        _verdict_row(shadow[y], no_direct[y], flags, 0, valid[y], reason[y], counts[y])
+        for a in range(n_axes):
+            if not refine:
+                for x in range(W):
+                    if not valid[y, x]:
+                        coord[a, y, x] = nan32
+            elif not down[a]:
+                _refine_row(stack, inverse, rng, code[a], valid, flips[a], axes[a, BLOCK],
+                            axes[a, OFFSET], axes[a, FIRST_PAIR], axes[a, ANCHOR_BIT],
+                            axes[a, MAX_SPAN], False, coord[a], ok[a], y)
+        if y > start:
+            _behind(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid,
+                    changed, scan_i[band], scan_f[band], y - 1)
+    if stop == H:
+        _behind(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid, changed,
+                scan_i[band], scan_f[band], H - 1)
+
+
+@numba.njit(**_ROW)
+def _behind(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid, changed,
+            scan_i, scan_f, y):
+    """What :func:`decode_rows` does one row behind: row ``y``'s code-change counts and
+    (``refine``) its step of the column scans (state ``scan_i``/``scan_f`` (A, 4, W))."""
+    for a in range(code.shape[0]):
+        _changes_row(code[a], valid, y, changed[a, y])
+        if refine and down[a]:
+            _column_step(stack, inverse, rng, code[a], valid, flips[a], axes[a, BLOCK],
+                         axes[a, OFFSET], axes[a, FIRST_PAIR], axes[a, ANCHOR_BIT],
+                         axes[a, MAX_SPAN], False, coord[a], ok[a], y, 0, code.shape[2],
+                         scan_i[a], scan_f[a])
+
+
+@numba.njit(**_ROW)
+def _join(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid, changed,
+          scan_i, scan_f, band, start):
+    """Join band ``band`` (first row ``start``) of :func:`decode_rows` to the bands above it,
+    done in order after all bands' passes: the band above gets its last row's column steps
+    and change counts; the samples between each column scan's last anchor above and its first
+    anchor in this band are placed, as one scan down the whole column would have; the scan
+    goes on with this band's state. Band 0's ``scan_i``/``scan_f`` carry the state."""
+    _behind(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid, changed,
+            scan_i[0], scan_f[0], start - 1)
+    for a in range(code.shape[0]):
+        if not (refine and down[a]):
+            continue
+        si, sf, bi, bf = scan_i[0, a], scan_f[0, a], scan_i[band, a], scan_f[band, a]
+        for x in range(code.shape[2]):
+            if bi[FIRST, x] >= 0:
+                p = si[PREV, x]
+                bad = bi[BAD_BEFORE_FIRST, x] if bi[BAD_BEFORE_FIRST, x] >= 0 else si[BAD_ROW, x]
+                if p >= 0 and bad <= p:
+                    _fill_column(code[a], coord[a], ok[a], x, p, bi[FIRST, x], sf[PREV_POS, x],
+                                 sf[PREV_VAL, x], bf[FIRST_POS, x], bf[FIRST_VAL, x],
+                                 axes[a, BLOCK], axes[a, OFFSET], axes[a, MAX_SPAN])
+                si[PREV, x] = bi[PREV, x]
+                sf[PREV_POS, x] = bf[PREV_POS, x]
+                sf[PREV_VAL, x] = bf[PREV_VAL, x]
+            si[BAD_ROW, x] = max(si[BAD_ROW, x], bi[BAD_ROW, x])
 
 
 @numba.njit(**_OPTS)
