@@ -86,8 +86,8 @@ class RigPanel(Vertical, can_focus=True):
         self.show_rows(self.rows)
 
     def show_rows(self, rows: list[dict[str, Any]]) -> None:
-        """Draw the device table (again only when the rows, the pattern shown or the layout
-        changed: a Rich table fits a new width by itself)."""
+        """Draw the device table (again only when the rows or the pattern shown changed, or
+        the panel was resized)."""
         self.rows = rows
         projected = self.session.projected
         stacked = self.app.size.width < STACK_BELOW
@@ -132,6 +132,7 @@ class RigPanel(Vertical, can_focus=True):
         return [r for r in ROLES if r not in configured]
 
     def on_resize(self, event: Resize) -> None:
+        self._table_of = None  # drawn again for the new size
         self.show_rows(self.rows)
 
     def show_result(self, text: str, error: str = "") -> None:
