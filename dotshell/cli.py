@@ -10,6 +10,7 @@ import argparse
 import sys
 import threading
 import time
+from functools import lru_cache
 from pathlib import Path
 from typing import Any
 
@@ -410,6 +411,15 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@lru_cache(maxsize=1)
+def _parser() -> argparse.ArgumentParser:
+    """The parser, built once per process: its ~30 sub-parsers take 20-50 ms to build (argparse
+    looks up translations and the terminal's size for each), paid at every :func:`main` call
+    of a script or a test run otherwise. Parsing does not change it (``append`` arguments copy
+    their default list)."""
+    return build_parser()
+
+
 #: commands that run a user's code or hold a session: they end with Python's own exit, which
 #: flushes and closes whatever those left open
 NORMAL_EXIT = frozenset({"script", "serve", "tui", "attach", "emulate"})
@@ -434,7 +444,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     head = argv[:argv.index("--")] if "--" in argv else argv  # --debug anywhere before `--`
     debug = "--debug" in head
     argv = [a for a in head if a != "--debug"] + argv[len(head):]
-    args = build_parser().parse_args(argv)
+    args = _parser().parse_args(argv)
     args.debug = args.debug or debug
     return args
 

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import argparse
-import importlib.metadata as md
 import time
 from typing import Any, Callable
 
@@ -74,6 +73,8 @@ def cmd_ports(args: argparse.Namespace, pm_of: Callable[[argparse.Namespace], An
 
 def emulator_class(name: str) -> type:
     """The emulator registered as ``name`` in the ``dotshell_emulators`` entry-point group."""
+    import importlib.metadata as md
+
     eps = {ep.name: ep for ep in md.entry_points(group=EMULATOR_GROUP)}
     if name not in eps:
         raise PluginError(f"no emulator named {name!r}; installed emulators: "

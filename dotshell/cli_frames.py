@@ -5,14 +5,16 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
 from dotshell.errors import RunError
-from dotshell.frames import export_png
-from dotshell.store import RunStore
+
+if TYPE_CHECKING:  # the frame readers (tifffile, cv2, numpy) load when the command runs
+    from dotshell.store import RunStore
 
 out = Console(highlight=False)
 
@@ -32,6 +34,9 @@ def _views(store: RunStore, wanted: list[int] | None) -> list[int]:
 
 
 def cmd_frames(args: argparse.Namespace) -> int:
+    from dotshell.frames import export_png
+    from dotshell.store import RunStore
+
     store = RunStore.open(Path(args.run))
     manifest = store.manifest
     views = _views(store, args.view)

@@ -25,8 +25,6 @@ import math
 
 import numpy as np
 
-from dotshell.forward import robin_A
-
 
 def fresnel_transmittance_out(cos_inside: np.ndarray, n: float) -> np.ndarray:
     """Unpolarized Fresnel transmittance from the medium (index ``n``) into air for light
@@ -54,6 +52,8 @@ def cos_inside(cos_outside: np.ndarray, n: float) -> np.ndarray:
 def exit_radiance_per_fluence(cos_outside: np.ndarray, n: float) -> np.ndarray:
     """Exiting radiance L(θo) per unit fluence φ just inside the surface (1/sr), for exit
     directions with cos θo = ``cos_outside`` measured from the outward normal."""
+    from dotshell.forward import robin_A  # here: the FEM module loads scipy.sparse
+
     ci = cos_inside(cos_outside, n)
     A = robin_A(n)
     return fresnel_transmittance_out(ci, n) * (1.0 + 1.5 * ci / A) / (4.0 * math.pi * n * n)

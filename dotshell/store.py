@@ -104,9 +104,11 @@ def versions() -> dict[str, str]:
             out[name] = md.version(name)
         except md.PackageNotFoundError:
             pass
+    from dotshell.plugins import distribution_of
+
     for ep in md.entry_points(group="dotshell"):
         if ep.dist is not None:
-            out[f"plugin:{ep.name}"] = f"{ep.dist.name} {ep.dist.version}"
+            out[f"plugin:{ep.name}"] = distribution_of(ep)[1]
     return out
 
 

@@ -7,12 +7,19 @@ same time as the other (~35 s of CPU each, measured on 2 cores), inside whicheve
 decoded a frame; scans run in subprocesses compiled them again, which also stretched the timings
 those tests measure. Compiled here once, every worker and subprocess loads them from the cache.
 
-The kernels are reached through the product's own entry points (a tiny scan: uint16 frames
-decoded, triangulated, reconstructed; a decode of uint8 and float32 frames, in one pass and
-(XOR codes) in passes; a forward solve on
-one tetrahedron), so the signatures compiled are exactly the ones the pipeline asks for.
+The kernels are reached through the product's own entry points, so the signatures compiled are
+exactly the ones the pipeline asks for, in two groups that share no compiled function and run
+as two processes at once (numba's cache index of one function must not be written by two
+processes):
 
-Run: ``python tests/compile_kernels.py`` (prints the seconds it took).
+* ``scan``: a tiny scan (uint16 frames decoded in one pass, triangulated, reconstructed), what
+  nearly every test file runs;
+* ``fem``: a forward solve on one tetrahedron (the FEM assembly's kernels).
+
+Variants only a few test files need (float32 frames of PDI views, the XOR codes' passes) are
+left to the worker that first needs them: compiled here they would hold both workers back.
+
+Run: ``python tests/compile_kernels.py [scan|fem]`` (both without argument; prints the seconds).
 """
 
 from __future__ import annotations
@@ -24,16 +31,15 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+GROUPS = ("scan", "fem")
 
-def compile_kernels() -> None:
-    import numpy as np
 
+def compile_scan_kernels() -> None:
+    """The decoder's, triangulation's and reconstruction's kernels through a 1-view scan."""
     from conftest import small_profile_dict, write_profile
     from dotshell.pipeline.scan import scan
     from dotshell.plugins import PluginManager
     from dotshell.profile import load_profile
-    from dotshell.settings import validate_settings
-    from dotshell_codings import dotshell_codings
 
     pm = PluginManager()
     pm.load_entry_points()
@@ -43,24 +49,9 @@ def compile_kernels() -> None:
     with tempfile.TemporaryDirectory(prefix="dotshell-compile-") as tmp:
         prof = load_profile(write_profile(Path(tmp) / "p.toml", raw), pm)
         scan(prof, pm, Path(tmp) / "runs")
-    (graycode,) = [b for b in dotshell_codings() if b.name == "graycode"]
-    coding = graycode.factory(settings=validate_settings(graycode.settings_schema, {}, "compile"),
-                              context=None)
-    proj = (64, 16)
-    images = [p.image for p in coding.patterns(proj)]
-    (xor,) = [b for b in dotshell_codings() if b.name == "xor02"]
-    xor_coding = xor.factory(settings=validate_settings(xor.settings_schema, {}, "compile"),
-                             context=None)
-    xor_images = [p.image for p in xor_coding.patterns(proj)]
-    for frames, xor_frames in ((images, xor_images),
-                               ([im.astype(np.float32) for im in images],
-                                [im.astype(np.float32) for im in xor_images])):
-        coding.decode(frames, proj)  # the one-pass decoder
-        xor_coding.decode(xor_frames, proj)  # the passes (XOR codes, stripes the other way)
-    _compile_fem_kernels()
 
 
-def _compile_fem_kernels() -> None:
+def compile_fem_kernels() -> None:
     """The FEM assembly's kernels (:mod:`dotshell.fem_kernels`) through ``solve_cw`` on one
     tetrahedron (the forward solve of test_fem, test_sim_transillum and the mesh pipeline)."""
     import numpy as np
@@ -75,5 +66,6 @@ def _compile_fem_kernels() -> None:
 
 if __name__ == "__main__":
     t0 = time.perf_counter()
-    compile_kernels()
+    for group in sys.argv[1:] or GROUPS:
+        {"scan": compile_scan_kernels, "fem": compile_fem_kernels}[group]()
     print(f"kernels compiled or loaded from the cache in {time.perf_counter() - t0:.1f} s")

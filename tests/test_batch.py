@@ -2,7 +2,6 @@
 their run, a killed batch finished by running it again, workers checked at start."""
 
 import json
-import logging
 import signal
 import subprocess
 import sys
@@ -31,11 +30,11 @@ def _pm() -> PluginManager:
 
 @pytest.fixture(scope="module")
 def cluster():
-    """One local Dask cluster (2 worker processes, 1 thread each) for the whole module."""
-    from distributed import LocalCluster
+    """One local Dask cluster (2 worker processes, 1 thread each) for the whole module, made
+    as `dotshell batch` makes its own."""
+    from dotshell.pipeline.batch import local_cluster
 
-    c = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                     silence_logs=logging.ERROR)
+    c = local_cluster(2)
     yield c.scheduler_address
     c.close()
 

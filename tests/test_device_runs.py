@@ -148,8 +148,10 @@ def test_unplugged_stage_is_reconnected_and_the_scan_goes_on(tmp_path, dotshell_
                                                             serial_emulator):
     emu = serial_emulator("grbl", speed_deg_s=30.0)
     emu.faults.vanish_after_s, emu.faults.return_after_s = 0.1, 1.0
+    # the port vanishes during the first move; the second view's move (1 s) only shows the
+    # scan goes on
     profile = load_profile(emu_profile(tmp_path, "grbl", emu.port, views=2,
-                                       angles_deg=[10.0, 100.0]), dotshell_pm)
+                                       angles_deg=[10.0, 40.0]), dotshell_pm)
     result = scan(profile, dotshell_pm, tmp_path / "runs")
     assert result.status == "completed" and emu.plugs == 2
     texts = [e.get("text", "") for e in events(result.run_dir)]

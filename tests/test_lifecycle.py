@@ -54,11 +54,17 @@ def manifest(run: Path) -> dict:
 
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
-    """An uninterrupted tiny scan: the cloud every interrupted-then-resumed scan must equal."""
+    """An uninterrupted tiny scan: the cloud every interrupted-then-resumed scan must equal
+    (made in this process: the command's own process is what the signal and kill tests run)."""
+    from dotshell.pipeline.scan import scan
+    from dotshell.plugins import PluginManager
+    from dotshell.profile import load_profile
+
     tmp = tmp_path_factory.mktemp("ref")
     prof = tiny_profile(tmp)
-    subprocess.run([*DOTSHELL, "scan", str(prof), "--out", str(tmp / "runs")], check=True,
-                   capture_output=True, cwd=ROOT)
+    pm = PluginManager()
+    pm.load_entry_points()
+    scan(load_profile(prof, pm), pm, tmp / "runs")
     (run,) = runs_in(tmp / "runs")
     assert manifest(run)["status"] == "completed"
     return prof, run, read_ply(run / "cloud.ply")[0]

@@ -179,7 +179,7 @@ def dask_client(scheduler: str | None = None, workers: int | None = None
     """A Dask client and a description of its cluster: the scheduler at ``scheduler``
     (``tcp://host:8786``), else a local cluster of ``workers`` processes (default: one per
     core), one thread each."""
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     if scheduler:
         try:
@@ -194,14 +194,34 @@ def dask_client(scheduler: str | None = None, workers: int | None = None
             client.close()
         return
     n = workers or os.cpu_count() or 1
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR)
+    cluster = local_cluster(n)
     client = Client(cluster, set_as_default=False)
     try:
         yield client, f"local cluster of {n} worker process{'es' if n > 1 else ''}"
     finally:
         client.close()
         cluster.close()
+
+
+def local_cluster(workers: int) -> Any:
+    """A Dask ``LocalCluster`` of ``workers`` processes, one thread each, no dashboard.
+
+    Its workers are forked from a forkserver (where the platform has one and Dask's
+    ``distributed.worker.multiprocessing-method`` is left at its default, ``spawn``): the
+    forkserver imports Dask once per process, later clusters start in ~1 s instead of ~5 s, and
+    a worker ends without tearing its interpreter down (numba, VTK...: ~2.5 s of every
+    cluster's close on 2 cores, now 0.2 s)."""
+    import multiprocessing
+
+    import dask
+    from distributed import LocalCluster
+
+    method = dask.config.get("distributed.worker.multiprocessing-method")
+    if method == "spawn" and "forkserver" in multiprocessing.get_all_start_methods():
+        method = "forkserver"
+    with dask.config.set({"distributed.worker.multiprocessing-method": method}):
+        return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                            dashboard_address=None, silence_logs=logging.ERROR)
 
 
 def check_workers(client: Any, runs: list[Path], wait_s: float = 60.0) -> int:

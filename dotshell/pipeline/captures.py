@@ -17,15 +17,15 @@ import time
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import cv2
-import numpy as np
+from typing import TYPE_CHECKING, Any
 
 from dotshell.errors import CalibrationError, RunError
-from dotshell.geometry.calibration import RigCalibration
-from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.settings import Setting, validate_settings
+
+if TYPE_CHECKING:  # numpy, OpenCV and the calibration readers load when captures are read:
+    import numpy as np  # the command's parser lists the shipped layouts from this module
+
+    from dotshell.geometry.calibration import RigCalibration
 
 SHIPPED_LAYOUTS = Path(__file__).resolve().parents[2] / "layouts"
 BLOCKS = ("white", "black", "columns", "rows")
@@ -188,6 +188,8 @@ def _glob_pattern(files: str) -> re.Pattern:
 
 
 def _read_gray(path: Path) -> np.ndarray:
+    import cv2
+
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise RunError(f"{path}: cannot be read as an image (is it a PNG/BMP/TIFF?).")
@@ -243,6 +245,8 @@ def to_coding_frames(frames: dict[str, np.ndarray], layout: Layout,
             for n in [n for n in frames if n.startswith(("col_", "row_")) and not n.endswith("_inv")]:
                 frames[n], frames[n + "_inv"] = frames[n + "_inv"], frames[n]
         else:  # mirror each bit frame about the pixel's (white + black) / 2
+            import numpy as np
+
             wb = frames["white"].astype(np.int64) + frames["black"].astype(np.int64)
             top = np.iinfo(frames["white"].dtype).max if frames["white"].dtype.kind in "ui" else None
             frames = {n: f if n in ("white", "black") else
@@ -299,6 +303,7 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
                          processing: dict[str, Any] | None = None, previews: bool = True,
                          coverage_radius_mm: float = 1.0) -> CapturesResult:
     """Decode and triangulate one foreign capture sequence; see the module docstring."""
+    from dotshell.geometry.opencv_io import load_any_calibration
     from dotshell.ply import write_ply
     from dotshell.store import RunStore
 
@@ -379,6 +384,8 @@ def _previews(store, white: np.ndarray, corr, calib: RigCalibration, points: np.
 def camera_view_preview(points: np.ndarray, path: Path, title: str) -> Path:
     """Render a camera-frame cloud (mm) as seen from a little beside the camera, coloured by
     depth (2nd–98th percentile), off-screen with pyvista."""
+    import numpy as np
+
     from dotshell.render import cloud_preview
 
     pts = np.asarray(points, np.float32)

@@ -23,7 +23,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -32,11 +32,13 @@ from dotshell.events import EventBus, StepProgress, StepStarted, ViewReconstruct
 from dotshell.framecheck import FrameSpec
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.pdi import combine, shots_from_manifest
-from dotshell.pipeline.reconstruct import ViewCloud, reconstruct_view
 from dotshell.plugins import PluginManager
 from dotshell.ply import read_ply, write_ply
 from dotshell.profile import Profile
 from dotshell.store import RunStore, atomic_write_text, dumps
+
+if TYPE_CHECKING:
+    from dotshell.pipeline.reconstruct import ViewCloud
 
 
 @dataclass
@@ -140,6 +142,11 @@ def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: 
                          frames: Sequence[np.ndarray] | None = None) -> dict[str, Any]:
     """Decode and triangulate one view (frames given, or read from the run) into its
     products; returns its report record."""
+    # here, not at the top: the decoding and triangulation (numba, 0.5-1 s to import) load with
+    # the first view (a scan captures the next view meanwhile), not in a batch's client process
+    # or in the commands that never reconstruct
+    from dotshell.pipeline.reconstruct import reconstruct_view
+
     manifest = store.manifest
     if frames is None:
         frames = stored_frames(store, view, calib)

@@ -24,7 +24,6 @@ import time
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
 
 from dotshell.compat import import_open3d
 from dotshell.fem import (MeshError, SurfaceResult, TriangleSurface, closed_manifold_problems,
@@ -206,6 +205,8 @@ def close_bottom(pts: np.ndarray, normals: np.ndarray, bottom_z_mm: float,
 
 def _footprint_points(xy: np.ndarray, z: float, spacing: float) -> np.ndarray:
     """Grid points (spacing apart) inside the outline traced by ``xy`` (filled raster)."""
+    from scipy import ndimage  # here: 0.5-1 s that every command loading the plugins paid
+
     lo = xy.min(axis=0) - 2 * spacing
     ij = np.floor((xy - lo) / spacing).astype(int)
     shape = ij.max(axis=0) + 3

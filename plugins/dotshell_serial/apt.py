@@ -18,9 +18,9 @@ handling are ours.
 from __future__ import annotations
 
 import time
+from functools import lru_cache
+from types import ModuleType
 from typing import Any
-
-import thorlabs_apt_protocol as apt
 
 from dotshell.errors import DeviceError, DeviceTimeout
 from dotshell.settings import Setting
@@ -51,14 +51,26 @@ class _Overdue(DeviceTimeout):
     """The awaited message did not come before the deadline (the device kept answering)."""
 
 
-class _Unpacker(apt.Unpacker):
-    """The library's unpacker, counting the bytes it had to skip (line noise)."""
+def _apt() -> ModuleType:
+    """thorlabs_apt_protocol, imported when a stage first talks (it imports asyncio: 0.1-0.2 s
+    that every command loading the plugins paid)."""
+    import thorlabs_apt_protocol
 
-    skipped = 0
+    return thorlabs_apt_protocol
 
-    def _decoding_error(self, message: str = "") -> None:
-        self.skipped += 1
-        super()._decoding_error(message)
+
+@lru_cache(maxsize=1)
+def _unpacker_class() -> type:
+    class Unpacker(_apt().Unpacker):
+        """The library's unpacker, counting the bytes it had to skip (line noise)."""
+
+        skipped = 0
+
+        def _decoding_error(self, message: str = "") -> None:
+            self.skipped += 1
+            super()._decoding_error(message)
+
+    return Unpacker
 
 
 class AptRotationStage(SerialDevice):
@@ -69,7 +81,7 @@ class AptRotationStage(SerialDevice):
 
     def __init__(self, settings: dict[str, Any], context=None) -> None:
         super().__init__(settings, context)
-        self._unpacker: _Unpacker | None = None
+        self._unpacker: Any = None  # _unpacker_class(), made at the first reply
         self.status_bits: dict[str, Any] = {}
 
     @property
@@ -90,7 +102,8 @@ class AptRotationStage(SerialDevice):
         """The next message named in ``wanted`` (thorlabs_apt_protocol names); errors from the
         controller raise; with ``poll`` a status request goes out every poll interval."""
         if self._unpacker is None:
-            self._unpacker = _Unpacker(self.link._port(f"wait for {what}"), on_error="continue")
+            self._unpacker = _unpacker_class()(self.link._port(f"wait for {what}"),
+                                               on_error="continue")
         t = self.link.reply_timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + t
         heard = time.monotonic()
@@ -100,7 +113,7 @@ class AptRotationStage(SerialDevice):
                 wanted = wanted | {"mot_move_stopped"}
             now = time.monotonic()
             if poll and now >= next_poll:
-                self._send(apt.mot_req_statusupdate(self._dest, HOST, self._chan),
+                self._send(_apt().mot_req_statusupdate(self._dest, HOST, self._chan),
                            "a status request")
                 next_poll = now + self.settings["poll_interval_s"]
             port = self.link._port(f"wait for {what}")
@@ -156,14 +169,14 @@ class AptRotationStage(SerialDevice):
     def _handshake(self) -> None:
         self._unpacker = None
         self.link.pulse_rts()  # what Thorlabs asks for after opening; a pty has no RTS
-        self._send(apt.hw_no_flash_programming(self._dest, HOST), "HW_NO_FLASH_PROGRAMMING")
-        self._send(apt.hw_req_info(self._dest, HOST), "HW_REQ_INFO")
+        self._send(_apt().hw_no_flash_programming(self._dest, HOST), "HW_NO_FLASH_PROGRAMMING")
+        self._send(_apt().hw_req_info(self._dest, HOST), "HW_REQ_INFO")
         info = self._await({"hw_get_info"}, "HW_REQ_INFO (identify)")
         fw = ".".join(str(v) for v in info.firmware_version)  # major, interim, minor
         self.ident = type(self.ident)(
             model=info.model_number.split(b"\0")[0].decode("ascii", "replace"),
             serial_number=str(info.serial_number), firmware=fw, vendor="Thorlabs")
-        self._send(apt.mod_set_chanenablestate(self._dest, HOST, self._chan, 1),
+        self._send(_apt().mod_set_chanenablestate(self._dest, HOST, self._chan, 1),
                    "MOD_SET_CHANENABLESTATE")
         self.read_angle()
         if not self.status_bits.get("homed"):
@@ -174,7 +187,8 @@ class AptRotationStage(SerialDevice):
     # ---- role -----------------------------------------------------------------------------------
 
     def read_angle(self) -> float:
-        self._send(apt.mot_req_statusupdate(self._dest, HOST, self._chan), "MOT_REQ_STATUSUPDATE")
+        self._send(_apt().mot_req_statusupdate(self._dest, HOST, self._chan),
+                   "MOT_REQ_STATUSUPDATE")
         self._await({"mot_get_statusupdate"}, "MOT_REQ_STATUSUPDATE")
         return self._position
 
@@ -182,13 +196,13 @@ class AptRotationStage(SerialDevice):
         target = finite_degrees(degrees, self.link.name)
         self.stopping.clear()
         counts = round(target * self.settings["counts_per_degree"])
-        self._send(apt.mot_move_absolute(self._dest, HOST, self._chan, counts),
+        self._send(_apt().mot_move_absolute(self._dest, HOST, self._chan, counts),
                    f"MOT_MOVE_ABSOLUTE to {target:g}°")
         self._finish(f"the move to {target:g}°", target)
 
     def home(self) -> None:
         self.stopping.clear()
-        self._send(apt.mot_move_home(self._dest, HOST, self._chan), "MOT_MOVE_HOME")
+        self._send(_apt().mot_move_home(self._dest, HOST, self._chan), "MOT_MOVE_HOME")
         self._finish("homing", None)
 
     def _finish(self, what: str, target: float | None) -> None:
@@ -224,7 +238,7 @@ class AptRotationStage(SerialDevice):
         self.stopping.set()
         if self.link.is_open:
             try:
-                self.link.write_now(apt.mot_move_stop(self._dest, HOST, self._chan, 0x02),
+                self.link.write_now(_apt().mot_move_stop(self._dest, HOST, self._chan, 0x02),
                                     "MOT_MOVE_STOP")
             except DeviceError:
                 pass

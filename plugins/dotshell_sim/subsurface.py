@@ -31,8 +31,6 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import gaussian_filter, map_coordinates
-from scipy.optimize import nnls
 
 
 @dataclass(frozen=True)
@@ -103,6 +101,8 @@ def gaussian_mixture(s: Scattering, sigmas_mm=(0.6, 1.2, 2.4, 4.8, 9.6),
 
     Returns (sigmas_mm, weights, relative L2 error of the fit). Σ weights ≈ total diffuse
     reflectance."""
+    from scipy.optimize import nnls  # here: scipy is for scattering samples only (0.5 s to load)
+
     r = np.linspace(1e-3, r_max_mm, 4000)
     target = 2 * np.pi * r * dipole_profile(r, s)
     sig = np.asarray(sigmas_mm, float)
@@ -187,6 +187,8 @@ class SubsurfaceView:
         return out
 
     def _exitance(self, radiance: np.ndarray) -> np.ndarray:
+        from scipy.ndimage import gaussian_filter, map_coordinates
+
         h, w = radiance.shape
         b = self.block
         if b > 1:

@@ -34,14 +34,13 @@ import weakref
 from collections import OrderedDict
 from dataclasses import dataclass, field
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import scipy.sparse as sp
-from scipy.spatial import Delaunay
 
 from dotshell.errors import DeviceError
 from dotshell.fem import (MeshError, TetMesh, TriangleSurface, closed_manifold_problems,
                           element_containing, orient_positive)
-from dotshell.forward import jacobi_cg, move_inside, robin_A, system_matrix
 from dotshell.geometry.calibration import rot_z
 from dotshell.geometry.lens import Lens
 from dotshell.geometry.raycast import TriangleScene
@@ -50,6 +49,9 @@ from dotshell.optics import exit_radiance_per_fluence
 from dotshell_sim.lru import cached
 from dotshell_sim.render import Renderer, View, subpixel_grid
 from dotshell_sim.scene import Cylinder, Material, MeshShape
+
+if TYPE_CHECKING:  # scipy and the FEM solver load when a laser is first modelled: every
+    import scipy.sparse as sp  # command that loads the plugins imported them (0.5-1 s)
 
 #: Where the beam starts, stage frame x (mm): far behind any sample, before the background.
 _BEAM_START_MM = -1000.0
@@ -123,6 +125,8 @@ def cylinder_surface(radius_mm: float, height_mm: float, spacing_mm: float,
     tris = [np.column_stack([a, b, b + n_theta]), np.column_stack([a, b + n_theta, a + n_theta])]
     inner = _disk_points(radius_mm, spacing_mm)
     start = len(verts[0])
+    from scipy.spatial import Delaunay
+
     for zc, ring_first, up in ((z[0], 0, False), (z[-1], n_z * n_theta, True)):
         verts.append(np.column_stack([inner, np.full(len(inner), zc)]))
         ids = np.concatenate([ring_first + np.arange(n_theta), start + np.arange(len(inner))])
@@ -225,6 +229,8 @@ class FluenceModel:
     @classmethod
     def build(cls, surface: TriangleSurface, optics: Optics, spacing_mm: float,
               key: str = "") -> "FluenceModel":
+        from dotshell.forward import robin_A, system_matrix
+
         mesh = tetrahedralize(surface, spacing_mm)
         n = len(mesh.nodes)
         mua = np.full(n, optics.mua_per_mm)
@@ -241,6 +247,8 @@ class FluenceModel:
             element_containing(self.mesh, along)
             return along
         except MeshError:
+            from dotshell.forward import move_inside
+
             return move_inside(self.mesh, entry_mm, depth)
 
     def fluence(self, source_mm: np.ndarray) -> np.ndarray:
@@ -249,6 +257,8 @@ class FluenceModel:
                       lambda: self._solve(source_mm), 64)
 
     def _solve(self, source_mm: np.ndarray) -> np.ndarray:
+        from dotshell.forward import jacobi_cg
+
         el, w = element_containing(self.mesh, source_mm)
         q = np.zeros(len(self.mesh.nodes))
         q[self.mesh.tets[el]] = w
