@@ -94,25 +94,20 @@ def cmd_tui(args: argparse.Namespace) -> int:
         return 2
     signal.signal(signal.SIGHUP, signal.SIG_DFL)  # a terminal that goes away ends the client
     from dotshell.server.client import RemoteSession
-    from dotshell.server.launch import spawn_server
+    from dotshell.server.launch import start_server
+    from dotshell.tui.app import run_tui  # imported before the app starts: it probes the terminal
 
     sock = _which(args) or socket_path("default")
-    starting = None
     if alive(sock):
         notice = f"attached to the running rig server {sock.stem}"
         if args.set:
             notice += f" (--set {' '.join(args.set)} ignored: change keys with set(...) in the console)"
     else:
         err.print(f"starting a rig server for {args.profile or 'no profile'} …")
-        starting = spawn_server(args.profile, sock=sock, out=args.out, overrides=args.set,
-                                strict_plugins=args.strict_plugins)
-    # imported while the server starts, and before the app starts: it probes the terminal
-    from dotshell.tui.app import run_tui
-
-    if starting is not None:
-        notice = (f"started the rig server {sock.stem} (pid {starting.wait()}); it keeps "
-                  "running a scan when this terminal closes and exits when idle with nobody "
-                  "attached")
+        pid = start_server(args.profile, sock=sock, out=args.out, overrides=args.set,
+                           strict_plugins=args.strict_plugins)
+        notice = (f"started the rig server {sock.stem} (pid {pid}); it keeps running a scan "
+                  "when this terminal closes and exits when idle with nobody attached")
     session = RemoteSession(sock, client="tui", control=True)
     return run_tui(session, notice)
 

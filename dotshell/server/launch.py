@@ -39,35 +39,11 @@ def locate(profile: str | Path | None = None, name: str | None = None,
     return running[0] if running else None
 
 
-class StartingServer:
-    """A ``dotshell serve`` started in the background; :meth:`wait` until it answers."""
-
-    def __init__(self, proc: subprocess.Popen, sock: Path, out_file: Path) -> None:
-        self.proc, self.sock, self.out_file = proc, sock, out_file
-
-    def wait(self) -> int:
-        """Wait until the server listens; returns its pid. ServerError (with the end of its
-        output) when it exits or does not answer within :data:`START_TIMEOUT_S`."""
-        t0 = time.monotonic()
-        while not alive(self.sock):
-            code = self.proc.poll()
-            if code is not None or time.monotonic() - t0 > START_TIMEOUT_S:
-                if code is None:
-                    self.proc.terminate()
-                tail = self.out_file.read_text(errors="replace")[-2000:].strip()
-                why = (f"exit code {code}" if code is not None
-                       else f"no answer in {START_TIMEOUT_S} s")
-                raise ServerError(f"the rig server did not start ({why}); its output "
-                                  f"({self.out_file}):\n{tail}")
-            time.sleep(0.1)
-        return self.proc.pid
-
-
-def spawn_server(profile: str | Path | None, *, sock: Path, out: str | Path,
+def start_server(profile: str | Path | None, *, sock: Path, out: str | Path,
                  overrides: list[str] | tuple[str, ...] = (), exit_when_idle: bool = True,
-                 strict_plugins: bool = False) -> StartingServer:
-    """Start ``dotshell serve`` detached on ``sock`` and return at once (the caller can do
-    its own start-up meanwhile, then :meth:`StartingServer.wait`)."""
+                 strict_plugins: bool = False) -> int:
+    """Start ``dotshell serve`` detached on ``sock`` and wait until it answers; returns its pid.
+    ServerError (with the end of its output) when it exits or does not answer in time."""
     name = sock.stem
     out_file = server_log_dir(name) / "server.out"
     cmd = [sys.executable, "-m", "dotshell.cli", *(["--strict-plugins"] if strict_plugins else []),
@@ -78,13 +54,15 @@ def spawn_server(profile: str | Path | None, *, sock: Path, out: str | Path,
     with open(out_file, "ab") as f:
         proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=f, stderr=subprocess.STDOUT,
                                 start_new_session=True, close_fds=True, cwd=os.getcwd())
-    return StartingServer(proc, sock, out_file)
-
-
-def start_server(profile: str | Path | None, *, sock: Path, out: str | Path,
-                 overrides: list[str] | tuple[str, ...] = (), exit_when_idle: bool = True,
-                 strict_plugins: bool = False) -> int:
-    """Start ``dotshell serve`` detached on ``sock`` and wait until it answers; returns its pid.
-    ServerError (with the end of its output) when it exits or does not answer in time."""
-    return spawn_server(profile, sock=sock, out=out, overrides=overrides,
-                        exit_when_idle=exit_when_idle, strict_plugins=strict_plugins).wait()
+    t0 = time.monotonic()
+    while not alive(sock):
+        code = proc.poll()
+        if code is not None or time.monotonic() - t0 > START_TIMEOUT_S:
+            if code is None:
+                proc.terminate()
+            tail = out_file.read_text(errors="replace")[-2000:].strip()
+            why = f"exit code {code}" if code is not None else f"no answer in {START_TIMEOUT_S} s"
+            raise ServerError(f"the rig server did not start ({why}); its output ({out_file}):"
+                              f"\n{tail}")
+        time.sleep(0.1)
+    return proc.pid

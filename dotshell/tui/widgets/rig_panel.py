@@ -23,7 +23,6 @@ from textual.widgets import Static
 from dotshell.server.describe import short_path
 from dotshell.tui.jog import JogQueue
 from dotshell.tui.messages import ActionDone
-from dotshell.tui.redraw import show
 from dotshell.tui.text import describe_status
 from dotshell.tui.widgets.choice import ChoiceScreen
 from dotshell.tui.widgets.prompt import PromptScreen
@@ -62,7 +61,6 @@ class RigPanel(Vertical, can_focus=True):
         self.last_result = ""
         self.last_error = ""
         self.rows: list[dict[str, Any]] = []
-        self._table_of: tuple[Any, ...] | None = None  # what the device table was drawn from
         self.jogs = JogQueue(lambda deg: self._do("jog", self.session.jog, deg))
 
     def compose(self) -> ComposeResult:
@@ -82,19 +80,13 @@ class RigPanel(Vertical, can_focus=True):
         p = self.session.profile
         title = (f"[b]{escape(p['name'])}[/]  {escape(short_path(p['source']))}" if p else
                  "[b]no profile loaded[/] — press ctrl+o to pick one")
-        show(self.query_one("#rig-title", Static), f"{title}   jog step {self.step_deg:g}°")
+        self.query_one("#rig-title", Static).update(f"{title}   jog step {self.step_deg:g}°")
         self.show_rows(self.rows)
 
     def show_rows(self, rows: list[dict[str, Any]]) -> None:
-        """Draw the device table (again only when the rows or the pattern shown changed, or
-        the panel was resized)."""
         self.rows = rows
         projected = self.session.projected
-        stacked = self.app.size.width < STACK_BELOW
-        if self._table_of == (rows, projected, stacked):
-            return
-        self._table_of = (rows, projected, stacked)
-        if stacked:
+        if self.app.size.width < STACK_BELOW:
             self.query_one("#rig-table", Static).update(self._stacked(rows, projected))
             return
         table = Table(box=None, expand=True, pad_edge=False, header_style="bold")
@@ -132,13 +124,12 @@ class RigPanel(Vertical, can_focus=True):
         return [r for r in ROLES if r not in configured]
 
     def on_resize(self, event: Resize) -> None:
-        self._table_of = None  # drawn again for the new size
         self.show_rows(self.rows)
 
     def show_result(self, text: str, error: str = "") -> None:
         self.last_result, self.last_error = text, error
-        show(self.query_one("#rig-result", Static), escape(text))
-        show(self.query_one("#rig-error", Static), escape(error))
+        self.query_one("#rig-result", Static).update(escape(text))
+        self.query_one("#rig-error", Static).update(escape(error))
 
     def on_action_done(self, message: ActionDone) -> None:
         if message.label == "jog":
