@@ -13,15 +13,16 @@ import signal
 import subprocess
 import sys
 import time
+import tomllib
 import uuid
 
 import pexpect
 import pyte
 import pytest
 
-from conftest import write_test_profile
+from conftest import write_profile, write_test_profile
 from dotshell.server.client import RemoteSession
-from dotshell.server.paths import server_name, socket_path
+from dotshell.server.paths import alive, server_name, socket_path
 from rig_server import user_dirs  # noqa: F401 (a fixture)
 
 COLS, ROWS = 80, 24
@@ -31,11 +32,27 @@ F_KEYS = {"f2": "\x1bOQ", "f3": "\x1bOR", "f4": "\x1bOS", "f6": "\x1b[17~"}
 @pytest.fixture
 def profile(tmp_path, user_dirs):
     """A tiny profile (0.1 s a frame, so a person — or a loaded machine — can follow the
-    scan), the user's directories private to the test, the server stopped after."""
+    scan; columns coded only: 16 frames a view, not 30), the user's directories private to
+    the test, the server stopped after."""
     path = write_test_profile(tmp_path, views=3, settle_ms=100.0)
+    raw = tomllib.loads(path.read_text())
+    raw["coding"]["settings"]["axes"] = "columns"
+    write_profile(path, raw)
     yield path
-    subprocess.run([sys.executable, "-m", "dotshell.cli", "stop", str(path), "--abort"],
-                   capture_output=True, timeout=300)
+    stop_server(socket_path(server_name(path)))
+
+
+def stop_server(sock):
+    """What ``dotshell stop PROFILE --abort`` does, from this process (no second interpreter
+    to start): the scan aborted, the rig closed, the server gone once it says bye."""
+    if not alive(sock):
+        return
+    session = RemoteSession(sock, "test")
+    try:
+        session.shutdown(abort=True)
+        assert session.closed.wait(300), "the server did not stop"
+    finally:
+        session.close()
 
 
 def tui_command(profile, tmp_path):

@@ -21,7 +21,7 @@ from textual.binding import Binding
 from textual.containers import Horizontal
 from textual.screen import Screen
 from textual.widget import Widget
-from textual.widgets import Footer, Header, TabbedContent, TabPane
+from textual.widgets import Header, TabbedContent, TabPane
 from textual.widgets._tabbed_content import ContentTabs
 
 from dotshell.errors import DotshellError
@@ -32,6 +32,7 @@ from dotshell.server.protocol import event_from_wire
 from dotshell.tui.messages import ActionDone, ServerMessage
 from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.console_panel import ConsolePanel
+from dotshell.tui.widgets.keys_footer import KeysFooter
 from dotshell.tui.widgets.keys_screen import CONSOLE_KEYS, KeysScreen
 from dotshell.tui.widgets.log_panel import LogPanel
 from dotshell.tui.widgets.plugins_screen import PluginsScreen
@@ -93,7 +94,7 @@ class DotshellApp(App):
                     yield LogPanel(id="log-panel")
                 with TabPane("5 Console", id="console"):
                     yield ConsolePanel(id="console-panel")
-        yield Footer()
+        yield KeysFooter()
 
     def on_mount(self) -> None:
         log = self.panel(LogPanel)

@@ -15,6 +15,7 @@ from textual.containers import Vertical
 from textual.widgets import Static
 
 from dotshell.tui.messages import ActionDone
+from dotshell.tui.redraw import show
 from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.reflow_log import ReflowLog
 
@@ -55,7 +56,7 @@ class ConsolePanel(Vertical):
         return self.query_one(ConsoleInput)
 
     def _status(self, markup: str) -> None:
-        self.query_one("#console-status", Static).update(markup)
+        show(self.query_one("#console-status", Static), markup)
 
     # ---- output -------------------------------------------------------------------------------
 

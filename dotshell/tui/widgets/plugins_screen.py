@@ -10,7 +10,9 @@ from textual.app import ComposeResult
 from textual.binding import Binding
 from textual.containers import Vertical
 from textual.screen import Screen
-from textual.widgets import DataTable, Footer, Static
+from textual.widgets import DataTable, Static
+
+from dotshell.tui.widgets.keys_footer import KeysFooter
 
 
 class PluginsScreen(Screen):
@@ -28,7 +30,7 @@ class PluginsScreen(Screen):
             yield Static("[b]Backends[/] (role · name · plugin · distribution · summary)")
             yield DataTable(id="plugins-table", cursor_type="row", zebra_stripes=True)
             yield Static(id="plugins-errors", classes="error")
-        yield Footer()
+        yield KeysFooter()
 
     def on_mount(self) -> None:
         table = self.query_one(DataTable)

@@ -17,6 +17,7 @@ from textual.widgets import Label, ProgressBar, Static
 from dotshell.server.describe import short_path
 from dotshell.server.progress import ScanTracker, format_seconds
 from dotshell.tui.messages import ActionDone
+from dotshell.tui.redraw import show
 from dotshell.tui.widgets.confirm import ConfirmScreen
 
 HELP = "[b]s[/] start  [b]p[/] pause / resume  [b]x[/] abort (frames are kept)  [b]esc[/] stop"
@@ -69,26 +70,26 @@ class ScanPanel(Vertical, can_focus=True):
             line += (f"   step [b]{escape(t.step or '…')}[/]   view {view}"
                      f"   elapsed {format_seconds(t.active_seconds(now_s))}"
                      f"   ETA {format_seconds(t.eta_s(now_s))}")
-        self.query_one("#scan-state", Static).update(line)
+        show(self.query_one("#scan-state", Static), line)
         self.query_one("#views-bar", ProgressBar).update(total=max(t.n_views, 1),
                                                          progress=t.views_done)
         self.query_one("#frames-bar", ProgressBar).update(total=max(t.frames_total, 1),
                                                           progress=t.frames_done)
-        self.query_one("#views-count", Label).update(f"{t.views_done}/{t.n_views}")
-        self.query_one("#frames-count", Label).update(f"{t.frames_done}/{t.frames_total}")
-        self.query_one("#scan-result", Static).update(self._result(t))
+        show(self.query_one("#views-count", Label), f"{t.views_done}/{t.n_views}")
+        show(self.query_one("#frames-count", Label), f"{t.frames_done}/{t.frames_total}")
+        show(self.query_one("#scan-result", Static), self._result(t))
         error = self.failure or (t.error if t.shown_status == "failed" else "")
         if t.shown_status == "failed" and t.status == "completed":
             error = error or "the scan produced no points: check the previews, the lighting, " \
                              "the calibration and [processing.roi]."
-        self.query_one("#scan-error", Static).update(escape(error))
+        show(self.query_one("#scan-error", Static), escape(error))
 
     def _show_plan(self) -> None:
         p = self.session.profile
         text = "no profile loaded — ctrl+o" if p is None else (
             f"[b]{escape(p['name'])}[/]: {p['views']} views, exposure {p['exposure_ms']:g} ms, "
             f"coding {escape(p['coding'])} → {escape(short_path(self.session.state['out_dir']))}/")
-        self.query_one("#scan-plan", Static).update(text)
+        show(self.query_one("#scan-plan", Static), text)
 
     @staticmethod
     def _result(t: ScanTracker) -> str:

@@ -11,6 +11,7 @@ from textual.containers import Vertical
 from textual.widgets import Static
 
 from dotshell.server.progress import ScanTracker, format_seconds
+from dotshell.tui.redraw import show
 from dotshell.tui.text import describe_status
 
 
@@ -30,8 +31,8 @@ class Summary(Vertical):
         c = state.get("controller")
         who = ("you control" if session.in_control else
                f"{c['client']}#{c['id']} controls" if c else "nobody controls")
-        self.query_one("#summary-server", Static).update(
-            f"{escape(session.server_name)}\n{who}; {len(state.get('clients', []))} attached")
+        show(self.query_one("#summary-server", Static),
+             f"{escape(session.server_name)}\n{who}; {len(state.get('clients', []))} attached")
 
     def show_rows(self, rows: list[dict[str, Any]]) -> None:
         lines = []
@@ -39,7 +40,7 @@ class Summary(Vertical):
             mark = "[green]●[/]" if row["connected"] else "[dim]○[/]"
             status = describe_status(row["role"], row["status"], compact=True)
             lines.append(f"{mark} {row['role']}" + (f"\n   {escape(status)}" if status else ""))
-        self.query_one("#summary-rig", Static).update("\n".join(lines) or "[dim]no devices[/]")
+        show(self.query_one("#summary-rig", Static), "\n".join(lines) or "[dim]no devices[/]")
 
     def show_scan(self, t: ScanTracker, session: Any, now_s: float) -> None:
         state = session.session_state if session.scanning else t.shown_status
@@ -52,4 +53,4 @@ class Summary(Vertical):
             lines.append(f"ETA {format_seconds(t.eta_s(now_s))}")
         if t.points:
             lines.append(f"{t.points} points")
-        self.query_one("#summary-scan", Static).update("\n".join(lines))
+        show(self.query_one("#summary-scan", Static), "\n".join(lines))
