@@ -388,7 +388,8 @@ class GrayCode:
                 split(k.block_centres, h, code[a], valid, ax.block, ax.offset, ax.size, coord[a])
             d = AxisDecode(ax, int(firsts[a]), code[a], coord[a])
             refined[f"refined_{_axis_name(ax)}"] = self._refine_axis(
-                d, valid, stack, words.range, coord[a], ok[a], across, done=across == down[a])
+                d, valid, stack, words.range, coord[a], ok[a], tables[a], across,
+                done=across == down[a])
         return valid, reason, counts, list(coord), refined
 
     def _rule(self, stack: np.ndarray, axes: list[_Axis], full: float) -> tuple:
@@ -449,18 +450,18 @@ class GrayCode:
         return None, _MAX_SUBPIXEL_SPAN
 
     def _refine_axis(self, d: "AxisDecode", valid: np.ndarray, stack: np.ndarray,
-                     rng: np.ndarray, coord: np.ndarray, ok: np.ndarray, across: bool,
-                     done: bool) -> int:
+                     rng: np.ndarray, coord: np.ndarray, ok: np.ndarray, flip: np.ndarray,
+                     across: bool, done: bool) -> int:
         """Refine ``coord`` (one axis's coarse coordinates) in place to sub-pixel and set it NaN
         where not decoded; returns how many pixels were refined (marked in ``ok``). Scanned
         along the image direction its stripes cross (down the columns if ``across``: its
         code changes more often down them), then along the other where that leaves more
         than :data:`SECOND_PASS_SHARE` of the decoded pixels unrefined. ``done``: the first
-        scan already ran (:func:`kernels.decode_rows`), with ``ok`` its refined pixels."""
+        scan already ran (:func:`kernels.decode_rows`), with ``ok`` its refined pixels.
+        ``flip``: the axis's :func:`kernels.flip_table`."""
         anchor, span = self.refine_anchors(d.axis)
         ax = d.axis
         k = _kernels()
-        flip = k.flip_table(ax.nb)
 
         def refine(down: bool, first: bool) -> int:
             kernel = k.refine_columns if down else k.refine_rows

@@ -654,23 +654,17 @@ def decode_rows(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarr
     nan32 = np.float32(np.nan)
     scan_i[band] = -1
     scan_f[band] = 0
-    first = max(start - 1, 0) if not classified else H  # the ring's first two rows
-    for y in range(first, min(start + 1, H)):
-        inside = y >= start
-        _classify_row(stack, y, inverse, mode, axis_bits, sep, high, shadow_thr, m,
-                      min_contrast, contrast_scale, one_minus_b, lg_scale, b_level, value,
-                      weak, y % 3, rng[y] if inside else halo_r,
-                      shadow[y] if inside else halo_sh, no_direct[y] if inside else halo_nd,
-                      spans)
-    for y in range(start, stop):
-        n = y + 1
+    for n in range(max(start - 1, 0), stop + 1):  # classify row n, then finish row n - 1
         if n < H and not classified:
-            inside = n < stop
+            inside = start <= n < stop
             _classify_row(stack, n, inverse, mode, axis_bits, sep, high, shadow_thr, m,
                           min_contrast, contrast_scale, one_minus_b, lg_scale, b_level, value,
                           weak, n % 3, rng[n] if inside else halo_r,
                           shadow[n] if inside else halo_sh,
                           no_direct[n] if inside else halo_nd, spans)
+        y = n - 1
+        if y < start or y >= H:
+            continue
         up = -1 if y == 0 else (y - 1) if classified else (y - 1) % 3
         dn = -1 if n == H else n if classified else n % 3
         here = y if classified else y % 3
