@@ -39,7 +39,11 @@ from dotshell.geometry.lens import Lens
 from dotshell_sim.scene import StagedScene
 from dotshell_sim.subsurface import SubsurfaceView, fresnel_transmittance, gaussian_mixture
 
-_CHUNK = 1 << 16          # rays per chunk (bounds the float64 temporaries; cache friendly)
+# rays per chunk: an (N, 3) float64 temporary of a chunk (768 KiB) stays under the 1 MiB mmap
+# threshold the process sets (dotshell.runtime.fix_mmap_threshold), so the dozens of temporaries
+# of a trace come from the heap; at 1 << 16 each was a fresh mapping whose pages faulted in, and
+# a view took 2.5-3x as long (6 views at 320x256, 2x2 supersampled: 7.5 -> 2.7 s of CPU)
+_CHUNK = 1 << 15
 _SHADOW_OFFSET = 1e-5     # mm, shadow-ray origin offset along the normal (avoids self-hits)
 _OUTSIDE = -1.0e4         # projector coordinate used for "no projector light" (samples 0)
 
