@@ -31,6 +31,23 @@ def radial_distance(points: np.ndarray, point: np.ndarray, axis: np.ndarray,
     return np.sqrt(np.add.reduce(d, axis=1))  # = np.linalg.norm(d, axis=1), without its copy
 
 
+def radial_jacobian(points: np.ndarray, point: np.ndarray, axis: np.ndarray, u: np.ndarray,
+                    v: np.ndarray, axis_norm: float) -> np.ndarray:
+    """Derivatives (N, 5) of the radial residual ``|d - (d·a) a| - r`` (d = point to each of
+    ``points``) with respect to the axis point moved along ``u`` and ``v`` (mm), the unnormalized
+    axis ``a0 + p2 u + p3 v`` of length ``axis_norm`` tilted along ``u`` and ``v``, and the
+    radius. With ``e`` the unit radial direction (orthogonal to the axis) and ``t = d·a``:
+    ∂/∂point = -e, ∂/∂axis = -t (I - a aᵀ) e / |a| = -t e / |a|, ∂/∂r = -1."""
+    d = points - point
+    t = d @ axis
+    d -= t[:, None] * axis  # the radial vector
+    rho = np.sqrt(np.einsum("ij,ij->i", d, d))
+    d /= np.maximum(rho, 1e-12)[:, None]  # e
+    eu, ev = d @ u, d @ v
+    t /= -axis_norm
+    return np.column_stack([-eu, -ev, t * eu, t * ev, np.full(len(points), -1.0)])
+
+
 def fit_cylinder(points: np.ndarray, axis_guess=(0.0, 0.0, 1.0)) -> CylinderFit:
     """Fit a cylinder to ``points`` (N, 3, mm), starting from an axis along ``axis_guess``
     through the centroid. Robust to a few outliers (soft-L1 loss)."""
@@ -54,8 +71,12 @@ def fit_cylinder(points: np.ndarray, axis_guess=(0.0, 0.0, 1.0)) -> CylinderFit:
         point, axis = line(p)
         return radial_distance(pts, point, axis, work) - p[4]
 
+    def jacobian(p):
+        point, axis = line(p)
+        return radial_jacobian(pts, point, axis, u, v, np.linalg.norm(a0 + p[2] * u + p[3] * v))
+
     r0 = float(np.median(radial_distance(pts, c, a0)))
-    sol = least_squares(residual, [0, 0, 0, 0, r0], loss="soft_l1", f_scale=0.05)
+    sol = least_squares(residual, [0, 0, 0, 0, r0], jac=jacobian, loss="soft_l1", f_scale=0.05)
     point, axis = line(sol.x)
     res = residual(sol.x)
     return CylinderFit(point, axis, float(sol.x[4]), float(np.sqrt(np.mean(res ** 2))))
