@@ -46,9 +46,10 @@ from functools import lru_cache
 import numba
 import numpy as np
 
+from dotshell import hugepages
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens
-from dotshell.parallel import split
+from dotshell.parallel import balanced_bands, bands, split, split_bands
 
 
 @dataclass
@@ -204,13 +205,14 @@ def solve_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
     split(_count_rows, h, valid, per_row)
     start = np.concatenate([[0], np.cumsum(per_row)])
     n = int(start[-1])
-    pts = np.empty((n, 3))
-    depth = np.empty(n)
-    pixels = np.empty((n, 2), np.int32)
-    flags = np.empty(n, np.uint8)
+    pts = hugepages.empty((n, 3), np.float64)
+    depth = hugepages.empty(n, np.float64)
+    pixels = hugepages.empty((n, 2), np.int32)
+    flags = hugepages.empty(n, np.uint8)
+    # rows cut by their decoded pixels (a row's solve costs ~1 pixel's per 50 px it scans)
     split(_solve_image, h, valid, column, rows, row is not None, iterations, rays, start,
           affine, *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(), pts, depth,
-          pixels, flags)
+          pixels, flags, bounds=balanced_bands(per_row + w / 50.0, per_worker=2))
     counts = np.bincount(flags, minlength=4)
     return ImageSolve(pixels, pts, depth, flags == KEPT,
                       {"triangulated": int(counts[KEPT]),
@@ -219,13 +221,22 @@ def solve_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
 
 
 def select(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
-    """``a[mask]`` for each array, computed in place (the arrays' first ``mask.sum()`` rows
-    are overwritten; the results are views of them): one compiled pass instead of a boolean
-    index per array (50 ms for a view's points in numpy on a busy machine)."""
-    n = 0
+    """``a[mask]`` for each array (new arrays), in compiled passes split across the cores: the
+    selected rows of each range of ``mask`` are counted, then every range copies its rows to
+    its own place in the outputs (a boolean index per array took 50 ms for a view's points in
+    numpy on a busy machine; one serial compiled pass 5 ms)."""
+    mask = np.ascontiguousarray(mask, bool)
+    bounds = bands(len(mask), min_chunk=1 << 14)
+    counts = np.zeros(len(bounds) - 1, np.int64)
+    split_bands(_count_selected, bounds, mask, counts)
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    out = []
     for a in arrays:
-        n = _select_in_place(mask, a.reshape(len(a), int(np.prod(a.shape[1:]))))
-    return tuple(a[:n] for a in arrays) if arrays else ()
+        rows = np.ascontiguousarray(a).reshape(len(a), -1)
+        picked = hugepages.empty((int(offsets[-1]), rows.shape[1]), rows.dtype)
+        split_bands(_copy_selected, bounds, mask, rows, offsets, picked)
+        out.append(picked.reshape((len(picked), *a.shape[1:])))
+    return tuple(out)
 
 
 # ---- compiled solves ------------------------------------------------------------------------
@@ -404,15 +415,21 @@ def _solve_rays(rays, column, row, has_rows, iterations, R, T, K, dist, toleranc
 
 
 @numba.njit(**_OPTS)
-def _select_in_place(mask, rows):
+def _count_selected(mask, counts, band, start, stop):
     n = 0
-    for i in range(mask.shape[0]):
+    for i in range(start, stop):
+        n += mask[i]
+    counts[band] = n
+
+
+@numba.njit(**_OPTS)
+def _copy_selected(mask, rows, offsets, out, band, start, stop):
+    n = offsets[band]
+    for i in range(start, stop):
         if mask[i]:
-            if n != i:
-                for k in range(rows.shape[1]):
-                    rows[n, k] = rows[i, k]
+            for k in range(rows.shape[1]):
+                out[n, k] = rows[i, k]
             n += 1
-    return n
 
 
 @numba.njit(**_OPTS)
