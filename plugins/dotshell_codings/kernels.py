@@ -1,8 +1,8 @@
 """Compiled per-pixel loops of the binary codings' decoder (numba; split by rows across cores).
 
 The decoder of :mod:`dotshell_codings.graycode` makes one pass over a view
-(:func:`decode_rows`), in bands of rows taken by the cores one at a time, with no image-sized temporary per bit. Row by
-row it:
+(:func:`decode_rows`), in bands of rows taken by the cores one at a time, with no image-sized
+temporary per bit. Row by row it:
 
 * classifies (:func:`_classify_row`): reads every frame's row once and decides each projected
   bit of each pixel (the contrast rule or Xu & Aliaga's robust rule after the direct/global
