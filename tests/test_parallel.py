@@ -86,20 +86,3 @@ def test_a_thread_that_finishes_early_takes_the_ranges_left():
         parallel.split_bands(work, bounds)
     assert (done == 1).all()
 
-
-def test_select_is_boolean_indexing_on_any_thread_count():
-    from dotshell.geometry.triangulate import select
-
-    rng = np.random.default_rng(3)
-    n = 100_000
-    mask = rng.random(n) < 0.7
-    pixels = rng.integers(0, 1000, (n, 2)).astype(np.int32)
-    points = rng.random((n, 3))
-    depth = rng.random(n)
-    for threads in (1, 2):
-        with parallel.threads(threads):
-            got = select(mask, pixels, points, depth)
-        for g, a in zip(got, (pixels, points, depth)):
-            assert g.dtype == a.dtype and np.array_equal(g, a[mask])
-    assert select(np.zeros(n, bool), points)[0].shape == (0, 3)
-    assert select(mask) == ()

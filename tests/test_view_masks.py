@@ -72,3 +72,17 @@ def test_kept_points_are_smooth_and_inside_and_every_loss_is_counted_once() -> N
                       "outside_roi": int(np.count_nonzero(smooth & ~inside)),
                       "points": int(np.count_nonzero(keep))}
     assert counts["speckle"] + counts["outside_roi"] + counts["points"] == kept.sum()
+
+
+def test_select_is_boolean_indexing_done_in_place() -> None:
+    from dotshell.geometry.triangulate import select
+
+    rng = np.random.default_rng(3)
+    n = 100_000
+    mask = rng.random(n) < 0.7
+    pixels = rng.integers(0, 1000, (n, 2)).astype(np.int32)
+    points = rng.random((n, 3))
+    got = select(mask, pixels.copy(), points.copy())
+    for g, a in zip(got, (pixels, points)):
+        assert g.dtype == a.dtype and np.array_equal(g, a[mask])
+    assert select(np.zeros(n, bool), points.copy())[0].shape == (0, 3)
