@@ -289,6 +289,14 @@ async def show_tab(pilot, tab):
     await pilot.pause()
 
 
+async def switched(pilot, switches, count):
+    """Wait for the ``count``-th tab switch, then until the UI is idle: a bounce — the switch
+    back that reacts to it — has happened by then (it would be switch ``count + 1``)."""
+    await wait_until(pilot, lambda: len(switches) >= count)
+    await pilot.pause()
+    await pilot.pause()
+
+
 async def test_leaving_the_console_with_f_keys_never_bounces_back(server):
     """The bounce: the tab switched first, hiding the focused console input; Textual handed the
     focus to a hidden sibling in the console pane and TabbedContent switched back to it. Now the
@@ -301,11 +309,11 @@ async def test_leaving_the_console_with_f_keys_never_bounces_back(server):
             (active, app.screen.focused)), init=False)
         for i in range(9):  # each tab 3 times; the focus at every switch is checked below
             await pilot.press("f6")
-            await pilot.pause(0.1)
+            await switched(pilot, focus_at_switch, 2 * i + 1)
             assert tabs.active == "console" and app.focused is app.panel(ConsoleInput)
             key, tab = [("f2", "rig"), ("f3", "scan"), ("f4", "preview")][i % 3]
             await pilot.press(key)
-            await pilot.pause(0.2)  # long enough for a bounce to show
+            await switched(pilot, focus_at_switch, 2 * i + 2)
             assert tabs.active == tab, f"repetition {i + 1}: {key} bounced to {tabs.active}"
             pane = app.screen.query_one(f"TabPane#{tab}")
             assert pane in app.focused.ancestors_with_self
