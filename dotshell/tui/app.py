@@ -81,6 +81,7 @@ class DotshellApp(App):
         self.tracker = ScanTracker.from_dict(session.tracker.to_dict())
         self._unsubscribe: Callable[[], None] | None = None
         self._quitting = False
+        self._main_up = False
 
     # ---- layout -------------------------------------------------------------------------------
 
@@ -102,6 +103,7 @@ class DotshellApp(App):
         yield KeysFooter()
 
     def on_mount(self) -> None:
+        self._main_up = True
         log = self.panel(LogPanel)
         previews = []
         for ev in self.session.backlog:
@@ -132,8 +134,11 @@ class DotshellApp(App):
 
     @property
     def main_ready(self) -> bool:
-        """False before the main screen is up and after it is gone (shutting down)."""
-        return bool(self.screen_stack) and self.screen_stack[0].is_mounted
+        """False before the main screen's panels are up (:meth:`on_mount` has not run) and
+        from the moment the app shuts down (Textual stops the app, then removes the screens'
+        widgets: a server message still queued then found no panel to show it in)."""
+        return (self._main_up and self.is_running and bool(self.screen_stack)
+                and self.screen_stack[0].is_mounted)
 
     # ---- tabs and focus -----------------------------------------------------------------------
 
