@@ -139,7 +139,7 @@ def test_imports_ahead_start_with_the_step_that_makes_their_last_input():
     thread = import_ahead(names, "cloud")
     assert thread is not None and thread.daemon
     thread.join(120)
-    assert {"pyvista.plotting", "scipy.optimize"} <= set(sys.modules)
+    assert {"pyvista.plotting", "dotshell.pipeline.validate"} <= set(sys.modules)
 
 
 def test_a_users_script_ends_with_pythons_exit_so_what_it_left_open_is_written(tmp_path):
