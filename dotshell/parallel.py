@@ -13,9 +13,10 @@ and are safe to call from several threads at once.
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Sequence
 
 _POOL: ThreadPoolExecutor | None = None
 _LIMIT: int | None = None
@@ -69,18 +70,32 @@ def shutdown() -> None:
         pool.shutdown(wait=True)
 
 
-def bands(n: int, min_chunk: int = 16) -> list[int]:
-    """Bounds of the contiguous ranges :func:`split` cuts ``range(n)`` into: one per worker,
-    each of at least ``min_chunk`` (range i is ``bounds[i]`` to ``bounds[i + 1]``)."""
-    parts = max(1, min(workers(), n // max(min_chunk, 1)))
+def bands(n: int, min_chunk: int = 16, per_worker: int = 1) -> list[int]:
+    """Bounds of the contiguous ranges :func:`split` cuts ``range(n)`` into: ``per_worker``
+    per worker, each of at least ``min_chunk`` (range i is ``bounds[i]`` to ``bounds[i + 1]``)."""
+    parts = max(1, min(workers() * max(per_worker, 1), n // max(min_chunk, 1)))
     return [n * i // parts for i in range(parts + 1)]
 
 
-def split(kernel: Callable[..., Any], n: int, *args: Any, min_chunk: int = 16) -> None:
+def balanced_bands(cost: Sequence[float], per_worker: int = 1) -> list[int]:
+    """Bounds cutting ``range(len(cost))`` into ``per_worker`` ranges per worker of about
+    equal summed ``cost`` (e.g. the decoded pixels of each image row), instead of equal
+    length: a view's lit pixels are rarely spread evenly over its rows."""
+    import numpy as np
+
+    n = len(cost)
+    parts = max(1, min(workers() * max(per_worker, 1), n))
+    total = np.concatenate([[0.0], np.cumsum(np.asarray(cost, np.float64))])
+    cuts = np.searchsorted(total, total[-1] * np.arange(1, parts) / parts, side="left")
+    return sorted({0, n, *(int(c) for c in cuts if 0 < c < n)})
+
+
+def split(kernel: Callable[..., Any], n: int, *args: Any, min_chunk: int = 16,
+          bounds: list[int] | None = None) -> None:
     """Run ``kernel(*args, start, stop)`` over ``range(n)`` cut into one contiguous range per
-    worker (:func:`bands`); returns when all are done, re-raising the first error. The
-    kernel must release the GIL (``nogil=True``) to run in parallel."""
-    _run(kernel, bands(n, min_chunk), args, False)
+    worker (:func:`bands`, or the given ``bounds``); returns when all are done, re-raising the
+    first error. The kernel must release the GIL (``nogil=True``) to run in parallel."""
+    _run(kernel, bands(n, min_chunk) if bounds is None else bounds, args, False)
 
 
 def split_bands(kernel: Callable[..., Any], bounds: list[int], *args: Any) -> None:
@@ -91,14 +106,34 @@ def split_bands(kernel: Callable[..., Any], bounds: list[int], *args: Any) -> No
 
 
 def _run(kernel: Callable[..., Any], bounds: list[int], args: tuple, numbered: bool) -> None:
+    """The ranges of ``bounds`` on at most :func:`workers` threads (the caller's and the
+    pool's), each thread taking the next range not yet taken until none is left: with more
+    ranges than threads, a thread that finishes early (less work in its rows, or a core less
+    busy) takes over the rest."""
     def call(i: int) -> Any:
         extra = (i, bounds[i], bounds[i + 1]) if numbered else (bounds[i], bounds[i + 1])
         return kernel(*args, *extra)
 
-    if len(bounds) == 2:
-        call(0)
+    n = len(bounds) - 1
+    threads = min(n, workers(), (os.cpu_count() or 1))
+    if threads <= 1:
+        for i in range(n):
+            call(i)
         return
-    futures = [_pool().submit(call, i) for i in range(1, len(bounds) - 1)]
-    call(0)  # the calling thread takes the first range
-    for f in futures:
-        f.result()
+    ranges = iter(range(n))
+    lock = threading.Lock()
+
+    def drain() -> None:
+        while True:
+            with lock:
+                i = next(ranges, None)
+            if i is None:
+                return
+            call(i)
+
+    futures = [_pool().submit(drain) for _ in range(threads - 1)]
+    try:
+        drain()  # the calling thread takes ranges too
+    finally:
+        for f in futures:
+            f.result()

@@ -48,3 +48,41 @@ def test_a_forked_child_splits_on_its_own_pool():
             os._exit(0 if (child == 1).all() else 1)
     _, status = os.waitpid(pid, 0)
     assert os.WEXITSTATUS(status) == 0
+
+
+def test_balanced_bands_cut_equal_cost_not_equal_length():
+    cost = np.r_[np.full(600, 1.0), np.full(400, 10.0)]  # the lower rows hold most of the work
+    with parallel.threads(2):
+        bounds = parallel.balanced_bands(cost)
+        assert parallel.bands(len(cost)) == [0, 500, 1000]
+    assert bounds[0] == 0 and bounds[-1] == len(cost) and len(bounds) == 3
+    halves = [cost[a:b].sum() for a, b in zip(bounds, bounds[1:])]
+    assert abs(halves[0] - halves[1]) <= 10.0  # within one row's cost
+    with parallel.threads(2):
+        assert parallel.balanced_bands(np.zeros(0)) == [0]
+        assert len(parallel.balanced_bands(cost, per_worker=4)) == 9
+
+
+def test_a_thread_that_finishes_early_takes_the_ranges_left():
+    """Ranges are taken one at a time: while one range is held up (waiting here for all the
+    others), the other thread runs every other range; cut once per thread, it would wait for
+    the held-up thread's share and the wait would time out."""
+    n = 8
+    done = np.zeros(n, np.int64)
+    others_done = threading.Event()
+    lock = threading.Lock()
+
+    def work(band: int, start: int, stop: int) -> None:
+        if band == 0:
+            assert others_done.wait(timeout=20), "the other ranges were left to this thread"
+        with lock:
+            done[band] += 1
+            if done[1:].sum() == n - 1:
+                others_done.set()
+
+    with parallel.threads(2):
+        bounds = parallel.bands(800, per_worker=4)
+        assert len(bounds) == n + 1
+        parallel.split_bands(work, bounds)
+    assert (done == 1).all()
+

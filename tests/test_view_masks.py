@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from dotshell.pipeline.reconstruct import in_roi, speckle_mask
+from dotshell.pipeline.reconstruct import in_roi, keep_in_roi, speckle_mask
 
 
 def _depth_scene(seed: int, shape: tuple[int, int] = (60, 80)) -> tuple[np.ndarray, np.ndarray]:
@@ -55,3 +55,34 @@ def test_roi_is_the_cylinder() -> None:
     want = (np.hypot(pts[:, 0], pts[:, 1]) <= 10.0) & (pts[:, 2] >= -5.0) & (pts[:, 2] <= 5.0)
     assert got[:10].tolist() == [True, True, True, True, True, False, False, True, True, False]
     assert np.array_equal(got, want)
+
+
+def test_kept_points_are_smooth_and_inside_and_every_loss_is_counted_once() -> None:
+    rng = np.random.default_rng(5)
+    n = 50_000
+    pts = rng.uniform(-30, 30, (n, 3))
+    kept = rng.random(n) < 0.8
+    pts[~kept] = np.nan  # as the solve leaves the points it did not keep
+    smooth = kept & (rng.random(n) < 0.9)
+    roi = {"radius_mm": 20.0, "z_min_mm": -10.0, "z_max_mm": 25.0}
+    keep, counts = keep_in_roi(kept, smooth, pts, roi)
+    inside = in_roi(pts, roi)
+    assert np.array_equal(keep, smooth & inside)
+    assert counts == {"speckle": int(np.count_nonzero(kept & ~smooth)),
+                      "outside_roi": int(np.count_nonzero(smooth & ~inside)),
+                      "points": int(np.count_nonzero(keep))}
+    assert counts["speckle"] + counts["outside_roi"] + counts["points"] == kept.sum()
+
+
+def test_select_is_boolean_indexing_done_in_place() -> None:
+    from dotshell.geometry.triangulate import select
+
+    rng = np.random.default_rng(3)
+    n = 100_000
+    mask = rng.random(n) < 0.7
+    pixels = rng.integers(0, 1000, (n, 2)).astype(np.int32)
+    points = rng.random((n, 3))
+    got = select(mask, pixels.copy(), points.copy())
+    for g, a in zip(got, (pixels, points)):
+        assert g.dtype == a.dtype and np.array_equal(g, a[mask])
+    assert select(np.zeros(n, bool), points.copy())[0].shape == (0, 3)

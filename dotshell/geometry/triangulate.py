@@ -46,9 +46,10 @@ from functools import lru_cache
 import numba
 import numpy as np
 
+from dotshell import hugepages
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens
-from dotshell.parallel import split
+from dotshell.parallel import balanced_bands, split
 
 
 @dataclass
@@ -204,13 +205,14 @@ def solve_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
     split(_count_rows, h, valid, per_row)
     start = np.concatenate([[0], np.cumsum(per_row)])
     n = int(start[-1])
-    pts = np.empty((n, 3))
-    depth = np.empty(n)
-    pixels = np.empty((n, 2), np.int32)
-    flags = np.empty(n, np.uint8)
+    pts = hugepages.empty((n, 3), np.float64)
+    depth = hugepages.empty(n, np.float64)
+    pixels = hugepages.empty((n, 2), np.int32)
+    flags = hugepages.empty(n, np.uint8)
+    # rows cut by their decoded pixels (a row's solve costs ~1 pixel's per 50 px it scans)
     split(_solve_image, h, valid, column, rows, row is not None, iterations, rays, start,
           affine, *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(), pts, depth,
-          pixels, flags)
+          pixels, flags, bounds=balanced_bands(per_row + w / 50.0, per_worker=2))
     counts = np.bincount(flags, minlength=4)
     return ImageSolve(pixels, pts, depth, flags == KEPT,
                       {"triangulated": int(counts[KEPT]),
@@ -221,7 +223,8 @@ def solve_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
 def select(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
     """``a[mask]`` for each array, computed in place (the arrays' first ``mask.sum()`` rows
     are overwritten; the results are views of them): one compiled pass instead of a boolean
-    index per array (50 ms for a view's points in numpy on a busy machine)."""
+    index per array (50 ms for a view's points in numpy on a busy machine). Serial: the copy
+    is bound by memory, and copying into new arrays on two cores was no faster (measured)."""
     n = 0
     for a in arrays:
         n = _select_in_place(mask, a.reshape(len(a), int(np.prod(a.shape[1:]))))

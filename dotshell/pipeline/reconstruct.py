@@ -9,11 +9,12 @@ from typing import Any, Sequence
 import numba
 import numpy as np
 
+from dotshell import hugepages
 from dotshell.coding import Correspondence, PatternCoding
 from dotshell.errors import CalibrationError, ReconstructionError
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.triangulate import ImageSolve, select, solve_image
-from dotshell.parallel import split
+from dotshell.parallel import bands, split, split_bands
 
 
 @dataclass
@@ -50,7 +51,7 @@ def speckle_mask(pixels: np.ndarray, depth_mm: np.ndarray, shape: tuple[int, int
     Computed per point without sorting: the median m of the 25 values lies within
     [d − j, d + j] exactly when at least 13 values v have ``v − d ≤ j`` and at least 13 have
     ``v − d ≥ −j`` (v − d is monotone in v), which is the same test on the same numbers."""
-    img = np.zeros(shape, np.float32)
+    img = hugepages.zeros(shape, np.float32)
     pixels = np.ascontiguousarray(pixels)
     depth = np.ascontiguousarray(depth_mm, np.float64)
     kept = np.ones(len(depth), bool) if kept is None else np.ascontiguousarray(kept, bool)
@@ -60,11 +61,47 @@ def speckle_mask(pixels: np.ndarray, depth_mm: np.ndarray, shape: tuple[int, int
     return out
 
 
+def keep_in_roi(kept: np.ndarray, smooth: np.ndarray, points: np.ndarray,
+                roi: dict[str, float]) -> tuple[np.ndarray, dict[str, int]]:
+    """The points to keep — solved (``kept``), not speckles (``smooth``, a subset of
+    ``kept``) and inside the region of interest — and the counts ``speckle`` (kept, not
+    smooth), ``outside_roi`` (smooth, outside) and ``points`` (kept), in one pass."""
+    keep = np.empty(len(points), bool)
+    bounds = bands(len(points), min_chunk=1 << 14)
+    counts = np.zeros((len(bounds) - 1, 3), np.int64)
+    split_bands(_keep_in_cylinder, bounds, np.ascontiguousarray(kept, bool),
+                np.ascontiguousarray(smooth, bool), np.ascontiguousarray(points, np.float64),
+                float(roi["radius_mm"]), float(roi["z_min_mm"]), float(roi["z_max_mm"]), keep,
+                counts)
+    speckle, outside, n = (int(c) for c in counts.sum(axis=0))
+    return keep, {"speckle": speckle, "outside_roi": outside, "points": n}
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _inside(points, i, radius, z_min, z_max):
+    x, y, z = points[i, 0], points[i, 1], points[i, 2]
+    return x * x + y * y <= radius * radius and z_min <= z <= z_max
+
+
 @numba.njit(nogil=True, cache=True)
 def _in_cylinder(points, radius, z_min, z_max, out, start, stop):
     for i in range(start, stop):
-        x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        out[i] = x * x + y * y <= radius * radius and z_min <= z <= z_max
+        out[i] = _inside(points, i, radius, z_min, z_max)
+
+
+@numba.njit(nogil=True, cache=True)
+def _keep_in_cylinder(kept, smooth, points, radius, z_min, z_max, keep, counts, band, start,
+                      stop):
+    speckle = outside = n = 0
+    for i in range(start, stop):
+        inside = _inside(points, i, radius, z_min, z_max)  # False for NaN (points not kept)
+        keep[i] = smooth[i] and inside
+        speckle += kept[i] and not smooth[i]
+        outside += smooth[i] and not inside
+        n += keep[i]
+    counts[band, 0] = speckle
+    counts[band, 1] = outside
+    counts[band, 2] = n
 
 
 @numba.njit(nogil=True, cache=True)
@@ -219,13 +256,8 @@ def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
     if processing["max_depth_jump_mm"] > 0:
         smooth = speckle_mask(tri.pixels, tri.depth, frames[0].shape[:2],
                               processing["max_depth_jump_mm"], tri.kept)
-    inside = in_roi(tri.points, processing["roi"])  # False for points not kept (NaN)
-    keep = smooth & inside
-    t2 = time.perf_counter()
-    stats = {**corr.stats, **tri.counts,
-             "speckle": int(np.count_nonzero(tri.kept & ~smooth)),
-             "outside_roi": int(np.count_nonzero(smooth & ~inside)),
-             "points": int(np.count_nonzero(keep))}
+    keep, counts = keep_in_roi(tri.kept, smooth, tri.points, processing["roi"])
+    stats = {**corr.stats, **tri.counts, **counts}
     pixels, points = select(keep, tri.pixels, tri.points)
     t3 = time.perf_counter()
     return ViewCloud(view, angle_deg, points, pixels, corr, stats,

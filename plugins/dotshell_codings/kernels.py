@@ -1,8 +1,8 @@
 """Compiled per-pixel loops of the binary codings' decoder (numba; split by rows across cores).
 
 The decoder of :mod:`dotshell_codings.graycode` makes one pass over a view
-(:func:`decode_rows`), a band of rows per core, with no image-sized temporary per bit. Row by
-row it:
+(:func:`decode_rows`), in bands of rows taken by the cores one at a time, with no image-sized
+temporary per bit. Row by row it:
 
 * classifies (:func:`_classify_row`): reads every frame's row once and decides each projected
   bit of each pixel (the contrast rule or Xu & Aliaga's robust rule after the direct/global
@@ -445,7 +445,9 @@ def _anchor(stack, inverse, rng, code, y0, x0, y1, x1, s, flip, block, offset, f
         den = d0 - d1
         c = d0 / den if den != 0 else np.float32(0.5)
         t += min(max(c, np.float32(0.0)), np.float32(1.0))
-    pos = np.float32(np.float64(s) + np.float64(t / np.float32(k)))
+    if k > 1:  # the mean of the k crossings; t / 1 is t, without the division's cost
+        t = t / np.float32(k)
+    pos = np.float32(np.float64(s) + np.float64(t))
     val = np.float32((base + 1) * block - offset - 0.5 + 0.5 * (k - 1) * block)
     return pos, val
 
