@@ -8,18 +8,26 @@ decoded a frame; scans run in subprocesses compiled them again, which also stret
 those tests measure. Compiled here once, every worker and subprocess loads them from the cache.
 
 The kernels are reached through the product's own entry points, so the signatures compiled are
-exactly the ones the pipeline asks for, in two groups that share no compiled function and run
-as two processes at once (numba's cache index of one function must not be written by two
-processes):
+exactly the ones the pipeline asks for, in three groups that share no compiled function and run
+as three processes at once (numba's cache index of one function must not be written by two
+processes); split so, a cold cache takes the longest group's time (~25 s of CPU), not the ~36 s
+of one tiny scan compiling decoder and triangulation one after the other:
 
-* ``scan``: a tiny scan (uint16 frames decoded in one pass, triangulated, reconstructed), what
-  nearly every test file runs;
+* ``decode``: one view of the tiny scan decoded (uint16 frames, the one-pass decoder);
+* ``triangulate``: ``reconstruct_view`` of the tiny scan's rig on a correspondence laid out as
+  the decoder's (the solves, the speckle test, the region of interest, the selection);
 * ``fem``: a forward solve on one tetrahedron (the FEM assembly's kernels).
 
-Variants only a few test files need (float32 frames of PDI views, the XOR codes' passes) are
-left to the worker that first needs them: compiled here they would hold both workers back.
+``scan`` (not run by the tests) makes the tiny 1-view scan itself: once the groups have run it
+loads every kernel from the cache and compiles nothing (``NUMBA_DEBUG_CACHE=1`` shows it),
+which is how the groups are checked against what a scan asks for.
 
-Run: ``python tests/compile_kernels.py [scan|fem]`` (both without argument; prints the seconds).
+Variants only a few test files need (float32 frames of PDI views, the XOR codes' passes,
+columns-only codings) are left to the worker that first needs them: compiled here they would
+hold both workers back.
+
+Run: ``python tests/compile_kernels.py [decode|triangulate|fem|scan]`` (the three groups
+without argument; prints the seconds).
 """
 
 from __future__ import annotations
@@ -31,13 +39,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-GROUPS = ("scan", "fem")
+GROUPS = ("decode", "triangulate", "fem")
 
 
-def compile_scan_kernels() -> None:
-    """The decoder's, triangulation's and reconstruction's kernels through a 1-view scan."""
+def _tiny_scan_setup():
+    """The plugin manager and the loaded 1-view profile of the tiny scan the tests run."""
     from conftest import small_profile_dict, write_profile
-    from dotshell.pipeline.scan import scan
     from dotshell.plugins import PluginManager
     from dotshell.profile import load_profile
 
@@ -46,9 +53,72 @@ def compile_scan_kernels() -> None:
     raw = small_profile_dict(factor=0.12, views=1)
     raw["camera"]["settings"]["supersample"] = 1
     raw["outputs"] = {"previews": False}
+    tmp = tempfile.mkdtemp(prefix="dotshell-compile-")
+    return pm, load_profile(write_profile(Path(tmp) / "p.toml", raw), pm)
+
+
+def compile_decode_kernels() -> None:
+    """The decoder's kernels: one view of the tiny scan captured on the simulated rig and
+    decoded as ``reconstruct_view`` decodes it."""
+    import numpy as np
+
+    from dotshell.pipeline.steps import make_coding
+    from dotshell.rig import Rig
+
+    pm, profile = _tiny_scan_setup()
+    coding = make_coding(profile, pm)
+    with Rig(profile, pm) as rig:
+        rig.stage.move_to(profile.angles_deg()[0])
+        frames = []
+        for pattern in coding.patterns(rig.projector.resolution):
+            rig.projector.show(pattern.image)
+            frames.append(rig.camera.capture())
+        size = tuple(rig.projector.resolution)
+    coding.decode(np.stack(frames), size)
+    coding.decode(frames, size)
+
+
+def compile_triangulate_kernels() -> None:
+    """The triangulation's and the reconstruction's kernels: ``reconstruct_view`` of the tiny
+    scan's rig on a correspondence laid out as the decoder returns it (its maps on huge pages,
+    a band of pixels decoded), without decoding (the decode group compiles that at the same
+    time; the two groups share no compiled function)."""
+    import numpy as np
+
+    from dotshell import hugepages
+    from dotshell.coding import Correspondence
+    from dotshell.pipeline.reconstruct import reconstruct_view
+    from dotshell.rig import Rig
+
+    class Decoded:
+        def decode(self, frames, projector_size):
+            h, w = frames[0].shape
+            coord = hugepages.empty((2, h, w), np.float32)
+            valid = hugepages.empty((h, w), bool)
+            valid[:] = False
+            valid[h // 3:2 * h // 3, w // 3:2 * w // 3] = True
+            v, u = np.mgrid[0:h, 0:w]
+            coord[0] = u * (projector_size[0] / w)
+            coord[1] = v * (projector_size[1] / h)
+            return Correspondence(coord[0], coord[1], valid)
+
+    pm, profile = _tiny_scan_setup()
+    with Rig(profile, pm) as rig:
+        calib = rig.calibration()
+        w, h = calib.camera.size
+        frames = [np.zeros((h, w), np.uint16)] * 2
+        reconstruct_view(0, profile.angles_deg()[0], frames, Decoded(), calib,
+                         profile.data["processing"])
+
+
+def compile_scan_kernels() -> None:
+    """Every scan kernel through a 1-view scan (loads them from the cache once the groups
+    above have compiled them: the check that they compiled what a scan asks for)."""
+    from dotshell.pipeline.scan import scan
+
+    pm, profile = _tiny_scan_setup()
     with tempfile.TemporaryDirectory(prefix="dotshell-compile-") as tmp:
-        prof = load_profile(write_profile(Path(tmp) / "p.toml", raw), pm)
-        scan(prof, pm, Path(tmp) / "runs")
+        scan(profile, pm, Path(tmp) / "runs")
 
 
 def compile_fem_kernels() -> None:
@@ -67,5 +137,6 @@ def compile_fem_kernels() -> None:
 if __name__ == "__main__":
     t0 = time.perf_counter()
     for group in sys.argv[1:] or GROUPS:
-        {"scan": compile_scan_kernels, "fem": compile_fem_kernels}[group]()
+        {"decode": compile_decode_kernels, "triangulate": compile_triangulate_kernels,
+         "scan": compile_scan_kernels, "fem": compile_fem_kernels}[group]()
     print(f"kernels compiled or loaded from the cache in {time.perf_counter() - t0:.1f} s")

@@ -150,7 +150,7 @@ def pytest_configure(config):
 
     In the xdist controller (or a run without workers): byte-compile the sources for the
     processes the tests start. In the xdist controller also: hand the files out in collection
-    order, and compile the numba kernels into their on-disk cache in two subprocesses
+    order, and compile the numba kernels into their on-disk cache in three subprocesses
     (tests/compile_kernels.py's groups) while the workers start and collect; the first worker
     to finish collecting waits for them (:func:`pytest_xdist_node_collection_finished`).
 
