@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from dotshell.fem import MeshError, TetMesh, element_containing
+from dotshell.fem import MeshError, TetMesh, element_containing, unique_values
 
 
 def robin_A(n: float) -> float:
@@ -179,7 +179,7 @@ def move_inside(mesh: TetMesh, point_mm, depth_mm: float) -> np.ndarray:
     faces = mesh.boundary_faces
     v = mesh.nodes[faces]
     fn = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])  # outward, |fn| = 2 × area
-    bnodes = np.unique(faces)
+    bnodes = unique_values(faces)
     k = bnodes[np.argmin(np.linalg.norm(mesh.nodes[bnodes] - np.asarray(point_mm, float),
                                         axis=1))]
     normal = fn[(faces == k).any(axis=1)].sum(axis=0)

@@ -161,7 +161,10 @@ def transillumination_profile(exposure_ms: float = 2.0, **trans) -> dict:
     raw["stage"]["settings"]["scene"].update(mua_per_mm=0.01, musp_per_mm=1.0,
                                              refractive_index=1.4)
     raw["camera"]["settings"]["vignetting"] = 0.2
-    raw["light_source"] = {"backend": "sim-laser", "settings": {}}
+    # the light inside the sample on a 1.5 mm FEM (default 1 mm: the simulator's TetGen and
+    # system matrix took a fifth of the scan; the fresnel figures move from 2.19 / 6.03 % to
+    # 2.28 / 6.11 %, median / 95th percentile, against the bounds of 3 / 10 %)
+    raw["light_source"] = {"backend": "sim-laser", "settings": {"node_spacing_mm": 1.5}}
     raw["transillumination"] = {"enabled": True, "exposure_ms": exposure_ms, "views": [0, 3],
                                 "targets_mm": [[0.0, 10.0], [2.0, 15.0]], **trans}
     # the mesh's previews are test_mesh.py's: here the mesh is only the surface to normalize on

@@ -16,6 +16,7 @@ from rich.text import Text
 from textual.command import CommandPalette
 from textual.content import Content
 from textual.widgets import Sparkline, TabbedContent
+from textual.widgets._footer import FooterKey
 
 from conftest import write_test_profile
 from dotshell.console import Session
@@ -28,6 +29,7 @@ from dotshell.tui.widgets.choice import ChoiceScreen
 from dotshell.tui.widgets.confirm import ConfirmScreen
 from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.console_panel import ConsolePanel
+from dotshell.tui.widgets.keys_footer import KeyRow
 from dotshell.tui.widgets.keys_screen import KeysScreen
 from dotshell.tui.widgets.log_panel import LogPanel
 from dotshell.tui.widgets.plugins_screen import PluginsScreen
@@ -289,6 +291,24 @@ async def show_tab(pilot, tab):
     await pilot.pause()
 
 
+#: A key the footer shows while each tab's panel has the focus.
+FOOTER_KEYS = {"rig": "Jog +", "scan": "Start scan", "preview": "Previous"}
+
+
+def footer_keys(app):
+    """The descriptions of the keys the footer shows now."""
+    return [key.description for row in app.query(KeyRow) if row.display
+            for key in row.query(FooterKey)]
+
+
+async def switched(pilot, switches, count):
+    """Wait for the ``count``-th tab switch, then until the UI is idle: a bounce — the switch
+    back that reacts to it — has happened by then (it would be switch ``count + 1``)."""
+    await wait_until(pilot, lambda: len(switches) >= count)
+    await pilot.pause()
+    await pilot.pause()
+
+
 async def test_leaving_the_console_with_f_keys_never_bounces_back(server):
     """The bounce: the tab switched first, hiding the focused console input; Textual handed the
     focus to a hidden sibling in the console pane and TabbedContent switched back to it. Now the
@@ -301,18 +321,22 @@ async def test_leaving_the_console_with_f_keys_never_bounces_back(server):
             (active, app.screen.focused)), init=False)
         for i in range(9):  # each tab 3 times; the focus at every switch is checked below
             await pilot.press("f6")
-            await pilot.pause(0.1)
+            await switched(pilot, focus_at_switch, 2 * i + 1)
             assert tabs.active == "console" and app.focused is app.panel(ConsoleInput)
+            assert not set(FOOTER_KEYS.values()) & set(footer_keys(app))  # no panel keys
             key, tab = [("f2", "rig"), ("f3", "scan"), ("f4", "preview")][i % 3]
             await pilot.press(key)
-            await pilot.pause(0.2)  # long enough for a bounce to show
+            await switched(pilot, focus_at_switch, 2 * i + 2)
             assert tabs.active == tab, f"repetition {i + 1}: {key} bounced to {tabs.active}"
             pane = app.screen.query_one(f"TabPane#{tab}")
             assert pane in app.focused.ancestors_with_self
+            assert FOOTER_KEYS[tab] in footer_keys(app) and "Quit" in footer_keys(app)
             active, focused = focus_at_switch[-1]
             assert active == tab and pane in focused.ancestors_with_self, \
                 f"repetition {i + 1}: the tab switched while {focused} had the focus"
         assert len(focus_at_switch) == 18  # every switch was seen, none bounced
+        # the footer made one row of keys per tab and showed it again on each return
+        assert len(app.query(KeyRow)) == 4
         # number keys do the same, and the console takes digits as text
         await pilot.press("5")
         await pilot.pause()

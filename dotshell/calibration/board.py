@@ -170,7 +170,7 @@ def fit_corner(gray: np.ndarray, start: np.ndarray, half: int,
     directions, starting at ``angles``), s the edge blur (px), m and a the mean level and
     contrast. None when the window leaves the image or the fit does not settle near ``start``.
     """
-    from scipy.optimize import least_squares
+    from scipy.optimize import leastsq
     from scipy.special import erf
 
     x0, y0 = int(round(start[0])), int(round(start[1]))
@@ -182,23 +182,31 @@ def fit_corner(gray: np.ndarray, start: np.ndarray, half: int,
     xs, ys = (xs + x0 - start[0]).ravel(), (ys + y0 - start[1]).ravel()
     lo, hi = np.percentile(win, [5, 95])
 
+    last: list = [None, None]  # the parameters of the newest model evaluation, and its terms
+
     def edges(q: np.ndarray):
+        """The model's terms at ``q``; MINPACK asks for the Jacobian at the point whose
+        residuals it has just evaluated, so the newest evaluation is kept."""
+        key = q.tobytes()
+        if last[0] == key:
+            return last[1]
         dx, dy, t1, t2, _, _, s = q
         X, Y = xs - dx, ys - dy
         k = 1.0 / (np.sqrt(2.0) * max(abs(s), 0.05))
         c1, s1, c2, s2 = np.cos(t1), np.sin(t1), np.cos(t2), np.sin(t2)
-        return X, Y, k, (c1, s1, (c1 * Y - s1 * X) * k), (c2, s2, (c2 * Y - s2 * X) * k)
+        d1, d2 = (c1 * Y - s1 * X) * k, (c2 * Y - s2 * X) * k
+        last[:] = key, (X, Y, k, (c1, s1, d1, erf(d1)), (c2, s2, d2, erf(d2)))
+        return last[1]
 
     def residuals(q: np.ndarray) -> np.ndarray:
-        _, _, _, (_, _, d1), (_, _, d2) = edges(q)
-        return q[4] + q[5] * erf(d1) * erf(d2) - win
+        _, _, _, (_, _, _, e1), (_, _, _, e2) = edges(q)
+        return q[4] + q[5] * e1 * e2 - win
 
     def jacobian(q: np.ndarray) -> np.ndarray:
         """∂residuals/∂q, analytic (d erf(z)/dz = 2/√π·exp(−z²)): half the solve's CPU of
         scipy's finite differences, which evaluate the model once more per parameter."""
         a, s = q[5], q[6]
-        X, Y, k, (c1, s1, d1), (c2, s2, d2) = edges(q)
-        e1, e2 = erf(d1), erf(d2)
+        X, Y, k, (c1, s1, d1, e1), (c2, s2, d2, e2) = edges(q)
         g1 = a * e2 * (2.0 / np.sqrt(np.pi)) * np.exp(-d1 * d1)  # ∂r/∂d1
         g2 = a * e1 * (2.0 / np.sqrt(np.pi)) * np.exp(-d2 * d2)  # ∂r/∂d2
         ds = -np.sign(s) / abs(s) if abs(s) > 0.05 else 0.0    # ∂d/∂s = d · ds
@@ -210,9 +218,14 @@ def fit_corner(gray: np.ndarray, start: np.ndarray, half: int,
     starts = [np.array([0.0, 0.0, angles[0], angles[1], (lo + hi) / 2, sign * (hi - lo) / 2, 0.8])
               for sign in (1.0, -1.0)]
     q0 = min(starts, key=lambda q: float(np.sum(residuals(q) ** 2)))  # which squares are white
-    sol = least_squares(residuals, q0, jac=jacobian, method="lm", xtol=1e-10, ftol=1e-10)
-    shift = sol.x[:2]
-    if not (sol.success and np.all(np.isfinite(shift)) and np.hypot(*shift) < 1.0):
+    # MINPACK's Levenberg–Marquardt as least_squares(method="lm") runs it (gtol 1e-8, at most
+    # 100 evaluations per parameter, variables scaled by the Jacobian's columns), without that
+    # wrapper's per-evaluation bookkeeping, which cost more than the 7-parameter model itself
+    # (a board has ~100 corners, each fit ~20 evaluations)
+    q, _, _, _, status = leastsq(residuals, q0, Dfun=jacobian, full_output=True, xtol=1e-10,
+                                 ftol=1e-10, gtol=1e-8, maxfev=100 * len(q0))
+    shift = q[:2]
+    if not (status in (1, 2, 3, 4) and np.all(np.isfinite(shift)) and np.hypot(*shift) < 1.0):
         return None
     return start + shift
 

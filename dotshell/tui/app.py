@@ -11,6 +11,7 @@ server, the rig and the scan next to any tab.
 
 from __future__ import annotations
 
+import os
 import re
 import time
 import traceback
@@ -71,6 +72,10 @@ class DotshellApp(App):
 
     def __init__(self, session: RemoteSession, notice: str = "") -> None:
         super().__init__()
+        if "TEXTUAL_ANIMATIONS" not in os.environ:
+            # No animations unless asked for: the tab bar's sliding underline alone redraws
+            # the screen some 15 times a tab switch — over SSH each is a screen update sent.
+            self.animation_level = "none"
         self.session = session
         self.notice = notice
         self.tracker = ScanTracker.from_dict(session.tracker.to_dict())

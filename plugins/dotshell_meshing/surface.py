@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from dotshell.compat import import_open3d
+from dotshell.geometry.raycast import TriangleScene
 from dotshell.fem import (MeshError, SurfaceResult, TriangleSurface, closed_manifold_problems,
                           enclosed_volume_mm3, triangle_areas_mm2)
 from dotshell.settings import Setting
@@ -256,9 +257,13 @@ def remesh_uniform(surface: TriangleSurface, node_distance_mm: float) -> Triangl
     while clus.mesh.n_points < 3 * n_vertices:
         clus.subdivide(2)
     clus.cluster(n_vertices)
-    out = clus.create_mesh()
-    tri = out.faces.reshape(-1, 4)[:, 1:]
-    return TriangleSurface(np.asarray(out.points), tri)
+    # pyacvd's own move of the nodes onto the surface (moveclus) searches the 1000 nearest
+    # triangles of every node (most of the remeshing time); the closest point of the surface
+    # is found in a BVH instead
+    out = clus.create_mesh(moveclus=False)
+    dense = clus.mesh
+    nodes = TriangleScene(dense.points, dense.faces.reshape(-1, 4)[:, 1:]).closest(out.points)
+    return TriangleSurface(nodes.points, out.faces.reshape(-1, 4)[:, 1:])
 
 
 def repair_closed(surface: TriangleSurface, what: str = "surface") -> TriangleSurface:

@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 
 from dotshell.fem import (MeshError, TetMesh, TriangleSurface, closed_manifold_problems,
-                          joe_liu_quality, orient_positive, unique_rows)
+                          joe_liu_quality, orient_positive, unique_rows,
+                          unique_values)
 from dotshell.settings import Setting
 
 SETTINGS: dict[str, Setting] = {
@@ -91,7 +92,7 @@ def peel_boundary_slivers(nodes: np.ndarray, tets: np.ndarray, min_quality: floa
 
 def compact(nodes: np.ndarray, tets: np.ndarray) -> TetMesh:
     """Drop nodes no tetrahedron uses and renumber."""
-    used = np.unique(tets)
+    used = unique_values(tets)
     remap = np.full(len(nodes), -1, np.int64)
     remap[used] = np.arange(len(used))
     return TetMesh(nodes[used], remap[tets])

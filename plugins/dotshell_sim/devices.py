@@ -596,10 +596,15 @@ class SimProjector(_Device):
         if hit is not None and hit[0] is image:
             return hit[1]
         s = self.settings
-        img = image.astype(np.float32) * np.float32(
-            (1.0 if image.dtype == np.bool_ else 1 / 255.0))
-        img = s["brightness"] * (s["black_level"] + (1 - s["black_level"]) * img)
-        img = img.astype(np.float32)
+        # in place, in float32 (the same operations in the same order as
+        # brightness · (black + (1 - black) · img)): a full-size panel (912 x 1140 on a
+        # LightCrafter, whatever the camera's scale) is 4 MiB an array, and each fresh one is
+        # a new mapping whose pages fault in (dotshell.runtime.fix_mmap_threshold)
+        img = image.astype(np.float32)
+        img *= np.float32(1.0 if image.dtype == np.bool_ else 1 / 255.0)
+        img *= 1 - s["black_level"]
+        img += s["black_level"]
+        img *= s["brightness"]
         if s["defocus_sigma_px"] > 0:
             img = cv2.GaussianBlur(img, (0, 0), s["defocus_sigma_px"],
                                    borderType=cv2.BORDER_CONSTANT)

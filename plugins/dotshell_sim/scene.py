@@ -201,6 +201,12 @@ class Plane:
         normals = _facing(np.broadcast_to(nrm, dirs.shape).copy(), dirs)
         return t, normals
 
+    def rotated_z(self, angle_deg: float) -> "Plane":
+        """The plane given in the stage frame, in the sample frame at stage angle θ
+        (``p_stage = Rz(θ) p_sample``, so ``n · Rz p = (Rzᵀ n) · p``): a plane again."""
+        return Plane(tuple(rot_z(angle_deg).T @ np.asarray(self.normal, float)), self.offset,
+                     self.material)
+
 
 @dataclass
 class MeshShape:
@@ -279,8 +285,15 @@ class StagedScene:
 
     def at(self, angle_deg: float) -> Scene:
         """The scene in the sample frame with the stage at ``angle_deg``."""
-        return Scene(self.sample + [_RotatedShape(s, angle_deg) for s in self.fixed],
-                     self.materials)
+        return Scene(self.sample + [_rotated(s, angle_deg) for s in self.fixed], self.materials)
+
+
+def _rotated(shape: Shape, angle_deg: float) -> Shape:
+    """A stage-frame shape seen from the sample frame at ``angle_deg``: shapes that can turn
+    themselves (a plane) do, which spares rotating every ray twice per intersection."""
+    if hasattr(shape, "rotated_z"):
+        return shape.rotated_z(angle_deg)
+    return _RotatedShape(shape, angle_deg)
 
 
 def build_scene(sample: dict, plate: dict, background: dict) -> StagedScene:

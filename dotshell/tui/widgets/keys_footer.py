@@ -1,10 +1,12 @@
 """The footer with the keys of the focused panel: Textual's :class:`~textual.widgets.Footer`,
-rebuilt only when the keys it shows change.
+whose key widgets are made once per set of keys and shown again when that set comes back.
 
 Textual's footer removes and mounts all its key widgets again whenever the screen's bindings
 are refreshed — on every focus change (twice: the blur and the focus), also when the keys
-stay the same. Each rebuild mounts and styles some twenty widgets: about half the CPU of a
-tab switch, which over SSH is felt as a lag on every F-key.
+stay the same. Each rebuild mounts and styles some ten to twenty widgets and lays the screen
+out once more: a good part of the CPU of a tab switch, which over SSH is felt as a lag on every
+F-key. Here each set of keys gets a row of key widgets the first time it is shown; switching
+between tabs then only shows one row and hides another.
 """
 
 from __future__ import annotations
@@ -12,15 +14,32 @@ from __future__ import annotations
 from typing import Any
 
 from textual.app import ComposeResult
+from textual.compose import compose
+from textual.containers import Horizontal
 from textual.widgets import Footer
+
+#: Rows of key widgets kept for sets of keys not shown now (the least recently shown go first).
+KEPT_ROWS = 12
+
+
+class KeyRow(Horizontal):
+    """The footer's key widgets for one set of keys (Footer's own layout, one line)."""
+
+    DEFAULT_CSS = "KeyRow { width: 1fr; height: 1; }"
+
+    def __init__(self, *children: Any, keys: tuple[Any, ...]) -> None:
+        super().__init__(*children)
+        self.keys = keys
+        self.shown_at = 0  # when it was shown last (the footer's count of key changes)
 
 
 class KeysFooter(Footer):
-    """A :class:`~textual.widgets.Footer` that skips rebuilds which would show the same keys."""
+    """A :class:`~textual.widgets.Footer` that keeps a row of key widgets per set of keys."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
-        self._shown: tuple[Any, ...] | None = None  # what the key widgets were made from
+        self._shown: tuple[Any, ...] | None = None  # the keys of the row shown now
+        self._changes = 0
 
     def shown_keys(self) -> tuple[Any, ...]:
         """Everything the footer's key widgets are made from: each of the screen's active
@@ -33,10 +52,31 @@ class KeysFooter(Footer):
         return keys, self.compact, self.show_command_palette
 
     def compose(self) -> ComposeResult:
-        self._shown = self.shown_keys() if self._bindings_ready else None
-        yield from super().compose()
+        if not self._bindings_ready:
+            return
+        self._shown = self.shown_keys()
+        yield KeyRow(*compose(self, super().compose()), keys=self._shown)
 
     async def recompose(self) -> None:
-        if self.is_attached and self._shown is not None and self.shown_keys() == self._shown:
+        if not self.is_attached or self._shown is None:
+            await super().recompose()  # the first keys: Footer composes them (compose above)
+            return
+        keys = self.shown_keys()
+        if keys == self._shown:
             return  # the same keys: keep the widgets showing them
-        await super().recompose()
+        self._shown = keys
+        self._changes += 1
+        rows = list(self.query_children(KeyRow))
+        row = next((r for r in rows if r.keys == keys), None)
+        if row is None:
+            hidden = sorted((r for r in rows if not r.display), key=lambda r: r.shown_at)
+            if len(hidden) >= KEPT_ROWS:
+                rows.remove(hidden[0])
+                await hidden[0].remove()
+            row = KeyRow(*compose(self, super().compose()), keys=keys)
+            row.display = False
+            await self.mount(row)
+        row.shown_at = self._changes
+        for r in rows:
+            r.display = r is row
+        row.display = True

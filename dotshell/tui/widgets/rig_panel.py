@@ -23,6 +23,7 @@ from textual.widgets import Static
 from dotshell.server.describe import short_path
 from dotshell.tui.jog import JogQueue
 from dotshell.tui.messages import ActionDone
+from dotshell.tui.redraw import show
 from dotshell.tui.text import describe_status
 from dotshell.tui.widgets.choice import ChoiceScreen
 from dotshell.tui.widgets.prompt import PromptScreen
@@ -61,6 +62,7 @@ class RigPanel(Vertical, can_focus=True):
         self.last_result = ""
         self.last_error = ""
         self.rows: list[dict[str, Any]] = []
+        self._drawn: tuple[Any, ...] | None = None  # what the device table shows now
         self.jogs = JogQueue(lambda deg: self._do("jog", self.session.jog, deg))
 
     def compose(self) -> ComposeResult:
@@ -80,13 +82,19 @@ class RigPanel(Vertical, can_focus=True):
         p = self.session.profile
         title = (f"[b]{escape(p['name'])}[/]  {escape(short_path(p['source']))}" if p else
                  "[b]no profile loaded[/] — press ctrl+o to pick one")
-        self.query_one("#rig-title", Static).update(f"{title}   jog step {self.step_deg:g}°")
+        show(self.query_one("#rig-title", Static), f"{title}   jog step {self.step_deg:g}°")
         self.show_rows(self.rows)
 
     def show_rows(self, rows: list[dict[str, Any]]) -> None:
+        """Draw the device table, unless it shows these rows this way already (the app
+        calls this on every state change and each time the tab is shown)."""
         self.rows = rows
         projected = self.session.projected
-        if self.app.size.width < STACK_BELOW:
+        stacked = self.app.size.width < STACK_BELOW
+        if self._drawn == (stacked, projected, rows):
+            return
+        self._drawn = (stacked, projected, rows)
+        if stacked:
             self.query_one("#rig-table", Static).update(self._stacked(rows, projected))
             return
         table = Table(box=None, expand=True, pad_edge=False, header_style="bold")
