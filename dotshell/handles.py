@@ -48,6 +48,9 @@ TIMEOUT_DEFAULTS_S: dict[str, float] = {
 #: How long past a call's timeout the rig waits for the driver's own timeout error before it
 #: declares the device unresponsive (seconds).
 GRACE_S = 2.0
+#: How often a lost device's port is tried again while it is gone (seconds): a failed open of
+#: a missing port costs microseconds, and the scan goes on this soon after it is back.
+REOPEN_POLL_S = 0.1
 #: Calls whose last arguments are replayed after a reconnect (settings a device forgets).
 REPLAYED = ("set_exposure",)
 
@@ -302,7 +305,7 @@ class DeviceHandle:
                     f"{self._label} was lost ({why}) and did not come back within {wait_s:g} s "
                     f"(last error: {last}). Check its cable and power; raise "
                     f"[{self._role}] reconnect_wait_s to wait longer.") from None
-            time.sleep(min(0.5, max(0.0, deadline - time.monotonic())))
+            time.sleep(min(REOPEN_POLL_S, max(0.0, deadline - time.monotonic())))
         self._lost = None
         for method, (args, kwargs) in self._replay.items():
             self._run(method, args, kwargs)

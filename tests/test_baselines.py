@@ -30,11 +30,14 @@ def _profile(name: str, factor: float, views: int) -> dict:
 
 @pytest.mark.parametrize("name", ["sim-metal-cylinder-vertical", "sim-metal-cylinder-diagonal"])
 def test_any_baseline_scans_the_cylinder(name, tmp_path, pm):
-    prof = load_profile(write_profile(tmp_path / "p.toml", _profile(name, 0.25, 4)), pm)
+    raw = _profile(name, 0.25, 4)
+    raw["camera"]["settings"]["supersample"] = 1  # 1 ray per pixel: half the scan's CPU
+    prof = load_profile(write_profile(tmp_path / "p.toml", raw), pm)
     result = scan(prof, pm, tmp_path / "runs")
     v = result.report["validation"]
     print(name, json.dumps(v))
-    # 0.25x, 6 views (measured): beside 0.093 %, above 0.033 %, diagonal 0.072 %
+    # 0.25x, 6 views (measured): beside 0.093 %, above 0.033 %, diagonal 0.072 %; 4 views, 1 ray
+    # per pixel: above 0.027 %, diagonal 0.060 %, 28 650-28 750 points a view, coverage 100 %
     assert v["mean_rel_error_pct"] < 0.2 and v["coverage_pct"] >= 90
     for view in result.report["views"]:
         assert view["grazing"] == 0 and view["points"] > 10000

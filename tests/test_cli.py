@@ -91,8 +91,10 @@ def test_reconstruct_on_a_non_run_is_a_user_error(capsys, tmp_path):
 
 
 def test_installed_command_scans_with_override_and_prints_table(tmp_path):
-    """The real console script, as a user runs it (tiny bench, 3 views)."""
-    p = write_profile(tmp_path / "p.toml", small_profile_dict(factor=0.2, views=3))
+    """The real console script, as a user runs it (tiny bench, 3 views, 1 ray per pixel)."""
+    raw = small_profile_dict(factor=0.2, views=3)
+    raw["camera"]["settings"]["supersample"] = 1
+    p = write_profile(tmp_path / "p.toml", raw)
     exe = [sys.executable, "-m", "dotshell.cli"]
     r = subprocess.run([*exe, "scan", str(p), "--out", str(tmp_path / "runs"),
                         "--set", "outputs.previews=false"],
@@ -139,7 +141,7 @@ def test_imports_ahead_start_with_the_step_that_makes_their_last_input():
     thread = import_ahead(names, "cloud")
     assert thread is not None and thread.daemon
     thread.join(120)
-    assert {"pyvista.plotting", "scipy.optimize"} <= set(sys.modules)
+    assert {"pyvista.plotting", "dotshell.pipeline.validate"} <= set(sys.modules)
 
 
 def test_a_users_script_ends_with_pythons_exit_so_what_it_left_open_is_written(tmp_path):

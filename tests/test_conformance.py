@@ -152,8 +152,17 @@ class ReconnectRefusingStage(GoodStage):  # cannot connect again after close()
         self.connected = True
 
 
+#: how fast the slow movers turn (degrees/s), how far the stop check moves them (degrees: a
+#: 0.8 s move, stopped after 0.1 s) and how soon a stopped move must return (seconds): a
+#: deaf stop's move still runs 0.4 s after that, a locked stop() blocks 0.7 s (> 0.2 s), a
+#: correct stop returns within ~10 ms
+SLOW_DEG_S = 200.0
+STOP_MOVE_DEG = 160.0
+STOP_WITHIN_S = 0.3
+
+
 class SlowMover(GoodStage):
-    """Moves at 60°/s; stop() sets a flag the move honours."""
+    """Moves at SLOW_DEG_S; stop() sets a flag the move honours."""
 
     def __init__(self, *a, **k):
         super().__init__(*a, **k)
@@ -170,7 +179,7 @@ class SlowMover(GoodStage):
             while abs(self._angle - degrees) > 1e-9:
                 if self.halt.is_set():
                     raise DeviceError("stopped")
-                step = 60.0 * (time.monotonic() - t0)
+                step = SLOW_DEG_S * (time.monotonic() - t0)
                 self._angle = degrees if step >= abs(degrees - start) else start + step
                 time.sleep(0.01)
 
@@ -189,9 +198,10 @@ class DeafStop(SlowMover):  # stop() that the move never notices
         pass
 
 
-class SlowStatus(GoodStage):  # status() queries the hardware, slowly
+class SlowStatus(GoodStage):  # status() queries the hardware (once connected), slowly
     def status(self):
-        time.sleep(0.8)
+        if self.connected:
+            time.sleep(0.6)  # > STATUS_BUDGET_S (0.5 s) however fast the machine
         return {"connected": self.connected}
 
 
@@ -269,20 +279,21 @@ def broken_pm():
 @pytest.mark.parametrize("role,name", [("camera", "good"), ("stage", "good"),
                                        ("stage", "slow-mover")])
 def test_the_reference_drivers_pass(broken_pm, role, name):
-    assert_device_conforms(broken_pm, role, name, move_deg=90.0, stop_within_s=1.0)
+    assert_device_conforms(broken_pm, role, name, move_deg=STOP_MOVE_DEG,
+                           stop_within_s=STOP_WITHIN_S)
 
 
 @pytest.mark.parametrize("role,name", sorted(BROKEN))
 def test_broken_driver_fails_naming_the_rule(broken_pm, role, name):
     expected = BROKEN[(role, name)][1]
     failing = None if name != "close-after-fail" else {}
-    results = check_device(broken_pm, role, name, failing_settings=failing, move_deg=90.0,
-                           stop_within_s=1.0)
+    results = check_device(broken_pm, role, name, failing_settings=failing,
+                           move_deg=STOP_MOVE_DEG, stop_within_s=STOP_WITHIN_S)
     failed = {r.rule for r in results if not r.passed}
     assert expected <= failed, [str(r) for r in results]
     with pytest.raises(AssertionError, match=f"rule '{sorted(expected)[0]}'"):
-        assert_device_conforms(broken_pm, role, name, failing_settings=failing, move_deg=90.0,
-                               stop_within_s=1.0)
+        assert_device_conforms(broken_pm, role, name, failing_settings=failing,
+                               move_deg=STOP_MOVE_DEG, stop_within_s=STOP_WITHIN_S)
 
 
 def test_at_least_eight_broken_drivers_are_caught():

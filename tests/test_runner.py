@@ -76,6 +76,7 @@ def _pm(plugin=None):
 def _profile(tmp_path, pm, views=3, backend="sim-camera"):
     raw = small_profile_dict(factor=0.2, views=views)
     raw["camera"]["backend"] = backend
+    raw["camera"]["settings"]["supersample"] = 1
     raw["scan"]["acquisition"] = "show-capture"  # these tests fail and stop single captures
     raw["outputs"] = {"previews": False}
     return load_profile(write_profile(tmp_path / "p.toml", raw), pm)
@@ -147,6 +148,7 @@ def test_third_party_plugin_installed_with_pip_is_discovered_and_used(tmp_path, 
     info = pm.backends("exporter")["xyz-text"]
     assert info.plugin == "xyz" and info.distribution == "dotshell-xyz-export 1.0.0"
     raw = small_profile_dict(factor=0.2, views=2)
+    raw["camera"]["settings"]["supersample"] = 1
     raw["outputs"] = {"previews": False}
     raw["export"] = {"xyz-text": {"delimiter": ",", "decimals": 5}}
     result = scan(load_profile(write_profile(tmp_path / "p.toml", raw), pm), pm, tmp_path / "runs")

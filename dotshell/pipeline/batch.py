@@ -203,14 +203,20 @@ def dask_client(scheduler: str | None = None, workers: int | None = None
         cluster.close()
 
 
+#: dotshell's modules every batch worker imports for its tasks (the pipeline and numba: ~0.7 s
+#: of CPU a worker); a local cluster's forkserver imports them once for all its workers
+WORKER_MODULES = ("dotshell.pipeline.batch_tasks", "dotshell.pipeline.reconstruct",
+                  "dotshell.pipeline.validate")
+
+
 def local_cluster(workers: int) -> Any:
     """A Dask ``LocalCluster`` of ``workers`` processes, one thread each, no dashboard.
 
     Its workers are forked from a forkserver (where the platform has one and Dask's
     ``distributed.worker.multiprocessing-method`` is left at its default, ``spawn``): the
-    forkserver imports Dask once per process, later clusters start in ~1 s instead of ~5 s, and
-    a worker ends without tearing its interpreter down (numba, VTK...: ~2.5 s of every
-    cluster's close on 2 cores, now 0.2 s)."""
+    forkserver imports Dask and :data:`WORKER_MODULES` once per process, later clusters start
+    in ~1 s instead of ~5 s, and a worker ends without tearing its interpreter down (numba,
+    VTK...: ~2.5 s of every cluster's close on 2 cores, now 0.2 s)."""
     import multiprocessing
 
     import dask
@@ -220,8 +226,25 @@ def local_cluster(workers: int) -> Any:
     if method == "spawn" and "forkserver" in multiprocessing.get_all_start_methods():
         method = "forkserver"
     with dask.config.set({"distributed.worker.multiprocessing-method": method}):
+        if method == "forkserver":
+            _preload_in_forkserver()
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                             dashboard_address=None, silence_logs=logging.ERROR)
+
+
+def _preload_in_forkserver() -> None:
+    """Add :data:`WORKER_MODULES` to the modules Dask has the forkserver import (they matter
+    only before this process's forkserver starts; an import error there is ignored and met
+    again by the worker's task, which reports it)."""
+    import multiprocessing.forkserver as forkserver
+
+    from distributed.utils import get_mp_context
+
+    context = get_mp_context()  # sets Dask's own list, once per process
+    dask_modules = list(getattr(forkserver._forkserver, "_preload_modules", None) or
+                        ["distributed"])
+    context.set_forkserver_preload(dask_modules + [m for m in WORKER_MODULES
+                                                   if m not in dask_modules])
 
 
 def check_workers(client: Any, runs: list[Path], wait_s: float = 60.0) -> int:

@@ -344,7 +344,7 @@ def _has_transillumination(ctx: StepContext) -> bool:
 
 
 def _import_fit() -> None:
-    import dotshell.pipeline.validate  # noqa: F401  (scipy.optimize)
+    import dotshell.pipeline.validate  # noqa: F401
 
 
 def _import_renderer() -> None:
@@ -377,7 +377,7 @@ STEP_BY_NAME = {s.name: s for s in STEPS}
 def import_ahead(names: Sequence[str], current: str) -> threading.Thread | None:
     """Start importing, in one background thread, what the steps of ``names`` after
     ``current`` need when ``current`` makes the last of their inputs (e.g. pyvista and VTK for
-    the previews, scipy's optimizer for the validation, while the cloud is merged and
+    the previews, the validation's module, while the cloud is merged and
     validated: ~2 s of the demo's `reconstruct` on 2 cores). A failed import is left for the
     step itself to meet and report. Returns the thread, or None when there is nothing to do."""
     order = list(names)

@@ -39,7 +39,7 @@ from dotshell.optics import exit_radiance_per_fluence
 from dotshell_sim import transillum
 from dotshell_sim.timing import DisplayTimeline, SimClock, display_time
 from dotshell_sim.lru import cached
-from dotshell_sim.render import Light, Renderer, SensorModel, sensor
+from dotshell_sim.render import SMALL_VIEWS_BYTES, Light, Renderer, SensorModel, sensor
 from dotshell_sim.scene import MATERIALS, build_scene
 
 WORLD_KEY = "dotshell_sim"
@@ -283,15 +283,17 @@ class SimWorld:
                           sort_keys=True)
 
     def release_renderer(self) -> None:
-        """Free the shared renderer's cached views and rays: a closed rig's views are rarely
-        asked for again, and at full resolution they hold ~0.2 GB (a scan's merge, validation
-        and previews run after the rig is closed)."""
+        """Free the shared renderer's cached views and rays when they are large: a closed
+        rig's views are rarely asked for again, and at full resolution they hold ~0.2 GB (a
+        scan's merge, validation and previews run after the rig is closed). Small ones (below
+        :data:`~dotshell_sim.render.SMALL_VIEWS_BYTES`) stay for the next rig of the same
+        geometry."""
         try:
             renderer = _RENDERERS.get(self._renderer_key())
         except DeviceError:  # not a complete rig: no renderer was made
             return
         if renderer is not None:
-            renderer.release()
+            renderer.release(keep_below_bytes=SMALL_VIEWS_BYTES)
 
 
 #: Renderers shared across worlds, by geometry (a full-resolution renderer with its cached

@@ -119,6 +119,26 @@ class Light:
         return self.polarized + self.depolarized
 
 
+#: Cached views a renderer keeps beyond its ``cache_views`` (and a closed camera leaves it)
+#: while they hold less than this together (bytes): at reduced resolution (a few MB a view)
+#: a rig scanned again, or another rig of the same geometry, reuses them; at full resolution
+#: (~100 MB a view) only ``cache_views`` are kept and a closed camera frees them.
+SMALL_VIEWS_BYTES = 64 * 2**20
+
+
+def _array_bytes(obj: object, depth: int = 3) -> int:
+    """Bytes of the numpy arrays in ``obj`` (a view: its attributes, lists and tuples)."""
+    if isinstance(obj, np.ndarray):
+        return obj.nbytes
+    if depth == 0:
+        return 0
+    if isinstance(obj, (list, tuple)):
+        return sum(_array_bytes(x, depth - 1) for x in obj)
+    if hasattr(obj, "__dict__"):
+        return sum(_array_bytes(x, depth - 1) for x in vars(obj).values())
+    return 0
+
+
 @dataclass
 class View:
     """Precomputed per-view data on the supersampled grid (ss·H, ss·W) plus the ambient base."""
@@ -204,7 +224,9 @@ class Renderer:
         projector_ref_mm: distance at which projector irradiance is 1 (inverse-square falloff).
         cache_views: how many views (stage angles) to keep (~100 MB each at 1280×1024, 2×
             supersampled); a scan visits each angle once, its PDI, trans-illumination and
-            laser frames reuse the current one.
+            laser frames reuse the current one. More are kept while all the cached views
+            together hold less than :data:`SMALL_VIEWS_BYTES` (reduced resolutions: the next
+            scan of the same rig finds its views made).
     """
 
     def __init__(self, calib: RigCalibration, scene: StagedScene, supersample: int = 2,
@@ -371,15 +393,22 @@ class Renderer:
             view.retained = (sc.retained * r_total, sc.retained_sigma_mm / mm_per_px)
         view.seconds = time.perf_counter() - t0
         self._views[key] = view
-        while len(self._views) > self.cache_views:
+        while len(self._views) > self.cache_views and self.cached_bytes() > SMALL_VIEWS_BYTES:
             self._views.popitem(last=False)
         return view
 
-    def release(self) -> None:
-        """Forget the cached views and camera rays (~0.2 GB at 1280×1024, 2× supersampled);
-        they are made again on the next use."""
-        self._views.clear()
-        self._rays = None
+    def cached_bytes(self) -> int:
+        """Bytes held by the cached views and camera rays."""
+        rays = 0 if self._rays is None else self._rays.nbytes
+        return rays + sum(_array_bytes(v) for v in self._views.values())
+
+    def release(self, keep_below_bytes: int = 0) -> None:
+        """Forget the cached views and camera rays (~0.2 GB at 1280×1024, 2× supersampled)
+        unless together they hold less than ``keep_below_bytes``; they are made again on the
+        next use."""
+        if self.cached_bytes() >= keep_below_bytes:
+            self._views.clear()
+            self._rays = None
 
     def _turbid_material(self) -> int | None:
         """Index of the scene's (single) turbid material, if any."""
