@@ -480,9 +480,11 @@ class GrayCode:
 
 #: bands of rows per core in the one-pass decode: the cores take them one at a time, so a core
 #: whose bands hold fewer lit pixels takes more of them (a view's lit rows are rarely spread
-#: evenly: 227 k against 394 k decoded pixels in the halves of the bench view); each band
-#: costs two rows classified again and a join of ~0.1 ms
-DECODE_BANDS_PER_WORKER = 4
+#: evenly: 227 k against 394 k decoded pixels in the halves of the bench view). Each band
+#: costs two rows classified again and a join of ~0.1 ms; measured on the bench view (CPU of
+#: each band, taken in order by two equal cores), the busier core carried 60 % of the work
+#: with 2 bands a core, 56 % with 4, 52 % with 8 and 51 % with 12
+DECODE_BANDS_PER_WORKER = 8
 
 
 def _axis_name(ax: _Axis) -> str:
