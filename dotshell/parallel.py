@@ -1,5 +1,7 @@
 """Work split across the cores: compiled loops (numba, ``nogil``) run on index ranges in a pool
-of Python threads, one range per core.
+of Python threads, a thread per core taking the ranges one at a time (a pass may cut its range
+into more ranges than cores, or by cost, :func:`balanced_bands`, so that no core waits for
+another at its end).
 
 Why threads and not numba's ``parallel=True`` (measured, docs/performance.md): the compiled
 passes of a view are each a few milliseconds, and on a shared machine numba's OpenMP layer
