@@ -124,6 +124,15 @@ def unique_values(values: np.ndarray) -> np.ndarray:
     return s[np.concatenate(([True], s[1:] != s[:-1]))]
 
 
+def compact(nodes: np.ndarray, tets: np.ndarray) -> TetMesh:
+    """The mesh of ``tets`` without the nodes no tetrahedron uses, renumbered (TetGen leaves
+    the input surface's unused points in its output)."""
+    used = unique_values(tets)
+    remap = np.full(len(nodes), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return TetMesh(nodes[used], remap[tets])
+
+
 def unique_rows(rows: np.ndarray, return_inverse: bool = False,
                 return_counts: bool = False) -> tuple[np.ndarray, ...]:
     """``np.unique(rows, axis=0, return_inverse=..., return_counts=...)`` for rows of

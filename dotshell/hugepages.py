@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import functools
 import math
 from typing import Any, Callable
 
@@ -24,22 +25,18 @@ HUGE_PAGE = 2 << 20  #: bytes of a transparent huge page (x86-64, aarch64 with 4
 MIN_BYTES = 1 << 20  #: smaller arrays are plain arrays (they would waste most of a huge page)
 _MADV_HUGEPAGE = 14  # Linux <sys/mman.h>
 
-_madvise: Callable[[int, int, int], int] | None | bool = False  # False: not looked up yet
-
-
-def _lookup() -> Callable[[int, int, int], int] | None:
-    global _madvise
-    if _madvise is False:
-        name = ctypes.util.find_library("c")
-        try:
-            fn: Any = ctypes.CDLL(name, use_errno=True).madvise if name else None
-        except (OSError, AttributeError):
-            fn = None
-        if fn is not None:
-            fn.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
-            fn.restype = ctypes.c_int
-        _madvise = fn
-    return _madvise  # type: ignore[return-value]
+@functools.cache
+def _madvise() -> Callable[[int, int, int], int] | None:
+    """The C library's ``madvise``, or None where there is none (not glibc/Linux)."""
+    name = ctypes.util.find_library("c")
+    try:
+        fn: Any = ctypes.CDLL(name, use_errno=True).madvise if name else None
+    except (OSError, AttributeError):
+        return None
+    if fn is not None:
+        fn.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+        fn.restype = ctypes.c_int
+    return fn
 
 
 def empty(shape: int | tuple[int, ...], dtype: Any) -> np.ndarray:
@@ -49,7 +46,7 @@ def empty(shape: int | tuple[int, ...], dtype: Any) -> np.ndarray:
     dtype = np.dtype(dtype)
     dims = (shape,) if isinstance(shape, int) else tuple(shape)
     nbytes = math.prod(dims) * dtype.itemsize
-    madvise = _lookup() if nbytes >= MIN_BYTES else None
+    madvise = _madvise() if nbytes >= MIN_BYTES else None
     if madvise is None:
         return np.empty(dims, dtype)
     span = -(-nbytes // HUGE_PAGE) * HUGE_PAGE

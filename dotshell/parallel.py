@@ -72,12 +72,17 @@ def shutdown() -> None:
         pool.shutdown(wait=True)
 
 
+def _parts(per_worker: int) -> int:
+    """Ranges to cut a pass into: ``per_worker`` per worker, one on one worker."""
+    cores = workers()
+    return cores * max(per_worker, 1) if cores > 1 else 1
+
+
 def bands(n: int, min_chunk: int = 16, per_worker: int = 1) -> list[int]:
     """Bounds of the contiguous ranges :func:`split` cuts ``range(n)`` into: ``per_worker``
     per worker (one in all on one worker, where nothing is to balance), each of at least
     ``min_chunk`` (range i is ``bounds[i]`` to ``bounds[i + 1]``)."""
-    cores = workers()
-    parts = max(1, min(cores * max(per_worker, 1) if cores > 1 else 1, n // max(min_chunk, 1)))
+    parts = max(1, min(_parts(per_worker), n // max(min_chunk, 1)))
     return [n * i // parts for i in range(parts + 1)]
 
 
@@ -88,8 +93,7 @@ def balanced_bands(cost: Sequence[float], per_worker: int = 1) -> list[int]:
     import numpy as np
 
     n = len(cost)
-    cores = workers()
-    parts = max(1, min(cores * max(per_worker, 1) if cores > 1 else 1, n))
+    parts = max(1, min(_parts(per_worker), n))
     total = np.concatenate([[0.0], np.cumsum(np.asarray(cost, np.float64))])
     cuts = np.searchsorted(total, total[-1] * np.arange(1, parts) / parts, side="left")
     return sorted({0, n, *(int(c) for c in cuts if 0 < c < n)})

@@ -35,6 +35,7 @@ from __future__ import annotations
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -42,8 +43,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 GROUPS = ("decode", "triangulate", "fem")
 
 
-def _tiny_scan_setup():
-    """The plugin manager and the loaded 1-view profile of the tiny scan the tests run."""
+@contextmanager
+def _tiny_scan(tmp_prefix: str = "dotshell-compile-"):
+    """(plugin manager, loaded 1-view profile, temporary directory) of the tiny scan the tests
+    run, the directory removed at the end."""
     from conftest import small_profile_dict, write_profile
     from dotshell.plugins import PluginManager
     from dotshell.profile import load_profile
@@ -53,29 +56,24 @@ def _tiny_scan_setup():
     raw = small_profile_dict(factor=0.12, views=1)
     raw["camera"]["settings"]["supersample"] = 1
     raw["outputs"] = {"previews": False}
-    tmp = tempfile.mkdtemp(prefix="dotshell-compile-")
-    return pm, load_profile(write_profile(Path(tmp) / "p.toml", raw), pm)
+    with tempfile.TemporaryDirectory(prefix=tmp_prefix) as tmp:
+        yield pm, load_profile(write_profile(Path(tmp) / "p.toml", raw), pm), Path(tmp)
 
 
 def compile_decode_kernels() -> None:
     """The decoder's kernels: one view of the tiny scan captured on the simulated rig and
     decoded as ``reconstruct_view`` decodes it."""
-    import numpy as np
-
     from dotshell.pipeline.steps import make_coding
     from dotshell.rig import Rig
 
-    pm, profile = _tiny_scan_setup()
-    coding = make_coding(profile, pm)
-    with Rig(profile, pm) as rig:
+    with _tiny_scan() as (pm, profile, _), Rig(profile, pm) as rig:
+        coding = make_coding(profile, pm)
         rig.stage.move_to(profile.angles_deg()[0])
         frames = []
         for pattern in coding.patterns(rig.projector.resolution):
             rig.projector.show(pattern.image)
             frames.append(rig.camera.capture())
-        size = tuple(rig.projector.resolution)
-    coding.decode(np.stack(frames), size)
-    coding.decode(frames, size)
+        coding.decode(frames, tuple(rig.projector.resolution))
 
 
 def compile_triangulate_kernels() -> None:
@@ -102,8 +100,7 @@ def compile_triangulate_kernels() -> None:
             coord[1] = v * (projector_size[1] / h)
             return Correspondence(coord[0], coord[1], valid)
 
-    pm, profile = _tiny_scan_setup()
-    with Rig(profile, pm) as rig:
+    with _tiny_scan() as (pm, profile, _), Rig(profile, pm) as rig:
         calib = rig.calibration()
         w, h = calib.camera.size
         frames = [np.zeros((h, w), np.uint16)] * 2
@@ -116,9 +113,8 @@ def compile_scan_kernels() -> None:
     above have compiled them: the check that they compiled what a scan asks for)."""
     from dotshell.pipeline.scan import scan
 
-    pm, profile = _tiny_scan_setup()
-    with tempfile.TemporaryDirectory(prefix="dotshell-compile-") as tmp:
-        scan(profile, pm, Path(tmp) / "runs")
+    with _tiny_scan() as (pm, profile, tmp):
+        scan(profile, pm, tmp / "runs")
 
 
 def compile_fem_kernels() -> None:

@@ -16,8 +16,7 @@ from typing import Any
 import numpy as np
 
 from dotshell.fem import (MeshError, TetMesh, TriangleSurface, closed_manifold_problems,
-                          joe_liu_quality, orient_positive, unique_rows,
-                          unique_values)
+                          compact, joe_liu_quality, orient_positive, unique_rows)
 from dotshell.settings import Setting
 
 SETTINGS: dict[str, Setting] = {
@@ -88,11 +87,3 @@ def peel_boundary_slivers(nodes: np.ndarray, tets: np.ndarray, min_quality: floa
             break
         tets = tets[~drop]
     return tets
-
-
-def compact(nodes: np.ndarray, tets: np.ndarray) -> TetMesh:
-    """Drop nodes no tetrahedron uses and renumber."""
-    used = unique_values(tets)
-    remap = np.full(len(nodes), -1, np.int64)
-    remap[used] = np.arange(len(used))
-    return TetMesh(nodes[used], remap[tets])

@@ -40,7 +40,7 @@ import numpy as np
 
 from dotshell.errors import DeviceError
 from dotshell.fem import (MeshError, TetMesh, TriangleSurface, closed_manifold_problems,
-                          element_containing, orient_positive, unique_values)
+                          compact, element_containing, orient_positive)
 from dotshell.geometry.calibration import rot_z
 from dotshell.geometry.lens import Lens
 from dotshell.geometry.raycast import TriangleScene
@@ -206,11 +206,7 @@ def tetrahedralize(surface: TriangleSurface, spacing_mm: float) -> TetMesh:
         raise DeviceError(f"sim-laser: TetGen could not fill the sample ({exc}); choose "
                           "another node_spacing_mm.") from None
     nodes = np.asarray(nodes, float)
-    tets = orient_positive(nodes, np.asarray(tets)[:, :4])
-    used = unique_values(tets)
-    remap = np.full(len(nodes), -1, np.int64)
-    remap[used] = np.arange(len(used))
-    return TetMesh(nodes[used], remap[tets])
+    return compact(nodes, orient_positive(nodes, np.asarray(tets)[:, :4]))
 
 
 # ---- the FEM of one sample ---------------------------------------------------------------
