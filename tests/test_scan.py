@@ -9,6 +9,7 @@ import tifffile
 
 from dotshell.events import FrameCaptured, ScanFinished, ScanStarted, ViewReconstructed
 from dotshell.pipeline.scan import reconstruct_run
+from dotshell import hugepages
 from dotshell.plugins import PluginManager
 from dotshell.ply import read_ply
 
@@ -88,3 +89,26 @@ def test_reconstruct_reproduces_cloud_from_frames(small_scan, tmp_path):
     assert all(p.read_bytes() == b for p, b in gen1.items())  # the original is untouched
     assert again.report["reprocessed"] is True
     assert again.report["validation"]["mean_rel_error_pct"] == result.report["validation"]["mean_rel_error_pct"]
+
+
+def test_reconstruct_on_lent_maps_gives_the_same_cloud_and_returns_them(small_scan, tmp_path,
+                                                                       monkeypatch):
+    """The quarter-resolution maps (80 KiB and up) put on the huge-page pool: views after the
+    first decode and triangulate on memory lent back from the views before, the cloud is the
+    same, and the idle blocks go back to the system when the views step ends."""
+    result, _ = small_scan
+    copy = tmp_path / "run"
+    shutil.copytree(result.run_dir, copy, symlinks=True)
+    before, _ = read_ply(copy / "cloud.ply")
+    monkeypatch.setattr(hugepages, "MIN_BYTES", 64 << 10)
+    lent = []
+    take = hugepages._POOL.take
+    monkeypatch.setattr(hugepages._POOL, "take", lambda span: lent.append(take(span)) or lent[-1])
+    pm = PluginManager()
+    pm.load_entry_points()
+    reconstruct_run(copy, pm)
+    after, _ = read_ply(copy / "cloud.ply")
+    assert len(after) == len(before) and np.allclose(after, before, atol=1e-6)
+    reused = sum(block is not None for block in lent)
+    assert reused >= len(lent) // 2, f"{reused} of {len(lent)} maps on lent memory"
+    assert hugepages.idle_bytes() == 0

@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
+from dotshell import hugepages
 from dotshell.errors import CalibrationError, ReconstructionError, RunError
 from dotshell.events import EventBus, StepProgress, StepStarted, ViewReconstructed
 from dotshell.framecheck import FrameSpec
@@ -206,6 +207,7 @@ def views_step(ctx: StepContext) -> dict[str, Any]:
                                                     ctx.profile, coding, ctx.calibration, ctx.bus,
                                                     frames)
         ctx.bus.emit(StepProgress(step="reconstruct", done=n, total=len(views)))
+    hugepages.release()  # the views' maps are freed; the later steps need none of them
     records = [done[i] for i in sorted(done)]
     seconds = [read_view_record(store, r["view"]).get("seconds", {}) for r in records]
     ctx.timings["decode"] = sum(s.get("decode", 0.0) for s in seconds)
