@@ -482,14 +482,18 @@ def refine_rows(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.ndar
     samples; ``first``: this is the axis's first pass (``ok`` is cleared), else samples
     already refined (by the other direction's pass) are left as they are."""
     for y in range(start, stop):
+        if first:
+            for x in range(ok.shape[1]):
+                ok[y, x] = False
         _refine_row(stack, inverse, rng, code, valid, flip, block, offset, first_pair,
-                    anchor_bit, max_span, first, coord, ok, y)
+                    anchor_bit, max_span, coord, ok, y)
 
 
 @numba.njit(**_ROW)
 def _refine_row(stack, inverse, rng, code, valid, flip, block, offset, first_pair, anchor_bit,
-                max_span, first, coord, ok, y):
-    """Row ``y`` of :func:`refine_rows`."""
+                max_span, coord, ok, y):
+    """Row ``y`` of :func:`refine_rows` (its ``ok`` row already cleared if ``first``: one
+    compiled variant for it and :func:`decode_rows`, whose pass is never the first)."""
     W = code.shape[1]
     nan32 = np.float32(np.nan)
     prev = -1
@@ -498,8 +502,6 @@ def _refine_row(stack, inverse, rng, code, valid, flip, block, offset, first_pai
     bad = -1
     valid_y, code_y, coord_y, ok_y = valid[y], code[y], coord[y], ok[y]
     for x in range(W):
-        if first:
-            ok_y[x] = False
         if not valid_y[x]:
             bad = x
             coord_y[x] = nan32
@@ -532,8 +534,11 @@ def refine_columns(stack: np.ndarray, inverse: bool, rng: np.ndarray, code: np.n
     scan_i = np.full((4, stop - start), -1, np.int64)
     scan_f = np.zeros((4, stop - start), np.float32)
     for y in range(code.shape[0]):
+        if first:
+            for x in range(start, stop):
+                ok[y, x] = False
         _column_step(stack, inverse, rng, code, valid, flip, block, offset, first_pair,
-                     anchor_bit, max_span, first, coord, ok, y, start, stop, scan_i, scan_f)
+                     anchor_bit, max_span, coord, ok, y, start, stop, scan_i, scan_f)
 
 
 #: rows of a column scan's state (:func:`_column_step`): int64 ``scan_i`` and float32 ``scan_f``
@@ -543,18 +548,17 @@ PREV_POS, PREV_VAL, FIRST_POS, FIRST_VAL = 0, 1, 2, 3  # scan_f: the anchors' po
 
 @numba.njit(**_ROW)
 def _column_step(stack, inverse, rng, code, valid, flip, block, offset, first_pair, anchor_bit,
-                 max_span, first, coord, ok, y, start, stop, scan_i, scan_f):
+                 max_span, coord, ok, y, start, stop, scan_i, scan_f):
     """Row ``y`` of the scans down the columns ``start`` to ``stop`` (:func:`refine_columns`),
     with each column's state in ``scan_i`` (4, n) int64 / ``scan_f`` (4, n) float32 (rows
     :data:`PREV` …): the previous anchor (row, position, value), the last invalid row, and the
     scan's first anchor with the last invalid row before it (what a scan started mid-image
-    leaves for :func:`_join`)."""
+    leaves for :func:`_join`). ``ok``'s row ``y`` is cleared by :func:`refine_columns` in
+    its first pass (one compiled variant for it and :func:`decode_rows`)."""
     H = code.shape[0]
     nan32 = np.float32(np.nan)
     for x in range(start, stop):
         j = x - start
-        if first:
-            ok[y, x] = False
         if not valid[y, x]:
             scan_i[BAD_ROW, j] = y
             coord[y, x] = nan32
@@ -684,7 +688,7 @@ def decode_rows(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarr
             elif not down[a]:
                 _refine_row(stack, inverse, rng, code[a], valid, flips[a], axes[a, BLOCK],
                             axes[a, OFFSET], axes[a, FIRST_PAIR], axes[a, ANCHOR_BIT],
-                            axes[a, MAX_SPAN], False, coord[a], ok[a], y)
+                            axes[a, MAX_SPAN], coord[a], ok[a], y)
         if y > start:
             _behind(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid,
                     changed, scan_i[band], scan_f[band], y - 1)
@@ -703,8 +707,8 @@ def _behind(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, val
         if refine and down[a]:
             _column_step(stack, inverse, rng, code[a], valid, flips[a], axes[a, BLOCK],
                          axes[a, OFFSET], axes[a, FIRST_PAIR], axes[a, ANCHOR_BIT],
-                         axes[a, MAX_SPAN], False, coord[a], ok[a], y, 0, code.shape[2],
-                         scan_i[a], scan_f[a])
+                         axes[a, MAX_SPAN], coord[a], ok[a], y, np.int64(0), code.shape[2],
+                         scan_i[a], scan_f[a])  # int64, not the literal 0: one variant
 
 
 @numba.njit(**_ROW)
