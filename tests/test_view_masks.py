@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from dotshell.geometry.triangulate import ImageSolve
-from dotshell.pipeline.reconstruct import in_roi, keep_points, speckle_mask
+from dotshell import parallel
+from dotshell.pipeline.reconstruct import in_roi, keep_points, speckle_mask, view_points
 
 
 def _depth_scene(seed: int, shape: tuple[int, int] = (60, 80)) -> tuple[np.ndarray, np.ndarray]:
@@ -81,6 +82,25 @@ def test_kept_points_are_smooth_and_inside_and_every_loss_is_counted_once(jump: 
                       "points": int(np.count_nonzero(keep))}
     assert counts["speckle"] + counts["outside_roi"] + counts["points"] == kept.sum()
     assert min(counts.values()) > 0 if jump > 0 else counts["speckle"] == 0
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_view_points_gathers_the_kept_points_in_order_band_by_band(threads: int) -> None:
+    """~90 000 solved pixels: four bands on two threads, each copying its kept points after
+    the bands before it."""
+    pixels, depth = _depth_scene(7, (300, 400))
+    rng = np.random.default_rng(7)
+    kept = rng.random(len(depth)) < 0.9
+    pts = np.column_stack([pixels[:, 0] - 200.0, pixels[:, 1] - 150.0, depth - 300.0])
+    pts[~kept] = np.nan
+    sol = ImageSolve(pixels, pts, np.where(kept, depth, np.nan), kept, {})
+    roi = {"radius_mm": 220.0, "z_min_mm": -10.0, "z_max_mm": 20.0}
+    with parallel.threads(threads):
+        keep, counts = keep_points(sol, (300, 400), 0.5, roi)
+        got_pixels, got_points, got_counts = view_points(sol, (300, 400), 0.5, roi)
+    assert got_counts == counts and 0 < counts["points"] < len(depth) - 1000
+    assert got_pixels.dtype == np.int32 and np.array_equal(got_pixels, pixels[keep])
+    assert np.array_equal(got_points, pts[keep])
 
 
 def test_select_is_boolean_indexing_done_in_place() -> None:
