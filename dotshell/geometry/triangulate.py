@@ -49,7 +49,7 @@ import numpy as np
 from dotshell import hugepages
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens
-from dotshell.parallel import balanced_bands, split
+from dotshell.parallel import balanced_bands, split, split_bands
 
 
 @dataclass
@@ -208,16 +208,17 @@ def solve_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
     pts = hugepages.empty((n, 3), np.float64)
     depth = hugepages.empty(n, np.float64)
     pixels = hugepages.empty((n, 2), np.int32)
-    flags = hugepages.empty(n, np.uint8)
+    kept = np.empty(n, bool)
     # rows cut by their decoded pixels (a row's solve costs ~1 pixel's per 50 px it scans)
-    split(_solve_image, h, valid, column, rows, row is not None, iterations, rays, start,
-          affine, *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(), pts, depth,
-          pixels, flags, bounds=balanced_bands(per_row + w / 50.0, per_worker=2))
-    counts = np.bincount(flags, minlength=4)
-    return ImageSolve(pixels, pts, depth, flags == KEPT,
-                      {"triangulated": int(counts[KEPT]),
-                       "row_rejected": int(counts[ROW_REJECTED]),
-                       "grazing": int(counts[GRAZING])})
+    bounds = balanced_bands(per_row + w / 50.0, per_worker=2)
+    counts = np.zeros((len(bounds) - 1, 4), np.int64)  # per band, by flag
+    split_bands(_solve_image, bounds, valid, column, rows, row is not None, iterations, rays,
+                start, affine, *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(), pts,
+                depth, pixels, kept, counts)
+    total = counts.sum(axis=0)
+    return ImageSolve(pixels, pts, depth, kept,
+                      {"triangulated": int(total[KEPT]), "row_rejected": int(total[ROW_REJECTED]),
+                       "grazing": int(total[GRAZING])})
 
 
 def select(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -429,10 +430,13 @@ def _count_rows(valid, out, start, stop):
 
 @numba.njit(**_OPTS)
 def _solve_image(valid, column, row, has_rows, iterations, rays, start, affine, R, T, K,
-                 dist, tolerance2, sin2_min, pts, depth, pixels, flags, start_row, stop_row):
+                 dist, tolerance2, sin2_min, pts, depth, pixels, kept, counts, band, start_row,
+                 stop_row):
+    """Rows ``start_row`` to ``stop_row`` solved into the outputs from ``start[row]`` on;
+    ``counts[band]``: how many got each flag (:data:`KEPT` …)."""
     if has_rows:
         _solve_rows_both(valid, column, row, rays, start, affine, R, T, K, dist, tolerance2,
-                         sin2_min, pts, depth, pixels, flags, start_row, stop_row)
+                         sin2_min, pts, depth, pixels, kept, counts[band], start_row, stop_row)
         return
     for yy in range(start_row, stop_row):
         i = start[yy]
@@ -442,7 +446,8 @@ def _solve_image(valid, column, row, has_rows, iterations, rays, start, affine, 
             x, y, z = rays[yy, xx, 0], rays[yy, xx, 1], rays[yy, xx, 2]
             s, f = _columns(x, y, z, np.float64(column[yy, xx]), iterations, R, T, K, dist,
                             sin2_min)
-            _store(i, xx, yy, x, y, z, s, f, _affine(affine), pts, depth, pixels, flags)
+            _store(i, xx, yy, x, y, z, s, f, _affine(affine), pts, depth, pixels, kept)
+            counts[band, f] += 1
             i += 1
 
 
@@ -455,9 +460,10 @@ def _affine(affine):
 
 
 @numba.njit(**_INNER)
-def _store(i, xx, yy, x, y, z, s, f, aff, pts, depth, pixels, flags):
+def _store(i, xx, yy, x, y, z, s, f, aff, pts, depth, pixels, kept):
     """Output ``i``: the point ``s`` × ray (x, y, z) in the frame of ``aff``
-    (:func:`_affine`; NaN unless kept), its camera depth, pixel and flag."""
+    (:func:`_affine`; NaN unless kept), its camera depth, pixel and whether flag ``f`` kept
+    it."""
     a00, a01, a02, a03, a10, a11, a12, a13, a20, a21, a22, a23 = aff
     s = s if f == KEPT else np.nan
     px, py, pz = s * x, s * y, s * z
@@ -467,14 +473,15 @@ def _store(i, xx, yy, x, y, z, s, f, aff, pts, depth, pixels, flags):
     depth[i] = pz
     pixels[i, 0] = xx
     pixels[i, 1] = yy
-    flags[i] = f
+    kept[i] = f == KEPT
 
 
 @numba.njit(**_INNER)
 def _solve_rows_both(valid, column, row, rays, start, affine, R, T, K, dist, tolerance2,
-                     sin2_min, pts, depth, pixels, flags, start_row, stop_row):
+                     sin2_min, pts, depth, pixels, kept, counts, start_row, stop_row):
     """Both codes, row by row: the row's decoded pixels are gathered into short buffers and
-    solved in loops without branches (vectorized across pixels)."""
+    solved in loops without branches (vectorized across pixels); ``counts`` (4,): how many
+    got each flag."""
     W = valid.shape[1]
     u, v, xs, ys, last = np.empty(W), np.empty(W), np.empty(W), np.empty(W), np.empty(W)
     rx, ry, rz = np.empty(W), np.empty(W), np.empty(W)
@@ -492,7 +499,15 @@ def _solve_rows_both(valid, column, row, rays, start, affine, R, T, K, dist, tol
                 n += 1
         _ideal_batch(K, dist, u, v, n, xs, ys, last)
         i0 = start[yy]
+        n_kept = n_row = n_grazing = 0
         for j in range(n):
             x, y, z = rx[j], ry[j], rz[j]
             s, f = _both_ideal(x, y, z, xs[j], ys[j], pose, tolerance2, sin2_min)
-            _store(i0 + j, at[j], yy, x, y, z, s, f, aff, pts, depth, pixels, flags)
+            _store(i0 + j, at[j], yy, x, y, z, s, f, aff, pts, depth, pixels, kept)
+            n_kept += f == KEPT
+            n_row += f == ROW_REJECTED
+            n_grazing += f == GRAZING
+        counts[KEPT] += n_kept
+        counts[ROW_REJECTED] += n_row
+        counts[GRAZING] += n_grazing
+        counts[DROPPED] += n - n_kept - n_row - n_grazing
