@@ -154,7 +154,14 @@ def test_image_triangulation_equals_per_point_and_the_truth(pdist, threads):
     with parallel.threads(threads):
         img = tr.triangulate_image(valid, column, row, cal, row_tolerance_px=1.5,
                                    to_frame=to_frame)
-        columns_only = tr.solve_image(valid, column, None, cal, min_ray_angle_deg=2.0)
+        columns_only = tr.solve_image(valid, column, None, cal, min_ray_angle_deg=2.0,
+                                      depth_image=True)
+        both = tr.solve_image(valid, column, row, cal, row_tolerance_px=1.5, depth_image=True)
+    for sol in (columns_only, both):  # the kept points' depths where they are, 0 elsewhere
+        want = np.zeros((h, w), np.float32)
+        want[sol.pixels[sol.kept, 1], sol.pixels[sol.kept, 0]] = sol.depth[sol.kept]
+        assert np.array_equal(sol.depth_image, want) and (want > 0).sum() > h * w // 3
+    assert img.counts == both.counts
     ys, xs = np.nonzero(valid)
     per_point = triangulate(rays[ys, xs], column[ys, xs], cal, row=row[ys, xs],
                             row_tolerance_px=1.5)

@@ -165,6 +165,8 @@ class ImageSolve:
         depth: (N,) camera-frame depth z (mm), NaN where not kept.
         kept: (N,) bool, the points that passed the solve's checks.
         counts: ``triangulated``, ``row_rejected``, ``grazing`` over the decoded pixels.
+        depth_image: (H, W) float32 camera depths of the kept points (mm), 0 elsewhere, if
+            asked for (the speckle test's input, written by the solve as it goes).
     """
 
     pixels: np.ndarray
@@ -172,6 +174,7 @@ class ImageSolve:
     depth: np.ndarray
     kept: np.ndarray
     counts: dict[str, int]
+    depth_image: np.ndarray | None = None
 
 
 def triangulate_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
@@ -191,9 +194,10 @@ def triangulate_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | N
 def solve_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
                 calib: RigCalibration, row_tolerance_px: float = 1.5,
                 min_ray_angle_deg: float = 5.0, to_frame: np.ndarray | None = None,
-                iterations: int = 3) -> ImageSolve:
+                iterations: int = 3, depth_image: bool = False) -> ImageSolve:
     """:func:`triangulate_image` without the selection: every ``valid`` pixel's solve, for a
-    caller that filters the points further and selects once."""
+    caller that filters the points further and selects once (``depth_image``: also the
+    image of the kept points' depths, :class:`ImageSolve`)."""
     h, w = valid.shape
     rays = camera_ray_grid(calib.camera)
     if rays.shape[:2] != (h, w):
@@ -209,16 +213,17 @@ def solve_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
     depth = hugepages.empty(n, np.float64)
     pixels = hugepages.empty((n, 2), np.int32)
     kept = np.empty(n, bool)
+    image = hugepages.empty((h, w) if depth_image else (0, 0), np.float32)
     # rows cut by their decoded pixels (a row's solve costs ~1 pixel's per 50 px it scans)
     bounds = balanced_bands(per_row + w / 50.0, per_worker=2)
     counts = np.zeros((len(bounds) - 1, 4), np.int64)  # per band, by flag
     split_bands(_solve_image, bounds, valid, column, rows, row is not None, iterations, rays,
                 start, affine, *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(), pts,
-                depth, pixels, kept, counts)
+                depth, pixels, kept, image, counts)
     total = counts.sum(axis=0)
     return ImageSolve(pixels, pts, depth, kept,
                       {"triangulated": int(total[KEPT]), "row_rejected": int(total[ROW_REJECTED]),
-                       "grazing": int(total[GRAZING])})
+                       "grazing": int(total[GRAZING])}, image if depth_image else None)
 
 
 def select(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -430,13 +435,17 @@ def _count_rows(valid, out, start, stop):
 
 @numba.njit(**_OPTS)
 def _solve_image(valid, column, row, has_rows, iterations, rays, start, affine, R, T, K,
-                 dist, tolerance2, sin2_min, pts, depth, pixels, kept, counts, band, start_row,
-                 stop_row):
+                 dist, tolerance2, sin2_min, pts, depth, pixels, kept, image, counts, band,
+                 start_row, stop_row):
     """Rows ``start_row`` to ``stop_row`` solved into the outputs from ``start[row]`` on;
-    ``counts[band]``: how many got each flag (:data:`KEPT` …)."""
+    ``counts[band]``: how many got each flag (:data:`KEPT` …); ``image``: the kept points'
+    depths in these rows, 0 elsewhere (unless it is empty)."""
+    if image.shape[0] > 0:
+        image[start_row:stop_row] = 0
     if has_rows:
         _solve_rows_both(valid, column, row, rays, start, affine, R, T, K, dist, tolerance2,
-                         sin2_min, pts, depth, pixels, kept, counts[band], start_row, stop_row)
+                         sin2_min, pts, depth, pixels, kept, image, counts[band], start_row,
+                         stop_row)
         return
     for yy in range(start_row, stop_row):
         i = start[yy]
@@ -448,6 +457,8 @@ def _solve_image(valid, column, row, has_rows, iterations, rays, start, affine, 
                             sin2_min)
             _store(i, xx, yy, x, y, z, s, f, _affine(affine), pts, depth, pixels, kept)
             counts[band, f] += 1
+            if f == KEPT and image.shape[0] > 0:
+                image[yy, xx] = depth[i]
             i += 1
 
 
@@ -478,7 +489,8 @@ def _store(i, xx, yy, x, y, z, s, f, aff, pts, depth, pixels, kept):
 
 @numba.njit(**_INNER)
 def _solve_rows_both(valid, column, row, rays, start, affine, R, T, K, dist, tolerance2,
-                     sin2_min, pts, depth, pixels, kept, counts, start_row, stop_row):
+                     sin2_min, pts, depth, pixels, kept, image, counts, start_row,
+                     stop_row):
     """Both codes, row by row: the row's decoded pixels are gathered into short buffers and
     solved in loops without branches (vectorized across pixels); ``counts`` (4,): how many
     got each flag."""
@@ -511,3 +523,7 @@ def _solve_rows_both(valid, column, row, rays, start, affine, R, T, K, dist, tol
         counts[ROW_REJECTED] += n_row
         counts[GRAZING] += n_grazing
         counts[DROPPED] += n - n_kept - n_row - n_grazing
+        if image.shape[0] > 0:
+            for j in range(n):
+                if kept[i0 + j]:
+                    image[yy, at[j]] = depth[i0 + j]

@@ -104,7 +104,10 @@ def _keep(sol: ImageSolve, shape: tuple[int, int], max_jump_mm: float, roi: dict
     depth = np.ascontiguousarray(sol.depth, np.float64)
     kept = np.ascontiguousarray(sol.kept, bool)
     test = max_jump_mm > 0
-    img = depth_image(pixels, depth, kept, shape) if test else np.zeros((1, 1), np.float32)
+    img = np.zeros((1, 1), np.float32)
+    if test:  # the one the solve wrote as it went, if it did
+        img = sol.depth_image if sol.depth_image is not None else depth_image(pixels, depth,
+                                                                              kept, shape)
     keep = np.empty(len(depth), bool)
     bounds = bands(len(depth), min_chunk=1 << 14, per_worker=2)
     counts = np.zeros((len(bounds) - 1, 3), np.int64)
@@ -212,7 +215,8 @@ def solve_pixels(corr: Correspondence, calib: RigCalibration, processing: dict[s
     of the (3, 4) affine map ``to_frame``), kept or not (:func:`solve_image`)."""
     return solve_image(corr.valid, corr.column, corr.row, calib,
                        row_tolerance_px=processing["row_tolerance_px"],
-                       min_ray_angle_deg=processing["min_ray_angle_deg"], to_frame=to_frame)
+                       min_ray_angle_deg=processing["min_ray_angle_deg"], to_frame=to_frame,
+                       depth_image=processing["max_depth_jump_mm"] > 0)
 
 
 def triangulate_correspondence(corr: Correspondence, calib: RigCalibration,
