@@ -244,9 +244,11 @@ _OPTS = dict(nogil=True, cache=True, error_model="numpy")
 #: per-point helpers are inlined: a compiled call passing arrays pays reference counting
 _INNER = dict(_OPTS, inline="always")
 MAX_UNDISTORT_STEPS = 50
-#: undistortion steps every pixel of a row takes together (:func:`_ideal_batch`); 4-6 reach
-#: convergence for the rigs measured, the rest continue alone
+#: undistortion steps every pixel of a row takes together (:func:`_ideal_batch`), the first
+#: :data:`FIRST_UNDISTORT_STEPS` without looking, the rest while one of them still moves; 4-6
+#: reach convergence for the rigs measured, the rest continue alone
 BATCH_UNDISTORT_STEPS = 8
+FIRST_UNDISTORT_STEPS = 4
 
 
 @numba.njit(**_INNER)
@@ -284,9 +286,11 @@ def _undistort_step(k1, k2, p1, p2, k3, x0, y0, x, y):
 
 @numba.njit(**_INNER)
 def _ideal_batch(K, dist, u, v, n, xs, ys, last):
-    """:func:`_ideal` of the first ``n`` pixels (u, v): :data:`BATCH_UNDISTORT_STEPS` steps
-    for all of them, a loop without branches that the compiler vectorizes across pixels, then
-    iterated on to convergence where the last step still moved (``last``: scratch)."""
+    """:func:`_ideal` of the first ``n`` pixels (u, v): :data:`FIRST_UNDISTORT_STEPS` steps
+    for all of them in a loop without branches that the compiler vectorizes across pixels,
+    then one step at a time for all while one of them still moves (at most
+    :data:`BATCH_UNDISTORT_STEPS` in all), then iterated on to convergence where the last step
+    still moved (``last``: scratch)."""
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     for j in range(n):
@@ -294,13 +298,26 @@ def _ideal_batch(K, dist, u, v, n, xs, ys, last):
         y0 = (v[j] - cy) / fy
         x, y = x0, y0
         step = 0.0
-        for _ in range(BATCH_UNDISTORT_STEPS):
+        for _ in range(FIRST_UNDISTORT_STEPS):
             nx, ny = _undistort_step(k1, k2, p1, p2, k3, x0, y0, x, y)
             step = max(abs(nx - x), abs(ny - y))
             x, y = nx, ny
         xs[j] = x
         ys[j] = y
         last[j] = step
+    for _ in range(BATCH_UNDISTORT_STEPS - FIRST_UNDISTORT_STEPS):
+        moving = 0
+        for j in range(n):
+            moving += not last[j] < 1e-15
+        if moving == 0:
+            break
+        for j in range(n):
+            x0 = (u[j] - cx) / fx
+            y0 = (v[j] - cy) / fy
+            nx, ny = _undistort_step(k1, k2, p1, p2, k3, x0, y0, xs[j], ys[j])
+            last[j] = max(abs(nx - xs[j]), abs(ny - ys[j]))
+            xs[j] = nx
+            ys[j] = ny
     for j in range(n):
         if not last[j] < 1e-15:
             xs[j], ys[j] = _ideal_from(K, dist, u[j], v[j], xs[j], ys[j])
