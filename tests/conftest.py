@@ -150,9 +150,10 @@ def pytest_configure(config):
 
     In the xdist controller (or a run without workers): byte-compile the sources for the
     processes the tests start. In the xdist controller also: hand the files out in collection
-    order, and compile the numba kernels into their on-disk cache in three subprocesses
-    (tests/compile_kernels.py's groups) while the workers start and collect; the first worker
-    to finish collecting waits for them (:func:`pytest_xdist_node_collection_finished`).
+    order, and compile the numba kernels into their on-disk cache in a subprocess
+    (tests/compile_kernels.py: its groups in forked children at once) while the workers start
+    and collect; the first worker to finish collecting waits for them
+    (:func:`pytest_xdist_node_collection_finished`).
 
     In every process: plugin packages' asserts are not rewritten
     (:func:`_rewrite_asserts_of_test_helpers_only`)."""
@@ -165,25 +166,20 @@ def pytest_configure(config):
         configure_process()
     else:
         config.option.loadscopereorder = False  # keep the LONGEST_FIRST order (--dist loadfile)
-        from compile_kernels import GROUPS
-
-        config._dotshell_compile = [subprocess.Popen(
-            [sys.executable, str(ROOT / "tests" / "compile_kernels.py"), group],
+        config._dotshell_compile = subprocess.Popen(
+            [sys.executable, str(ROOT / "tests" / "compile_kernels.py")],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT)
-            for group in GROUPS]
 
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_node_collection_finished(node, ids):
     """No test is handed out before the kernels are in the cache (else each worker compiles
     them again, ~35 s each)."""
-    procs = getattr(node.config, "_dotshell_compile", None)
-    if procs is None:
+    proc = getattr(node.config, "_dotshell_compile", None)
+    if proc is None:
         return
     node.config._dotshell_compile = None
-    for proc in procs:
-        out, _ = proc.communicate()
-        if proc.returncode != 0:  # the tests that decode will fail and say why; say it here too
-            node.config.get_terminal_writer().line(
-                f"tests/compile_kernels.py {proc.args[-1]} failed (exit {proc.returncode}):\n"
-                f"{out}", red=True)
+    out, _ = proc.communicate()
+    if proc.returncode != 0:  # the tests that decode will fail and say why; say it here too
+        node.config.get_terminal_writer().line(
+            f"tests/compile_kernels.py failed (exit {proc.returncode}):\n{out}", red=True)
