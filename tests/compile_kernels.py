@@ -50,9 +50,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 GROUPS = ("decode", "triangulate", "fem")
 
 #: the groups after the first yield to it: on 2 cores the scheduler then gives the longest
-#: group a core of its own and the two shorter ones share the other, instead of each of the
-#: three taking 2/3 of a core (the longest would finish last, after ~3/2 of its CPU time)
-LATER_GROUPS_NICENESS = 5
+#: group a core of its own and the two shorter ones share the other (two tasks of weight 526
+#: against one of 1024), instead of each of the three taking 2/3 of a core (the longest would
+#: finish last, after ~3/2 of its CPU time); not more, so that on a machine busy with other
+#: work the shorter groups do not become the last to finish
+LATER_GROUPS_NICENESS = 3
 
 
 @contextmanager
