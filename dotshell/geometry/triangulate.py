@@ -32,10 +32,11 @@ per point by OpenCV's fixed-point iteration run to convergence (measured faster 
 table of the projector's pixels, whose scattered reads miss the cache), and
 :func:`triangulate_image` triangulates a decoded image in place, without gathering its pixels,
 optionally moving the points into another frame (the sample's) on the way. With both codes it
-works row by row: a row's decoded pixels are gathered into short buffers, every one takes a
-fixed number of undistortion steps and the least-squares solve in loops without branches,
-which the compiler vectorizes across pixels (2x faster than one pixel at a time), and pixels
-whose last step still moved iterate on alone to convergence.
+works row by row: a row's decoded pixels are gathered into short buffers, all of them take the
+undistortion steps together (four, then one at a time while one of them still moves) and the
+least-squares solve in loops without branches, which the compiler vectorizes across pixels (2x
+faster than one pixel at a time), and pixels whose last step still moved iterate on alone to
+convergence.
 """
 
 from __future__ import annotations
