@@ -219,6 +219,7 @@ class SimWorld:
         self.stage: SimTurntable | None = None
         self.analyzer: SimAnalyzer | None = None
         self.laser: SimLaser | None = None
+        self._key_memo: tuple[tuple, str] | None = None  # (devices and scene, renderer key)
 
     def require(self, who: str) -> tuple["SimProjector", "SimTurntable"]:
         missing = [(role, name) for role, name, dev in
@@ -275,7 +276,17 @@ class SimWorld:
             projector_ref_mm=projector.ref_mm), _MAX_RENDERERS)
 
     def _renderer_key(self) -> str:
+        """The geometry's key in :data:`_RENDERERS`, made again only when a device or the
+        stage's scene changed (a frame asked for it: the calibration's JSON at every frame was
+        ~1 % of a reduced scan)."""
         projector, stage = self.require("sim-camera")
+        state = (self.camera, projector, stage, stage.scene, stage.target_key)
+        memo = self._key_memo
+        if memo is None or memo[0] != state:  # the devices and scene compare by identity
+            memo = self._key_memo = (state, self._geometry_key(projector, stage))
+        return memo[1]
+
+    def _geometry_key(self, projector: "SimProjector", stage: "SimTurntable") -> str:
         s = self.camera.settings
         return json.dumps([self.calibration().to_dict(), stage.settings["scene"],
                            stage.settings["plate"], stage.settings["background"],
