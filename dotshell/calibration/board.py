@@ -9,6 +9,7 @@ numbering, used for checkerboards too.
 from __future__ import annotations
 
 import hashlib
+import threading
 from collections import OrderedDict
 from dataclasses import asdict, dataclass, replace
 from typing import Any
@@ -103,6 +104,7 @@ def to_8bit(image: np.ndarray) -> np.ndarray:
 #: Detections by image content and board, most recent last (see :func:`detect`).
 _DETECTIONS: OrderedDict[tuple[bytes, Board], Detection | None] = OrderedDict()
 _MAX_DETECTIONS = 512
+_DETECTIONS_LOCK = threading.Lock()  # a server may solve two captures at once
 
 
 def _image_key(image: np.ndarray) -> bytes:
@@ -120,13 +122,17 @@ def detect(image: np.ndarray, board: Board) -> Detection | None:
     changed) takes the corners of the unchanged images without searching them again (the
     search and refinement are ~2/3 of a reduced solve); a caller gets its own copy."""
     key = (_image_key(image), board)
-    if key in _DETECTIONS:
-        _DETECTIONS.move_to_end(key)
-    else:
-        _DETECTIONS[key] = _search(image, board)
-        while len(_DETECTIONS) > _MAX_DETECTIONS:
-            _DETECTIONS.popitem(last=False)
-    det = _DETECTIONS[key]
+    with _DETECTIONS_LOCK:
+        known = key in _DETECTIONS
+        det = _DETECTIONS.get(key)
+        if known:
+            _DETECTIONS.move_to_end(key)
+    if not known:
+        det = _search(image, board)  # outside the lock: the search is the slow part
+        with _DETECTIONS_LOCK:
+            _DETECTIONS[key] = det
+            while len(_DETECTIONS) > _MAX_DETECTIONS:
+                _DETECTIONS.popitem(last=False)
     return None if det is None else replace(det, pixels=det.pixels.copy(), ids=det.ids.copy())
 
 
