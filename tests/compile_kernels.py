@@ -12,8 +12,8 @@ exactly the ones the pipeline asks for, in three groups that share no compiled f
 at once (numba's cache index of one function must not be written by two processes), each in a
 child forked from one process that has imported numba and set its CPU target up (~1.2 s of CPU
 that each group's own process paid before), the longest at a higher priority; split so, a cold
-cache takes about the longest group's time (~11 s of CPU on 2 busy cores), not the sum of the
-three (~21 s):
+cache takes about the longest group's time (~11 s of CPU, 12.5 s of wall time on 2 quiet
+cores), not the sum of the three (~20 s):
 
 * ``decode``: one view of the tiny scan decoded (uint16 frames, the one-pass decoder);
 * ``triangulate``: ``reconstruct_view`` of the tiny scan's rig on a correspondence laid out as
@@ -46,7 +46,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-#: longest first (CPU of a cold compile on 2 busy cores: ~11, ~5.5 and ~4 s)
+#: longest first (CPU of a cold compile on 2 quiet cores: ~11, ~5 and ~3.5 s)
 GROUPS = ("decode", "triangulate", "fem")
 
 #: the groups after the first yield to it: on 2 cores the scheduler then gives the longest
