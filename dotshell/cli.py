@@ -122,7 +122,7 @@ def _print_report(report: dict[str, Any], run_dir: Path) -> None:
 
 #: Where a camera pixel can be lost on the way to a point, in pipeline order.
 LOSS_KEYS = ("shadow", "low_contrast", "uncertain", "out_of_range", "low_modulation",
-             "phase_inconsistent", "grazing", "row_rejected", "speckle", "outside_roi")
+             "phase_inconsistent", "grazing", "row_rejected", "outside_roi", "speckle")
 
 
 def pixel_losses(views: list[dict[str, Any]]) -> list[tuple[str, float]]:

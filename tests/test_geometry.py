@@ -124,10 +124,13 @@ def test_calibration_json_roundtrip_and_errors(tmp_path):
 
 @pytest.mark.parametrize("pdist", [(0.05, 0.0, 0.0, 0.0, 0.0), (-0.5, 0.1, 0.02, -0.02, 0.0)],
                          ids=["mild", "strong"])
-def test_image_triangulation_equals_per_point_and_the_truth(pdist):
+@pytest.mark.parametrize("threads", [1, 2])
+def test_image_triangulation_equals_per_point_and_the_truth(pdist, threads):
     """``triangulate_image`` (row batches, undistortion vectorized over a row, continued to
     convergence where a strongly distorting projector needs more steps) gives what
-    ``triangulate`` gives per point, and the true surface."""
+    ``triangulate`` gives per point, and the true surface; on two threads its bands count
+    their flags apart."""
+    from dotshell import parallel
     from dotshell.geometry import triangulate as tr
 
     cam = lens_from_fov(320, 256, 1000.0, (-0.08, 0.04, 0, 0, 0))
@@ -148,10 +151,26 @@ def test_image_triangulation_equals_per_point_and_the_truth(pdist):
     row[::7, ::5] += 4.0  # rows off the epipolar line: rejected
     column = prj[..., 0].astype(np.float32)
     to_frame = np.column_stack([rot_z(30.0), [1.0, -2.0, 3.0]])
-    img = tr.triangulate_image(valid, column, row, cal, row_tolerance_px=1.5, to_frame=to_frame)
+    with parallel.threads(threads):
+        img = tr.triangulate_image(valid, column, row, cal, row_tolerance_px=1.5,
+                                   to_frame=to_frame)
+        columns_only = tr.solve_image(valid, column, None, cal, min_ray_angle_deg=2.0,
+                                      depth_image=True)
+        both = tr.solve_image(valid, column, row, cal, row_tolerance_px=1.5, depth_image=True)
+    for sol in (columns_only, both):  # the kept points' depths where they are, 0 elsewhere
+        want = np.zeros((h, w), np.float32)
+        want[sol.pixels[sol.kept, 1], sol.pixels[sol.kept, 0]] = sol.depth[sol.kept]
+        assert np.array_equal(sol.depth_image, want) and (want > 0).sum() > h * w // 3
+    assert img.counts == both.counts
     ys, xs = np.nonzero(valid)
     per_point = triangulate(rays[ys, xs], column[ys, xs], cal, row=row[ys, xs],
                             row_tolerance_px=1.5)
+    per_column = triangulate(rays[ys, xs], column[ys, xs], cal, min_ray_angle_deg=2.0)
+    assert np.array_equal(columns_only.kept, per_column.keep)
+    assert columns_only.counts == {"triangulated": np.count_nonzero(per_column.keep),
+                                   "row_rejected": 0,
+                                   "grazing": np.count_nonzero(per_column.grazing)}
+    assert columns_only.counts["triangulated"] > len(ys) // 2
     kept = per_point.keep
     assert 0 < np.count_nonzero(~kept) < len(kept) // 5
     assert img.counts["triangulated"] == np.count_nonzero(kept)

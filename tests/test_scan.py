@@ -112,3 +112,28 @@ def test_reconstruct_on_lent_maps_gives_the_same_cloud_and_returns_them(small_sc
     reused = sum(block is not None for block in lent)
     assert reused >= len(lent) // 2, f"{reused} of {len(lent)} maps on lent memory"
     assert hugepages.idle_bytes() == 0
+
+
+def test_a_scan_gives_each_views_maps_back_before_the_next_view(monkeypatch):
+    """The scan's reconstruction hides behind the capture: each view's lent maps go back to
+    the system when it is done, so the capture of the next view has the memory."""
+    from dotshell.pipeline import scan as scan_module
+
+    idle_at_start = []
+
+    def reconstruct(store, view, angle_deg, profile, coding, calib, bus, frames):
+        idle_at_start.append(hugepages.idle_bytes())
+        maps = hugepages.empty((1024, 1280), np.float32)  # freed on return: lent back
+        maps.fill(view)
+        return {"view": view}
+
+    monkeypatch.setattr(scan_module, "reconstruct_one_view", reconstruct)
+    hugepages.release()
+    pipeline = scan_module.ViewPipeline(None, None, None, None, None)
+    try:
+        for view in range(3):
+            pipeline.submit(view, 0.0, [])
+        assert pipeline.results() == {v: {"view": v} for v in range(3)}
+    finally:
+        pipeline.close()
+    assert idle_at_start == [0, 0, 0] and hugepages.idle_bytes() == 0

@@ -7,7 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from dotshell.pipeline.reconstruct import in_roi, keep_in_roi, speckle_mask
+from dotshell.geometry.triangulate import ImageSolve
+from dotshell import parallel
+from dotshell.pipeline.reconstruct import in_roi, keep_points, speckle_mask, view_points
 
 
 def _depth_scene(seed: int, shape: tuple[int, int] = (60, 80)) -> tuple[np.ndarray, np.ndarray]:
@@ -57,21 +59,48 @@ def test_roi_is_the_cylinder() -> None:
     assert np.array_equal(got, want)
 
 
-def test_kept_points_are_smooth_and_inside_and_every_loss_is_counted_once() -> None:
+@pytest.mark.parametrize("jump", [0.5, 0.0])
+def test_kept_points_are_smooth_and_inside_and_every_loss_is_counted_once(jump: float) -> None:
+    """The speckle test's depth image holds every solved point, inside the region or not;
+    a point outside is counted outside, a point inside failing the test a speckle
+    (``jump`` 0: no speckle test)."""
+    pixels, depth = _depth_scene(5)
+    n = len(depth)
     rng = np.random.default_rng(5)
-    n = 50_000
-    pts = rng.uniform(-30, 30, (n, 3))
-    kept = rng.random(n) < 0.8
+    kept = rng.random(n) < 0.9
+    pts = np.column_stack([pixels[:, 0] - 40.0, pixels[:, 1] - 30.0, depth - 300.0])
     pts[~kept] = np.nan  # as the solve leaves the points it did not keep
-    smooth = kept & (rng.random(n) < 0.9)
-    roi = {"radius_mm": 20.0, "z_min_mm": -10.0, "z_max_mm": 25.0}
-    keep, counts = keep_in_roi(kept, smooth, pts, roi)
+    depth = np.where(kept, depth, np.nan)
+    roi = {"radius_mm": 30.0, "z_min_mm": -10.0, "z_max_mm": 3.5}
+    sol = ImageSolve(pixels, pts, depth, kept, {})
+    keep, counts = keep_points(sol, (60, 80), jump, roi)
     inside = in_roi(pts, roi)
-    assert np.array_equal(keep, smooth & inside)
-    assert counts == {"speckle": int(np.count_nonzero(kept & ~smooth)),
-                      "outside_roi": int(np.count_nonzero(smooth & ~inside)),
+    smooth = speckle_mask(pixels, depth, (60, 80), jump, kept) if jump > 0 else kept
+    assert np.array_equal(keep, kept & inside & smooth)
+    assert counts == {"outside_roi": int(np.count_nonzero(kept & ~inside)),
+                      "speckle": int(np.count_nonzero(kept & inside & ~smooth)),
                       "points": int(np.count_nonzero(keep))}
     assert counts["speckle"] + counts["outside_roi"] + counts["points"] == kept.sum()
+    assert min(counts.values()) > 0 if jump > 0 else counts["speckle"] == 0
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_view_points_gathers_the_kept_points_in_order_band_by_band(threads: int) -> None:
+    """~90 000 solved pixels: four bands on two threads, each copying its kept points after
+    the bands before it."""
+    pixels, depth = _depth_scene(7, (300, 400))
+    rng = np.random.default_rng(7)
+    kept = rng.random(len(depth)) < 0.9
+    pts = np.column_stack([pixels[:, 0] - 200.0, pixels[:, 1] - 150.0, depth - 300.0])
+    pts[~kept] = np.nan
+    sol = ImageSolve(pixels, pts, np.where(kept, depth, np.nan), kept, {})
+    roi = {"radius_mm": 220.0, "z_min_mm": -10.0, "z_max_mm": 20.0}
+    with parallel.threads(threads):
+        keep, counts = keep_points(sol, (300, 400), 0.5, roi)
+        got_pixels, got_points, got_counts = view_points(sol, (300, 400), 0.5, roi)
+    assert got_counts == counts and 0 < counts["points"] < len(depth) - 1000
+    assert got_pixels.dtype == np.int32 and np.array_equal(got_pixels, pixels[keep])
+    assert np.array_equal(got_points, pts[keep])
 
 
 def test_select_is_boolean_indexing_done_in_place() -> None:

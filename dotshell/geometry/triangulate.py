@@ -32,10 +32,11 @@ per point by OpenCV's fixed-point iteration run to convergence (measured faster 
 table of the projector's pixels, whose scattered reads miss the cache), and
 :func:`triangulate_image` triangulates a decoded image in place, without gathering its pixels,
 optionally moving the points into another frame (the sample's) on the way. With both codes it
-works row by row: a row's decoded pixels are gathered into short buffers, every one takes a
-fixed number of undistortion steps and the least-squares solve in loops without branches,
-which the compiler vectorizes across pixels (2x faster than one pixel at a time), and pixels
-whose last step still moved iterate on alone to convergence.
+works row by row: a row's decoded pixels are gathered into short buffers, all of them take the
+undistortion steps together (four, then one at a time while one of them still moves) and the
+least-squares solve in loops without branches, which the compiler vectorizes across pixels (2x
+faster than one pixel at a time), and pixels whose last step still moved iterate on alone to
+convergence.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ import numpy as np
 from dotshell import hugepages
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens
-from dotshell.parallel import balanced_bands, split
+from dotshell.parallel import balanced_bands, split, split_bands
 
 
 @dataclass
@@ -165,6 +166,8 @@ class ImageSolve:
         depth: (N,) camera-frame depth z (mm), NaN where not kept.
         kept: (N,) bool, the points that passed the solve's checks.
         counts: ``triangulated``, ``row_rejected``, ``grazing`` over the decoded pixels.
+        depth_image: (H, W) float32 camera depths of the kept points (mm), 0 elsewhere, if
+            asked for (the speckle test's input, written by the solve as it goes).
     """
 
     pixels: np.ndarray
@@ -172,6 +175,7 @@ class ImageSolve:
     depth: np.ndarray
     kept: np.ndarray
     counts: dict[str, int]
+    depth_image: np.ndarray | None = None
 
 
 def triangulate_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
@@ -191,9 +195,10 @@ def triangulate_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | N
 def solve_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
                 calib: RigCalibration, row_tolerance_px: float = 1.5,
                 min_ray_angle_deg: float = 5.0, to_frame: np.ndarray | None = None,
-                iterations: int = 3) -> ImageSolve:
+                iterations: int = 3, depth_image: bool = False) -> ImageSolve:
     """:func:`triangulate_image` without the selection: every ``valid`` pixel's solve, for a
-    caller that filters the points further and selects once."""
+    caller that filters the points further and selects once (``depth_image``: also the
+    image of the kept points' depths, :class:`ImageSolve`)."""
     h, w = valid.shape
     rays = camera_ray_grid(calib.camera)
     if rays.shape[:2] != (h, w):
@@ -208,16 +213,18 @@ def solve_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
     pts = hugepages.empty((n, 3), np.float64)
     depth = hugepages.empty(n, np.float64)
     pixels = hugepages.empty((n, 2), np.int32)
-    flags = hugepages.empty(n, np.uint8)
+    kept = np.empty(n, bool)
+    image = hugepages.empty((h, w) if depth_image else (0, 0), np.float32)
     # rows cut by their decoded pixels (a row's solve costs ~1 pixel's per 50 px it scans)
-    split(_solve_image, h, valid, column, rows, row is not None, iterations, rays, start,
-          affine, *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(), pts, depth,
-          pixels, flags, bounds=balanced_bands(per_row + w / 50.0, per_worker=2))
-    counts = np.bincount(flags, minlength=4)
-    return ImageSolve(pixels, pts, depth, flags == KEPT,
-                      {"triangulated": int(counts[KEPT]),
-                       "row_rejected": int(counts[ROW_REJECTED]),
-                       "grazing": int(counts[GRAZING])})
+    bounds = balanced_bands(per_row + w / 50.0, per_worker=2)
+    counts = np.zeros((len(bounds) - 1, 4), np.int64)  # per band, by flag
+    split_bands(_solve_image, bounds, valid, column, rows, row is not None, iterations, rays,
+                start, affine, *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(), pts,
+                depth, pixels, kept, image, counts)
+    total = counts.sum(axis=0)
+    return ImageSolve(pixels, pts, depth, kept,
+                      {"triangulated": int(total[KEPT]), "row_rejected": int(total[ROW_REJECTED]),
+                       "grazing": int(total[GRAZING])}, image if depth_image else None)
 
 
 def select(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -238,9 +245,11 @@ _OPTS = dict(nogil=True, cache=True, error_model="numpy")
 #: per-point helpers are inlined: a compiled call passing arrays pays reference counting
 _INNER = dict(_OPTS, inline="always")
 MAX_UNDISTORT_STEPS = 50
-#: undistortion steps every pixel of a row takes together (:func:`_ideal_batch`); 4-6 reach
-#: convergence for the rigs measured, the rest continue alone
+#: undistortion steps every pixel of a row takes together (:func:`_ideal_batch`), the first
+#: :data:`FIRST_UNDISTORT_STEPS` without looking, the rest while one of them still moves; 4-6
+#: reach convergence for the rigs measured, the rest continue alone
 BATCH_UNDISTORT_STEPS = 8
+FIRST_UNDISTORT_STEPS = 4
 
 
 @numba.njit(**_INNER)
@@ -278,9 +287,11 @@ def _undistort_step(k1, k2, p1, p2, k3, x0, y0, x, y):
 
 @numba.njit(**_INNER)
 def _ideal_batch(K, dist, u, v, n, xs, ys, last):
-    """:func:`_ideal` of the first ``n`` pixels (u, v): :data:`BATCH_UNDISTORT_STEPS` steps
-    for all of them, a loop without branches that the compiler vectorizes across pixels, then
-    iterated on to convergence where the last step still moved (``last``: scratch)."""
+    """:func:`_ideal` of the first ``n`` pixels (u, v): :data:`FIRST_UNDISTORT_STEPS` steps
+    for all of them in a loop without branches that the compiler vectorizes across pixels,
+    then one step at a time for all while one of them still moves (at most
+    :data:`BATCH_UNDISTORT_STEPS` in all), then iterated on to convergence where the last step
+    still moved (``last``: scratch)."""
     k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     for j in range(n):
@@ -288,13 +299,26 @@ def _ideal_batch(K, dist, u, v, n, xs, ys, last):
         y0 = (v[j] - cy) / fy
         x, y = x0, y0
         step = 0.0
-        for _ in range(BATCH_UNDISTORT_STEPS):
+        for _ in range(FIRST_UNDISTORT_STEPS):
             nx, ny = _undistort_step(k1, k2, p1, p2, k3, x0, y0, x, y)
             step = max(abs(nx - x), abs(ny - y))
             x, y = nx, ny
         xs[j] = x
         ys[j] = y
         last[j] = step
+    for _ in range(BATCH_UNDISTORT_STEPS - FIRST_UNDISTORT_STEPS):
+        moving = 0
+        for j in range(n):
+            moving += not last[j] < 1e-15
+        if moving == 0:
+            break
+        for j in range(n):
+            x0 = (u[j] - cx) / fx
+            y0 = (v[j] - cy) / fy
+            nx, ny = _undistort_step(k1, k2, p1, p2, k3, x0, y0, xs[j], ys[j])
+            last[j] = max(abs(nx - xs[j]), abs(ny - ys[j]))
+            xs[j] = nx
+            ys[j] = ny
     for j in range(n):
         if not last[j] < 1e-15:
             xs[j], ys[j] = _ideal_from(K, dist, u[j], v[j], xs[j], ys[j])
@@ -429,10 +453,17 @@ def _count_rows(valid, out, start, stop):
 
 @numba.njit(**_OPTS)
 def _solve_image(valid, column, row, has_rows, iterations, rays, start, affine, R, T, K,
-                 dist, tolerance2, sin2_min, pts, depth, pixels, flags, start_row, stop_row):
+                 dist, tolerance2, sin2_min, pts, depth, pixels, kept, image, counts, band,
+                 start_row, stop_row):
+    """Rows ``start_row`` to ``stop_row`` solved into the outputs from ``start[row]`` on;
+    ``counts[band]``: how many got each flag (:data:`KEPT` …); ``image``: the kept points'
+    depths in these rows, 0 elsewhere (unless it is empty)."""
+    if image.shape[0] > 0:
+        image[start_row:stop_row] = 0
     if has_rows:
         _solve_rows_both(valid, column, row, rays, start, affine, R, T, K, dist, tolerance2,
-                         sin2_min, pts, depth, pixels, flags, start_row, stop_row)
+                         sin2_min, pts, depth, pixels, kept, image, counts[band], start_row,
+                         stop_row)
         return
     for yy in range(start_row, stop_row):
         i = start[yy]
@@ -442,7 +473,10 @@ def _solve_image(valid, column, row, has_rows, iterations, rays, start, affine, 
             x, y, z = rays[yy, xx, 0], rays[yy, xx, 1], rays[yy, xx, 2]
             s, f = _columns(x, y, z, np.float64(column[yy, xx]), iterations, R, T, K, dist,
                             sin2_min)
-            _store(i, xx, yy, x, y, z, s, f, _affine(affine), pts, depth, pixels, flags)
+            _store(i, xx, yy, x, y, z, s, f, _affine(affine), pts, depth, pixels, kept)
+            counts[band, f] += 1
+            if f == KEPT and image.shape[0] > 0:
+                image[yy, xx] = depth[i]
             i += 1
 
 
@@ -455,9 +489,10 @@ def _affine(affine):
 
 
 @numba.njit(**_INNER)
-def _store(i, xx, yy, x, y, z, s, f, aff, pts, depth, pixels, flags):
+def _store(i, xx, yy, x, y, z, s, f, aff, pts, depth, pixels, kept):
     """Output ``i``: the point ``s`` × ray (x, y, z) in the frame of ``aff``
-    (:func:`_affine`; NaN unless kept), its camera depth, pixel and flag."""
+    (:func:`_affine`; NaN unless kept), its camera depth, pixel and whether flag ``f`` kept
+    it."""
     a00, a01, a02, a03, a10, a11, a12, a13, a20, a21, a22, a23 = aff
     s = s if f == KEPT else np.nan
     px, py, pz = s * x, s * y, s * z
@@ -467,14 +502,16 @@ def _store(i, xx, yy, x, y, z, s, f, aff, pts, depth, pixels, flags):
     depth[i] = pz
     pixels[i, 0] = xx
     pixels[i, 1] = yy
-    flags[i] = f
+    kept[i] = f == KEPT
 
 
 @numba.njit(**_INNER)
 def _solve_rows_both(valid, column, row, rays, start, affine, R, T, K, dist, tolerance2,
-                     sin2_min, pts, depth, pixels, flags, start_row, stop_row):
+                     sin2_min, pts, depth, pixels, kept, image, counts, start_row,
+                     stop_row):
     """Both codes, row by row: the row's decoded pixels are gathered into short buffers and
-    solved in loops without branches (vectorized across pixels)."""
+    solved in loops without branches (vectorized across pixels); ``counts`` (4,): how many
+    got each flag."""
     W = valid.shape[1]
     u, v, xs, ys, last = np.empty(W), np.empty(W), np.empty(W), np.empty(W), np.empty(W)
     rx, ry, rz = np.empty(W), np.empty(W), np.empty(W)
@@ -492,7 +529,19 @@ def _solve_rows_both(valid, column, row, rays, start, affine, R, T, K, dist, tol
                 n += 1
         _ideal_batch(K, dist, u, v, n, xs, ys, last)
         i0 = start[yy]
+        n_kept = n_row = n_grazing = 0
         for j in range(n):
             x, y, z = rx[j], ry[j], rz[j]
             s, f = _both_ideal(x, y, z, xs[j], ys[j], pose, tolerance2, sin2_min)
-            _store(i0 + j, at[j], yy, x, y, z, s, f, aff, pts, depth, pixels, flags)
+            _store(i0 + j, at[j], yy, x, y, z, s, f, aff, pts, depth, pixels, kept)
+            n_kept += f == KEPT
+            n_row += f == ROW_REJECTED
+            n_grazing += f == GRAZING
+        counts[KEPT] += n_kept
+        counts[ROW_REJECTED] += n_row
+        counts[GRAZING] += n_grazing
+        counts[DROPPED] += n - n_kept - n_row - n_grazing
+        if image.shape[0] > 0:
+            for j in range(n):
+                if kept[i0 + j]:
+                    image[yy, at[j]] = depth[i0 + j]

@@ -19,6 +19,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from dotshell import hugepages
 from dotshell.errors import CalibrationError, FrameError, RunError
 from dotshell.framecheck import FrameSpec
 from dotshell.events import EventBus, ScanFinished, ScanStarted, StepStarted, ViewCaptured, \
@@ -93,9 +94,19 @@ class ViewPipeline:
 
     def submit(self, view: int, angle_deg: float, frames: list[np.ndarray]) -> None:
         self._wait(keep_pending=1)
+        self.futures[view] = self.pool.submit(self._reconstruct, view, angle_deg, frames)
+
+    def _reconstruct(self, view: int, angle_deg: float, frames: list[np.ndarray]
+                     ) -> dict[str, Any]:
+        """One view, its maps' memory then given back (:func:`dotshell.hugepages.release`):
+        a scan's reconstruction hides behind the capture, and until the next view the
+        capture needs the memory more than the next decode needs it lent."""
         profile, coding, calib, bus = self.args
-        self.futures[view] = self.pool.submit(reconstruct_one_view, self.store, view, angle_deg,
-                                              profile, coding, calib, bus, frames)
+        try:
+            return reconstruct_one_view(self.store, view, angle_deg, profile, coding, calib, bus,
+                                        frames)
+        finally:
+            hugepages.release()
 
     def _wait(self, keep_pending: int) -> None:
         """Block until at most ``keep_pending`` views are unfinished; raise the first failure."""
