@@ -34,7 +34,12 @@ def assert_within_sim_bounds(report: dict) -> None:
 
 
 def lightcrafter_profile(views: int = 6, **scan_keys) -> dict:
+    """The LightCrafter bench at 0.25 scale, 1 ray per pixel (what is tested is the driver and
+    the trigger path; measured 6-view figures: mean 0.13 %, sd 0.20 %, coverage 100 %, radius
+    7.6996 mm, 149 535 points against the bounds; at 2x2 rays 0.25 %, 0.25 %, 99.4 %, 7.7003 mm,
+    132 104 points, and a third more CPU)."""
     raw = scale_profile(tomllib.loads(LC_PROFILE.read_text()), 0.25)
+    raw["camera"]["settings"]["supersample"] = 1
     raw["scan"].update(views=views, **scan_keys)
     raw["projector"]["settings"]["flash_images"] = [
         str(LC_PROFILE.parent / p) for p in raw["projector"]["settings"]["flash_images"]]

@@ -81,12 +81,18 @@ def test_analyzer_follows_malus_and_pdi_keeps_the_surface_light():
 
 @pytest.fixture(scope="module")
 def agar_runs(tmp_path_factory):
+    """The agar cylinder scanned with and without PDI at 0.25 scale, 3 views, 1 ray per pixel
+    (measured: PDI mean 0.16 %, sd 0.28 %, coverage 96.6 %; plain / PDI error 6.65x, rejected
+    share 3.1x, plain signed -0.64 %; at 2x2 rays 0.17 %, 0.16 %, 96.7 %, 6.6x, 3.0x, -0.64 %
+    and a sixth more CPU)."""
     tmp = tmp_path_factory.mktemp("agar")
     pm = PluginManager()
     pm.load_entry_points()
     out = {}
     for name in ("sim-agar-cylinder", "sim-agar-cylinder-nopdi"):
-        prof = load_profile(write_profile(tmp / f"{name}.toml", _raw(name, 0.25, 3)), pm)
+        raw = _raw(name, 0.25, 3)
+        raw["camera"]["settings"]["supersample"] = 1
+        prof = load_profile(write_profile(tmp / f"{name}.toml", raw), pm)
         out[name] = scan(prof, pm, tmp / "runs")
     return out, pm
 

@@ -210,13 +210,14 @@ def check_frames(frames: Sequence[np.ndarray], calib: RigCalibration, view: int)
 
 
 def solve_pixels(corr: Correspondence, calib: RigCalibration, processing: dict[str, Any],
-                 to_frame: np.ndarray | None = None) -> ImageSolve:
+                 to_frame: np.ndarray | None = None, depth_image: bool = False) -> ImageSolve:
     """Solve every valid pixel of a correspondence (points in the camera frame, or in the frame
-    of the (3, 4) affine map ``to_frame``), kept or not (:func:`solve_image`)."""
+    of the (3, 4) affine map ``to_frame``), kept or not (:func:`solve_image`; ``depth_image``:
+    with the speckle test's depth image)."""
     return solve_image(corr.valid, corr.column, corr.row, calib,
                        row_tolerance_px=processing["row_tolerance_px"],
                        min_ray_angle_deg=processing["min_ray_angle_deg"], to_frame=to_frame,
-                       depth_image=processing["max_depth_jump_mm"] > 0)
+                       depth_image=depth_image)
 
 
 def triangulate_correspondence(corr: Correspondence, calib: RigCalibration,
@@ -311,7 +312,8 @@ def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
     t0 = time.perf_counter()
     corr = coding.decode(frames, calib.projector.size)
     t1 = time.perf_counter()
-    tri = solve_pixels(corr, calib, processing, sample_frame_map(calib, angle_deg))
+    tri = solve_pixels(corr, calib, processing, sample_frame_map(calib, angle_deg),
+                       depth_image=processing["max_depth_jump_mm"] > 0)
     pixels, points, counts = view_points(tri, frames[0].shape[:2],
                                          processing["max_depth_jump_mm"], processing["roi"])
     stats = {**corr.stats, **tri.counts, **counts}

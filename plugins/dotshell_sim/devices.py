@@ -219,6 +219,7 @@ class SimWorld:
         self.stage: SimTurntable | None = None
         self.analyzer: SimAnalyzer | None = None
         self.laser: SimLaser | None = None
+        self._key_memo: tuple[tuple, str] | None = None  # (devices and scene, renderer key)
 
     def require(self, who: str) -> tuple["SimProjector", "SimTurntable"]:
         missing = [(role, name) for role, name, dev in
@@ -275,7 +276,17 @@ class SimWorld:
             projector_ref_mm=projector.ref_mm), _MAX_RENDERERS)
 
     def _renderer_key(self) -> str:
+        """The geometry's key in :data:`_RENDERERS`, made again only when a device or the
+        stage's scene changed (a frame asked for it: the calibration's JSON at every frame was
+        ~1 % of a reduced scan)."""
         projector, stage = self.require("sim-camera")
+        state = (self.camera, projector, stage, stage.scene, stage.target_key)
+        memo = self._key_memo
+        if memo is None or memo[0] != state:  # the devices and scene compare by identity
+            memo = self._key_memo = (state, self._geometry_key(projector, stage))
+        return memo[1]
+
+    def _geometry_key(self, projector: "SimProjector", stage: "SimTurntable") -> str:
         s = self.camera.settings
         return json.dumps([self.calibration().to_dict(), stage.settings["scene"],
                            stage.settings["plate"], stage.settings["background"],
@@ -369,6 +380,7 @@ class SimCamera(_Device):
         self._info = FrameInfo(timestamp_s=float("nan"))
         self._armed: tuple[int, float] | None = None  # (frames wanted, armed at clock time)
         self._repeats: dict[bytes, int] = {}
+        self._vignetting_map: tuple[float, np.ndarray] | None = None  # (loss, map)
         world.camera = self
 
     @property
@@ -411,11 +423,18 @@ class SimCamera(_Device):
             irr = light.total
         irr *= np.float32(self.settings["sensitivity_e_per_ms"] * self.exposure_ms)
         if self.settings["vignetting"] > 0:  # extra lens fall-off (the flat field sees it too)
-            irr *= transillum.lens_vignetting(self.lens, self.settings["vignetting"])
+            irr *= self._vignetting()
         sigma = self.settings["defocus_sigma_px"]
         if sigma > 0:
             irr = cv2.GaussianBlur(irr, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
         return irr
+
+    def _vignetting(self) -> np.ndarray:
+        """The extra lens vignetting map (H, W) float32, made once (~2 ms a frame at 320x256)."""
+        loss = self.settings["vignetting"]
+        if self._vignetting_map is None or self._vignetting_map[0] != loss:
+            self._vignetting_map = (loss, transillum.lens_vignetting(self.lens, loss))
+        return self._vignetting_map[1]
 
     def _frame(self, start_s: float, trigger: str) -> np.ndarray:
         """One frame exposed from clock time ``start_s``; its noise is seeded by the setting

@@ -296,8 +296,7 @@ class Renderer:
         if k.size:
             hk = h[k]
             p_s = o_s + t[hk, None] * d_s[hk] + _SHADOW_OFFSET * n_s[hk]
-            t_sh, _, m_sh = scene.intersect(p_s, L[k] @ M)
-            shadow[k] = (m_sh >= 0) & (t_sh < dist_p[k])
+            shadow[k] = scene.blocked(p_s, L[k] @ M, dist_p[k])
         lit = np.flatnonzero(in_proj & ~shadow)
 
         m = mat[h]

@@ -112,6 +112,13 @@ class Cylinder:
     material: int = 0
 
     def intersect(self, origins, dirs):
+        return self._hits(origins, dirs, True)
+
+    def distances(self, origins, dirs):
+        """``intersect``'s ``t`` alone (shadow rays need no normals)."""
+        return self._hits(origins, dirs, False)[0]
+
+    def _hits(self, origins, dirs, with_normals: bool):
         n = len(origins)
         ox = origins[:, 0] - self.center[0]
         oy = origins[:, 1] - self.center[1]
@@ -120,7 +127,7 @@ class Cylinder:
         r2 = self.radius * self.radius
         z1 = self.z0 + self.height
         t_best = np.full(n, np.inf)
-        normals = np.zeros((n, 3))
+        normals = np.zeros((n, 3)) if with_normals else None
 
         # side: (ox + t dx)^2 + (oy + t dy)^2 = r^2, numerically stable roots
         a = dx * dx + dy * dy
@@ -139,7 +146,7 @@ class Cylinder:
             z = oz + t * dz
             good = ok & (t > _EPS) & (z >= self.z0) & (z <= z1) & (t < t_best)
             t_best = np.where(good, t, t_best)
-            if good.any():
+            if with_normals and good.any():
                 px = ox[good] + t[good] * dx[good]
                 py = oy[good] + t[good] * dy[good]
                 normals[good] = np.column_stack([px, py, np.zeros(good.sum())]) / self.radius
@@ -156,7 +163,8 @@ class Cylinder:
             py = oy + t * dy
             good = (np.abs(dz) > _EPS) & (t > _EPS) & (px * px + py * py <= r2) & (t < t_best)
             t_best = np.where(good, t, t_best)
-            normals[good] = (0.0, 0.0, nz)
+            if with_normals:
+                normals[good] = (0.0, 0.0, nz)
         return t_best, normals
 
 
@@ -170,16 +178,21 @@ class Disk:
     material: int = 0
 
     def intersect(self, origins, dirs):
+        t = self.distances(origins, dirs)
+        dz = dirs[:, 2]
+        normals = np.zeros((len(origins), 3))
+        normals[:, 2] = np.where(dz > 0, -1.0, 1.0)
+        return t, normals
+
+    def distances(self, origins, dirs):
+        """``intersect``'s ``t`` alone (shadow rays need no normals)."""
         dz = dirs[:, 2]
         with np.errstate(invalid="ignore", divide="ignore"):
             t = (self.z - origins[:, 2]) / dz
         px = origins[:, 0] + t * dirs[:, 0] - self.center[0]
         py = origins[:, 1] + t * dirs[:, 1] - self.center[1]
         good = (np.abs(dz) > _EPS) & (t > _EPS) & (px * px + py * py <= self.radius ** 2)
-        t = np.where(good, t, np.inf)
-        normals = np.zeros((len(origins), 3))
-        normals[:, 2] = np.where(dz > 0, -1.0, 1.0)
-        return t, normals
+        return np.where(good, t, np.inf)
 
 
 @dataclass
@@ -191,15 +204,23 @@ class Plane:
     material: int = 0
 
     def intersect(self, origins, dirs):
-        nrm = np.asarray(self.normal, float)
-        nrm = nrm / np.linalg.norm(nrm)
+        t = self.distances(origins, dirs)
+        nrm = self._unit_normal()
+        normals = _facing(np.broadcast_to(nrm, dirs.shape).copy(), dirs)
+        return t, normals
+
+    def distances(self, origins, dirs):
+        """``intersect``'s ``t`` alone (shadow rays need no normals)."""
+        nrm = self._unit_normal()
         den = dirs @ nrm
         with np.errstate(invalid="ignore", divide="ignore"):
             t = (self.offset - origins @ nrm) / den
         good = (np.abs(den) > _EPS) & (t > _EPS)
-        t = np.where(good, t, np.inf)
-        normals = _facing(np.broadcast_to(nrm, dirs.shape).copy(), dirs)
-        return t, normals
+        return np.where(good, t, np.inf)
+
+    def _unit_normal(self) -> np.ndarray:
+        nrm = np.asarray(self.normal, float)
+        return nrm / np.linalg.norm(nrm)
 
     def rotated_z(self, angle_deg: float) -> "Plane":
         """The plane given in the stage frame, in the sample frame at stage angle θ
@@ -260,6 +281,23 @@ class Scene:
             mat[closer] = shape.material
         return t_best, normals, mat
 
+    def blocked(self, origins: np.ndarray, dirs: np.ndarray, t_max: np.ndarray) -> np.ndarray:
+        """Whether each ray hits a shape before ``t_max`` (N,) (mm): the shadow test, the same
+        as ``intersect``'s nearest ``t < t_max`` without its normals and materials (a third of
+        a view's tracing went into the shadow rays' normals)."""
+        origins = np.asarray(origins, float)
+        dirs = np.asarray(dirs, float)
+        out = np.zeros(len(origins), bool)
+        for shape in self.shapes:
+            out |= _distances(shape, origins, dirs) < t_max
+        return out
+
+
+def _distances(shape: Shape, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """A shape's hit distances ``t`` (N,): its ``distances`` where it has one (no normals)."""
+    distances = getattr(shape, "distances", None)
+    return distances(origins, dirs) if distances is not None else shape.intersect(origins, dirs)[0]
+
 
 class _RotatedShape:
     """A shape given in the stage frame, seen from the sample frame at stage angle θ."""
@@ -272,6 +310,9 @@ class _RotatedShape:
     def intersect(self, origins, dirs):
         t, nrm = self.shape.intersect(origins @ self.R.T, dirs @ self.R.T)
         return t, nrm @ self.R
+
+    def distances(self, origins, dirs):
+        return _distances(self.shape, origins @ self.R.T, dirs @ self.R.T)
 
 
 class StagedScene:
