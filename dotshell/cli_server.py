@@ -94,18 +94,24 @@ def cmd_tui(args: argparse.Namespace) -> int:
         return 2
     signal.signal(signal.SIGHUP, signal.SIG_DFL)  # a terminal that goes away ends the client
     from dotshell.server.client import RemoteSession
-    from dotshell.server.launch import start_server
-    from dotshell.tui.app import run_tui  # imported before the app starts: it probes the terminal
+    from dotshell.server.launch import spawn_server, wait_listening
 
     sock = _which(args) or socket_path("default")
+    starting = None
     if alive(sock):
         notice = f"attached to the running rig server {sock.stem}"
         if args.set:
             notice += f" (--set {' '.join(args.set)} ignored: change keys with set(...) in the console)"
     else:
         err.print(f"starting a rig server for {args.profile or 'no profile'} …")
-        pid = start_server(args.profile, sock=sock, out=args.out, overrides=args.set,
-                           strict_plugins=args.strict_plugins)
+        starting = spawn_server(args.profile, sock=sock, out=args.out, overrides=args.set,
+                                strict_plugins=args.strict_plugins)
+    # Imported before the app starts (it probes the terminal) and while a new server starts:
+    # the server's imports, profile and rig and these imports overlap on two cores.
+    from dotshell.tui.app import run_tui
+
+    if starting is not None:
+        pid = wait_listening(starting)
         notice = (f"started the rig server {sock.stem} (pid {pid}); it keeps running a scan "
                   "when this terminal closes and exits when idle with nobody attached")
     session = RemoteSession(sock, client="tui", control=True)

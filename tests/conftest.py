@@ -112,6 +112,22 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
+def pytest_collection_finish(session):
+    """The cyclic garbage collector, tuned for a test process: everything imported and
+    collected by now (pytest, numpy, numba, Textual, every test module: ~120 k objects) lives
+    to the end, so it is frozen out of the collector's passes (``gc.freeze``), and young
+    collections run every 7000 allocations instead of 700, so fewer short-lived objects (the
+    TUI tests make many: Textual's strips, styles, messages) survive into the old generation
+    and set off full passes. Every object is still collected as before, only in fewer passes:
+    measured on tests/test_tui.py alone, 29.5-31.4 s of CPU before, 22.9-24.2 s after (two
+    interleaved runs each, load 6 on 2 cores); gc.freeze alone gave 26.5-26.7 s."""
+    import gc
+
+    gc.collect()
+    gc.freeze()
+    gc.set_threshold(7000, 10, 10)
+
+
 # ---- numba kernels compiled once, before the xdist workers run tests ---------------------------
 
 def _is_xdist_controller(config) -> bool:

@@ -11,6 +11,7 @@ import os
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from dotshell.server.paths import alive, running_servers, server_log_dir, server_name, socket_path
@@ -39,11 +40,30 @@ def locate(profile: str | Path | None = None, name: str | None = None,
     return running[0] if running else None
 
 
+@dataclass
+class Starting:
+    """A ``dotshell serve`` process started by :func:`spawn_server`, not yet listening."""
+
+    proc: subprocess.Popen[bytes]
+    sock: Path
+    out_file: Path
+
+
 def start_server(profile: str | Path | None, *, sock: Path, out: str | Path,
                  overrides: list[str] | tuple[str, ...] = (), exit_when_idle: bool = True,
                  strict_plugins: bool = False) -> int:
     """Start ``dotshell serve`` detached on ``sock`` and wait until it answers; returns its pid.
     ServerError (with the end of its output) when it exits or does not answer in time."""
+    return wait_listening(spawn_server(profile, sock=sock, out=out, overrides=overrides,
+                                       exit_when_idle=exit_when_idle,
+                                       strict_plugins=strict_plugins))
+
+
+def spawn_server(profile: str | Path | None, *, sock: Path, out: str | Path,
+                 overrides: list[str] | tuple[str, ...] = (), exit_when_idle: bool = True,
+                 strict_plugins: bool = False) -> Starting:
+    """Start ``dotshell serve`` detached on ``sock`` without waiting for it (the caller may
+    do its own start-up meanwhile, then :func:`wait_listening`)."""
     name = sock.stem
     out_file = server_log_dir(name) / "server.out"
     cmd = [sys.executable, "-m", "dotshell.cli", *(["--strict-plugins"] if strict_plugins else []),
@@ -54,6 +74,13 @@ def start_server(profile: str | Path | None, *, sock: Path, out: str | Path,
     with open(out_file, "ab") as f:
         proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=f, stderr=subprocess.STDOUT,
                                 start_new_session=True, close_fds=True, cwd=os.getcwd())
+    return Starting(proc, sock, out_file)
+
+
+def wait_listening(starting: Starting) -> int:
+    """Wait until a spawned server answers on its socket; returns its pid. ServerError (with
+    the end of its output) when it exits or does not answer within START_TIMEOUT_S."""
+    proc, sock, out_file = starting.proc, starting.sock, starting.out_file
     t0 = time.monotonic()
     while not alive(sock):
         code = proc.poll()
