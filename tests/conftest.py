@@ -96,10 +96,10 @@ def small_scan(tmp_path_factory):
 #: ``pytest -n 2 --dist loadfile --junitxml``, summed by file). They are handed out first, so the
 #: two workers of ``make test`` finish together instead of one running a long file alone at the
 #: end (xdist's default order, most tests first, put these few-test files last).
-LONGEST_FIRST = ("test_tui.py", "test_normalize.py", "test_tui_pty.py", "test_mesh.py",
-                 "test_calib_sim.py", "test_faults.py", "test_device_runs.py",
-                 "test_hardware_scans.py", "test_lifecycle.py", "test_batch.py", "test_pdi.py",
-                 "test_tui_snapshots.py", "test_serial_faults.py", "test_cli.py")
+LONGEST_FIRST = ("test_tui.py", "test_normalize.py", "test_tui_pty.py", "test_codings_backends.py",
+                 "test_hardware_scans.py", "test_device_runs.py", "test_codings_robust.py",
+                 "test_calib_sim.py", "test_faults.py", "test_lifecycle.py", "test_mesh.py",
+                 "test_serial_faults.py", "test_batch.py", "test_pdi.py", "test_conformance.py")
 
 
 def pytest_collection_modifyitems(config, items):
