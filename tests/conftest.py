@@ -223,13 +223,15 @@ class KernelCompile:
             [sys.executable, str(ROOT / "tests" / "compile_kernels.py")],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT,
             start_new_session=True)  # its own process group: stopped with its forked children
-        threading.Thread(target=self._wait, daemon=True).start()
+        self._waiter = threading.Thread(target=self._wait, daemon=True)
+        self._waiter.start()
 
     def _wait(self) -> None:
         try:
             out, _ = self._proc.communicate()
-            if self._proc.returncode != 0:
-                self.failure = f"tests/compile_kernels.py failed (exit {self._proc.returncode}):\n{out}"
+            code = self._proc.returncode
+            if code != 0:
+                self.failure = f"tests/compile_kernels.py failed (exit {code}):\n{out}"
         finally:
             self.ready.touch()
 
@@ -241,7 +243,7 @@ class KernelCompile:
 
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(self._proc.pid, signal.SIGTERM)
-            self._proc.wait()
+        self._waiter.join()
         self._dir.cleanup()
 
 
