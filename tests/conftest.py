@@ -255,6 +255,9 @@ def pytest_configure_node(node):
         node.workerinput["dotshell_kernels_ready"] = str(kernels.ready)
 
 
+#: how long a worker waits for the kernels at most (then its tests compile what they need)
+KERNELS_WAIT_S = 600.0
+
 _kernels_ready = False
 
 
@@ -270,10 +273,6 @@ def pytest_runtest_setup(item):
     while not os.path.exists(ready) and time.monotonic() < deadline:
         time.sleep(0.05)
     _kernels_ready = True
-
-
-#: how long a worker waits for the kernels at most (then its tests compile what they need)
-KERNELS_WAIT_S = 600.0
 
 
 def pytest_terminal_summary(terminalreporter, config):
