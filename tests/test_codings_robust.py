@@ -16,7 +16,6 @@ import numpy as np
 import pytest
 
 from dotshell_codings.robust import direct_global, full_scale, noise_sigma, robust_bits
-from test_codings_backends import NAMES
 from test_graycode import PROJ, make_coding, render, render_pdi, rms
 
 LONG_RANGE = dict(direct=0.3, global_weight=0.7, global_shift=150.0, global_far=0.8)
@@ -140,20 +139,6 @@ def test_long_range_global_light_contrast_vs_robust_vs_xor():
     assert xor["wrong"] < 0.1 * gray["wrong"] and robust["wrong"] < 0.1 * gray["wrong"]
     # XOR with the plain white-relative contrast test: no wrong codes, but few pixels pass it
     assert xor_contrast["wrong"] < 0.01 and xor_contrast["valid"] < xor["valid"]
-
-
-@pytest.mark.parametrize("name", NAMES)
-def test_float32_frames(name):
-    """PDI difference images arrive as float32 with no fixed range: full scale is the white
-    frame's 99.5th percentile. (Here, beside the other float32 decode, so that one test
-    process compiles the float32 decoder for both: ~11 s of CPU on a cold cache.)"""
-    c = make_coding(name, axes="columns")
-    proj = (1000, 40)
-    frames = [p.image.astype(np.float32) * 0.37 + 2.0 for p in c.patterns(proj)]
-    frames[0][0, :5] = 1e6  # a few hot pixels do not set the scale
-    r = c.decode(frames, proj)
-    assert r.valid[1:].all() and r.row is None
-    assert np.abs(r.column[1:] - np.arange(1000)[None]).max() <= 0.02
 
 
 def test_pdi_like_low_contrast_float32():
