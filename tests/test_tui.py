@@ -158,7 +158,7 @@ async def test_connect_jog_snap_from_the_rig_panel(server):
         preview = app.panel(PreviewPanel)
         await wait_until(pilot, lambda: preview.current is not None)
         assert preview.current.kind == "snap" and preview.current.size == (w, h)
-        await show_tab(pilot, "preview")  # a hidden tab is drawn when shown
+        await show_tab(pilot, "preview")  # its histogram and image are drawn when shown
         assert f"{w}×{h}" in static_text(app, "#preview-title")
         stats = preview.current.stats
         assert stats["max"] == raw.max() and stats["min"] == raw.min()
@@ -366,41 +366,6 @@ async def test_text_written_while_hidden_wraps_to_the_pane(server):
         assert max(strip.cell_length for strip in view.lines) <= view.size.width
 
 
-async def test_hidden_tabs_lay_nothing_out_and_are_current_when_shown(server):
-    """Scan progress and log lines while the Rig tab is shown lay the screen out not once (the
-    Scan and Log tabs and, at 80 columns, the sidebar are hidden); the Scan tab shows the latest
-    progress from the first layout that shows it on, the Log tab every line it missed (also
-    after it was shown before at that width)."""
-    app = app_for(server)
-    async with running(app, (80, 24)) as pilot:
-        await show_tab(pilot, "log")
-        log = app.screen.query_one("#log-view", ReflowLog)
-        app.panel(LogPanel).add("info", "seen")
-        await show_tab(pilot, "rig")
-        frames_shown = []  # the frames count the Scan tab shows at each layout
-        lay_out = app.screen._refresh_layout
-
-        def counted(*args, **kwargs):
-            frames_shown.append(static_text(app, "#frames-count"))
-            return lay_out(*args, **kwargs)
-
-        app.screen._refresh_layout = counted
-        events = [ScanStarted(run_dir="runs/x", profile="p", n_views=2, frames_per_view=3)]
-        events += [FrameCaptured(view=0, index=i, name=f"f{i}") for i in range(3)]
-        events += [Message(level="warning", text=f"note {i}") for i in range(3)]
-        for ev in events:
-            app.post_message(ServerMessage({"type": "event", "event": ev.to_dict()}))
-        await wait_until(pilot, lambda: len(app.panel(LogPanel).entries) >= 5)
-        await pilot.pause()
-        assert frames_shown == []
-        await show_tab(pilot, "scan")
-        assert frames_shown and set(frames_shown) == {"3/6"}
-        await show_tab(pilot, "log")
-        await wait_until(pilot, lambda: log.unwritten == 0)
-        assert len(log.lines) == len(app.panel(LogPanel).visible()) == 5  # seen, started, notes
-        assert log.lines[-1].text.rstrip().endswith("note 2")
-
-
 async def test_keys_overlay_and_the_command_palette(server):
     session = server.session
     app = app_for(server)
@@ -454,7 +419,6 @@ async def test_short_scan_runs_to_the_end(server):
         assert static_text(app, "#frames-count") == f"{t.frames_total}/{t.frames_total}"
         preview = app.panel(PreviewPanel)
         assert [i.view for i in preview.items if i.kind == "frame"] == [0, 1]
-        await show_tab(pilot, "preview")  # a hidden tab is drawn when shown
         assert "latest frame (view 2)" in static_text(app, "#preview-title")  # 1-based
         assert (run.root / "previews" / "latest_frame.png").is_file()
         texts = [e.text for e in app.panel(LogPanel).entries]
@@ -552,7 +516,7 @@ async def test_no_points_reads_failed_and_few_colours_are_said(server, monkeypat
         # a 256-colour terminal is told that images are approximate
         assert any("shows 256 colours" in e.text for e in app.panel(LogPanel).entries)
         app.panel(PreviewPanel).add_preview("snap", str(write_png(server)), -1, {})
-        await show_tab(pilot, "preview")
+        await pilot.pause()
         assert "only 256 colours" in static_text(app, "#preview-title")
 
 
@@ -792,6 +756,37 @@ async def test_log_filters_by_level(server):
         assert "lens cap" not in shown and "hello" not in shown
         log.set_level("debug")
         assert len(log.visible()) == len(log.entries)
+
+        # Scan progress and log lines while the Rig tab is shown lay the screen out not once
+        # (the Scan and Log tabs and, at 80 columns, the sidebar are hidden); the Scan tab shows
+        # the latest progress from the first layout that shows it on, the Log tab every line it
+        # missed (also having been shown before at that width)
+        await show_tab(pilot, "rig")
+        view = log.query_one("#log-view", ReflowLog)
+        frames_shown = []  # the frames count the Scan tab shows at each layout
+        lay_out = app.screen._refresh_layout
+
+        def counted(*args, **kwargs):
+            frames_shown.append(static_text(app, "#frames-count"))
+            return lay_out(*args, **kwargs)
+
+        app.screen._refresh_layout = counted
+        events = [ScanStarted(run_dir="runs/x", profile="p", n_views=2, frames_per_view=3)]
+        events += [FrameCaptured(view=0, index=i, name=f"f{i}") for i in range(3)]
+        events += [Message(level="warning", text=f"note {i}") for i in range(3)]
+        entries = len(log.entries)
+        for ev in events:
+            app.post_message(ServerMessage({"type": "event", "event": ev.to_dict()}))
+        await wait_until(pilot, lambda: len(log.entries) == entries + len(events))
+        await pilot.pause()
+        assert frames_shown == []
+        await show_tab(pilot, "scan")
+        assert frames_shown and set(frames_shown) == {"3/6"}
+        await show_tab(pilot, "log")
+        await wait_until(pilot, lambda: view.unwritten == 0)
+        shown = [strip.text.rstrip() for strip in view.lines]
+        assert [line[9:] for line in shown[-3:]] == [f"warning note {i}" for i in range(3)]
+        assert sum("scan started" in line for line in shown) == 1
 
 
 def write_png(server):

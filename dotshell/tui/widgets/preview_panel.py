@@ -52,8 +52,8 @@ def describe_stats(stats: dict[str, Any]) -> str:
 
 class PreviewPanel(DrawnWhileShown, Vertical, can_focus=True):
     """Shows one preview at a time; keeps the session's latest previews for browsing. A preview
-    that comes while the Preview tab is hidden is read and kept at once, drawn when the tab is
-    shown."""
+    that comes while the Preview tab is hidden is read and kept at once and its title written;
+    its image and histogram are drawn when the tab is shown."""
 
     BINDINGS = [Binding("left", "step(-1)", "Previous"), Binding("right", "step(1)", "Next")]
 
@@ -62,7 +62,6 @@ class PreviewPanel(DrawnWhileShown, Vertical, can_focus=True):
         self.items: list[PreviewItem] = []
         self.index = -1
         self.short_path = ShortPaths()
-        self.read_error = ""  # shown in the title instead until the next preview is shown
 
     def compose(self) -> ComposeResult:
         yield Static("no preview yet — snap a frame (Rig: space) or run a scan",
@@ -90,24 +89,17 @@ class PreviewPanel(DrawnWhileShown, Vertical, can_focus=True):
                 image = im.convert("RGB")
                 image.thumbnail((THUMBNAIL_PX, THUMBNAIL_PX))
         except OSError as exc:
-            self.read_error = f"[red]cannot read preview {escape(path)}: {escape(str(exc))}[/]"
-            if self.drawing():
-                show(self.query_one("#preview-title", Static), self.read_error)
+            show(self.query_one("#preview-title", Static),
+                 f"[red]cannot read preview {escape(path)}: {escape(str(exc))}[/]")
             return
         self.items.append(PreviewItem(kind, path, view, image, size, dict(stats or {})))
         del self.items[:-KEEP]
         self.index = len(self.items) - 1
-        self.read_error = ""
         self._show()
-
-    def redraw(self) -> None:
-        self._show()
-        if self.read_error:
-            show(self.query_one("#preview-title", Static), self.read_error)
 
     def _show(self) -> None:
         item = self.current
-        if item is None or not self.drawing():
+        if item is None:
             return
         title = KIND_TITLES.get(item.kind, item.kind)
         if item.view >= 0:
@@ -119,6 +111,15 @@ class PreviewPanel(DrawnWhileShown, Vertical, can_focus=True):
              f"[b]{escape(title)}[/] {self.index + 1}/{len(self.items)}  "
              f"{item.size[0]}×{item.size[1]}  {escape(self.short_path(item.path))}{warning}")
         show(self.query_one("#preview-stats", Static), describe_stats(item.stats))
+        if self.drawing():
+            self.redraw()
+
+    def redraw(self) -> None:
+        """The current preview's histogram and image (a new image lays the screen out and
+        is converted for the terminal: not for a hidden tab)."""
+        item = self.current
+        if item is None:
+            return
         histogram = self.query_one(Sparkline)
         histogram.data = item.stats.get("histogram") or []
         histogram.display = bool(item.stats.get("histogram"))
@@ -142,5 +143,4 @@ class PreviewPanel(DrawnWhileShown, Vertical, can_focus=True):
     def action_step(self, delta: int) -> None:
         if self.items:
             self.index = (self.index + delta) % len(self.items)
-            self.read_error = ""
             self._show()
