@@ -19,8 +19,9 @@ demo: $(STAMP)
 ## test: the test suite (reduced resolutions; a few minutes on 2 cores). Two worker processes,
 ## a test file per worker at a time (module fixtures are built once), the longest files first,
 ## each on one BLAS/OpenMP thread so the two share the cores instead of oversubscribing them;
-## the numba kernels are compiled once before the workers run tests (tests/conftest.py,
-## tests/compile_kernels.py). TEST_WORKERS=0: one process.
+## the numba kernels are compiled once, in the background while the workers run the files
+## that call none; the others wait for them (tests/conftest.py, tests/compile_kernels.py).
+## TEST_WORKERS=0: one process.
 TEST_WORKERS ?= 2
 test: $(STAMP)
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile

@@ -54,8 +54,11 @@ class TetMesh:
     point_data: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
-        self.nodes = np.asarray(self.nodes, np.float64).reshape(-1, 3)
-        self.tets = np.asarray(self.tets, np.int64).reshape(-1, 4)
+        # C order whatever the caller's layout (a column-permuted array is Fortran-ordered):
+        # the numba kernels are compiled for C-ordered arrays, and another layout would compile
+        # a second variant of each (~3-5 s of CPU on first use)
+        self.nodes = np.ascontiguousarray(np.reshape(self.nodes, (-1, 3)), np.float64)
+        self.tets = np.ascontiguousarray(np.reshape(self.tets, (-1, 4)), np.int64)
 
     @cached_property
     def boundary_faces(self) -> np.ndarray:
@@ -205,7 +208,7 @@ def boundary_faces(tets: np.ndarray) -> np.ndarray:
     (tets positively oriented)."""
     from dotshell import fem_kernels  # numba: imported at first use
 
-    tets = np.asarray(tets, np.int64).reshape(-1, 4)
+    tets = np.ascontiguousarray(np.reshape(tets, (-1, 4)), np.int64)  # C order: see TetMesh
     if len(tets) == 0:
         return np.empty((0, 3), np.int64)
     t, f = np.nonzero(fem_kernels.unshared_faces(tets, int(tets.max()) + 1))
@@ -246,7 +249,8 @@ def matrix_pattern(tets: np.ndarray, faces: np.ndarray, n_nodes: int) -> MatrixP
     if 12 * len(tets) + n_nodes >= 2 ** 31:
         raise MeshError(f"a mesh of {len(tets)} tetrahedra is too large for the FEM assembly "
                         "(int32 indices); mesh with a larger node_distance_mm.")
-    indptr, indices, tet_slots = fem_kernels.node_pairs_pattern(tets.astype(np.int32), n_nodes)
+    indptr, indices, tet_slots = fem_kernels.node_pairs_pattern(
+        np.ascontiguousarray(tets, np.int32), n_nodes)  # C order: see TetMesh
     return MatrixPattern(indptr, indices, tet_slots,
                          fem_kernels.block_positions(indptr, indices, faces))
 

@@ -1,6 +1,7 @@
 """Compile dotshell's numba kernels into their on-disk cache (``__pycache__/*.nbi, *.nbc`` next to
-the sources), once, before the test workers start (tests/conftest.py runs this in the pytest-xdist
-controller).
+the sources), once, in the background of the pytest-xdist controller (tests/conftest.py's
+``KernelCompile``) while the workers run the test files that call no kernel; a test of any other
+file waits for it to end.
 
 Why: a clean clone has no cache, and each worker process compiled every kernel itself, at the
 same time as the other (~35 s of CPU each, measured on 2 cores), inside whichever test first

@@ -1,6 +1,8 @@
+import contextlib
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -92,23 +94,43 @@ def small_scan(tmp_path_factory):
     return result, events
 
 
-#: The test files that take longest on one worker (most first; measured with
-#: ``pytest -n 2 --dist loadfile --junitxml``, summed by file). They are handed out first, so the
-#: two workers of ``make test`` finish together instead of one running a long file alone at the
-#: end (xdist's default order, most tests first, put these few-test files last).
-LONGEST_FIRST = ("test_tui.py", "test_normalize.py", "test_tui_pty.py", "test_codings_backends.py",
-                 "test_hardware_scans.py", "test_device_runs.py", "test_codings_robust.py",
-                 "test_calib_sim.py", "test_faults.py", "test_lifecycle.py", "test_mesh.py",
-                 "test_serial_faults.py", "test_batch.py", "test_pdi.py", "test_conformance.py")
+#: The test files that call no numba kernel, in their process or any process they start (measured:
+#: each file run alone with numba's ``Dispatcher._compile_for_args`` logged, in subprocesses too),
+#: longest first. In ``make test`` they are handed out first: they run while the controller
+#: compiles the kernels (:class:`KernelCompile`), filling the cores their waits on devices and
+#: terminals leave idle. A file that calls kernels and is listed here only costs time: its
+#: worker compiles what it calls.
+KERNEL_FREE = ("test_serial_faults.py", "test_tui_snapshots.py", "test_conformance.py",
+               "test_projectors.py", "test_mesh_phantoms.py", "test_device_handles.py",
+               "test_calib_solve.py", "test_device_plugin_guide.py", "test_compat.py",
+               "test_sim.py", "test_plugins.py", "test_ports_cli.py", "test_settings.py",
+               "test_docs.py", "test_store.py", "test_cameras.py", "test_hugepages.py",
+               "test_parallel.py", "test_validate_full.py")
+
+#: The other test files that take longest on one worker, most first (measured with
+#: ``pytest -n 2 --dist loadfile --junitxml``, summed by file; with a clean clone's compiles in
+#: the tests: test_codings_backends compiles the float32 decoder, test_fem and test_geometry
+#: kernels no group compiles). They follow :data:`KERNEL_FREE`, so the two workers of
+#: ``make test`` finish together instead of one running a long file alone at the end (xdist's
+#: default order, most tests first, put these few-test files last).
+LONGEST_FIRST = ("test_tui.py", "test_normalize.py", "test_tui_pty.py", "test_hardware_scans.py",
+                 "test_faults.py", "test_device_runs.py", "test_codings_backends.py",
+                 "test_calib_sim.py", "test_lifecycle.py", "test_mesh.py", "test_batch.py",
+                 "test_pdi.py", "test_cli.py", "test_readers.py", "test_calib_captures.py",
+                 "test_graycode.py", "test_server.py", "test_fem.py", "test_sequenced.py",
+                 "test_sim_transillum.py", "test_runner.py", "test_baselines.py",
+                 "test_geometry.py", "test_decode_reference.py", "test_frames.py",
+                 "test_console.py")
 
 
 def pytest_collection_modifyitems(config, items):
     """Full-resolution (slow) checks may run for many minutes: no per-test timeout there.
-    Files in :data:`LONGEST_FIRST` order come first (each file's tests keep their order)."""
+    Files in :data:`KERNEL_FREE` then :data:`LONGEST_FIRST` order come first (each file's tests
+    keep their order)."""
     for item in items:
         if item.get_closest_marker("slow") is not None:
             item.add_marker(pytest.mark.timeout(0))
-    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    rank = {name: i for i, name in enumerate(KERNEL_FREE + LONGEST_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
@@ -128,7 +150,7 @@ def pytest_collection_finish(session):
     gc.set_threshold(7000, 10, 10)
 
 
-# ---- numba kernels compiled once, before the xdist workers run tests ---------------------------
+# ---- numba kernels compiled once, while the xdist workers run the tests that need none ------
 
 def _is_xdist_controller(config) -> bool:
     return not hasattr(config, "workerinput") and bool(getattr(config.option, "numprocesses", 0))
@@ -166,10 +188,10 @@ def pytest_configure(config):
 
     In the xdist controller (or a run without workers): byte-compile the sources for the
     processes the tests start. In the xdist controller also: hand the files out in collection
-    order, and compile the numba kernels into their on-disk cache in a subprocess
-    (tests/compile_kernels.py: its groups in forked children at once) while the workers start
-    and collect; the first worker to finish collecting waits for them
-    (:func:`pytest_xdist_node_collection_finished`).
+    order, and compile the numba kernels into their on-disk cache in the background
+    (:class:`KernelCompile`) while the workers start, collect and run the files that call no
+    kernel (:data:`KERNEL_FREE`); a test of any other file waits for the kernels
+    (:func:`pytest_runtest_setup`).
 
     In every process: plugin packages' asserts are not rewritten
     (:func:`_rewrite_asserts_of_test_helpers_only`)."""
@@ -181,21 +203,85 @@ def pytest_configure(config):
 
         configure_process()
     else:
-        config.option.loadscopereorder = False  # keep the LONGEST_FIRST order (--dist loadfile)
-        config._dotshell_compile = subprocess.Popen(
+        config.option.loadscopereorder = False  # keep the order of pytest_collection_modifyitems
+        config._dotshell_kernels = KernelCompile()
+
+
+class KernelCompile:
+    """tests/compile_kernels.py (its groups in forked children at once) in the background of
+    the xdist controller; :attr:`ready` (a file) appears when it has ended, whether it
+    succeeded or not (its output is then in :attr:`failure`, if it failed)."""
+
+    def __init__(self) -> None:
+        import tempfile
+        import threading
+
+        self._dir = tempfile.TemporaryDirectory(prefix="dotshell-kernels-")
+        self.ready = Path(self._dir.name) / "ready"
+        self.failure: str | None = None
+        self._proc = subprocess.Popen(
             [sys.executable, str(ROOT / "tests" / "compile_kernels.py")],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT)
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT,
+            start_new_session=True)  # its own process group: stopped with its forked children
+        threading.Thread(target=self._wait, daemon=True).start()
+
+    def _wait(self) -> None:
+        try:
+            out, _ = self._proc.communicate()
+            if self._proc.returncode != 0:
+                self.failure = f"tests/compile_kernels.py failed (exit {self._proc.returncode}):\n{out}"
+        finally:
+            self.ready.touch()
+
+    def stop(self) -> None:
+        """Stop it if it still runs (a run of a few kernel-free tests ended first), and remove
+        :attr:`ready`'s directory."""
+        if self._proc.poll() is None:
+            import signal
+
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(self._proc.pid, signal.SIGTERM)
+            self._proc.wait()
+        self._dir.cleanup()
 
 
 @pytest.hookimpl(optionalhook=True)
-def pytest_xdist_node_collection_finished(node, ids):
-    """No test is handed out before the kernels are in the cache (else each worker compiles
-    them again, ~35 s each)."""
-    proc = getattr(node.config, "_dotshell_compile", None)
-    if proc is None:
+def pytest_configure_node(node):
+    """Each xdist worker is told where :attr:`KernelCompile.ready` appears."""
+    kernels = getattr(node.config, "_dotshell_kernels", None)
+    if kernels is not None:
+        node.workerinput["dotshell_kernels_ready"] = str(kernels.ready)
+
+
+_kernels_ready = False
+
+
+def pytest_runtest_setup(item):
+    """In an xdist worker, a test of a file that calls kernels waits until the controller's
+    :class:`KernelCompile` has ended (else the worker compiles them too, ~20-40 s of CPU,
+    while the other does the same)."""
+    global _kernels_ready
+    ready = getattr(item.config, "workerinput", {}).get("dotshell_kernels_ready")
+    if _kernels_ready or ready is None or item.path.name in KERNEL_FREE:
         return
-    node.config._dotshell_compile = None
-    out, _ = proc.communicate()
-    if proc.returncode != 0:  # the tests that decode will fail and say why; say it here too
-        node.config.get_terminal_writer().line(
-            f"tests/compile_kernels.py failed (exit {proc.returncode}):\n{out}", red=True)
+    deadline = time.monotonic() + KERNELS_WAIT_S
+    while not os.path.exists(ready) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    _kernels_ready = True
+
+
+#: how long a worker waits for the kernels at most (then its tests compile what they need)
+KERNELS_WAIT_S = 600.0
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    """The kernels' compile, if it failed (the tests that decode fail too and say why)."""
+    kernels = getattr(config, "_dotshell_kernels", None)
+    if kernels is not None and kernels.failure:
+        terminalreporter.write_line(kernels.failure, red=True)
+
+
+def pytest_unconfigure(config):
+    kernels = getattr(config, "_dotshell_kernels", None)
+    if kernels is not None:
+        kernels.stop()

@@ -11,6 +11,7 @@ Example counts are modest (the suite stays fast); ``--hypothesis-seed`` reproduc
 from __future__ import annotations
 
 import copy
+import functools
 import json
 import math
 import tempfile
@@ -372,7 +373,11 @@ def test_event_log_reader_never_fails(tmp_path_factory, data):
 
 # ---- meshes and optodes -------------------------------------------------------------------------
 
-def _mesh_files() -> tuple[bytes, bytes]:
+@functools.cache
+def mesh_files() -> tuple[bytes, bytes]:
+    """A valid surface (PLY) and volume (VTU) file's bytes, made at first use, not at
+    collection: writing the volume computes its boundary (a numba kernel, in the workers of
+    ``make test`` compiled only once the controller has compiled it, tests/conftest.py)."""
     from dotshell.fem import TetMesh, TriangleSurface
     from dotshell.meshfiles import write_surface, write_volume
 
@@ -382,9 +387,6 @@ def _mesh_files() -> tuple[bytes, bytes]:
                                                        [1, 2, 3]]))
     write_volume(d / "v.vtu", TetMesh(nodes, [[0, 1, 2, 3]], {"mua_per_mm": np.full(4, 0.01)}))
     return (d / "s.ply").read_bytes(), (d / "v.vtu").read_bytes()
-
-
-SURFACE, VOLUME = _mesh_files()
 
 
 def _surface_ok(s) -> None:
@@ -403,7 +405,7 @@ def _volume_ok(m) -> None:
 def test_surface_reader(data):
     from dotshell.meshfiles import read_surface
 
-    refused_or(lambda: read_surface(in_file(mutate_bytes(data, SURFACE), "surface.ply")),
+    refused_or(lambda: read_surface(in_file(mutate_bytes(data, mesh_files()[0]), "surface.ply")),
                _surface_ok)
 
 
@@ -412,7 +414,7 @@ def test_surface_reader(data):
 def test_volume_reader(data):
     from dotshell.meshfiles import read_volume
 
-    refused_or(lambda: read_volume(in_file(mutate_bytes(data, VOLUME), "volume.vtu")),
+    refused_or(lambda: read_volume(in_file(mutate_bytes(data, mesh_files()[1]), "volume.vtu")),
                _volume_ok)
 
 

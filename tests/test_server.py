@@ -161,6 +161,45 @@ def test_clients_watch_one_controls_and_everyone_sees_the_scan(session):
         assert "stage jogged" not in run_log  # only what happened during the scan
 
 
+def test_rows_and_state_pushed_while_a_client_is_greeted_reach_it_after_its_reply(session,
+                                                                                monkeypatch):
+    """The TUI's empty device table (seen once in a loaded test run): the server's poll pushed
+    new device rows while a client's hello was being answered, and the client applied the
+    reply's older rows after them; no later push came (the rows did not change again). Here
+    the poll's pushes are made to happen in the middle of the hello, and the client's thread
+    to be slow after it (a loaded machine)."""
+    with served(session, poll_s=3600) as server:  # no poll but the ones forced here
+        state, pushes, waited = server.state, [], []
+
+        def state_during_hello():
+            if threading.current_thread().name != "push" and not pushes:
+                for push in (server._push_devices, server.push_state):
+                    pushes.append(threading.Thread(target=push, name="push"))
+                    pushes[-1].start()
+                    pushes[-1].join(0.3)  # done at once, unless it waits for the hello's reply
+                    waited.append(pushes[-1].is_alive())
+            return state()
+
+        call = RemoteSession.call
+
+        def slow_after_hello(self, cmd, *args, **kwargs):
+            result = call(self, cmd, *args, **kwargs)
+            if cmd == "hello":
+                time.sleep(0.3)  # the pushes after the reply arrive meanwhile
+            return result
+
+        monkeypatch.setattr(server, "state", state_during_hello)
+        monkeypatch.setattr(RemoteSession, "call", slow_after_hello)
+        client = attach(server, control=False)
+        try:
+            assert waited == [True, True]  # the server's pushes waited for the reply
+            assert all(t.join(10) is None and not t.is_alive() for t in pushes)
+            assert [r["role"] for r in client.rows] == ["camera", "projector", "stage"]
+            assert client.rows == server._last_rows and client.state == server._last_state
+        finally:
+            client.close()
+
+
 def test_a_watcher_may_abort_and_the_server_exits_when_idle(session, monkeypatch):
     monkeypatch.setattr(server_module, "IDLE_GRACE_S", 0.5)
     gate = threading.Event()

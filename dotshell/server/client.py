@@ -33,9 +33,10 @@ def tty_name() -> str | None:
 
 
 class _Pending:
-    def __init__(self) -> None:
+    def __init__(self, on_result: Callable[[Any], None] | None = None) -> None:
         self.done = threading.Event()
         self.reply: dict[str, Any] | None = None
+        self.on_result = on_result
 
 
 class ServerClient:
@@ -66,11 +67,13 @@ class ServerClient:
 
     # ---- requests -------------------------------------------------------------------------------
 
-    def call(self, cmd: str, timeout: float | None = None, **args: Any) -> Any:
+    def call(self, cmd: str, timeout: float | None = None,
+             on_result: Callable[[Any], None] | None = None, **args: Any) -> Any:
         """Send a request and wait for its reply; the result, or the server's error raised
-        (as the same :mod:`dotshell.errors` class)."""
+        (as the same :mod:`dotshell.errors` class). ``on_result(result)`` runs on the reader
+        thread as the reply arrives, before any message the server sent after it."""
         rid = next(self._ids)
-        pending = _Pending()
+        pending = _Pending(on_result)
         with self._lock:
             if self.closed.is_set():
                 raise ServerError(f"the rig server is gone ({self.close_reason}).")
@@ -122,7 +125,11 @@ class ServerClient:
                 pending = self._pending.pop(message.get("id"), None)  # type: ignore[arg-type]
             if pending is not None:
                 pending.reply = message
-                pending.done.set()
+                try:
+                    if message.get("ok") and pending.on_result is not None:
+                        pending.on_result(message.get("result"))
+                finally:
+                    pending.done.set()
             return
         if message.get("type") == "bye":
             self.close_reason = f"the server stopped: {message.get('reason', '')}"
@@ -180,13 +187,18 @@ class RemoteSession(ServerClient):
         self.state: dict[str, Any] = {}
         self.rows: list[dict[str, Any]] = []
         welcome = self.call("hello", protocol=PROTOCOL_VERSION, client=client, pid=os.getpid(),
-                            tty=tty_name(), control=control, timeout=60)
+                            tty=tty_name(), control=control, timeout=60, on_result=self._greeted)
         self.id: int = welcome["you"]
-        self.state = welcome["state"]
-        self.rows = welcome.get("rows") or []
         self.tracker = ScanTracker.from_dict(welcome["tracker"])
         self.backlog: list[Event] = [event_from_wire(e) for e in welcome["backlog"]]
         self.history: list[str] = list(welcome["history"])
+
+    def _greeted(self, welcome: dict[str, Any]) -> None:
+        """The hello's state and device rows, taken on the reader thread: a state or rows
+        pushed right after the reply are newer, and are applied after these (taken on the
+        calling thread, the reply's could land after them and hide them)."""
+        self.state = welcome["state"]
+        self.rows = welcome.get("rows") or []
 
     def on_message(self, message: dict[str, Any]) -> None:
         kind = message.get("type")

@@ -205,7 +205,9 @@ class RigServer:
         self.console = ServerConsole(session, self.broadcast, history_file)
         self.context = Context(session, self.console)
         self._clients_lock = threading.RLock()
-        self._event_lock = threading.Lock()  # an attaching client sees each event exactly once
+        # held while a client is greeted and while events, states and device rows are pushed: an
+        # attaching client gets each of them exactly once, and never after a newer one
+        self._event_lock = threading.RLock()
         self._log_lock = threading.RLock()
         self._log: TextIO = open(self.log_path, "a", encoding="utf-8", buffering=1)
         self._run_log: TextIO | None = None
@@ -498,9 +500,10 @@ class RigServer:
         except Exception as exc:  # a half-loaded profile: try again at the next poll
             self.log(f"state unavailable: {type(exc).__name__}: {exc}", "debug")
             return
-        if state != self._last_state:
-            self._last_state = state
-            self.broadcast({"type": "state", "state": state})
+        with self._event_lock:  # not between a hello's reply and its client's greeting
+            if state != self._last_state:
+                self._last_state = state
+                self.broadcast({"type": "state", "state": state})
 
     def _on_event(self, ev: Event) -> None:
         wire = ev.to_dict()
@@ -540,9 +543,10 @@ class RigServer:
             rows = [{"role": "?", "backend": "?", "connected": False,
                      "status": {"error": f"{type(exc).__name__}: {exc}"}}]
         rows = decode(encode({"rows": rows}))["rows"]  # as the clients will see them
-        if rows != self._last_rows:
-            self._last_rows = rows
-            self.broadcast({"type": "devices", "rows": rows})
+        with self._event_lock:  # else a client greeted meanwhile could miss these rows or get
+            if rows != self._last_rows:  # them before its hello reply, whose older ones won
+                self._last_rows = rows
+                self.broadcast({"type": "devices", "rows": rows})
 
     # ---- logs ------------------------------------------------------------------------------------------
 
