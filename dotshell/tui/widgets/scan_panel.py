@@ -47,11 +47,13 @@ class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
         yield Static(id="scan-state")
         with Horizontal(classes="bar-row"):
             yield Label("views ", classes="bar-label")
-            yield ProgressBar(id="views-bar", show_eta=False)
+            # a total from the start: a bar without one animates (15 redraws a second, also
+            # while the tab is hidden and before the panel first draws)
+            yield ProgressBar(total=1, id="views-bar", show_eta=False)
             yield Label(id="views-count", classes="bar-count")
         with Horizontal(classes="bar-row"):
             yield Label("frames", classes="bar-label")
-            yield ProgressBar(id="frames-bar", show_eta=False)
+            yield ProgressBar(total=1, id="frames-bar", show_eta=False)
             yield Label(id="frames-count", classes="bar-count")
         yield Static(id="scan-result")
         yield Static(id="scan-error", classes="error")
