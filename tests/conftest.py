@@ -223,13 +223,15 @@ class KernelCompile:
             [sys.executable, str(ROOT / "tests" / "compile_kernels.py")],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT,
             start_new_session=True)  # its own process group: stopped with its forked children
-        threading.Thread(target=self._wait, daemon=True).start()
+        self._waiter = threading.Thread(target=self._wait, daemon=True)
+        self._waiter.start()
 
     def _wait(self) -> None:
         try:
             out, _ = self._proc.communicate()
-            if self._proc.returncode != 0:
-                self.failure = f"tests/compile_kernels.py failed (exit {self._proc.returncode}):\n{out}"
+            code = self._proc.returncode
+            if code != 0:
+                self.failure = f"tests/compile_kernels.py failed (exit {code}):\n{out}"
         finally:
             self.ready.touch()
 
@@ -241,7 +243,7 @@ class KernelCompile:
 
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(self._proc.pid, signal.SIGTERM)
-            self._proc.wait()
+        self._waiter.join()
         self._dir.cleanup()
 
 
@@ -252,6 +254,9 @@ def pytest_configure_node(node):
     if kernels is not None:
         node.workerinput["dotshell_kernels_ready"] = str(kernels.ready)
 
+
+#: how long a worker waits for the kernels at most (then its tests compile what they need)
+KERNELS_WAIT_S = 600.0
 
 _kernels_ready = False
 
@@ -268,10 +273,6 @@ def pytest_runtest_setup(item):
     while not os.path.exists(ready) and time.monotonic() < deadline:
         time.sleep(0.05)
     _kernels_ready = True
-
-
-#: how long a worker waits for the kernels at most (then its tests compile what they need)
-KERNELS_WAIT_S = 600.0
 
 
 def pytest_terminal_summary(terminalreporter, config):
