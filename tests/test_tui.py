@@ -282,6 +282,47 @@ async def test_a_narrow_terminal_stacks_the_device_table(server):
         await wait_until(pilot, lambda: "backend" in static_text(app, "#rig-table"))
 
 
+def lines_of(table):
+    """Lines the content of the device table takes at the width it has."""
+    console = Console(width=table.content_size.width, record=True, file=io.StringIO())
+    console.print(table.content)
+    return len(console.export_text().splitlines())
+
+
+def screen_lines(app):
+    """The text the terminal shows, line by line (what a person sees, clipping included)."""
+    return [strip.text for strip in app.screen._compositor.render_strips()]
+
+
+async def test_the_device_table_is_as_tall_as_its_rows_whatever_was_drawn_before(server):
+    """The device table is repainted without a screen layout only when its rows take exactly
+    the lines it was laid out with. A row list that was drawn but never laid out (the server
+    pushes a partial list while the profile's devices are made, the full one right after)
+    must not leave the table at the older list's height, clipping devices off the screen."""
+    app = app_for(server)
+    async with running(app, (120, 40)) as pilot:
+        await wait_until(pilot, lambda: "sim-turntable" in static_text(app, "#rig-table"))
+        panel = app.panel(RigPanel)
+        table = app.screen_stack[0].query_one("#rig-table")
+        rows = list(panel.rows)
+        assert [r["role"] for r in rows] == ["camera", "projector", "stage"]
+        for drawn in ([], rows[:1], rows[:2], rows, rows[:1], [], rows):
+            panel.show_rows(drawn)
+            await pilot.pause()
+            assert table.size.height == lines_of(table)
+            assert table.size.height >= len(drawn) + 2  # header, rows, the absent devices line
+        # the list before was drawn but never laid out, and took as many lines as this one
+        full = table.size.height
+        panel.show_rows([])
+        await pilot.pause()
+        table.update("\n".join(["never laid out"] * full), layout=False)
+        panel.show_rows(rows)
+        await pilot.pause()
+        assert table.size.height == lines_of(table) == full
+        shown = "\n".join(screen_lines(app))
+        assert all(r["backend"] in shown for r in rows) and "never laid out" not in shown
+
+
 # ---- tabs, focus, keys ---------------------------------------------------------------------------
 
 async def show_tab(pilot, tab):

@@ -22,19 +22,17 @@ def show(widget: Static, content: VisualType) -> None:
 def update(widget: Static, content: VisualType) -> None:
     """``widget.update(content)``, repainting only the widget when its size cannot change:
     its width is not set by its content (nor is an enclosing width) and its height is fixed or
-    the new content is as many lines tall at the width it has. Otherwise (and before the
-    widget was ever laid out) the screen is laid out again, as ``Static.update`` does."""
-    width = widget.content_size.width
-    if width <= 0 or _width_follows_content(widget):
+    the new content is exactly as many lines tall as the widget was last laid out. Otherwise
+    (and before the widget was ever laid out) the screen is laid out again, as
+    ``Static.update`` does. The test is against the laid-out size, not the content shown
+    before: that content may never have been laid out (drawn again before the layout ran)."""
+    size = widget.content_size
+    if size.width <= 0 or _width_follows_content(widget):
         widget.update(content)
         return
     height = widget.styles.height
-    if height is not None and not height.is_auto:
-        widget.update(content, layout=False)
-        return
-    before = _content_height(widget, width)
     widget.update(content, layout=False)
-    if _content_height(widget, width) != before:
+    if (height is None or height.is_auto) and _content_height(widget, size.width) != size.height:
         widget.refresh(layout=True)
 
 
