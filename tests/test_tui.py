@@ -158,13 +158,13 @@ async def test_connect_jog_snap_from_the_rig_panel(server):
         preview = app.panel(PreviewPanel)
         await wait_until(pilot, lambda: preview.current is not None)
         assert preview.current.kind == "snap" and preview.current.size == (w, h)
+        await show_tab(pilot, "preview")  # its histogram and image are drawn when shown
         assert f"{w}×{h}" in static_text(app, "#preview-title")
         stats = preview.current.stats
         assert stats["max"] == raw.max() and stats["min"] == raw.min()
         assert stats["saturated_pct"] == pytest.approx(100 * np.mean(raw >= 4095))
         assert f"max {raw.max():g}" in static_text(app, "#preview-stats")
         assert preview.query_one(Sparkline).data == stats["histogram"]
-        await show_tab(pilot, "preview")
         image = preview.query_one("#preview-image").region
         drawn = (image.width * 1.0) / (image.height * 2.0)  # cells are twice as tall as wide
         assert drawn == pytest.approx(w / h, rel=0.08)
@@ -280,6 +280,47 @@ async def test_a_narrow_terminal_stacks_the_device_table(server):
         await pilot.resize_terminal(120, 40)
         await pilot.pause()
         await wait_until(pilot, lambda: "backend" in static_text(app, "#rig-table"))
+
+
+def lines_of(table):
+    """Lines the content of the device table takes at the width it has."""
+    console = Console(width=table.content_size.width, record=True, file=io.StringIO())
+    console.print(table.content)
+    return len(console.export_text().splitlines())
+
+
+def screen_lines(app):
+    """The text the terminal shows, line by line (what a person sees, clipping included)."""
+    return [strip.text for strip in app.screen._compositor.render_strips()]
+
+
+async def test_the_device_table_is_as_tall_as_its_rows_whatever_was_drawn_before(server):
+    """The device table is repainted without a screen layout only when its rows take exactly
+    the lines it was laid out with. A row list that was drawn but never laid out (the server
+    pushes a partial list while the profile's devices are made, the full one right after)
+    must not leave the table at the older list's height, clipping devices off the screen."""
+    app = app_for(server)
+    async with running(app, (120, 40)) as pilot:
+        await wait_until(pilot, lambda: "sim-turntable" in static_text(app, "#rig-table"))
+        panel = app.panel(RigPanel)
+        table = app.screen_stack[0].query_one("#rig-table")
+        rows = list(panel.rows)
+        assert [r["role"] for r in rows] == ["camera", "projector", "stage"]
+        for drawn in ([], rows[:1], rows[:2], rows, rows[:1], [], rows):
+            panel.show_rows(drawn)
+            await pilot.pause()
+            assert table.size.height == lines_of(table)
+            assert table.size.height >= len(drawn) + 2  # header, rows, the absent devices line
+        # the list before was drawn but never laid out, and took as many lines as this one
+        full = table.size.height
+        panel.show_rows([])
+        await pilot.pause()
+        table.update("\n".join(["never laid out"] * full), layout=False)
+        panel.show_rows(rows)
+        await pilot.pause()
+        assert table.size.height == lines_of(table) == full
+        shown = "\n".join(screen_lines(app))
+        assert all(r["backend"] in shown for r in rows) and "never laid out" not in shown
 
 
 # ---- tabs, focus, keys ---------------------------------------------------------------------------
@@ -756,6 +797,37 @@ async def test_log_filters_by_level(server):
         assert "lens cap" not in shown and "hello" not in shown
         log.set_level("debug")
         assert len(log.visible()) == len(log.entries)
+
+        # Scan progress and log lines while the Rig tab is shown lay the screen out not once
+        # (the Scan and Log tabs and, at 80 columns, the sidebar are hidden); the Scan tab shows
+        # the latest progress from the first layout that shows it on, the Log tab every line it
+        # missed (also having been shown before at that width)
+        await show_tab(pilot, "rig")
+        view = log.query_one("#log-view", ReflowLog)
+        frames_shown = []  # the frames count the Scan tab shows at each layout
+        lay_out = app.screen._refresh_layout
+
+        def counted(*args, **kwargs):
+            frames_shown.append(static_text(app, "#frames-count"))
+            return lay_out(*args, **kwargs)
+
+        app.screen._refresh_layout = counted
+        events = [ScanStarted(run_dir="runs/x", profile="p", n_views=2, frames_per_view=3)]
+        events += [FrameCaptured(view=0, index=i, name=f"f{i}") for i in range(3)]
+        events += [Message(level="warning", text=f"note {i}") for i in range(3)]
+        entries = len(log.entries)
+        for ev in events:
+            app.post_message(ServerMessage({"type": "event", "event": ev.to_dict()}))
+        await wait_until(pilot, lambda: len(log.entries) == entries + len(events))
+        await pilot.pause()
+        assert frames_shown == []
+        await show_tab(pilot, "scan")
+        assert frames_shown and set(frames_shown) == {"3/6"}
+        await show_tab(pilot, "log")
+        await wait_until(pilot, lambda: view.unwritten == 0)
+        shown = [strip.text.rstrip() for strip in view.lines]
+        assert [line[9:] for line in shown[-3:]] == [f"warning note {i}" for i in range(3)]
+        assert sum("scan started" in line for line in shown) == 1
 
 
 def write_png(server):

@@ -22,7 +22,7 @@ from textual.binding import Binding
 from textual.containers import Horizontal
 from textual.screen import Screen
 from textual.widget import Widget
-from textual.widgets import Header, TabbedContent, TabPane
+from textual.widgets import ContentSwitcher, Header, TabbedContent, TabPane
 from textual.widgets._tabbed_content import ContentTabs
 
 from dotshell.errors import DotshellError
@@ -31,6 +31,7 @@ from dotshell.server.paths import user_config
 from dotshell.server.progress import ScanTracker
 from dotshell.server.protocol import event_from_wire
 from dotshell.tui.messages import ActionDone, ServerMessage
+from dotshell.tui.redraw import DrawnWhileShown
 from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.console_panel import ConsolePanel
 from dotshell.tui.widgets.keys_footer import KeysFooter
@@ -104,6 +105,8 @@ class DotshellApp(App):
 
     def on_mount(self) -> None:
         self._main_up = True
+        switcher = self.panel(TabbedContent).query_one(ContentSwitcher)
+        self.watch(switcher, "current", self._pane_switched_to, init=False)
         log = self.panel(LogPanel)
         previews = []
         for ev in self.session.backlog:
@@ -158,6 +161,15 @@ class DotshellApp(App):
         if target is not None:
             target.focus(scroll_visible=False)  # takes effect before the switch below
         self.call_later(setattr, self.panel(TabbedContent), "active", tab)
+
+    def _pane_switched_to(self, pane_id: str | None) -> None:
+        """The panels of the pane just shown draw what they missed while hidden: at once,
+        before the screen is laid out and painted with the pane, so no frame is stale."""
+        if not (pane_id and self.main_ready):
+            return
+        for widget in self.screen_stack[0].query_one(f"TabPane#{pane_id}").walk_children():
+            if isinstance(widget, DrawnWhileShown):
+                widget.catch_up()
 
     def on_tabbed_content_tab_activated(self, event: TabbedContent.TabActivated) -> None:
         """A tab chosen on the tab bar: the bar keeps the focus while the user walks along it

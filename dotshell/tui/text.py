@@ -1,8 +1,12 @@
-"""How device status reads on screen (pure strings)."""
+"""How device status and paths read on screen."""
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
 from typing import Any
+
+from dotshell.server.describe import short_path
 
 
 def describe_status(role: str, status: dict[str, Any], projected: str | None = None,
@@ -27,3 +31,23 @@ def describe_status(role: str, status: dict[str, Any], projected: str | None = N
                 value = "×".join(map(str, value))
             parts.append(f"{key.replace('_', ' ')} {value}")
     return " · ".join(parts)
+
+
+class ShortPaths:
+    """:func:`~dotshell.server.describe.short_path` of each path asked for, remembered: it
+    resolves the path and the working directory on disk (system calls that, in a busy process,
+    also wait for the interpreter lock), and the panels draw the same few paths — the run, the
+    output directory, the profile — on every progress message. One per panel: the TUI never
+    changes its working directory."""
+
+    def __init__(self) -> None:
+        self._known: dict[str, str] = {}
+
+    def __call__(self, path: str | Path) -> str:
+        key = os.fspath(path)
+        shown = self._known.get(key)
+        if shown is None:
+            if len(self._known) >= 256:
+                self._known.clear()
+            shown = self._known[key] = short_path(key)
+        return shown

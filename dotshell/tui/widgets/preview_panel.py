@@ -18,7 +18,8 @@ from textual.widgets import Sparkline, Static
 
 from dotshell.console import PreviewSaved
 from dotshell.events import Event
-from dotshell.server.describe import short_path
+from dotshell.tui.redraw import DrawnWhileShown, show
+from dotshell.tui.text import ShortPaths
 from dotshell.tui.widgets.image_view import cell_aspect, fit_cells, image_widget
 
 KIND_TITLES = {"snap": "snapshot", "frame": "latest frame", "columns": "decoded columns",
@@ -49,8 +50,10 @@ def describe_stats(stats: dict[str, Any]) -> str:
             + (f"[{style}]{sat_text}[/]" if style else sat_text))
 
 
-class PreviewPanel(Vertical, can_focus=True):
-    """Shows one preview at a time; keeps the session's latest previews for browsing."""
+class PreviewPanel(DrawnWhileShown, Vertical, can_focus=True):
+    """Shows one preview at a time; keeps the session's latest previews for browsing. A preview
+    that comes while the Preview tab is hidden is read and kept at once and its title written;
+    its image and histogram are drawn when the tab is shown."""
 
     BINDINGS = [Binding("left", "step(-1)", "Previous"), Binding("right", "step(1)", "Next")]
 
@@ -58,6 +61,7 @@ class PreviewPanel(Vertical, can_focus=True):
         super().__init__(**kwargs)
         self.items: list[PreviewItem] = []
         self.index = -1
+        self.short_path = ShortPaths()
 
     def compose(self) -> ComposeResult:
         yield Static("no preview yet — snap a frame (Rig: space) or run a scan",
@@ -85,8 +89,8 @@ class PreviewPanel(Vertical, can_focus=True):
                 image = im.convert("RGB")
                 image.thumbnail((THUMBNAIL_PX, THUMBNAIL_PX))
         except OSError as exc:
-            self.query_one("#preview-title", Static).update(
-                f"[red]cannot read preview {escape(path)}: {escape(str(exc))}[/]")
+            show(self.query_one("#preview-title", Static),
+                 f"[red]cannot read preview {escape(path)}: {escape(str(exc))}[/]")
             return
         self.items.append(PreviewItem(kind, path, view, image, size, dict(stats or {})))
         del self.items[:-KEEP]
@@ -103,10 +107,19 @@ class PreviewPanel(Vertical, can_focus=True):
         colours = self.app.console.color_system
         warning = "" if colours == "truecolor" else (
             f"  [yellow]only {colours or 'no'} colours: the image is approximate[/]")
-        self.query_one("#preview-title", Static).update(
-            f"[b]{escape(title)}[/] {self.index + 1}/{len(self.items)}  "
-            f"{item.size[0]}×{item.size[1]}  {escape(short_path(item.path))}{warning}")
-        self.query_one("#preview-stats", Static).update(describe_stats(item.stats))
+        show(self.query_one("#preview-title", Static),
+             f"[b]{escape(title)}[/] {self.index + 1}/{len(self.items)}  "
+             f"{item.size[0]}×{item.size[1]}  {escape(self.short_path(item.path))}{warning}")
+        show(self.query_one("#preview-stats", Static), describe_stats(item.stats))
+        if self.drawing():
+            self.redraw()
+
+    def redraw(self) -> None:
+        """The current preview's histogram and image (a new image lays the screen out and
+        is converted for the terminal: not for a hidden tab)."""
+        item = self.current
+        if item is None:
+            return
         histogram = self.query_one(Sparkline)
         histogram.data = item.stats.get("histogram") or []
         histogram.display = bool(item.stats.get("histogram"))

@@ -23,8 +23,8 @@ from textual.widgets import Static
 from dotshell.server.describe import short_path
 from dotshell.tui.jog import JogQueue
 from dotshell.tui.messages import ActionDone
-from dotshell.tui.redraw import show
-from dotshell.tui.text import describe_status
+from dotshell.tui.redraw import DrawnWhileShown, show, update
+from dotshell.tui.text import ShortPaths, describe_status
 from dotshell.tui.widgets.choice import ChoiceScreen
 from dotshell.tui.widgets.prompt import PromptScreen
 
@@ -37,8 +37,10 @@ HELP = ("[b]c[/] connect  [b]d[/] disconnect  [b][ ][/] jog ∓step  [b]+ -[/] s
 STACK_BELOW = 80
 
 
-class RigPanel(Vertical, can_focus=True):
-    """Device table and rig keys; every action is a request to the server, run in a worker."""
+class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
+    """Device table and rig keys; every action is a request to the server, run in a worker.
+    The profile and the device table are drawn while the Rig tab is shown (from the latest
+    rows when it is shown again)."""
 
     BINDINGS = [
         Binding("c", "connect", "Connect"),
@@ -63,6 +65,7 @@ class RigPanel(Vertical, can_focus=True):
         self.last_error = ""
         self.rows: list[dict[str, Any]] = []
         self._drawn: tuple[Any, ...] | None = None  # what the device table shows now
+        self.short_path = ShortPaths()
         self.jogs = JogQueue(lambda deg: self._do("jog", self.session.jog, deg))
 
     def compose(self) -> ComposeResult:
@@ -78,9 +81,14 @@ class RigPanel(Vertical, can_focus=True):
 
     # ---- display ------------------------------------------------------------------------------
 
+    def redraw(self) -> None:
+        self.show_profile()
+
     def show_profile(self) -> None:
+        if not self.drawing():
+            return
         p = self.session.profile
-        title = (f"[b]{escape(p['name'])}[/]  {escape(short_path(p['source']))}" if p else
+        title = (f"[b]{escape(p['name'])}[/]  {escape(self.short_path(p['source']))}" if p else
                  "[b]no profile loaded[/] — press ctrl+o to pick one")
         show(self.query_one("#rig-title", Static), f"{title}   jog step {self.step_deg:g}°")
         self.show_rows(self.rows)
@@ -89,13 +97,15 @@ class RigPanel(Vertical, can_focus=True):
         """Draw the device table, unless it shows these rows this way already (the app
         calls this on every state change and each time the tab is shown)."""
         self.rows = rows
+        if not self.drawing():
+            return
         projected = self.session.projected
         stacked = self.app.size.width < STACK_BELOW
         if self._drawn == (stacked, projected, rows):
             return
         self._drawn = (stacked, projected, rows)
         if stacked:
-            self.query_one("#rig-table", Static).update(self._stacked(rows, projected))
+            update(self.query_one("#rig-table", Static), self._stacked(rows, projected))
             return
         table = Table(box=None, expand=True, pad_edge=False, header_style="bold")
         table.add_column("device", no_wrap=True)
@@ -109,7 +119,7 @@ class RigPanel(Vertical, can_focus=True):
                           Text(status, "red" if status.startswith("error") else ""))
         absent = self._absent(rows)
         note = Text(f"not in profile: {', '.join(absent)}" if rows and absent else "", "dim")
-        self.query_one("#rig-table", Static).update(Group(table, note))
+        update(self.query_one("#rig-table", Static), Group(table, note))
 
     def _stacked(self, rows: list[dict[str, Any]], projected: str | None) -> Text:
         out = Text()
@@ -136,8 +146,8 @@ class RigPanel(Vertical, can_focus=True):
 
     def show_result(self, text: str, error: str = "") -> None:
         self.last_result, self.last_error = text, error
-        self.query_one("#rig-result", Static).update(escape(text))
-        self.query_one("#rig-error", Static).update(escape(error))
+        show(self.query_one("#rig-result", Static), escape(text))
+        show(self.query_one("#rig-error", Static), escape(error))
 
     def on_action_done(self, message: ActionDone) -> None:
         if message.label == "jog":

@@ -14,10 +14,10 @@ from textual.binding import Binding
 from textual.containers import Horizontal, Vertical
 from textual.widgets import Label, ProgressBar, Static
 
-from dotshell.server.describe import short_path
 from dotshell.server.progress import ScanTracker, format_seconds
 from dotshell.tui.messages import ActionDone
-from dotshell.tui.redraw import show
+from dotshell.tui.redraw import DrawnWhileShown, show
+from dotshell.tui.text import ShortPaths
 from dotshell.tui.widgets.confirm import ConfirmScreen
 
 HELP = "[b]s[/] start  [b]p[/] pause / resume  [b]x[/] abort (frames are kept)  [b]esc[/] stop"
@@ -27,8 +27,9 @@ STATE_STYLE = {"running": "green", "paused": "yellow", "stopping": "yellow", "co
 CONFIRM_ABORT_AFTER_S = 60.0
 
 
-class ScanPanel(Vertical, can_focus=True):
-    """Scan controls and progress, redrawn from the app's :class:`ScanTracker`."""
+class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
+    """Scan controls and progress, redrawn from the app's :class:`ScanTracker` (while the Scan
+    tab is shown; from the latest progress when it is shown again)."""
 
     BINDINGS = [
         Binding("s", "start", "Start scan"),
@@ -39,17 +40,20 @@ class ScanPanel(Vertical, can_focus=True):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.failure = ""
+        self.short_path = ShortPaths()
 
     def compose(self) -> ComposeResult:
         yield Static(id="scan-plan")
         yield Static(id="scan-state")
         with Horizontal(classes="bar-row"):
             yield Label("views ", classes="bar-label")
-            yield ProgressBar(id="views-bar", show_eta=False)
+            # a total from the start: a bar without one animates (15 redraws a second, also
+            # while the tab is hidden and before the panel first draws)
+            yield ProgressBar(total=1, id="views-bar", show_eta=False)
             yield Label(id="views-count", classes="bar-count")
         with Horizontal(classes="bar-row"):
             yield Label("frames", classes="bar-label")
-            yield ProgressBar(id="frames-bar", show_eta=False)
+            yield ProgressBar(total=1, id="frames-bar", show_eta=False)
             yield Label(id="frames-count", classes="bar-count")
         yield Static(id="scan-result")
         yield Static(id="scan-error", classes="error")
@@ -59,7 +63,12 @@ class ScanPanel(Vertical, can_focus=True):
     def session(self) -> Any:
         return self.app.session  # type: ignore[attr-defined]
 
+    def redraw(self) -> None:
+        self.show_tracker(self.app.tracker, time.time())  # type: ignore[attr-defined]
+
     def show_tracker(self, t: ScanTracker, now_s: float) -> None:
+        if not self.drawing():
+            return
         self._show_plan()
         session = self.session
         state = session.session_state if session.scanning else t.shown_status
@@ -86,16 +95,18 @@ class ScanPanel(Vertical, can_focus=True):
 
     def _show_plan(self) -> None:
         p = self.session.profile
-        text = "no profile loaded — ctrl+o" if p is None else (
-            f"[b]{escape(p['name'])}[/]: {p['views']} views, exposure {p['exposure_ms']:g} ms, "
-            f"coding {escape(p['coding'])} → {escape(short_path(self.session.state['out_dir']))}/")
+        if p is None:
+            text = "no profile loaded — ctrl+o"
+        else:
+            out_dir = self.short_path(self.session.state["out_dir"])
+            text = (f"[b]{escape(p['name'])}[/]: {p['views']} views, exposure "
+                    f"{p['exposure_ms']:g} ms, coding {escape(p['coding'])} → {escape(out_dir)}/")
         show(self.query_one("#scan-plan", Static), text)
 
-    @staticmethod
-    def _result(t: ScanTracker) -> str:
+    def _result(self, t: ScanTracker) -> str:
         if not t.run_dir:
             return ""
-        text = f"run {escape(short_path(t.run_dir))}"
+        text = f"run {escape(self.short_path(t.run_dir))}"
         if t.points:
             text += f"   {t.points} points in {t.views_reconstructed} views"
         s = t.summary

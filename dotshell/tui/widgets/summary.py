@@ -3,6 +3,7 @@ glance."""
 
 from __future__ import annotations
 
+import time
 from typing import Any
 
 from rich.markup import escape
@@ -11,12 +12,17 @@ from textual.containers import Vertical
 from textual.widgets import Static
 
 from dotshell.server.progress import ScanTracker, format_seconds
-from dotshell.tui.redraw import show
+from dotshell.tui.redraw import DrawnWhileShown, show
 from dotshell.tui.text import describe_status
 
 
-class Summary(Vertical):
-    """Compact server, device and scan status, redrawn by the app."""
+class Summary(DrawnWhileShown, Vertical):
+    """Compact server, device and scan status, redrawn by the app (while the sidebar is shown:
+    from the latest state when a wider terminal shows it again)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.rows: list[dict[str, Any]] = []
 
     def compose(self) -> ComposeResult:
         yield Static("[b]Server[/]", classes="summary-title")
@@ -26,7 +32,15 @@ class Summary(Vertical):
         yield Static("[b]Scan[/]", classes="summary-title")
         yield Static(id="summary-scan")
 
+    def redraw(self) -> None:
+        session = self.app.session  # type: ignore[attr-defined]
+        self.show_server(session)
+        self.show_rows(self.rows)
+        self.show_scan(self.app.tracker, session, time.time())  # type: ignore[attr-defined]
+
     def show_server(self, session: Any) -> None:
+        if not self.drawing():
+            return
         state = session.state
         c = state.get("controller")
         who = ("you control" if session.in_control else
@@ -35,6 +49,9 @@ class Summary(Vertical):
              f"{escape(session.server_name)}\n{who}; {len(state.get('clients', []))} attached")
 
     def show_rows(self, rows: list[dict[str, Any]]) -> None:
+        self.rows = rows
+        if not self.drawing():
+            return
         lines = []
         for row in rows:
             mark = "[green]●[/]" if row["connected"] else "[dim]○[/]"
@@ -43,6 +60,8 @@ class Summary(Vertical):
         show(self.query_one("#summary-rig", Static), "\n".join(lines) or "[dim]no devices[/]")
 
     def show_scan(self, t: ScanTracker, session: Any, now_s: float) -> None:
+        if not self.drawing():
+            return
         state = session.session_state if session.scanning else t.shown_status
         lines = [f"state {state}"]
         if t.n_views:
