@@ -12,7 +12,6 @@ import pytest
 import textual.constants
 from PIL import Image
 from rich.console import Console
-from rich.text import Text
 from textual.command import CommandPalette
 from textual.content import Content
 from textual.widgets import Sparkline, TabbedContent
