@@ -109,7 +109,7 @@ KERNEL_FREE = ("test_serial_faults.py", "test_tui_snapshots.py", "test_conforman
 
 #: The other test files that take longest on one worker, most first (measured with
 #: ``pytest -n 2 --dist loadfile --junitxml``, summed by file; with a clean clone's compiles in
-#: the tests: test_codings_backends compiles the float32 decoder, test_fem and test_geometry
+#: the tests: test_codings_backends compiles the float32 decoder, test_geometry the rays path,
 #: kernels no group compiles). They follow :data:`KERNEL_FREE`, so the two workers of
 #: ``make test`` finish together instead of one running a long file alone at the end (xdist's
 #: default order, most tests first, put these few-test files last).

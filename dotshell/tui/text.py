@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import os
+import functools
 from pathlib import Path
 from typing import Any
 
@@ -33,21 +33,10 @@ def describe_status(role: str, status: dict[str, Any], projected: str | None = N
     return " · ".join(parts)
 
 
-class ShortPaths:
-    """:func:`~dotshell.server.describe.short_path` of each path asked for, remembered: it
-    resolves the path and the working directory on disk (system calls that, in a busy process,
-    also wait for the interpreter lock), and the panels draw the same few paths — the run, the
-    output directory, the profile — on every progress message. One per panel: the TUI never
-    changes its working directory."""
-
-    def __init__(self) -> None:
-        self._known: dict[str, str] = {}
-
-    def __call__(self, path: str | Path) -> str:
-        key = os.fspath(path)
-        shown = self._known.get(key)
-        if shown is None:
-            if len(self._known) >= 256:
-                self._known.clear()
-            shown = self._known[key] = short_path(key)
-        return shown
+@functools.lru_cache(maxsize=256)
+def shown_path(path: str | Path) -> str:
+    """:func:`~dotshell.server.describe.short_path`, remembered: it resolves the path and the
+    working directory on disk (system calls that, in a busy process, also wait for the
+    interpreter lock), and the panels draw the same few paths — the run, the output directory,
+    the profile — on every progress message. The TUI never changes its working directory."""
+    return short_path(path)

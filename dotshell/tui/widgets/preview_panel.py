@@ -19,7 +19,7 @@ from textual.widgets import Sparkline, Static
 from dotshell.console import PreviewSaved
 from dotshell.events import Event
 from dotshell.tui.redraw import DrawnWhileShown, show
-from dotshell.tui.text import ShortPaths
+from dotshell.tui.text import shown_path
 from dotshell.tui.widgets.image_view import cell_aspect, fit_cells, image_widget
 
 KIND_TITLES = {"snap": "snapshot", "frame": "latest frame", "columns": "decoded columns",
@@ -61,7 +61,6 @@ class PreviewPanel(DrawnWhileShown, Vertical, can_focus=True):
         super().__init__(**kwargs)
         self.items: list[PreviewItem] = []
         self.index = -1
-        self.short_path = ShortPaths()
 
     def compose(self) -> ComposeResult:
         yield Static("no preview yet — snap a frame (Rig: space) or run a scan",
@@ -109,7 +108,7 @@ class PreviewPanel(DrawnWhileShown, Vertical, can_focus=True):
             f"  [yellow]only {colours or 'no'} colours: the image is approximate[/]")
         show(self.query_one("#preview-title", Static),
              f"[b]{escape(title)}[/] {self.index + 1}/{len(self.items)}  "
-             f"{item.size[0]}×{item.size[1]}  {escape(self.short_path(item.path))}{warning}")
+             f"{item.size[0]}×{item.size[1]}  {escape(shown_path(item.path))}{warning}")
         show(self.query_one("#preview-stats", Static), describe_stats(item.stats))
         if self.drawing():
             self.redraw()

@@ -24,7 +24,7 @@ from dotshell.server.describe import short_path
 from dotshell.tui.jog import JogQueue
 from dotshell.tui.messages import ActionDone
 from dotshell.tui.redraw import DrawnWhileShown, show, update
-from dotshell.tui.text import ShortPaths, describe_status
+from dotshell.tui.text import describe_status, shown_path
 from dotshell.tui.widgets.choice import ChoiceScreen
 from dotshell.tui.widgets.prompt import PromptScreen
 
@@ -65,7 +65,6 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
         self.last_error = ""
         self.rows: list[dict[str, Any]] = []
         self._drawn: tuple[Any, ...] | None = None  # what the device table shows now
-        self.short_path = ShortPaths()
         self.jogs = JogQueue(lambda deg: self._do("jog", self.session.jog, deg))
 
     def compose(self) -> ComposeResult:
@@ -88,7 +87,7 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
         if not self.drawing():
             return
         p = self.session.profile
-        title = (f"[b]{escape(p['name'])}[/]  {escape(self.short_path(p['source']))}" if p else
+        title = (f"[b]{escape(p['name'])}[/]  {escape(shown_path(p['source']))}" if p else
                  "[b]no profile loaded[/] — press ctrl+o to pick one")
         show(self.query_one("#rig-title", Static), f"{title}   jog step {self.step_deg:g}°")
         self.show_rows(self.rows)

@@ -17,7 +17,7 @@ from textual.widgets import Label, ProgressBar, Static
 from dotshell.server.progress import ScanTracker, format_seconds
 from dotshell.tui.messages import ActionDone
 from dotshell.tui.redraw import DrawnWhileShown, show
-from dotshell.tui.text import ShortPaths
+from dotshell.tui.text import shown_path
 from dotshell.tui.widgets.confirm import ConfirmScreen
 
 HELP = "[b]s[/] start  [b]p[/] pause / resume  [b]x[/] abort (frames are kept)  [b]esc[/] stop"
@@ -40,7 +40,6 @@ class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.failure = ""
-        self.short_path = ShortPaths()
 
     def compose(self) -> ComposeResult:
         yield Static(id="scan-plan")
@@ -98,15 +97,16 @@ class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
         if p is None:
             text = "no profile loaded — ctrl+o"
         else:
-            out_dir = self.short_path(self.session.state["out_dir"])
+            out_dir = shown_path(self.session.state["out_dir"])
             text = (f"[b]{escape(p['name'])}[/]: {p['views']} views, exposure "
                     f"{p['exposure_ms']:g} ms, coding {escape(p['coding'])} → {escape(out_dir)}/")
         show(self.query_one("#scan-plan", Static), text)
 
-    def _result(self, t: ScanTracker) -> str:
+    @staticmethod
+    def _result(t: ScanTracker) -> str:
         if not t.run_dir:
             return ""
-        text = f"run {escape(self.short_path(t.run_dir))}"
+        text = f"run {escape(shown_path(t.run_dir))}"
         if t.points:
             text += f"   {t.points} points in {t.views_reconstructed} views"
         s = t.summary
