@@ -110,14 +110,14 @@ def _print_report(report: dict[str, Any], run_dir: Path) -> None:
     if losses:
         out.print("pixels: " + ", ".join(f"{k} {v:.1f} %" for k, v in losses))
     cloud = report.get("cloud", {})
-    out.print(f"cloud: {cloud.get('points', 0)} points → {run_dir / 'cloud.ply'}")
+    out.print(f"cloud: {cloud.get('points', 0)} points → {run_dir / 'cloud.ply'}", markup=False, soft_wrap=True)
     for name, rel in (report.get("previews") or {}).items():
-        out.print(f"preview {name}: {run_dir / rel}")
+        out.print(f"preview {name}: {run_dir / rel}", markup=False, soft_wrap=True)
     if "normalize" in report:
         from dotshell.cli_normalize import print_section
 
         print_section(report["normalize"], run_dir)
-    out.print(f"run: {run_dir}  (status: {report.get('status', '?')})")
+    out.print(f"run: {run_dir}  (status: {report.get('status', '?')})", markup=False, soft_wrap=True)
 
 
 #: Where a camera pixel can be lost on the way to a point, in pipeline order.
@@ -185,7 +185,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     status, reason = store.status()
     views = m["views"]
     done = sum(v["complete"] for v in views)
-    out.print(f"run: {store.root}")
+    out.print(f"run: {store.root}", markup=False, soft_wrap=True)
     out.print(f"status: [bold]{status}[/]" + (f" — {escape(reason)}" if reason else ""))
     out.print(f"profile: {escape(str(m.get('profile', '?')))}, created {m.get('created', '?')}")
     out.print(f"views: {done} of {len(views)} complete, "
@@ -221,7 +221,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
         t.add_row(*(f"{r[c] * 1000:.1f}" if c == "rms_radius_error_mm" else
                     f"{r[c]:.3f}" if isinstance(r[c], float) else escape(str(r[c])) for c in cols))
     out.print(t)
-    out.print(f"table: {csv_path}\nplot: {png_path}")
+    out.print(f"table: {csv_path}\nplot: {png_path}", markup=False, soft_wrap=True)
     return 0
 
 

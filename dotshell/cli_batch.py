@@ -46,9 +46,9 @@ class BatchProgress:
                 err_pct = s.get("mean_rel_error_pct")
                 p.console.print(f"  [green]completed[/] {escape(ev.run)}: {s.get('views', 0)} "
                                 f"views, {s.get('points', 0)} points" +
-                                ("" if err_pct is None else f", radius error {err_pct:.3f} %"))
+                                ("" if err_pct is None else f", radius error {err_pct:.3f} %"), soft_wrap=True)
             else:
-                p.console.print(f"  [red]{ev.status}[/] {escape(ev.run)}: {escape(ev.reason)}")
+                p.console.print(f"  [red]{ev.status}[/] {escape(ev.run)}: {escape(ev.reason)}", soft_wrap=True)
 
 
 def study_table(rows: list[dict[str, Any]]) -> Table:
@@ -93,7 +93,7 @@ def cmd_batch(args: argparse.Namespace, pm) -> int:
         return 130
     rows, csv_path, png_path = write_study_table(outcomes, args.out)
     out.print(study_table(rows))
-    out.print(f"table: {csv_path}\nplot: {png_path}")
+    out.print(f"table: {csv_path}\nplot: {png_path}", markup=False, soft_wrap=True)
     failed = [r for r in rows if r["status"] not in ("completed", "skipped")]
     if failed:
         err.print(f"[red]{len(failed)} of {len(rows)} runs failed[/]; each run's reason is in "

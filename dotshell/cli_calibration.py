@@ -60,10 +60,10 @@ def reconstruct_captures_command(args: argparse.Namespace, pm, out: Console) -> 
                   f"within {ref['coverage_radius_mm']:g} mm; {ref['outside_reference']} points "
                   "lie where the reference has none")
     for name, rel in (r.get("previews") or {}).items():
-        out.print(f"preview {name}: {res.out_dir / rel}")
+        out.print(f"preview {name}: {res.out_dir / rel}", markup=False, soft_wrap=True)
     if r.get("preview_warning"):
         out.print(f"[yellow]warning:[/] {escape(r['preview_warning'])}")
-    out.print(f"output: {res.out_dir}  (cloud.ply, report.json)")
+    out.print(f"output: {res.out_dir}  (cloud.ply, report.json)", markup=False, soft_wrap=True)
     return 0
 
 
@@ -181,9 +181,9 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     print_coding(result.report["coding"], profile, out)
     print_calibration(result.report, result.calibration, out)
     run = result.run_dir
-    out.print(f"calibration: {run / 'calibration.json'} (and calibration.yml for OpenCV)")
+    out.print(f"calibration: {run / 'calibration.json'} (and calibration.yml for OpenCV)", markup=False, soft_wrap=True)
     if profile is not None:
-        out.print(f"use it: dotshell scan {args.profile} --calibration {run / 'calibration.json'}")
+        out.print(f"use it: dotshell scan {args.profile} --calibration {run / 'calibration.json'}", markup=False, soft_wrap=True)
     return 0
 
 

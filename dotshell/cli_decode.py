@@ -71,7 +71,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
             out.print(f"[yellow]skipped {name}:[/] {why}")
     else:
         raise RunError("dotshell decode needs a RUN directory, or --captures DIR --layout LAYOUT.")
-    out.print(f"output: {res.out_dir}  (column/row maps, mask.png, report.json, previews/)")
+    out.print(f"output: {res.out_dir}  (column/row maps, mask.png, report.json, previews/)", markup=False, soft_wrap=True)
     return 0
 
 

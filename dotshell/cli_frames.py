@@ -45,7 +45,7 @@ def cmd_frames(args: argparse.Namespace) -> int:
         for v in views:
             total += len(export_png(store.frames(v), Path(args.png)))
         out.print(f"{total} frames of {len(views)} view(s) written as PNG under "
-                  f"{escape(str(args.png))}/view_NNN/")
+                  f"{args.png}/view_NNN/", markup=False, soft_wrap=True)
         return 0
     t = Table(title=f"{escape(str(store.root))}: frames ({manifest.get('frame_format', 'png/1')},"
                     f" {len(manifest['frame_names'])} per view)")

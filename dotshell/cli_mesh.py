@@ -8,7 +8,6 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
-from rich.markup import escape
 from rich.table import Table
 
 out = Console(highlight=False)
@@ -44,8 +43,8 @@ def cmd_mesh(args: argparse.Namespace, pm) -> int:
                       export=not args.no_export)
     out.print(mesh_table(result.report["mesh"]))
     for name, files in (result.report.get("exports") or {}).items():
-        out.print(f"export {name}: {', '.join(map(escape, files))}")
-    out.print(f"run: {result.run_dir}")
+        out.print(f"export {name}: {', '.join(files)}", markup=False, soft_wrap=True)
+    out.print(f"run: {result.run_dir}", markup=False, soft_wrap=True)
     return 0
 
 
@@ -61,8 +60,8 @@ def cmd_forward(args: argparse.Namespace, pm) -> int:
               f"power; negative nodes: {r['negative_nodes']}")
     if "detector_fluence_per_mm2" in r:
         out.print("detectors: " + ", ".join(f"{v:.3e}" for v in r["detector_fluence_per_mm2"]))
-    out.print(f"fluence written to {escape(str(Path(args.run) / r['file']))} (point data "
-              "'fluence')")
+    out.print(f"fluence written to {Path(args.run) / r['file']} (point data "
+              "'fluence')", markup=False, soft_wrap=True)
     return 0
 
 

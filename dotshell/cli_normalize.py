@@ -7,7 +7,6 @@ import argparse
 from typing import Any
 
 from rich.console import Console
-from rich.markup import escape
 from rich.table import Table
 
 out = Console(highlight=False)
@@ -49,8 +48,8 @@ def print_section(section: dict[str, Any], run_dir) -> None:
     if not section["flat_field"]:
         out.print("[yellow]no flat field: camera vignetting is not corrected[/yellow]")
     out.print(f"normalized with {section['normalizer']}; files in "
-              f"{escape(str(run_dir))}/normalize/ (CSV, {escape(section['vtu'])}, flattened TIFF, "
-              "PNG previews)")
+              f"{run_dir}/normalize/ (CSV, {section['vtu']}, flattened TIFF, "
+              "PNG previews)", markup=False, soft_wrap=True)
 
 
 def cmd_normalize(args: argparse.Namespace, pm) -> int:

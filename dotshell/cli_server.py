@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import signal
 import sys
 import time
@@ -17,7 +16,7 @@ from rich.markup import escape
 
 from dotshell.errors import DotshellError
 from dotshell.events import Event, ScanFinished, ViewCaptured
-from dotshell.server.describe import LEVELS, describe_event, short_path
+from dotshell.server.describe import LEVELS, describe_event
 from dotshell.server.paths import HANGUP_CHOICES, alive, server_name, socket_path, user_config
 from dotshell.server.progress import ScanTracker, format_seconds
 from dotshell.server.protocol import ServerError, event_from_wire

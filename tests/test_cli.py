@@ -110,14 +110,18 @@ def test_installed_command_reconstructs_a_run_and_exits_with_its_status(small_sc
     """`dotshell reconstruct` as a user runs it: the process ends without the interpreter's
     teardown (dotshell.runtime.exit_now), yet everything is there — the published report
     with the same cloud and figures, the previews, the printed table through a pipe — and a
-    user error still exits 2."""
+    user error still exits 2. Paths print whole, one per line, as they are: longer than the
+    pipe's 80 columns and with brackets (rich markup) in a directory name."""
     before = json.loads((small_scan[0].run_dir / "current" / "report.json").read_text())
-    run = shutil.copytree(small_scan[0].run_dir, tmp_path / "run", symlinks=True)
+    parent = tmp_path / "[agar] phantom, second day, analyzer at 90 degrees [/bold]"
+    run = shutil.copytree(small_scan[0].run_dir, parent / "run", symlinks=True)
     exe = [sys.executable, "-m", "dotshell.cli"]
     r = subprocess.run([*exe, "reconstruct", str(run)], capture_output=True, text=True,
                        cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr
-    assert "Mean relative error" in r.stdout and r.stdout.rstrip().endswith("(status: completed)")
+    lines = r.stdout.rstrip().splitlines()
+    assert "Mean relative error" in r.stdout and lines[-1] == f"run: {run}  (status: completed)"
+    assert f"cloud: {before['cloud']['points']} points → {run / 'cloud.ply'}" in lines
     report = json.loads((run / "current" / "report.json").read_text())
     assert report["generation"] == before["generation"] + 1
     assert report["cloud"]["points"] == before["cloud"]["points"] > 0
