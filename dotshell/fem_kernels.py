@@ -24,6 +24,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from dotshell import numba_cache
+
+numba_cache.install()  # cache files safe for processes compiling at once
+
 _OPTS = dict(nogil=True, cache=True)
 
 #: the four faces of a positively oriented tetrahedron (a, b, c, d), each ordered so its

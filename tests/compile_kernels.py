@@ -10,7 +10,7 @@ those tests measure. Compiled here once, every worker and subprocess loads them 
 
 The kernels are reached through the product's own entry points, so the signatures compiled are
 exactly the ones the pipeline asks for, in three groups that share no compiled function and run
-at once (numba's cache index of one function must not be written by two processes), each in a
+at once (each writes its own functions' cache files: dotshell.numba_cache locks them), each in a
 child forked from one process that has imported numba and set its CPU target up (~1.2 s of CPU
 that each group's own process paid before), the longest at a higher priority; split so, a cold
 cache takes about the longest group's time (~11 s of CPU, 12.5 s of wall time on 2 quiet

@@ -103,6 +103,7 @@ def small_scan(tmp_path_factory):
 KERNEL_FREE = ("test_serial_faults.py", "test_tui_snapshots.py", "test_conformance.py",
                "test_projectors.py", "test_mesh_phantoms.py", "test_device_handles.py",
                "test_calib_solve.py", "test_device_plugin_guide.py", "test_compat.py",
+               "test_numba_cache.py",
                "test_sim.py", "test_plugins.py", "test_ports_cli.py", "test_settings.py",
                "test_docs.py", "test_store.py", "test_cameras.py", "test_hugepages.py",
                "test_parallel.py", "test_validate_full.py")

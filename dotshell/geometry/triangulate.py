@@ -47,10 +47,12 @@ from functools import lru_cache
 import numba
 import numpy as np
 
-from dotshell import hugepages
+from dotshell import hugepages, numba_cache
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens
 from dotshell.parallel import balanced_bands, split, split_bands
+
+numba_cache.install()  # cache files safe for processes compiling at once
 
 
 @dataclass

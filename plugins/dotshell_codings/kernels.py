@@ -44,6 +44,10 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from dotshell import numba_cache
+
+numba_cache.install()  # cache files safe for processes compiling at once
+
 _OPTS = dict(nogil=True, cache=True, error_model="numpy")
 
 #: helpers called per pixel are inlined: a compiled call passing arrays pays reference counting
