@@ -21,6 +21,7 @@ from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
 from rich.table import Table
 
 from dotshell import __version__
+from dotshell.cli_print import print_as_is
 from dotshell.errors import DotshellError
 from dotshell.events import (EventBus, FrameCaptured, Message, ScanStarted, StepStarted,
                              ViewCaptured, ViewReconstructed)
@@ -110,14 +111,14 @@ def _print_report(report: dict[str, Any], run_dir: Path) -> None:
     if losses:
         out.print("pixels: " + ", ".join(f"{k} {v:.1f} %" for k, v in losses))
     cloud = report.get("cloud", {})
-    out.print(f"cloud: {cloud.get('points', 0)} points → {run_dir / 'cloud.ply'}", markup=False, soft_wrap=True)
+    print_as_is(out, f"cloud: {cloud.get('points', 0)} points → {run_dir / 'cloud.ply'}")
     for name, rel in (report.get("previews") or {}).items():
-        out.print(f"preview {name}: {run_dir / rel}", markup=False, soft_wrap=True)
+        print_as_is(out, f"preview {name}: {run_dir / rel}")
     if "normalize" in report:
         from dotshell.cli_normalize import print_section
 
         print_section(report["normalize"], run_dir)
-    out.print(f"run: {run_dir}  (status: {report.get('status', '?')})", markup=False, soft_wrap=True)
+    print_as_is(out, f"run: {run_dir}  (status: {report.get('status', '?')})")
 
 
 #: Where a camera pixel can be lost on the way to a point, in pipeline order.
@@ -185,7 +186,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     status, reason = store.status()
     views = m["views"]
     done = sum(v["complete"] for v in views)
-    out.print(f"run: {store.root}", markup=False, soft_wrap=True)
+    print_as_is(out, f"run: {store.root}")
     out.print(f"status: [bold]{status}[/]" + (f" — {escape(reason)}" if reason else ""))
     out.print(f"profile: {escape(str(m.get('profile', '?')))}, created {m.get('created', '?')}")
     out.print(f"views: {done} of {len(views)} complete, "
@@ -221,7 +222,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
         t.add_row(*(f"{r[c] * 1000:.1f}" if c == "rms_radius_error_mm" else
                     f"{r[c]:.3f}" if isinstance(r[c], float) else escape(str(r[c])) for c in cols))
     out.print(t)
-    out.print(f"table: {csv_path}\nplot: {png_path}", markup=False, soft_wrap=True)
+    print_as_is(out, f"table: {csv_path}\nplot: {png_path}")
     return 0
 
 

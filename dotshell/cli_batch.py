@@ -11,6 +11,8 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from dotshell.cli_print import print_as_is
+
 out = Console(highlight=False)
 err = Console(stderr=True, highlight=False)
 
@@ -46,9 +48,11 @@ class BatchProgress:
                 err_pct = s.get("mean_rel_error_pct")
                 p.console.print(f"  [green]completed[/] {escape(ev.run)}: {s.get('views', 0)} "
                                 f"views, {s.get('points', 0)} points" +
-                                ("" if err_pct is None else f", radius error {err_pct:.3f} %"), soft_wrap=True)
+                                ("" if err_pct is None else f", radius error {err_pct:.3f} %"),
+                                soft_wrap=True)
             else:
-                p.console.print(f"  [red]{ev.status}[/] {escape(ev.run)}: {escape(ev.reason)}", soft_wrap=True)
+                p.console.print(f"  [red]{ev.status}[/] {escape(ev.run)}: {escape(ev.reason)}",
+                                soft_wrap=True)
 
 
 def study_table(rows: list[dict[str, Any]]) -> Table:
@@ -93,7 +97,7 @@ def cmd_batch(args: argparse.Namespace, pm) -> int:
         return 130
     rows, csv_path, png_path = write_study_table(outcomes, args.out)
     out.print(study_table(rows))
-    out.print(f"table: {csv_path}\nplot: {png_path}", markup=False, soft_wrap=True)
+    print_as_is(out, f"table: {csv_path}\nplot: {png_path}")
     failed = [r for r in rows if r["status"] not in ("completed", "skipped")]
     if failed:
         err.print(f"[red]{len(failed)} of {len(rows)} runs failed[/]; each run's reason is in "

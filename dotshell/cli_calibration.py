@@ -13,6 +13,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from dotshell.cli_decode import add_layout_arg, pixel_counts
+from dotshell.cli_print import print_as_is
 
 
 def add_captures_args(sp: argparse.ArgumentParser) -> None:
@@ -60,10 +61,10 @@ def reconstruct_captures_command(args: argparse.Namespace, pm, out: Console) -> 
                   f"within {ref['coverage_radius_mm']:g} mm; {ref['outside_reference']} points "
                   "lie where the reference has none")
     for name, rel in (r.get("previews") or {}).items():
-        out.print(f"preview {name}: {res.out_dir / rel}", markup=False, soft_wrap=True)
+        print_as_is(out, f"preview {name}: {res.out_dir / rel}")
     if r.get("preview_warning"):
         out.print(f"[yellow]warning:[/] {escape(r['preview_warning'])}")
-    out.print(f"output: {res.out_dir}  (cloud.ply, report.json)", markup=False, soft_wrap=True)
+    print_as_is(out, f"output: {res.out_dir}  (cloud.ply, report.json)")
     return 0
 
 
@@ -181,9 +182,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     print_coding(result.report["coding"], profile, out)
     print_calibration(result.report, result.calibration, out)
     run = result.run_dir
-    out.print(f"calibration: {run / 'calibration.json'} (and calibration.yml for OpenCV)", markup=False, soft_wrap=True)
+    print_as_is(out, f"calibration: {run / 'calibration.json'} (and calibration.yml for OpenCV)")
     if profile is not None:
-        out.print(f"use it: dotshell scan {args.profile} --calibration {run / 'calibration.json'}", markup=False, soft_wrap=True)
+        print_as_is(out, f"use it: dotshell scan {args.profile} --calibration "
+                         f"{run / 'calibration.json'}")
     return 0
 
 

@@ -8,6 +8,8 @@ from typing import Any
 
 from rich.console import Console
 
+from dotshell.cli_print import print_as_is
+
 #: Reasons a pixel is lost, in the order they are printed.
 LOSS_ORDER = ("shadow", "low_contrast", "uncertain", "out_of_range", "low_modulation",
               "phase_inconsistent", "grazing", "row_rejected")
@@ -71,7 +73,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
             out.print(f"[yellow]skipped {name}:[/] {why}")
     else:
         raise RunError("dotshell decode needs a RUN directory, or --captures DIR --layout LAYOUT.")
-    out.print(f"output: {res.out_dir}  (column/row maps, mask.png, report.json, previews/)", markup=False, soft_wrap=True)
+    print_as_is(out, f"output: {res.out_dir}  (column/row maps, mask.png, report.json, previews/)")
     return 0
 
 

@@ -11,6 +11,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from dotshell.cli_print import print_as_is
 from dotshell.errors import RunError
 
 if TYPE_CHECKING:  # the frame readers (tifffile, cv2, numpy) load when the command runs
@@ -44,8 +45,8 @@ def cmd_frames(args: argparse.Namespace) -> int:
         total = 0
         for v in views:
             total += len(export_png(store.frames(v), Path(args.png)))
-        out.print(f"{total} frames of {len(views)} view(s) written as PNG under "
-                  f"{args.png}/view_NNN/", markup=False, soft_wrap=True)
+        print_as_is(out, f"{total} frames of {len(views)} view(s) written as PNG under "
+                         f"{args.png}/view_NNN/")
         return 0
     t = Table(title=f"{escape(str(store.root))}: frames ({manifest.get('frame_format', 'png/1')},"
                     f" {len(manifest['frame_names'])} per view)")

@@ -10,6 +10,8 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
+from dotshell.cli_print import print_as_is
+
 out = Console(highlight=False)
 err = Console(stderr=True, highlight=False)
 
@@ -43,8 +45,8 @@ def cmd_mesh(args: argparse.Namespace, pm) -> int:
                       export=not args.no_export)
     out.print(mesh_table(result.report["mesh"]))
     for name, files in (result.report.get("exports") or {}).items():
-        out.print(f"export {name}: {', '.join(files)}", markup=False, soft_wrap=True)
-    out.print(f"run: {result.run_dir}", markup=False, soft_wrap=True)
+        print_as_is(out, f"export {name}: {', '.join(files)}")
+    print_as_is(out, f"run: {result.run_dir}")
     return 0
 
 
@@ -60,8 +62,8 @@ def cmd_forward(args: argparse.Namespace, pm) -> int:
               f"power; negative nodes: {r['negative_nodes']}")
     if "detector_fluence_per_mm2" in r:
         out.print("detectors: " + ", ".join(f"{v:.3e}" for v in r["detector_fluence_per_mm2"]))
-    out.print(f"fluence written to {Path(args.run) / r['file']} (point data "
-              "'fluence')", markup=False, soft_wrap=True)
+    print_as_is(out, f"fluence written to {Path(args.run) / r['file']} (point data "
+                     "'fluence')")
     return 0
 
 

@@ -9,6 +9,8 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
+from dotshell.cli_print import print_as_is
+
 out = Console(highlight=False)
 err = Console(stderr=True, highlight=False)
 
@@ -47,9 +49,9 @@ def print_section(section: dict[str, Any], run_dir) -> None:
         out.print(truth_table(section))
     if not section["flat_field"]:
         out.print("[yellow]no flat field: camera vignetting is not corrected[/yellow]")
-    out.print(f"normalized with {section['normalizer']}; files in "
-              f"{run_dir}/normalize/ (CSV, {section['vtu']}, flattened TIFF, "
-              "PNG previews)", markup=False, soft_wrap=True)
+    print_as_is(out, f"normalized with {section['normalizer']}; files in "
+                     f"{run_dir}/normalize/ (CSV, {section['vtu']}, flattened TIFF, "
+                     "PNG previews)")
 
 
 def cmd_normalize(args: argparse.Namespace, pm) -> int:

@@ -22,7 +22,8 @@ from dotshell import numba_cache
 
 numba_cache.install()
 here, value, late = Path(sys.argv[1]), eval(sys.argv[2]), sys.argv[3] == "1"
-save_index, save_data = caching.IndexDataCacheFile._save_index, caching.IndexDataCacheFile._save_data
+cache_file = caching.IndexDataCacheFile
+save_index, save_data = cache_file._save_index, cache_file._save_data
 
 def meet_then_save_index(self, overloads):
     (here / f"at-index-{os.getpid()}").touch()
@@ -35,8 +36,8 @@ def save_data_late(self, name, data):
     time.sleep(0.5 if late else 0.0)
     return save_data(self, name, data)
 
-caching.IndexDataCacheFile._save_index = meet_then_save_index
-caching.IndexDataCacheFile._save_data = save_data_late
+cache_file._save_index = meet_then_save_index
+cache_file._save_data = save_data_late
 sys.path.insert(0, str(here))
 import toy_kernel
 sys.exit(0 if toy_kernel.twice(value) == value * 2 else 1)
