@@ -6,6 +6,7 @@ import io
 import threading
 import time
 from contextlib import asynccontextmanager
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from textual.content import Content
 from textual.widgets import Sparkline, TabbedContent
 from textual.widgets._footer import FooterKey
 
+import dotshell.tui.app
 from conftest import write_test_profile
 from dotshell.console import Session
 from dotshell.events import FrameCaptured, Message, ScanFinished, ScanStarted
@@ -320,6 +322,41 @@ async def test_the_device_table_is_as_tall_as_its_rows_whatever_was_drawn_before
         assert table.size.height == lines_of(table) == full
         shown = "\n".join(screen_lines(app))
         assert all(r["backend"] in shown for r in rows) and "never laid out" not in shown
+
+
+async def test_what_the_server_says_before_the_screen_is_mounted_is_shown(server):
+    """The app subscribes to the server in its ``on_mount``, before Textual has mounted the
+    main screen; the server's next messages can be handled then (seen in a real terminal on a
+    loaded machine: the device list came then, was dropped, and the table stayed empty until
+    the next change). They are shown like any other."""
+    session = attach(server)
+    deadline = time.monotonic() + 60
+    while not session.rows and time.monotonic() < deadline:  # the server's first device list
+        time.sleep(0.02)
+    rows = list(session.rows)
+    assert [r["role"] for r in rows] == ["camera", "projector", "stage"]
+    session.rows = []  # the app starts from an empty list, as before the server made the rig
+    mounted_then = []
+
+    class HearsAtOnce(DotshellApp):
+        CSS_PATH = str(Path(dotshell.tui.app.__file__).with_name(DotshellApp.CSS_PATH))
+
+        def on_mount(self) -> None:
+            super().on_mount()
+            mounted_then.append(self.screen_stack[0].is_mounted)
+            for message in ({"type": "devices", "rows": rows[:1]},
+                            {"type": "event", "event": Message("info", "said early").to_dict()},
+                            {"type": "devices", "rows": rows}):
+                self.on_server_message(ServerMessage(message))
+
+    app = HearsAtOnce(session)
+    async with running(app, (120, 40)) as pilot:
+        await pilot.pause()
+        assert mounted_then == [False]  # what the messages met
+        assert app.panel(RigPanel).rows == rows
+        shown = "\n".join(screen_lines(app))
+        assert all(r["backend"] in shown for r in rows)
+        assert "said early" in [e.text for e in app.panel(LogPanel).entries]
 
 
 # ---- tabs, focus, keys ---------------------------------------------------------------------------

@@ -139,9 +139,12 @@ class DotshellApp(App):
     def main_ready(self) -> bool:
         """False before the main screen's panels are up (:meth:`on_mount` has not run) and
         from the moment the app shuts down (Textual stops the app, then removes the screens'
-        widgets: a server message still queued then found no panel to show it in)."""
-        return (self._main_up and self.is_running and bool(self.screen_stack)
-                and self.screen_stack[0].is_mounted)
+        widgets: a server message still queued then found no panel to show it in). True
+        while Textual is still mounting the main screen after :meth:`on_mount`: the panels
+        are there and take what they show (as in :meth:`on_mount`); the server's messages of
+        that moment were dropped before, the device list among them (an empty table until
+        the next change, seen in a real terminal on a loaded machine)."""
+        return self._main_up and self.is_running and bool(self.screen_stack)
 
     # ---- tabs and focus -----------------------------------------------------------------------
 
