@@ -277,10 +277,24 @@ def pytest_runtest_setup(item):
 
 
 def pytest_terminal_summary(terminalreporter, config):
-    """The kernels' compile, if it failed (the tests that decode fail too and say why)."""
+    """The kernels' compile, if it failed (the tests that decode fail too and say why), and
+    this host's speed: the suite's time means little without it (the same tree's ``make test``
+    took from ~3 to ~4.5 minutes on this project's 2-core host as its speed varied, day to day,
+    by up to 2x; docs/performance.md, "Test suite time")."""
     kernels = getattr(config, "_dotshell_kernels", None)
     if kernels is not None and kernels.failure:
         terminalreporter.write_line(kernels.failure, red=True)
+    terminalreporter.write_line(f"host speed: 2·10⁷ Python additions in {_additions_s():.2f} s "
+                                "(docs/performance.md's yardstick; 1.75 s on its fastest day)")
+
+
+def _additions_s() -> float:
+    """Seconds this process takes for 2·10⁷ pure-Python additions at a module's top level (as
+    the yardstick was run: ``python3 -c "s=0\nfor i in range(20000000): s+=i"``), timed on a
+    tenth of them."""
+    t0 = time.perf_counter()
+    exec("s = 0\nfor i in range(2_000_000):\n    s += i\n", {})
+    return 10 * (time.perf_counter() - t0)
 
 
 def pytest_unconfigure(config):
