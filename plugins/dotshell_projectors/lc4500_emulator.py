@@ -27,7 +27,7 @@ import struct
 import time
 from dataclasses import dataclass, field
 from types import SimpleNamespace
-from typing import Any, Protocol, Sequence
+from typing import Protocol, Sequence
 
 import numpy as np
 import usb.backend
