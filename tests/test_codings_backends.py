@@ -66,8 +66,9 @@ def test_identity_decode_all(name, proj):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_float32_frames(name):
-    """PDI difference images arrive as float32 with no fixed range: full scale is the white
-    frame's 99.5th percentile."""
+    """Float32 frames (a camera or a user's images in floating point; PDI differences stay in
+    the camera's integer type, dotshell.pipeline.pdi) have no fixed range: full scale is the
+    white frame's 99.5th percentile."""
     c = make_coding(name, axes="columns")
     proj = (1000, 40)
     frames = [p.image.astype(np.float32) * 0.37 + 2.0 for p in c.patterns(proj)]
