@@ -321,9 +321,14 @@ def cmd_script(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dotshell", description=(
-        "Instrument shell for structured-light surface scans on DOT rigs. "
-        "See README.md and docs/ for every command and file format."))
+        "Instrument shell for structured-light surface scans on DOT rigs. Every command and "
+        "file format is documented: `dotshell docs` prints where the installed documentation "
+        "is (and the built documentation site); `dotshell profiles` lists the shipped "
+        "profiles."))
     p.add_argument("--version", action="version", version=f"dotshell {__version__}")
+    from dotshell.cli_logging import add_logging_args
+
+    add_logging_args(p)
     p.add_argument("--strict-plugins", action="store_true",
                    help="fail when any plugin fails to load (for plugin authors and CI)")
     p.add_argument("--debug", action="store_true",
@@ -331,7 +336,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def profile_args(sp):
-        sp.add_argument("profile", help="profile TOML file, e.g. profiles/sim-metal-cylinder.toml")
+        sp.add_argument("profile", help="profile TOML file, or the name of a shipped profile "
+                        "(`dotshell profiles`), e.g. sim-metal-cylinder")
         sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a profile key (TOML value), e.g. --set scan.views=24")
         sp.add_argument("--calibration", metavar="FILE",
@@ -401,6 +407,9 @@ def build_parser() -> argparse.ArgumentParser:
     from dotshell.cli_server import add_server_parsers
 
     add_server_parsers(sub)  # serve, tui, attach, status, stop, scan --detach
+    from dotshell.cli_shipped import add_shipped_parsers
+
+    add_shipped_parsers(sub)  # profiles [copy], docs
     sp = sub.add_parser("script", help="run a Python script against a live session, headless")
     sp.add_argument("file", help="the Python script (rig, profile, run, scan(), np, ... are "
                     "defined; see docs/tui.md)")
@@ -455,6 +464,9 @@ def run_command(args: argparse.Namespace) -> int:
     from dotshell.runtime import configure_process
 
     configure_process()  # BLAS on one thread, large blocks unmapped when freed
+    from dotshell.cli_logging import configure_logging
+
+    configure_logging(args)  # -v/-q/--log-level; library warnings only with -v
     try:
         with interrupts(notify=lambda text: err.print(f"[yellow]{escape(text)}[/]")):
             return args.func(args)

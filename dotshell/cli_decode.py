@@ -29,9 +29,9 @@ def pixel_counts(counts: dict[str, Any]) -> str:
 
 def add_layout_arg(sp: argparse.ArgumentParser, what: str = "the sequence") -> None:
     """``--layout LAYOUT``: a layout TOML or the name of a shipped one."""
-    from dotshell.pipeline.captures import SHIPPED_LAYOUTS
+    from dotshell.shipped import shipped_names
 
-    shipped = ", ".join(sorted(q.stem for q in SHIPPED_LAYOUTS.glob("*.toml")))
+    shipped = ", ".join(shipped_names("layouts"))
     sp.add_argument("--layout", metavar="LAYOUT",
                     help=f"layout TOML of {what}, or a shipped one: {shipped}")
 

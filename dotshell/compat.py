@@ -23,6 +23,9 @@ def import_open3d() -> ModuleType:
     try:
         import open3d
     except (ImportError, OSError) as exc:
-        raise DotshellError(f"open3d cannot be imported ({exc}). Reinstall with `make demo` "
-                            "(it installs open3d and libusb-package).") from None
+        raise DotshellError(f"open3d cannot be imported ({exc}). Install open3d and "
+                            "libusb-package into this Python environment (`python -m pip install "
+                            "open3d libusb-package`, or reinstall dotshell, which depends on both; "
+                            "in a checkout, `make demo`), or install the system's libusb-1.0 "
+                            "(e.g. `apt install libusb-1.0-0`).") from None
     return open3d

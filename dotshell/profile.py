@@ -266,20 +266,23 @@ def _check_transillumination(data: dict[str, Any], where: str) -> None:
 
 
 def load_profile(path: str | Path, pm: PluginManager, overrides: list[str] | None = None) -> Profile:
-    """Read, override and validate a profile file.
+    """Read, override and validate a profile file; a bare name that is not a file
+    (``sim-metal-cylinder``) is the shipped profile of that name (:mod:`dotshell.shipped`).
 
     Raises:
         ProfileError: missing/unreadable file, TOML syntax error or invalid content.
         PluginError: a backend name no installed plugin provides.
     """
-    path = Path(path)
+    from dotshell.shipped import resolve, unknown_hint
+
+    path = resolve("profiles", path)
     if path.is_dir():
         raise ProfileError(f"profile {path} is a directory; give a profile TOML file in it, "
                            f"e.g. one of {sorted(p.name for p in path.glob('*.toml')) or 'none'}.")
     if not path.is_file():
         near = sorted(p.name for p in path.parent.glob("*.toml")) if path.parent.is_dir() else []
         hint = f" Profiles in {path.parent}: {', '.join(near)}." if near else ""
-        raise ProfileError(f"profile {path} does not exist.{hint}")
+        raise ProfileError(f"profile {path} does not exist.{hint} {unknown_hint('profiles')}")
     try:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as exc:

@@ -22,12 +22,11 @@ from typing import TYPE_CHECKING, Any
 from dotshell.errors import CalibrationError, RunError
 from dotshell.settings import Setting, validate_settings
 
-if TYPE_CHECKING:  # numpy, OpenCV and the calibration readers load when captures are read:
-    import numpy as np  # the command's parser lists the shipped layouts from this module
+if TYPE_CHECKING:  # numpy, OpenCV and the calibration readers load when captures are read
+    import numpy as np
 
     from dotshell.geometry.calibration import RigCalibration
 
-SHIPPED_LAYOUTS = Path(__file__).resolve().parents[2] / "layouts"
 BLOCKS = ("white", "black", "columns", "rows")
 
 LAYOUT_SCHEMA: dict[str, Setting] = {
@@ -97,16 +96,14 @@ class Layout:
 
 
 def resolve_layout_path(name_or_path: str | Path) -> Path:
-    """A layout file path; a bare name (``slstudio-graycode``) means a shipped layout."""
-    p = Path(name_or_path)
-    if p.is_file():
-        return p
-    shipped = SHIPPED_LAYOUTS / f"{p.name}{'' if p.suffix == '.toml' else '.toml'}"
-    if shipped.is_file():
-        return shipped
-    names = ", ".join(sorted(q.stem for q in SHIPPED_LAYOUTS.glob("*.toml")))
-    raise RunError(f"layout {name_or_path} does not exist. Give a layout TOML file or one of "
-                   f"the shipped layouts: {names}.")
+    """A layout file path; a bare name (``slstudio-graycode``) that is not a file means a shipped
+    layout (:mod:`dotshell.shipped`)."""
+    from dotshell.shipped import resolve, unknown_hint
+
+    path = resolve("layouts", name_or_path)
+    if path.is_file():
+        return path
+    raise RunError(f"layout {name_or_path} does not exist. {unknown_hint('layouts')}")
 
 
 def load_layout(name_or_path: str | Path) -> Layout:
@@ -333,8 +330,8 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
     corr = seq.coding.decode(frames, layout.projector_size)
     t2 = time.perf_counter()
     proc = {"min_ray_angle_deg": 5.0, "row_tolerance_px": 1.5, **(processing or {})}
-    # here, not at the top: the command's parser reads this module (SHIPPED_LAYOUTS), and the
-    # triangulation's compiled loops (numba, ~1 s to import) are for reconstructing only
+    # here, not at the top: the triangulation's compiled loops (numba, ~1 s to import) are for
+    # reconstructing only
     from dotshell.pipeline.reconstruct import no_points_error, triangulate_correspondence
 
     _, points, stats = triangulate_correspondence(corr, calib, proc)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from dotshell.server.paths import alive, running_servers, server_log_dir, server_name, socket_path
 from dotshell.server.protocol import ServerError
+from dotshell.shipped import resolve
 
 #: How long a new server may take to listen (seconds): imports, plugins, the profile, the rig.
 START_TIMEOUT_S = 120.0
@@ -67,7 +68,7 @@ def spawn_server(profile: str | Path | None, *, sock: Path, out: str | Path,
     name = sock.stem
     out_file = server_log_dir(name) / "server.out"
     cmd = [sys.executable, "-m", "dotshell.cli", *(["--strict-plugins"] if strict_plugins else []),
-           "serve", *([str(Path(profile).expanduser().resolve())] if profile else []),
+           "serve", *([str(resolve("profiles", profile).resolve())] if profile else []),
            "--out", str(Path(out).expanduser().resolve()), "--socket", str(sock),
            *[arg for o in overrides for arg in ("--set", o)],
            *(["--exit-when-idle"] if exit_when_idle else [])]

@@ -89,7 +89,9 @@ def server_name(profile: str | Path | None) -> str:
     """The name of the server for a profile file (``default`` without one)."""
     if profile is None:
         return "default"
-    p = Path(profile).expanduser().resolve()
+    from dotshell.shipped import resolve
+
+    p = resolve("profiles", profile).resolve()  # a bare name may be a shipped profile
     stem = re.sub(r"[^A-Za-z0-9_.-]", "_", p.stem)[:40]
     return f"{stem}-{hashlib.sha1(str(p).encode()).hexdigest()[:8]}"
 

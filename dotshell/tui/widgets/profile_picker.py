@@ -1,5 +1,6 @@
-"""The profile picker: profiles found next to the current one, in ./profiles and in the
-directories the user's config lists (``profile_dirs``, docs/server.md), or any path typed in;
+"""The profile picker: profiles found next to the current one, in ./profiles, in the
+directories the user's config lists (``profile_dirs``, docs/server.md) and the shipped ones
+(:mod:`dotshell.shipped`), or any path typed in;
 Enter loads it."""
 
 from __future__ import annotations
@@ -16,8 +17,11 @@ from dotshell.server.describe import short_path
 
 
 def find_profiles(current: str | Path | None, extra_dirs: list[Path] = ()) -> list[str]:
-    """``*.toml`` next to ``current``, in ./profiles and in ``extra_dirs``, each once, sorted."""
-    dirs = [Path("profiles"), *extra_dirs]
+    """``*.toml`` next to ``current``, in ./profiles, in ``extra_dirs`` and the shipped profiles,
+    each once, sorted."""
+    from dotshell.shipped import shipped_dir
+
+    dirs = [Path("profiles"), *extra_dirs, shipped_dir("profiles")]
     if current is not None:
         dirs.insert(0, Path(current).parent)
     found: dict[Path, str] = {}

@@ -1,0 +1,8 @@
+"""``python -m dotshell``: the ``dotshell`` command."""
+
+import sys
+
+from dotshell.cli import main
+
+if __name__ == "__main__":
+    sys.exit(main())
