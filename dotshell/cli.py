@@ -410,6 +410,9 @@ def build_parser() -> argparse.ArgumentParser:
     from dotshell.cli_shipped import add_shipped_parsers
 
     add_shipped_parsers(sub)  # profiles [copy], docs
+    from dotshell.cli_completion import add_completion_parser
+
+    add_completion_parser(sub)
     sp = sub.add_parser("script", help="run a Python script against a live session, headless")
     sp.add_argument("file", help="the Python script (rig, profile, run, scan(), np, ... are "
                     "defined; see docs/tui.md)")

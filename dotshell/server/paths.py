@@ -1,7 +1,8 @@
 """Where rig servers live: sockets in the user's runtime directory (``$XDG_RUNTIME_DIR/dotshell``,
 else ``/tmp/dotshell-UID``, mode 0700), logs and console history in the state directory
 (``$XDG_STATE_HOME/dotshell``, else ``~/.local/state/dotshell``), and the user's config file
-(``$XDG_CONFIG_HOME/dotshell/config.toml``, else ``~/.config/dotshell/config.toml``).
+(``$XDG_CONFIG_HOME/dotshell/config.toml``, else ``~/.config/dotshell/config.toml``); the state
+and config directories are platformdirs' (the same places on Linux).
 
 A server is named after its profile: the file's stem and 8 hex digits of its absolute path
 (``sim-metal-cylinder-1a2b3c4d``), so ``dotshell tui PROFILE`` finds the server of that profile;
@@ -20,6 +21,8 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
+import platformdirs
+
 from dotshell.errors import DotshellError
 
 #: Longest path a Unix-domain socket may have on Linux (sun_path is 108 bytes with the NUL).
@@ -31,13 +34,13 @@ class ConfigError(DotshellError):
     """The user's config file is unreadable or has a wrong key or value."""
 
 
-def _xdg(var: str, fallback: str) -> Path:
-    value = os.environ.get(var)
-    return Path(value) if value else Path.home() / fallback
-
-
 def runtime_dir() -> Path:
-    """The private directory for server sockets (created 0700; refused if others can read it)."""
+    """The private directory for server sockets (created 0700; refused if others can read it).
+
+    Written here rather than by platformdirs: with ``$XDG_RUNTIME_DIR`` set both give
+    ``$XDG_RUNTIME_DIR/dotshell``, but without it platformdirs falls back to
+    ``/tmp/runtime-UID/dotshell`` (and warns), not to ``/tmp/dotshell-UID`` where the sockets of
+    servers started by earlier versions are: they would no longer be found."""
     base = os.environ.get("XDG_RUNTIME_DIR")
     d = Path(base) / "dotshell" if base else Path(tempfile.gettempdir()) / f"dotshell-{os.getuid()}"
     d.mkdir(mode=0o700, parents=True, exist_ok=True)
@@ -51,13 +54,14 @@ def runtime_dir() -> Path:
 
 def state_dir() -> Path:
     """The directory for server logs and the console history (created on demand)."""
-    d = _xdg("XDG_STATE_HOME", ".local/state") / "dotshell"
+    d = Path(platformdirs.user_state_dir("dotshell"))
     d.mkdir(parents=True, exist_ok=True)
     return d
 
 
 def config_path() -> Path:
-    return _xdg("XDG_CONFIG_HOME", ".config") / "dotshell" / "config.toml"
+    """The user's config file (platformdirs' config directory of dotshell)."""
+    return Path(platformdirs.user_config_dir("dotshell")) / "config.toml"
 
 
 def user_config() -> dict[str, Any]:
