@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench validate clean
+.PHONY: demo test docs bench validate clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,6 +26,10 @@ TEST_WORKERS ?= 2
 test: $(STAMP)
 	OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
+## docs: the documentation site from docs/ (MkDocs, offline, warnings are errors) into site/
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --quiet
+
 ## bench: speed and memory figures against peers measured in the same run
 bench: $(STAMP)
 	$(PY) benchmarks/run.py
@@ -37,4 +41,4 @@ validate: $(STAMP)
 	$(PY) benchmarks/validate_matrix.py
 
 clean:
-	rm -rf $(VENV) .venv-bench-contrib runs .pytest_cache
+	rm -rf $(VENV) .venv-bench-contrib runs .pytest_cache site

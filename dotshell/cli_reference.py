@@ -29,7 +29,7 @@ def _arguments(parser: argparse.ArgumentParser) -> list[str]:
         if a.choices:
             extra.append("one of " + ", ".join(f"`{c}`" for c in a.choices))
         if a.option_strings and a.default not in (None, False, [], argparse.SUPPRESS) and \
-                a.nargs != 0:
+                a.nargs != 0 and "default" not in (a.help or ""):
             extra.append(f"default `{a.default}`")
         help_text = (a.help or "") % {"default": a.default} if a.help else ""
         rows.append(f"| {name} | {_cell(help_text)}{' (' + '; '.join(extra) + ')' if extra else ''} |")
@@ -38,7 +38,8 @@ def _arguments(parser: argparse.ArgumentParser) -> list[str]:
     return ["| argument | meaning |", "|---|---|", *rows, ""]
 
 
-def _section(parser: argparse.ArgumentParser, title: str, help_text: str, depth: int) -> list[str]:
+def _section(parser: argparse.ArgumentParser, title: str, help_text: str, depth: int,
+             child_depth: int | None = None) -> list[str]:
     lines = [f"{'#' * depth} {title}", ""]
     if help_text:
         lines += [_cell(help_text[0].upper() + help_text[1:]) + ".", ""]
@@ -51,10 +52,11 @@ def _section(parser: argparse.ArgumentParser, title: str, help_text: str, depth:
     if sub is not None:
         helps = {a.dest: a.help or "" for a in sub._choices_actions}
         for name, child in sub.choices.items():
-            lines += _section(child, f"{title} {name}", helps.get(name, ""), min(depth + 1, 4))
+            lines += _section(child, f"{title} {name}", helps.get(name, ""),
+                              child_depth or min(depth + 1, 4))
     return lines
 
 
 def markdown(parser: argparse.ArgumentParser) -> str:
     """The reference of ``parser`` and every sub-command as Markdown."""
-    return "\n".join(_section(parser, parser.prog, "", 2)) + "\n"
+    return "\n".join(_section(parser, parser.prog, "", 2, child_depth=2)) + "\n"

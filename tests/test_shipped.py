@@ -198,3 +198,21 @@ def test_argparse_namespace_without_log_flags_keeps_warning_level():
     from dotshell.cli_logging import configure_logging
 
     assert configure_logging(argparse.Namespace()) == 30
+
+
+def test_cli_reference_lists_every_command_and_option():
+    """The docs site's cli.md is generated from the parser: every command (and sub-command) has
+    its heading, every option its row."""
+    from dotshell.cli_reference import markdown
+
+    parser = _parser()
+    text = markdown(parser)
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, child in sub.choices.items():
+        assert f"## dotshell {name}\n" in text, name
+        for action in child._actions:
+            for flag in action.option_strings:
+                assert f"`{flag}`" in text or flag in ("-h", "--help"), (name, flag)
+    assert "### dotshell profiles copy" in text and "### dotshell batch reconstruct" in text
+    marker = "<!-- the command reference is generated here from the parser -->"
+    assert marker in (ROOT / "docs" / "cli.md").read_text()  # where mkdocs_hooks.py puts it
