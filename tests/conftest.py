@@ -100,7 +100,8 @@ def small_scan(tmp_path_factory):
 #: compiles the kernels (:class:`KernelCompile`), filling the cores their waits on devices and
 #: terminals leave idle. A file that calls kernels and is listed here only costs time: its
 #: worker compiles what it calls.
-KERNEL_FREE = ("test_serial_faults.py", "test_tui_snapshots.py", "test_conformance.py",
+KERNEL_FREE = ("test_wheel.py",  # ~50 s; its kernels compile in the installed wheel's processes
+               "test_serial_faults.py", "test_tui_snapshots.py", "test_conformance.py",
                "test_projectors.py", "test_mesh_phantoms.py", "test_device_handles.py",
                "test_calib_solve.py", "test_device_plugin_guide.py", "test_compat.py",
                "test_numba_cache.py",

@@ -791,7 +791,8 @@ async def test_profile_picker_lists_config_dirs_and_plugins_screen_lists_backend
         async with running(app, (80, 24)) as pilot:
             await pilot.pause()
             assert isinstance(app.screen, ProfilePicker)
-            assert app.screen.paths == ["lab/lab-three.toml", "profiles/four.toml"]
+            assert app.screen.paths[:2] == ["lab/lab-three.toml", "profiles/four.toml"]
+            assert "sim-metal-cylinder" in app.screen.paths[2:]  # the shipped ones, by name
             await pilot.press("down", "enter")
             await settle(pilot)
             await wait_until(pilot, lambda: app.session.profile is not None)

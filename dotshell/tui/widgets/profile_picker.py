@@ -17,11 +17,11 @@ from dotshell.server.describe import short_path
 
 
 def find_profiles(current: str | Path | None, extra_dirs: list[Path] = ()) -> list[str]:
-    """``*.toml`` next to ``current``, in ./profiles, in ``extra_dirs`` and the shipped profiles,
-    each once, sorted."""
+    """``*.toml`` next to ``current``, in ./profiles and in ``extra_dirs`` (sorted), then the
+    shipped profiles by their bare names (sorted), each file once."""
     from dotshell.shipped import shipped_dir
 
-    dirs = [Path("profiles"), *extra_dirs, shipped_dir("profiles")]
+    dirs = [Path("profiles"), *extra_dirs]
     if current is not None:
         dirs.insert(0, Path(current).parent)
     found: dict[Path, str] = {}
@@ -29,7 +29,9 @@ def find_profiles(current: str | Path | None, extra_dirs: list[Path] = ()) -> li
         if d.is_dir():
             for p in sorted(d.glob("*.toml")):
                 found.setdefault(p.resolve(), short_path(p))
-    return sorted(found.values())
+    shipped = {p.resolve(): p.stem for p in shipped_dir("profiles").glob("*.toml")}
+    return sorted(found.values()) + sorted(name for path, name in shipped.items()
+                                           if path not in found)
 
 
 class ProfilePicker(ModalScreen[str | None]):
