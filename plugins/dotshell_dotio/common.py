@@ -37,7 +37,9 @@ def write_common(mesh_dir: Path, out_dir: Path, formats: list[str]) -> list[Path
             m = meshio.Mesh(volume.nodes, [("tetra", volume.tets)],
                             point_data=point_data if fmt in ("vtu", "vtk") else {})
         else:
-            m = meshio.Mesh(surface.vertices, [("triangle", surface.triangles)])
+            # int32 indices: PLY has no 64-bit integers, and meshio prints a warning of its
+            # own (not a Python warning) on stderr when it casts them down
+            m = meshio.Mesh(surface.vertices, [("triangle", surface.triangles.astype(np.int32))])
         kwargs = {"binary": False} if fmt in ("stl", "gmsh") else {}
         out.append(_atomic_meshio(Path(out_dir) / name, m, fmt, **kwargs))
     return out
