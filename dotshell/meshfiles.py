@@ -76,7 +76,9 @@ def _whole_ply_header(path: Path) -> bool:
 def write_surface(path: Path, surface: TriangleSurface) -> Path:
     import meshio
 
-    mesh = meshio.Mesh(surface.vertices, [("triangle", surface.triangles)])
+    # int32 indices: PLY has no 64-bit integers, and meshio prints its own warning (not a
+    # Python warning) on the user's terminal when it casts them down
+    mesh = meshio.Mesh(surface.vertices, [("triangle", np.asarray(surface.triangles, np.int32))])
     return _atomic_meshio(path, mesh, "ply", binary=True)
 
 
