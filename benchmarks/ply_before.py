@@ -1,6 +1,6 @@
 """dotshell.ply.read_ply as it was before issue 30 (commit 04737f4), frozen: the "before" side of
 benchmarks/ply_read.py. Benchmarks only; nothing in the product imports it. It read binary
-little-endian float PLY only.
+little-endian float PLY only. Its write_ply is left out (unchanged in dotshell.ply).
 
 The original module docstring follows.
 
@@ -14,27 +14,6 @@ from pathlib import Path
 import numpy as np
 
 from dotshell.errors import RunError
-from dotshell.store import atomic_write_bytes
-
-
-def write_ply(path: Path, points: np.ndarray, **scalars: np.ndarray) -> Path:
-    """Write points (N, 3) and named per-point scalars (N,) atomically. The file's bytes are
-    built once, in place (a 5 M-point cloud is 80 MB; no copies of it)."""
-    points = np.asarray(points).reshape(-1, 3)
-    names = ["x", "y", "z", *scalars]
-    header = "\n".join(["ply", "format binary_little_endian 1.0", "comment dotshell, units mm",
-                        f"element vertex {len(points)}", *(f"property float {n}" for n in names),
-                        "end_header"]).encode("ascii") + b"\n"
-    dtype = np.dtype([(n, "<f4") for n in names])
-    data = np.empty(len(header) + len(points) * dtype.itemsize, np.uint8)
-    data[:len(header)] = np.frombuffer(header, np.uint8)
-    rec = data[len(header):].view(dtype)
-    for i, n in enumerate("xyz"):
-        rec[n] = points[:, i]
-    for n, v in scalars.items():
-        rec[n] = np.asarray(v).ravel()
-    atomic_write_bytes(Path(path), data)
-    return Path(path)
 
 
 def read_ply(path: Path, finite: bool = True,
