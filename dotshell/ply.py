@@ -71,23 +71,65 @@ def _vertex_data(path: Path) -> np.ndarray:
     copy-on-write (plyfile's fast path: 2 M points in ~30 ms, where reading them through a
     stream took 20 s, benchmarks/ply_read.py); callers copy what they keep, and dotshell
     replaces files by renaming, so the mapped file never changes under the map."""
-    from plyfile import PlyData
+    from plyfile import PlyData, PlyElementParseError, PlyHeaderParseError
 
     with path.open("rb") as f:
-        if f.read(4) != b"ply\n":
-            raise RunError(f"{path} is not a PLY file (it does not start with 'ply'); give a "
-                           "point cloud written by dotshell, open3d, MeshLab or CloudCompare.")
+        lines = _header_lines(path, f.read(HEADER_MAX))
         f.seek(0)
         try:
             ply = PlyData.read(f, mmap="c")
+        except PlyHeaderParseError as exc:
+            where = f" line {exc.line} ({lines[exc.line - 1]!r})" if exc.line else ""
+            raise _damaged(path, f"its header{where} is wrong: {exc.message}") from None
+        except PlyElementParseError as exc:
+            raise _damaged(path, _early_end(lines, exc)) from None
+        except (UnicodeDecodeError, ValueError) as exc:
+            if "format ascii 1.0" in lines:
+                raise _damaged(path, "its data is not the text its header's 'format ascii' "
+                                     f"announces ({exc})") from None
+            raise _damaged(path, f"{type(exc).__name__}: {exc}") from None
         except MemoryError:
             raise _damaged(path, "its header declares more vertices than fit in memory") from None
-        except Exception as exc:  # plyfile's parse errors, and numpy's on garbage input
+        except Exception as exc:  # plyfile and numpy on other garbage: named, never a traceback
             raise _damaged(path, f"{type(exc).__name__}: {exc}") from None
     if "vertex" not in ply:
         raise _damaged(path, f"it has no vertex element (elements: "
                              f"{[e.name for e in ply.elements]})")
     return ply["vertex"].data
+
+
+#: the longest PLY header read (bytes); dotshell's, open3d's and MeshLab's take a few hundred
+HEADER_MAX = 1 << 16
+
+
+def _header_lines(path: Path, head: bytes) -> list[str]:
+    """The header's lines (``ply`` ... up to ``end_header``), or RunError."""
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        raise RunError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header); give a "
+                       "point cloud written by dotshell, open3d, MeshLab or CloudCompare.")
+    try:
+        return [ln.strip() for ln in head[:end].decode("ascii").splitlines()]
+    except UnicodeDecodeError:
+        raise _damaged(path, "its header is not ASCII text") from None
+
+
+def _early_end(lines: list[str], exc: Exception) -> str:
+    """What a data error means: the file ends before the vertices its header declares."""
+    count, props, in_vertex = "?", [], False
+    for line in lines:
+        words = line.split()
+        if words[:1] == ["element"]:
+            in_vertex = words[1:2] == ["vertex"]
+            if in_vertex and len(words) > 2:
+                count = words[2]
+        elif words[:1] == ["property"] and in_vertex:
+            props.append(" ".join(words[1:]))
+    row = getattr(exc, "row", None)
+    got = f"after {row} of the {count} vertices" if row is not None else "early"
+    return (f"the data ends {got} its header declares ({getattr(exc, 'message', exc)}): the "
+            f"file is cut short, or the header's vertex count or property types "
+            f"({', '.join(props)}) do not match the data")
 
 
 def _damaged(path: Path, what: str) -> RunError:

@@ -742,19 +742,19 @@ _cloud_case("empty file", lambda d: b"", ("is not a PLY file",))
 _cloud_case("no end_header", lambda d: _header(d)[0][:-11] + _header(d)[1],
             ("is not a PLY file",), command="validate")
 _cloud_case("no vertex element", _swap_header(b"element vertex", b"element points"),
-            ("only one vertex element", "element points"))
+            ("no vertex element", "points"))
 _cloud_case("vertex count not a number", _swap_header(b"element vertex ", b"element vertex x"),
-            ("element vertex",))
+            ("header line", "element vertex x", "integer count"))
 _cloud_case("vertex count beyond the data", lambda d: _swap_header(
-    b"element vertex ", b"element vertex 9")(d), ("holds", "bytes of vertex data", "need"))
-_cloud_case("truncated data", lambda d: d[: len(d) // 2], ("bytes of vertex data", "need"),
+    b"element vertex ", b"element vertex 9")(d), ("data ends after", "vertices its header declares"))
+_cloud_case("truncated data", lambda d: d[: len(d) // 2], ("data ends after", "cut short"),
             command="validate")
 _cloud_case("no x property", _swap_header(b"property float x", b"property float q"),
             ("need x, y, z",))
 _cloud_case("double properties", _swap_header(b"property float x", b"property double x"),
-            ("property double x", "float"))
+            ("data ends after", "property types (double x, float y"))
 _cloud_case("ascii format", _swap_header(b"binary_little_endian", b"ascii"),
-            ("only binary little-endian",))
+            ("format ascii", "not the text"))
 _cloud_case("non-ASCII header", _swap_header(b"comment dotshell", b"comment \xff\xfe"),
             ("header is not ascii",))
 _cloud_case("NaN points", lambda d: _header(d)[0] + np.full(len(_header(d)[1]) // 4, np.nan,
