@@ -4,7 +4,8 @@ own argparse parser, so it always lists today's commands and options.
 bash and zsh scripts are shtab's (static scripts: a TAB runs no Python, where argcomplete's
 completion starts the program on every TAB — about a second for dotshell, whose parser imports
 the plugin manager's modules); shtab has no fish output, so the fish script is written here from
-the same parser (commands, their one level of sub-commands, options and choices).
+the same parser (commands, their one level of sub-commands, options and choices). A PROFILE
+argument completes to the shipped profiles' names and to TOML files.
 """
 
 from __future__ import annotations
@@ -47,6 +48,11 @@ def _fish_positionals(parser: argparse.ArgumentParser, condition: str) -> list[s
     positionals = [a for a in parser._actions if not a.option_strings
                    and not isinstance(a, argparse._SubParsersAction)]
     choices = [a for a in positionals if a.choices]
+    if any(a.dest == "profile" for a in positionals):  # shipped names, and files
+        from dotshell.shipped import shipped_names
+
+        return [f"complete -c dotshell -n {_quote(condition)} -F -a "
+                f"{_quote(' '.join(shipped_names('profiles')))}"]
     if choices:
         words = " ".join(str(c) for a in choices for c in a.choices)
         return [f"complete -c dotshell -n {_quote(condition)} -xa {_quote(words)}"]
@@ -79,12 +85,41 @@ def fish_script(parser: argparse.ArgumentParser) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _profile_completer() -> dict[str, Any]:
+    """shtab's completer for a PROFILE argument: the shipped profiles' names and TOML files."""
+    from dotshell.shipped import shipped_names
+
+    names = " ".join(shipped_names("profiles"))
+    return {
+        "bash": "_dotshell_profiles", "zsh": "_dotshell_profiles",
+        "preamble": {
+            "bash": ("_dotshell_profiles() {\n"
+                     f"  compgen -W '{names}' -- $1\n"
+                     "  compgen -f -X '!*.toml' -- $1\n"
+                     "  compgen -d -- $1\n}\n"),
+            "zsh": ("_dotshell_profiles() {\n"
+                    f"  _alternative 'shipped:shipped profile:({names})' "
+                    "'files:profile file:_files -g \"*.toml\"'\n}\n"),
+        },
+    }
+
+
+def _mark_profile_arguments(parser: argparse.ArgumentParser) -> None:
+    """Give every positional PROFILE argument of every command the profile completer."""
+    sub = _subparsers(parser)
+    for child in (sub.choices.values() if sub is not None else ()):
+        for action in child._actions:
+            if not action.option_strings and action.dest == "profile":
+                action.complete = _profile_completer()  # type: ignore[attr-defined]
+
+
 def completion_script(parser: argparse.ArgumentParser, shell: str) -> str:
     """The completion script of ``shell`` (bash, zsh or fish) for ``parser``."""
     if shell == "fish":
         return fish_script(parser)
     import shtab
 
+    _mark_profile_arguments(parser)
     return shtab.complete(parser, shell=shell)
 
 

@@ -145,6 +145,8 @@ def test_bash_completion_completes_commands_options_and_choices(tmp_path, capsys
     assert "completion" in _bash_complete(script, ["dotshell", "c"])
     assert _bash_complete(script, ["dotshell", "completion", "f"]) == ["fish"]
     assert "--detach" in _bash_complete(script, ["dotshell", "scan", "--"])
+    assert _bash_complete(script, ["dotshell", "scan", "sim-metal-cylinder-v"]) == [
+        "sim-metal-cylinder-vertical"]  # a PROFILE: the shipped names (and TOML files)
 
 
 @pytest.mark.skipif(shutil.which("fish") is None, reason="fish is not installed")
@@ -164,6 +166,7 @@ def test_fish_completion_completes_commands_options_and_choices(tmp_path):
     assert "--detach" in complete("dotshell scan --")
     assert "copy" in complete("dotshell profiles ")
     assert "INFO" in complete("dotshell --log-level ")
+    assert "sim-metal-cylinder-vertical" in complete("dotshell tui sim-metal-cylinder-v")
 
 
 @pytest.mark.skipif(shutil.which("zsh") is None, reason="zsh is not installed")
