@@ -421,6 +421,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("args", nargs=argparse.REMAINDER,
                     help="arguments for the script (sys.argv[1:]); put them after --")
     sp.set_defaults(func=cmd_script)
+    from dotshell.cli_logging import add_logging_args_to_commands
+
+    add_logging_args_to_commands(sub)  # -v/-q/--log-level after the command too
     return p
 
 

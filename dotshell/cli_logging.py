@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from typing import Any
 
 LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
 
@@ -42,13 +43,24 @@ class StderrHandler(logging.StreamHandler):
         return bool(super().filter(record))
 
 
-def add_logging_args(p: argparse.ArgumentParser) -> None:
-    """``-v``/``--verbose`` (repeatable), ``-q``/``--quiet`` and ``--log-level LEVEL``."""
-    p.add_argument("-v", "--verbose", action="count", default=0,
+def add_logging_args(p: argparse.ArgumentParser, default: Any = None) -> None:
+    """``-v``/``--verbose`` (repeatable), ``-q``/``--quiet`` and ``--log-level LEVEL``;
+    ``default=argparse.SUPPRESS`` for a command's parser (the flags may follow the command
+    without resetting what was given before it)."""
+    keep = default is argparse.SUPPRESS
+    p.add_argument("-v", "--verbose", action="count", default=default if keep else 0,
                    help="more log output: -v shows INFO and library warnings, -vv DEBUG")
-    p.add_argument("-q", "--quiet", action="store_true", help="only errors in the log output")
+    p.add_argument("-q", "--quiet", action="store_true", default=default if keep else False,
+                   help="only errors in the log output")
     p.add_argument("--log-level", choices=LEVELS, type=str.upper, metavar="LEVEL",
-                   help=f"log level ({', '.join(LEVELS)}); overrides -v/-q")
+                   default=default, help=f"log level ({', '.join(LEVELS)}); overrides -v/-q")
+
+
+def add_logging_args_to_commands(sub: argparse._SubParsersAction) -> None:
+    """The log flags on every command too: ``dotshell scan P -v`` as well as ``dotshell -v
+    scan P``."""
+    for child in sub.choices.values():
+        add_logging_args(child, argparse.SUPPRESS)
 
 
 def chosen_level(verbose: int = 0, quiet: bool = False, log_level: str | None = None) -> int:

@@ -88,6 +88,10 @@ def test_log_flags_choose_the_level():
     assert chosen_level(verbose=2, log_level="ERROR") == 40
     args = _parser().parse_args(["-vv", "--log-level", "info", "profiles"])
     assert args.verbose == 2 and args.log_level == "INFO"
+    args = _parser().parse_args(["-q", "check", "p.toml", "-v"])  # after the command as well
+    assert args.verbose == 1 and args.quiet and args.log_level is None
+    args = _parser().parse_args(["check", "p.toml"])
+    assert args.verbose == 0 and not args.quiet
 
 
 def test_library_warnings_reach_the_terminal_only_with_verbose(tmp_path):
