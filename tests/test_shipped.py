@@ -225,3 +225,30 @@ def test_cli_reference_lists_every_command_and_option():
     assert "### dotshell profiles copy" in text and "### dotshell batch reconstruct" in text
     marker = "<!-- the command reference is generated here from the parser -->"
     assert marker in (ROOT / "docs" / "cli.md").read_text()  # where mkdocs_hooks.py puts it
+
+
+def test_log_records_reach_stderr_by_level_and_device_lines_only_when_verbose(capsys):
+    """Library records at WARNING by default; device log lines (which the front ends already
+    show as events) only with -v; -q keeps errors only."""
+    import logging
+
+    from dotshell.cli_logging import configure_logging
+
+    lib, dev = logging.getLogger("somelib"), logging.getLogger("dotshell.devices")
+    try:
+        configure_logging(argparse.Namespace(verbose=0, quiet=False, log_level=None))
+        lib.info("lib info")
+        lib.warning("lib warning")
+        dev.warning("stage (grbl): alarm")
+        err = capsys.readouterr().err
+        assert "lib warning" in err and "lib info" not in err and "alarm" not in err
+        configure_logging(argparse.Namespace(verbose=1, quiet=False, log_level=None))
+        lib.info("lib info")
+        dev.warning("stage (grbl): alarm")
+        err = capsys.readouterr().err
+        assert "INFO somelib: lib info" in err and "alarm" in err
+        configure_logging(argparse.Namespace(verbose=0, quiet=True, log_level=None))
+        lib.warning("lib warning")
+        assert "lib warning" not in capsys.readouterr().err
+    finally:
+        configure_logging(argparse.Namespace())
