@@ -21,6 +21,11 @@ from pathlib import Path
 from typing import Callable
 
 
+#: Bytes the garbage fault never sends: line breaks (they would add reply lines) and XON/XOFF
+#: (0x11/0x13), which freeze a driver that uses software flow control (pyserial's ``xonxoff``).
+NOT_NOISE = (10, 13, 0x11, 0x13)
+
+
 @dataclass
 class Faults:
     """Fault switches (all off by default).
@@ -184,7 +189,7 @@ class PtyEmulator:
         if self.faults.silence or self._master < 0:
             return
         if self.faults.garbage:
-            noise = [b for b in range(1, 255) if b not in (10, 13)]  # no extra line breaks
+            noise = [b for b in range(1, 255) if b not in NOT_NOISE]
             data = bytes(self._rng.choice(noise) for _ in range(7)) + data
         try:
             os.write(self._master, data)
