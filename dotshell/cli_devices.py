@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from typing import Any, Callable
 
@@ -15,6 +16,7 @@ from dotshell.errors import PluginError
 
 EMULATOR_GROUP = "dotshell_emulators"
 out = Console(highlight=False)
+err = Console(stderr=True, highlight=False)
 
 
 def _usb_devices() -> tuple[list[tuple[str, str]], str]:
@@ -41,7 +43,7 @@ def _usb_devices() -> tuple[list[tuple[str, str]], str]:
 
 def cmd_ports(args: argparse.Namespace, pm_of: Callable[[argparse.Namespace], Any]) -> int:
     from dotshell.backends import ROLES
-    from dotshell.ports import list_serial_ports, matching_backends
+    from dotshell.ports import list_serial_ports, matching_backends, running_emulators
 
     pm = pm_of(args)
     backends = {role: pm.backends(role) for role in ROLES}
@@ -54,6 +56,15 @@ def cmd_ports(args: argparse.Namespace, pm_of: Callable[[argparse.Namespace], An
                   escape(p.description or "-"), escape(", ".join(matching_backends(p, backends))
                                                        or "-"))
     out.print(t if ports else "no serial ports found")
+    emulators = running_emulators()
+    if emulators:
+        e = Table(title="emulators (dotshell emulate)")
+        for col in ("port for profiles", "pty", "emulator", "pid"):
+            e.add_column(col)
+        for info in emulators:
+            e.add_row(escape(str(info.get("link", "-"))), escape(str(info.get("pty", "-"))),
+                      escape(str(info.get("emulator", "-"))), str(info.get("pid", "-")))
+        out.print(e)
     usb, note = _usb_devices()
     if usb:
         u = Table(title="USB devices")
@@ -92,22 +103,47 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     emu = cls(link=link, speed_deg_s=args.speed)
     for fault in args.fault:
         setattr(emu.faults, fault, True)
-    emu.faults.vanish_after_s = args.vanish_after
+    emu.faults.vanish_after_connect_s = args.vanish_after
     emu.faults.return_after_s = args.return_after
     emu.start()
+    listed = _list_emulator(args.name, emu)
     t0 = time.monotonic()
     out.print(f"{args.name} emulator on {emu.pty_path}", soft_wrap=True)
     out.print(f"port for profiles: {emu.port}", soft_wrap=True)
     out.print("Ctrl-C stops it.", soft_wrap=True)
+    shown = 0
     try:
         while args.seconds <= 0 or time.monotonic() - t0 < args.seconds:
             time.sleep(0.1)
+            shown = _show_errors(emu, shown)
     except KeyboardInterrupt:
         pass
     finally:
         emu.close()
+        listed.release()
+    _show_errors(emu, shown)
     out.print(f"{len(emu.commands)} commands received; port closed.")
     return 0
+
+
+def _show_errors(emu: Any, shown: int) -> int:
+    """Print the emulator's model errors not shown yet (an emulator bug never kills the port,
+    so this is where it is seen); returns how many are shown."""
+    for text in emu.errors[shown:]:
+        err.print(f"[red]emulator error:[/] {escape(text)} (the port stays up; this is a bug "
+                  "in the emulator's model)", soft_wrap=True)
+    return len(emu.errors)
+
+
+def _list_emulator(name: str, emu: Any) -> Any:
+    """Record the running emulator (name, pty, link) under a lock in the runtime directory,
+    for `dotshell ports`; the record dies with this process."""
+    from dotshell.owners import OwnerLock
+    from dotshell.ports import emulator_dir
+
+    lock = OwnerLock(emulator_dir() / f"{name}-{os.getpid()}.lock")
+    lock.acquire({"emulator": name, "pty": emu.pty_path, "link": emu.port})
+    return lock
 
 
 def add_device_parsers(sub: Any, pm_of: Callable[[argparse.Namespace], Any]) -> None:
@@ -128,7 +164,8 @@ def add_device_parsers(sub: Any, pm_of: Callable[[argparse.Namespace], Any]) -> 
                     choices=("error", "silence", "garbage", "stuck", "alarm"),
                     help="switch a fault on from the start (repeatable)")
     sp.add_argument("--vanish-after", type=float, metavar="S",
-                    help="the port vanishes S seconds after the first move starts")
+                    help="the port vanishes S seconds after the driver connects (its first "
+                    "bytes)")
     sp.add_argument("--return-after", type=float, metavar="S",
                     help="...and comes back S seconds later (a re-plugged cable)")
     sp.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)

@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import pytest
 from rich.console import Console
 
+from rig_server import user_dirs  # noqa: F401 (a fixture)
 import dotshell.cli_devices as cli_devices
 import dotshell.ports as ports
 from dotshell.cli import main
@@ -88,3 +89,29 @@ def test_emulate_prints_its_port_and_a_driver_talks_to_it(tmp_path, dotshell_pm)
 def test_emulate_unknown_name_lists_the_emulators(capsys):
     assert main(["emulate", "lightcrafter-9000"]) == 2
     assert "installed emulators: apt, elliptec, grbl, switch, zaber" in capsys.readouterr().err
+
+
+def test_ports_lists_running_emulators_and_vanish_after_counts_from_connect(
+        tmp_path, dotshell_pm, capsys, monkeypatch, user_dirs):
+    from stop_cases import wait_for
+
+    link = tmp_path / "zaber-link"
+    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", "emulate", "zaber", "--link",
+                             str(link), "--vanish-after", "0.3", "--seconds", "60"],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        pty = proc.stdout.readline().split()[-1]
+        assert proc.stdout.readline().strip() == f"port for profiles: {link}"
+        monkeypatch.setattr(cli_devices, "out", Console(width=400, highlight=False))
+        assert main(["ports"]) == 0
+        listed = [line for line in capsys.readouterr().out.splitlines() if str(link) in line]
+        assert len(listed) == 1 and pty in listed[0] and str(proc.pid) in listed[0]
+        stage = dotshell_pm.create("stage", "zaber", {"port": str(link)})
+        stage.connect()  # no move: the port vanishes 0.3 s after this connect all the same
+        assert wait_for(lambda: not link.exists(), 20.0)
+        stage.close()
+    finally:
+        proc.send_signal(2)
+        proc.communicate(timeout=10)
+    assert main(["ports"]) == 0
+    assert str(link) not in capsys.readouterr().out  # gone with its process

@@ -38,6 +38,8 @@ class Faults:
         stuck: moves start but never finish.
         alarm: a limit switch trips during the next move (the device's alarm/limit state).
         vanish_after_s: the port disappears this long after the next move starts.
+        vanish_after_connect_s: the port disappears this long after the driver first writes to
+            it (``dotshell emulate --vanish-after``: counted from connect, whatever moves).
         return_after_s: ...and comes back this long after vanishing (None = stays gone).
     """
 
@@ -47,6 +49,7 @@ class Faults:
     stuck: bool = False
     alarm: bool = False
     vanish_after_s: float | None = None
+    vanish_after_connect_s: float | None = None
     return_after_s: float | None = None
 
     NAMES = ("error", "silence", "garbage", "stuck", "alarm", "vanish")
@@ -173,6 +176,9 @@ class PtyEmulator:
                 data = b""
             try:
                 if data:
+                    if not self.received and self.faults.vanish_after_connect_s is not None:
+                        self._vanish_at = time.monotonic() + self.faults.vanish_after_connect_s
+                        self.faults.vanish_after_connect_s = None
                     self.received.append((time.monotonic(), data))
                     with self._lock:
                         self.feed(data)
