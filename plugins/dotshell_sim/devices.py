@@ -186,6 +186,11 @@ ANALYZER_SCHEMA: dict[str, Setting] = {
                              "analyzer axis", min=0.0, max=1.0),
 }
 
+CAMERA_SCHEMA["analyzer"] = Setting(
+    "table", None, "mixed rigs: the analyzer optics in front of the camera when the rig's "
+    "[analyzer] is a real rotation mount (e.g. elliptec on its emulator) instead of "
+    "sim-analyzer; the optics turn to the angle that mount reports", schema=ANALYZER_SCHEMA)
+
 LASER_SCHEMA: dict[str, Setting] = {
     "wavelength_nm": Setting("float", 780.0, "for the record only (the sample's optics are "
                              "given for the laser's wavelength)", "nm", min=0.0),
@@ -787,15 +792,24 @@ class SimAnalyzer(_Device):
 
     def __init__(self, settings: dict, world: SimWorld):
         super().__init__(settings, world)
-        self.angle_deg = float(settings["initial_deg"])
+        self._angle_deg = float(settings["initial_deg"])
+        self.follow: Any = None  # mixed rigs: () -> the real analyzer's angle (degrees)
+        if world.analyzer is not None:
+            raise DeviceError(f"{self.name}: this rig has both [analyzer] backend = "
+                              "\"sim-analyzer\" and [camera.settings.analyzer]; keep one.")
         world.analyzer = self
+
+    @property
+    def angle_deg(self) -> float:
+        """The analyzer angle (degrees): its own, or the real mount's it follows."""
+        return float(self.follow()) if self.follow is not None else self._angle_deg
 
     def set_angle(self, degrees: float) -> None:
         self._check("set the analyzer angle")
         if not (isinstance(degrees, (int, float)) and math.isfinite(degrees)):
             raise DeviceError(f"{self.name}: angle must be a finite number of degrees, got "
                               f"{degrees!r}.")
-        self.angle_deg = float(degrees)
+        self._angle_deg = float(degrees)
 
     def transmission(self) -> tuple[float, float]:
         """(transmission of the projector-polarized light, of unpolarized light)."""
@@ -943,7 +957,21 @@ def make_camera(settings: dict | None = None, context: RigContext | None = None)
         table = validate_settings(TURNTABLE_SCHEMA, camera.settings["turntable"], "sim-camera",
                                   "camera.settings.turntable")
         SimTurntable(table, camera.world).follow = lambda: _rig_stage_angle(context)
+    if camera.settings["analyzer"] is not None:
+        optics = validate_settings(ANALYZER_SCHEMA, camera.settings["analyzer"], "sim-camera",
+                                   "camera.settings.analyzer")
+        follower = SimAnalyzer(optics, camera.world)
+        follower.follow = lambda: _rig_analyzer_angle(context)
+        follower.connected = True  # in the light path for as long as the camera is
     return camera
+
+
+def _rig_analyzer_angle(context: RigContext | None) -> float:
+    analyzer = context.device("analyzer") if context is not None else None
+    if analyzer is None:
+        raise DeviceError("sim-camera: [camera.settings.analyzer] follows the rig's analyzer, "
+                          "but this rig has none; add an [analyzer] section.")
+    return float(analyzer.position)
 
 
 def _rig_stage_angle(context: RigContext | None) -> float:
