@@ -102,7 +102,10 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     link = args.link or f"/tmp/dotshell-emu-{args.name}"
     emu = cls(link=link, speed_deg_s=args.speed)
     for fault in args.fault:
-        setattr(emu.faults, fault, True)
+        try:
+            emu.set_fault(fault)
+        except ValueError as exc:
+            raise PluginError(f"{exc}.") from None
     emu.faults.vanish_after_connect_s = args.vanish_after
     emu.faults.return_after_s = args.return_after
     emu.start()
@@ -160,9 +163,9 @@ def add_device_parsers(sub: Any, pm_of: Callable[[argparse.Namespace], Any]) -> 
                     "/tmp/dotshell-emu-NAME)")
     sp.add_argument("--speed", type=float, default=360.0, metavar="DEG_S",
                     help="simulated rotation speed in degrees per second (default 360)")
-    sp.add_argument("--fault", action="append", default=[],
-                    choices=("error", "silence", "garbage", "stuck", "alarm"),
-                    help="switch a fault on from the start (repeatable)")
+    sp.add_argument("--fault", action="append", default=[], metavar="NAME",
+                    help="switch a fault on from the start (repeatable): error, silence, "
+                    "garbage, stuck, alarm, or one the emulator defines")
     sp.add_argument("--vanish-after", type=float, metavar="S",
                     help="the port vanishes S seconds after the driver connects (its first "
                     "bytes)")

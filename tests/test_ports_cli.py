@@ -115,3 +115,33 @@ def test_ports_lists_running_emulators_and_vanish_after_counts_from_connect(
         proc.communicate(timeout=10)
     assert main(["ports"]) == 0
     assert str(link) not in capsys.readouterr().out  # gone with its process
+
+
+def test_emulate_prints_its_models_errors(tmp_path, monkeypatch, capsys, user_dirs):
+    import threading
+
+    from stop_cases import wait_for
+    from dotshell_serial.emulators.pty import LineEmulator
+
+    class Broken(LineEmulator):
+        name = "broken"
+
+        def line(self, text):
+            raise ZeroDivisionError(f"cannot parse {text!r}")
+
+    monkeypatch.setattr(cli_devices, "emulator_class", lambda name: Broken)
+    link = tmp_path / "broken-link"
+
+    def talk():
+        assert wait_for(link.exists, 30.0)
+        fd = os.open(link, os.O_RDWR | os.O_NOCTTY)
+        os.write(fd, b"HELLO\n")
+        os.close(fd)
+
+    thread = threading.Thread(target=talk, daemon=True)
+    thread.start()
+    assert main(["emulate", "broken", "--link", str(link), "--seconds", "2"]) == 0
+    thread.join(5)
+    err = " ".join(capsys.readouterr().err.split())
+    assert "emulator error: ZeroDivisionError: cannot parse 'HELLO'" in err
+    assert "the port stays up" in err

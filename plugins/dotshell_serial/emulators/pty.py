@@ -16,7 +16,7 @@ import select
 import threading
 import time
 import tty
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -41,6 +41,8 @@ class Faults:
         vanish_after_connect_s: the port disappears this long after the driver first writes to
             it (``dotshell emulate --vanish-after``: counted from connect, whatever moves).
         return_after_s: ...and comes back this long after vanishing (None = stays gone).
+        extra: the emulator's own faults that are on (names its class lists in
+            ``extra_faults``; its model checks ``"name" in self.faults.extra``).
     """
 
     error: bool | int = False
@@ -51,6 +53,7 @@ class Faults:
     vanish_after_s: float | None = None
     vanish_after_connect_s: float | None = None
     return_after_s: float | None = None
+    extra: set[str] = field(default_factory=set)
 
     NAMES = ("error", "silence", "garbage", "stuck", "alarm", "vanish")
 
@@ -73,6 +76,8 @@ class PtyEmulator:
 
     name = "device"
     newline = b"\n"
+    #: Faults this emulator defines beyond :attr:`Faults.NAMES` (``dotshell emulate --fault``).
+    extra_faults: tuple[str, ...] = ()
 
     def __init__(self, link: str | os.PathLike | None = None, speed_deg_s: float = 360.0,
                  seed: int = 0) -> None:
@@ -115,6 +120,23 @@ class PtyEmulator:
         if self._thread is not None:
             self._thread.join(2.0)
         self._unplug()
+
+    @classmethod
+    def fault_names(cls) -> tuple[str, ...]:
+        """Every fault ``set_fault`` takes: the switches of :class:`Faults` and the
+        emulator's own ``extra_faults``."""
+        return tuple(n for n in Faults.NAMES if n != "vanish") + tuple(cls.extra_faults)
+
+    def set_fault(self, name: str) -> None:
+        """Switch fault ``name`` on (a :class:`Faults` switch or one of ``extra_faults``);
+        ValueError naming the choices otherwise."""
+        if name in self.extra_faults:
+            self.faults.extra.add(name)
+        elif name in self.fault_names():
+            setattr(self.faults, name, True)
+        else:
+            raise ValueError(f"the {self.name} emulator has no fault {name!r}; its faults: "
+                             f"{', '.join(self.fault_names())}")
 
     def __enter__(self) -> "PtyEmulator":
         return self.start()
