@@ -69,6 +69,19 @@ def read_info(path: Path) -> dict[str, Any]:
     return data if isinstance(data, dict) else {}
 
 
+def try_flock(fd: int) -> bool:
+    """An exclusive, non-blocking ``flock`` on ``fd``: True when taken; False when another
+    open file holds it (``fd`` is then closed)."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        return True
+    except OSError as exc:
+        os.close(fd)
+        if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            raise
+        return False
+
+
 class OwnerLock:
     """An exclusive, non-blocking ``flock`` on ``path`` whose file says who holds it."""
 
@@ -82,12 +95,7 @@ class OwnerLock:
         if self._fd is not None:
             return None
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o600)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            os.close(fd)
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise
+        if not try_flock(fd):
             return read_info(self.path)
         record = {"pid": os.getpid(), "host": socket.gethostname(), "tty": terminal(),
                   "command": _command(),

@@ -18,33 +18,10 @@ from dotshell.devices import FrameInfo
 from dotshell.errors import DeviceError
 from dotshell.plugins import PluginManager
 from dotshell.testing import assert_device_conforms, check_device, format_results
+from test_conformance import GoodCamera
 
 
-class Camera:
-    resolution = (16, 12)
-    bit_depth = 12
-
-    def __init__(self, settings=None, context=None):
-        self.connected = False
-        self.n = 0
-
-    def connect(self):
-        self.connected = True
-
-    def close(self):
-        self.connected = False
-
-    def status(self):
-        return {"connected": self.connected}
-
-    def capture(self):
-        if not self.connected:
-            raise DeviceError("not connected")
-        self.n += 1
-        return np.full((12, 16), 100, np.uint16)
-
-
-class HangingCamera(Camera):
+class HangingCamera(GoodCamera):
     release = threading.Event()
 
     def capture(self):
@@ -53,13 +30,13 @@ class HangingCamera(Camera):
         return super().capture()
 
 
-class NoneCamera(Camera):
+class NoneCamera(GoodCamera):
     def capture(self):
         super().capture()
-        return None
+        return None  # a driver that lost its frame and did not say so
 
 
-class StaleInfoCamera(Camera):
+class StaleInfoCamera(GoodCamera):
     def last_frame_info(self):
         return FrameInfo(timestamp_s=1000.0, frame_id=7)  # the same frame every time
 
@@ -100,7 +77,7 @@ class Plugin:
     @hookimpl
     def dotshell_cameras(self):
         return [Backend("hangs", HangingCamera, {}), Backend("none", NoneCamera, {}),
-                Backend("stale", StaleInfoCamera, {}), Backend("good", Camera, {})]
+                Backend("stale", StaleInfoCamera, {}), Backend("good", GoodCamera, {})]
 
     @hookimpl
     def dotshell_stages(self):

@@ -956,30 +956,25 @@ def make_camera(settings: dict | None = None, context: RigContext | None = None)
     if camera.settings["turntable"] is not None:
         table = validate_settings(TURNTABLE_SCHEMA, camera.settings["turntable"], "sim-camera",
                                   "camera.settings.turntable")
-        SimTurntable(table, camera.world).follow = lambda: _rig_stage_angle(context)
+        SimTurntable(table, camera.world).follow = lambda: _rig_angle(context, "stage")
     if camera.settings["analyzer"] is not None:
         optics = validate_settings(ANALYZER_SCHEMA, camera.settings["analyzer"], "sim-camera",
                                    "camera.settings.analyzer")
         follower = SimAnalyzer(optics, camera.world)
-        follower.follow = lambda: _rig_analyzer_angle(context)
+        follower.follow = lambda: _rig_angle(context, "analyzer")
         follower.connected = True  # in the light path for as long as the camera is
     return camera
 
 
-def _rig_analyzer_angle(context: RigContext | None) -> float:
-    analyzer = context.device("analyzer") if context is not None else None
-    if analyzer is None:
-        raise DeviceError("sim-camera: [camera.settings.analyzer] follows the rig's analyzer, "
-                          "but this rig has none; add an [analyzer] section.")
-    return float(analyzer.position)
-
-
-def _rig_stage_angle(context: RigContext | None) -> float:
-    stage = context.device("stage") if context is not None else None
-    if stage is None:
-        raise DeviceError("sim-camera: [camera.settings.turntable] follows the rig's stage, but "
-                          "this rig has none; add a [stage] section.")
-    return float(stage.position)
+def _rig_angle(context: RigContext | None, role: str) -> float:
+    """The angle (degrees) the rig's ``role`` device reports, which the sim camera's
+    ``[camera.settings.turntable]`` (stage) or ``[camera.settings.analyzer]`` follows."""
+    device = context.device(role) if context is not None else None
+    if device is None:
+        key = "turntable" if role == "stage" else role
+        raise DeviceError(f"sim-camera: [camera.settings.{key}] follows the rig's {role}, but "
+                          f"this rig has none; add a [{role}] section.")
+    return float(device.position)
 make_projector = _factory(SimProjector, PROJECTOR_SCHEMA, "sim-projector")
 make_turntable = _factory(SimTurntable, TURNTABLE_SCHEMA, "sim-turntable")
 make_analyzer = _factory(SimAnalyzer, ANALYZER_SCHEMA, "sim-analyzer")
