@@ -186,6 +186,21 @@ def lock_name(identity: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", identity.strip("/")) + ".lock"
 
 
+def held_devices(profile: Any) -> list[tuple[str, str, dict[str, Any]]]:
+    """(role, device, holder) of each device ``profile`` (a :class:`~dotshell.profile.Profile`)
+    names that another process holds now."""
+    from dotshell.profile import DEVICE_ROLES
+
+    out = []
+    for role in DEVICE_ROLES:
+        section = profile.role(role)
+        for ident in device_identities(section["settings"]) if section else []:
+            info = holder(device_lock_dir() / lock_name(ident))
+            if info is not None:
+                out.append((role, ident, info))
+    return out
+
+
 class DeviceOwnership:
     """The device locks one rig holds, by role."""
 

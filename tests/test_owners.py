@@ -70,6 +70,33 @@ def test_a_second_scan_on_a_held_stage_exits_2_naming_the_holder(tmp_path, dotsh
     assert f"pid {os.getpid()}" in err and str(first) in err and "held by" in err
 
 
+def test_a_second_server_on_a_held_stage_is_refused_naming_the_holder(tmp_path, dotshell_pm,
+                                                                     serial_emulator, user_dirs):
+    emu = serial_emulator("zaber")
+    first, second = two_profiles(tmp_path, emu.port)
+    holder = Rig(load_profile(first, dotshell_pm), dotshell_pm)
+    holder.connect()
+    session = Session(second, pm=dotshell_pm, out_dir=tmp_path / "runs")
+    try:
+        sock = socket_path(server_name(second))
+        server = RigServer(session, sock, name=sock.stem, log_dir=server_log_dir(sock.stem),
+                           history_file=history_path())
+        with pytest.raises(ServerError, match=rf"the profile's stage \({os.path.realpath(emu.port)}"
+                                              rf"\) is held by pid {os.getpid()} .*profile "
+                                              rf"{first}"):
+            server.start()
+        assert not sock.exists() and holder_free(sock)  # nothing left behind
+    finally:
+        session.close()
+        holder.close()
+
+
+def holder_free(sock: Path) -> bool:
+    from dotshell.owners import holder as lock_holder
+
+    return lock_holder(server_lock_path(sock)) is None
+
+
 def test_device_identities_name_hardware_not_files(tmp_path):
     recording = tmp_path / "scan.mkv"
     recording.write_bytes(b"x")

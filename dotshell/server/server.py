@@ -246,7 +246,8 @@ class RigServer:
     def _claim(self, path: Path) -> None:
         """Hold the server lock of ``path`` (one server per socket, so per profile, even while
         a server is momentarily unresponsive); refused naming the holder."""
-        from dotshell.owners import OwnerLock, describe, profile_identity, server_lock_path
+        from dotshell.owners import (OwnerLock, describe, held_devices, profile_identity,
+                                     server_lock_path)
 
         profile = self.session.profile
         self._owner = OwnerLock(server_lock_path(path))
@@ -255,6 +256,13 @@ class RigServer:
         if other is not None:
             raise ServerError(f"a rig server already runs on {path}: {describe(other)}; see "
                               "dotshell status, or stop it with dotshell stop.")
+        held = held_devices(profile) if profile is not None else []
+        if held:
+            self._owner.release()
+            role, ident, info = held[0]
+            raise ServerError(f"the profile's {role} ({ident}) is held by {describe(info)}; one "
+                              "process drives a device at a time. Stop that scan or server "
+                              "(dotshell stop PROFILE) first.")
 
     def serve_forever(self) -> int:
         """Accept clients until the server stops; installs the signal handlers when called
