@@ -14,6 +14,7 @@ from dotshell.errors import DeviceError
 from dotshell.events import EventBus
 from dotshell.handles import DeviceHandle, DevicePolicy
 from dotshell.pipeline.acquire import with_retries
+from rig_server import user_dirs  # noqa: F401 (a fixture)
 from stop_cases import wait_for
 
 
@@ -101,3 +102,19 @@ def test_garbage_never_sends_xon_xoff(serial_emulator, monkeypatch):
     monkeypatch.undo()
     noise = b"".join(chunk[:-1] for chunk in sent)
     assert len(noise) == 7 * 200 and not set(noise) & set(NOT_NOISE)
+
+
+def test_check_connect_names_a_stuck_stage_instead_of_waiting_for_the_home_limit(
+        tmp_path, serial_emulator, capsys, user_dirs):
+    from stop_cases import zaber_profile
+    from dotshell.cli import main
+
+    emu = serial_emulator("zaber")
+    emu.angle = 90.0
+    emu.faults.stuck = True  # homing starts and never gets anywhere
+    prof = zaber_profile(tmp_path, emu.port, "on_connect")
+    assert main(["check", str(prof), "--connect"]) == 2  # home limit 300 s: the stall names it
+    err = " ".join(capsys.readouterr().err.split())
+    assert "homing is stuck — the device says it is moving but has stayed at 89.999°" in err
+    assert "Traceback" not in err
+    assert wait_for(lambda: not emu.moving, 5.0)
