@@ -10,7 +10,8 @@ reaches a moving stage.
    command, and to the moving call returning.
 3. Stop latency of a signalled `dotshell scan` per case (tests/stop_cases.py: the Zaber stage
    homing at connect, a hung move, a refused move being retried; SIGINT and SIGTERM): from the
-   signal to the emulator receiving ``stop``, and to the process's end.
+   signal to the emulator receiving ``stop``, and to the process's end; and SIGTERM to a scan
+   whose stage driver hangs in ``move_to`` whatever it is told.
 
 Prints the figures and writes them to ``bench-results/devices.json``. Nothing here asserts a
 speed.
@@ -135,6 +136,14 @@ def signalled_scans() -> dict[str, dict[str, float | None]]:
             ended = "not within the bound" if r.exit_s is None else f"{r.exit_s:.2f} s"
             print(f"scan signalled ({case:9s}, {signame:7s}): stop at the stage after {stop}, "
                   f"process ended after {ended} (exit {r.exit_code})")
+    from stop_cases import hung_driver_scan
+
+    with tempfile.TemporaryDirectory() as tmp:
+        exit_s, code, _ = hung_driver_scan(Path(tmp), SIGNALS["SIGTERM"])
+    out["hung driver SIGTERM"] = {"stop_ms": None, "exit_s": exit_s, "exit_code": code}
+    ended = "not within the bound" if exit_s is None else f"{exit_s:.2f} s"
+    print(f"scan signalled (driver hung in move_to, SIGTERM): process ended after {ended} "
+          f"(exit {code}; the bound: STOP_WAIT_S = 2 s per hung device + saving frames)")
     return out
 
 

@@ -117,3 +117,86 @@ def signal_scan(tmp: Path, emu: Any, case: str, signum: int) -> StopCase:
 
 
 SIGNALS = {"SIGINT": signal.SIGINT, "SIGTERM": signal.SIGTERM, "SIGHUP": signal.SIGHUP}
+
+
+HUNG_PLUGIN = '''
+import threading
+from pathlib import Path
+
+from dotshell import hookimpl
+from dotshell.backends import Backend
+from dotshell.settings import Setting
+
+
+class HungStage:
+    """A stage whose move_to never returns, whatever it is told (a driver hung in C)."""
+
+    def __init__(self, settings, context=None):
+        self.marker = Path(settings["marker"])
+        self.connected = False
+
+    def connect(self):
+        self.connected = True
+
+    def close(self):
+        self.connected = False
+
+    def status(self):
+        return {"connected": self.connected}
+
+    @property
+    def position(self):
+        return 0.0
+
+    def stop(self):
+        pass
+
+    def move_to(self, degrees):
+        self.marker.write_text("inside move_to")
+        threading.Event().wait()
+
+
+@hookimpl
+def dotshell_stages():
+    return [Backend("hung-stage", HungStage, {"marker": Setting("str", "", "marker file")})]
+'''
+
+
+def hung_driver_scan(tmp: Path, signum: int) -> tuple[float | None, int | None, str]:
+    """`dotshell scan` whose stage driver hangs in move_to (a plugin installed for the child
+    only), signalled once it is inside: (seconds until the process ended or None past
+    EXIT_BOUND_S, exit code, stderr)."""
+    import tomli_w
+
+    site = tmp / "site"
+    info = site / "dotshell_hung-1.0.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: dotshell-hung\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[dotshell]\nhung = dotshell_hung\n")
+    (site / "dotshell_hung.py").write_text(HUNG_PLUGIN)
+    marker = tmp / "inside"
+    prof = zaber_profile(tmp, "unused", "never")
+    raw = tomllib.loads(prof.read_text())
+    raw["stage"] = {"backend": "hung-stage", "settings": {"marker": str(marker)}}
+    prof.write_text(tomli_w.dumps(raw))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(site), *filter(None, [os.environ.get("PYTHONPATH")])])}
+    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", "scan", str(prof), "--out",
+                             str(tmp / "runs")], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        if not wait_for(lambda: marker.exists() or proc.poll() is not None, 120.0):
+            raise AssertionError("the hung driver was never called")
+        if proc.poll() is not None:
+            raise AssertionError(f"scan ended early: {proc.communicate()[1]}")
+        t_sig = time.monotonic()
+        proc.send_signal(signum)
+        try:
+            _, err = proc.communicate(timeout=EXIT_BOUND_S)
+            return time.monotonic() - t_sig, proc.returncode, err
+        except subprocess.TimeoutExpired:
+            return None, None, ""
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -148,3 +148,11 @@ def test_a_device_error_from_a_motion_is_not_mistaken_for_a_user_stop():
         h.move_to(1.0)
     assert type(info.value) is DeviceError and dev.calls[-1] == "stop"
     h.shutdown()
+
+
+def test_sigterm_ends_a_scan_whose_driver_hangs_in_move_to_within_the_bound(tmp_path):
+    from stop_cases import hung_driver_scan
+
+    exit_s, code, err = hung_driver_scan(tmp_path, SIGNALS["SIGTERM"])
+    assert exit_s is not None, f"still running {EXIT_BOUND_S} s after SIGTERM"
+    assert code == 130 and "Traceback" not in err, err
