@@ -28,7 +28,8 @@ def handle(pm, emu, backend, lines, **settings):
     return h
 
 
-@pytest.mark.parametrize("name,backend", [("zaber", "zaber"), ("grbl", "grbl")])
+@pytest.mark.parametrize("name,backend", [("zaber", "zaber"), ("grbl", "grbl"),
+                                          ("apt", "thorlabs-apt")])
 def test_a_stuck_stage_is_named_within_its_stall_time(dotshell_pm, serial_emulator, name,
                                                       backend):
     emu = serial_emulator(name)
