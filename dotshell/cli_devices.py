@@ -49,21 +49,23 @@ def cmd_ports(args: argparse.Namespace, pm_of: Callable[[argparse.Namespace], An
     backends = {role: pm.backends(role) for role in ROLES}
     ports = list_serial_ports()
     t = Table(title="serial ports")
-    for col in ("port", "by-id", "VID:PID", "serial number", "description", "backends"):
+    for col in ("port", "by-id", "VID:PID", "serial number", "description", "backends",
+                "held by"):
         t.add_column(col)
     for p in ports:
         t.add_row(p.device, escape(p.by_id or "-"), p.vid_pid or "-", escape(p.serial_number or "-"),
                   escape(p.description or "-"), escape(", ".join(matching_backends(p, backends))
-                                                       or "-"))
+                                                       or "-"), escape(_held_by(p.device)))
     out.print(t if ports else "no serial ports found")
     emulators = running_emulators()
     if emulators:
         e = Table(title="emulators (dotshell emulate)")
-        for col in ("port for profiles", "pty", "emulator", "pid"):
+        for col in ("port for profiles", "pty", "emulator", "pid", "held by"):
             e.add_column(col)
         for info in emulators:
             e.add_row(escape(str(info.get("link", "-"))), escape(str(info.get("pty", "-"))),
-                      escape(str(info.get("emulator", "-"))), str(info.get("pid", "-")))
+                      escape(str(info.get("emulator", "-"))), str(info.get("pid", "-")),
+                      escape(_held_by(str(info.get("pty", "")))))
         out.print(e)
     usb, note = _usb_devices()
     if usb:
@@ -80,6 +82,17 @@ def cmd_ports(args: argparse.Namespace, pm_of: Callable[[argparse.Namespace], An
     out.print("Name a port in a profile by path, by-id:NAME (stable across re-plugging) or "
               "serial:NUMBER (the USB serial number).")
     return 0
+
+
+def _held_by(device: str) -> str:
+    """Who holds the device at ``device`` (:mod:`dotshell.owners`), or ``-``."""
+    from dotshell.owners import describe, device_identities, device_lock_dir, holder, lock_name
+
+    for ident in device_identities({"port": device}) if device else []:
+        info = holder(device_lock_dir() / lock_name(ident))
+        if info is not None:
+            return f"{describe(info)} as its {info.get('role', 'device')}"
+    return "-"
 
 
 def emulator_class(name: str) -> type:

@@ -106,6 +106,7 @@ def test_ports_lists_running_emulators_and_vanish_after_counts_from_connect(
         assert main(["ports"]) == 0
         listed = [line for line in capsys.readouterr().out.splitlines() if str(link) in line]
         assert len(listed) == 1 and pty in listed[0] and str(proc.pid) in listed[0]
+        assert listed[0].rstrip(" │").endswith("-")  # nobody holds it yet
         stage = dotshell_pm.create("stage", "zaber", {"port": str(link)})
         stage.connect()  # no move: the port vanishes 0.3 s after this connect all the same
         assert wait_for(lambda: not link.exists(), 20.0)
@@ -115,6 +116,26 @@ def test_ports_lists_running_emulators_and_vanish_after_counts_from_connect(
         proc.communicate(timeout=10)
     assert main(["ports"]) == 0
     assert str(link) not in capsys.readouterr().out  # gone with its process
+
+
+def test_ports_names_who_holds_an_emulators_port(tmp_path, dotshell_pm, serial_emulator, capsys,
+                                                 monkeypatch, user_dirs):
+    from stop_cases import zaber_profile
+    from dotshell.profile import load_profile
+    from dotshell.rig import Rig
+
+    emu = serial_emulator("zaber")
+    fake_comports(monkeypatch, [(emu.pty_path, 0x2939, 0x495A, "33938", "Zaber X-MCB1")])
+    monkeypatch.setattr(cli_devices, "out", Console(width=400, highlight=False))
+    prof = zaber_profile(tmp_path, emu.port, "never")
+    rig = Rig(load_profile(prof, dotshell_pm), dotshell_pm)
+    rig.connect()
+    try:
+        assert main(["ports"]) == 0
+    finally:
+        rig.close()
+    [row] = [line for line in capsys.readouterr().out.splitlines() if emu.pty_path in line]
+    assert f"pid {os.getpid()}" in row and str(prof) in row and "as its stage" in row
 
 
 def test_emulate_prints_its_models_errors(tmp_path, monkeypatch, capsys, user_dirs):
