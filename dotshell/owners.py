@@ -141,10 +141,13 @@ def holder(path: Path | str) -> dict[str, Any] | None:
 
 def _path_identity(value: str) -> str | None:
     """The real path a device path or port spec names, or None if it names no device file."""
-    from dotshell.ports import BY_ID_DIR
+    from dotshell.ports import BY_ID_DIR, resolve_port
 
-    if value.startswith("serial:"):
-        return f"usb-serial:{value[len('serial:'):]}"
+    if value.startswith("serial:"):  # the port it is plugged into now, as a path would name it
+        try:
+            value = resolve_port(value)
+        except DeviceError:  # not plugged in: connecting will say so
+            return f"usb-serial:{value[len('serial:'):]}"
     if value.startswith("by-id:"):
         value = str(BY_ID_DIR / value[len("by-id:"):])
     if value.isdigit():  # an OpenCV camera index is /dev/videoN on Linux

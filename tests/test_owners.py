@@ -97,6 +97,16 @@ def holder_free(sock: Path) -> bool:
     return lock_holder(server_lock_path(sock)) is None
 
 
+def test_a_port_named_by_usb_serial_number_is_the_port_it_is_plugged_into(monkeypatch):
+    from serial.tools import list_ports
+
+    monkeypatch.setattr(list_ports, "comports", lambda: [type("P", (), dict(
+        device="/dev/null", vid=0x0403, pid=0xFAF0, serial_number="55000123", manufacturer="",
+        product="", description="APT"))()])
+    assert device_identities({"port": "serial:55000123"}) == \
+        device_identities({"port": "/dev/null"}) == ["/dev/null"]
+
+
 def test_device_identities_name_hardware_not_files(tmp_path):
     recording = tmp_path / "scan.mkv"
     recording.write_bytes(b"x")
@@ -106,7 +116,7 @@ def test_device_identities_name_hardware_not_files(tmp_path):
     assert device_identities({"source": str(recording)}) == []
     assert device_identities({"source": "2", "serial_number": "55000123"}) == \
         ["/dev/video2", "usb-serial:55000123"]
-    assert device_identities({"port": "serial:DK0AHAJZ"}) == ["usb-serial:DK0AHAJZ"]
+    assert device_identities({"port": "serial:NOT-PLUGGED-IN"}) == ["usb-serial:NOT-PLUGGED-IN"]
 
 
 def test_a_silent_server_keeps_its_socket_and_a_second_server_is_refused(tmp_path, dotshell_pm,
