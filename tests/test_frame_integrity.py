@@ -23,13 +23,14 @@ from dotshell.store import RunStore
 FAULT_AT_FRAME = 50
 
 
-def faulty_scan(tmp_path, pm, fault: str, checks: bool):
+def faulty_scan(tmp_path, pm, fault: str, checks: bool, acquisition: str = "auto"):
     raw = small_profile_dict(0.15, 4)
+    raw["scan"]["acquisition"] = acquisition
     raw["camera"]["backend"] = "sim-camera-faulty"
     raw["camera"]["settings"].update(supersample=1, fault=fault, fault_at_frame=FAULT_AT_FRAME)
     raw["scan"]["frame_checks"] = checks
     raw["outputs"] = {"previews": False}
-    name = f"{fault}-{'checked' if checks else 'unchecked'}"
+    name = f"{fault}-{acquisition}-{'checked' if checks else 'unchecked'}"
     prof = load_profile(write_profile(tmp_path / f"{name}.toml", raw), pm)
     warnings: list[str] = []
     bus = EventBus()
@@ -42,11 +43,14 @@ def points(report: dict, view: int) -> int:
     return next(v["points"] for v in report["views"] if v["view"] == view)
 
 
-@pytest.mark.parametrize("fault,named", [("late", "do not add up to white + black"),
-                                         ("reset", "frame counter went back"),
-                                         ("duplicate", "has the frame id")])
-def test_each_camera_fault_is_detected_and_the_view_captured_again(tmp_path, pm, fault, named):
-    result, warnings = faulty_scan(tmp_path, pm, fault, checks=True)
+@pytest.mark.parametrize("fault,named,acquisition", [
+    ("late", "do not add up to white + black", "auto"),  # triggered (sequenced) frames
+    ("late", "do not add up to white + black", "show-capture"),  # one capture() at a time
+    ("reset", "frame counter went back", "auto"),
+    ("duplicate", "has the frame id", "auto")])
+def test_each_camera_fault_is_detected_and_the_view_captured_again(tmp_path, pm, fault, named,
+                                                                   acquisition):
+    result, warnings = faulty_scan(tmp_path, pm, fault, checks=True, acquisition=acquisition)
     assert result.status == "completed"
     [warned] = [w for w in warnings if "frames are not what was projected" in w]
     assert warned.startswith("view 1:") and named in warned and "capturing the view again" in warned
@@ -62,7 +66,7 @@ def test_each_camera_fault_is_detected_and_the_view_captured_again(tmp_path, pm,
     assert abs(v["fit"]["radius_mm"] - 7.7) < 0.02 and v["coverage_pct"] >= 90.0
 
     # without the checks: the same scan completes without a word on the spoiled frames
-    spoiled, warnings = faulty_scan(tmp_path, pm, fault, checks=False)
+    spoiled, warnings = faulty_scan(tmp_path, pm, fault, checks=False, acquisition=acquisition)
     assert spoiled.status == "completed"
     assert not any("not what was projected" in w for w in warnings)
     # measured: view 1 keeps 8432 of 9940 points with a duplicated or stale row frame (its
