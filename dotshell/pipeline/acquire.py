@@ -317,8 +317,8 @@ class Acquisition:
         """The view's frames against what was projected; None when ``frame_checks`` is off."""
         if not self.scan.get("frame_checks", True) or len(frames) != len(self.shots):
             return None
-        return check_view(frames, [s.name for s in self.shots], float((1 << self.spec.bit_depth) - 1),
-                          infos or None)
+        full_scale = float((1 << self.spec.bit_depth) - 1)
+        return check_view(frames, [s.name for s in self.shots], full_scale, infos or None)
 
     def _run_view_once(self, view: int, angle_deg: float, attempt: int
                        ) -> list[np.ndarray] | None:

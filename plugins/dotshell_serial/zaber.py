@@ -117,7 +117,8 @@ class ZaberStage(SerialDevice):
         if self.flag.startswith("F"):
             raise DeviceError(f"{self.link.name}: fault {self.flag} during {what} "
                               f"({FLAGS.get(self.flag, 'see the Zaber protocol manual')}); fix "
-                              "the cause; dotshell clears the flag (warnings clear) before the next move.")
+                              "the cause; dotshell clears the flag (warnings clear) before the "
+                              "next move.")
         if self.flag[0] == "W" and self.flag != self._warned:
             self.context.log.warn(f"warning {self.flag}: {FLAGS.get(self.flag, '?')}")
         self._warned = self.flag
