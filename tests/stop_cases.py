@@ -82,16 +82,19 @@ CASES: dict[str, tuple[str, Callable[[Any], None], Callable[[Any], bool]]] = {
 }
 
 
-def signal_scan(tmp: Path, emu: Any, case: str, signum: int) -> StopCase:
-    """Start `dotshell scan` on ``emu`` (a started Zaber emulator, 10°/s), send ``signum`` once
-    ``case`` is under way, and measure the stop and the exit."""
+def signal_scan(tmp: Path, emu: Any, case: str, signum: int, command: str = "scan"
+                ) -> StopCase:
+    """Start `dotshell scan` (or `dotshell check --connect`) on ``emu`` (a started Zaber
+    emulator, 10°/s), send ``signum`` once ``case`` is under way, and measure the stop and the
+    exit."""
     home, setup, ready = CASES[case]
     setup(emu)
     prof = zaber_profile(tmp, emu.port, home)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", "scan", str(prof), "--out",
-                             str(tmp / "runs")], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, env=env)
+    args = (["scan", str(prof), "--out", str(tmp / "runs")] if command == "scan" else
+            ["check", str(prof), "--connect"])
+    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", *args],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     try:
         if not wait_for(lambda: ready(emu) or proc.poll() is not None, 120.0):
             raise AssertionError(f"{case}: the stage never got under way")

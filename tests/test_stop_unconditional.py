@@ -38,6 +38,14 @@ def test_signal_stops_the_stage_and_the_scan_ends_within_the_bound(tmp_path, ser
         assert "stop" in texts[first + 1:second], texts
 
 
+def test_ctrl_c_while_check_connect_homes_stops_the_stage(tmp_path, serial_emulator):
+    emu = serial_emulator("zaber", speed_deg_s=10.0)
+    result = signal_scan(tmp_path, emu, "homing", SIGNALS["SIGINT"], command="check")
+    assert result.stop_s is not None, (result.commands[-10:], result.stderr)
+    assert wait_for(lambda: not emu.moving, 5.0) and 1.0 < emu.angle < 89.0
+    assert result.exit_s is not None and result.exit_code == 130, result.stderr
+
+
 class HangingStage:
     """A stage driver whose move_to never returns, whatever it is told (a driver hung in C)."""
 

@@ -153,6 +153,21 @@ def on_interrupt(callback: Callable[[], None]) -> Iterator[None]:
                 _callbacks.remove(callback)
 
 
+@contextmanager
+def connected(rig: Any, close: bool = True) -> Iterator[Any]:
+    """``rig`` (a :class:`dotshell.rig.Rig`) connected, its ``stop`` registered for stop
+    signals *before* the first device connects — so Ctrl-C, SIGTERM and SIGHUP stop a stage
+    homing at connect — and closed afterwards (also when connecting was interrupted) when
+    ``close``."""
+    with on_interrupt(rig.stop):
+        try:
+            rig.connect()
+            yield rig
+        finally:
+            if close:
+                rig.close()
+
+
 def run_stop_callbacks() -> None:
     """Call every registered stop callback; never raises."""
     with _callbacks_lock:

@@ -28,7 +28,7 @@ from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.acquire import Acquisition
 from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.generations import Generation, ProductStore
-from dotshell.pipeline.lifecycle import describe_holder, lock_holder, on_interrupt
+from dotshell.pipeline.lifecycle import connected, describe_holder, lock_holder
 from dotshell.pipeline.pdi import plan_shots
 from dotshell.pipeline.steps import (make_coding, reconstruct_one_view,
                                      require_turntable_axis, view_angle)
@@ -80,15 +80,8 @@ def _stoppable_rig(profile: Profile, pm: PluginManager, rig: Rig | None) -> Iter
     and SIGHUP stop every moving device while connecting and homing as well as during the
     scan. A rig the scan built is closed afterwards (also when connecting was interrupted);
     a caller's rig is connected if needed and left open for the caller."""
-    own = rig is None
-    rig = Rig(profile, pm) if rig is None else rig
-    with on_interrupt(rig.stop):
-        try:
-            rig.connect()
-            yield rig
-        finally:
-            if own:
-                rig.close()
+    with connected(Rig(profile, pm) if rig is None else rig, close=rig is None) as ready:
+        yield ready
 
 
 class ViewPipeline:
