@@ -95,28 +95,34 @@ def signal_scan(tmp: Path, emu: Any, case: str, signum: int, command: str = "sca
             ["check", str(prof), "--connect"])
     proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", *args],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
-    try:
-        if not wait_for(lambda: ready(emu) or proc.poll() is not None, 120.0):
-            raise AssertionError(f"{case}: the stage never got under way")
-        if proc.poll() is not None:
-            raise AssertionError(f"{case}: scan ended early: {proc.communicate()[1]}")
-        t_sig = time.monotonic()
-        proc.send_signal(signum)
-        try:
-            _, err = proc.communicate(timeout=EXIT_BOUND_S)
-            exit_s: float | None = time.monotonic() - t_sig
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            _, err = proc.communicate()
-            exit_s = None
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    t_sig, exit_s, err = signal_when(proc, lambda: ready(emu), signum, case)
     stop = next((t for t, c in emu.commands if t >= t_sig and c.split()[-1] == "stop"), None)
     return StopCase(None if stop is None else stop - t_sig, exit_s,
                     proc.returncode if exit_s is not None else None, err,
                     [(t - t_sig, c) for t, c in emu.commands])
+
+
+def signal_when(proc: subprocess.Popen, ready: Callable[[], bool], signum: int, what: str
+                ) -> tuple[float, float | None, str]:
+    """Send ``signum`` to ``proc`` once ``ready()``; (signal time, seconds until the process
+    ended or None if it outlived EXIT_BOUND_S (it is then killed), its stderr)."""
+    try:
+        if not wait_for(lambda: ready() or proc.poll() is not None, 120.0):
+            raise AssertionError(f"{what}: never under way")
+        if proc.poll() is not None:
+            raise AssertionError(f"{what}: the process ended early: {proc.communicate()[1]}")
+        t_sig = time.monotonic()
+        proc.send_signal(signum)
+        try:
+            _, err = proc.communicate(timeout=EXIT_BOUND_S)
+            return t_sig, time.monotonic() - t_sig, err
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            return t_sig, None, proc.communicate()[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
 
 SIGNALS = {"SIGINT": signal.SIGINT, "SIGTERM": signal.SIGTERM, "SIGHUP": signal.SIGHUP}
@@ -134,25 +140,13 @@ from dotshell.settings import Setting
 class HungStage:
     """A stage whose move_to never returns, whatever it is told (a driver hung in C)."""
 
+    position = 0.0
+
     def __init__(self, settings, context=None):
         self.marker = Path(settings["marker"])
-        self.connected = False
 
-    def connect(self):
-        self.connected = True
-
-    def close(self):
-        self.connected = False
-
-    def status(self):
-        return {"connected": self.connected}
-
-    @property
-    def position(self):
-        return 0.0
-
-    def stop(self):
-        pass
+    connect = close = stop = lambda self: None
+    status = lambda self: {}  # noqa: E731
 
     def move_to(self, degrees):
         self.marker.write_text("inside move_to")
@@ -187,19 +181,5 @@ def hung_driver_scan(tmp: Path, signum: int) -> tuple[float | None, int | None, 
     proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", "scan", str(prof), "--out",
                              str(tmp / "runs")], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True, env=env)
-    try:
-        if not wait_for(lambda: marker.exists() or proc.poll() is not None, 120.0):
-            raise AssertionError("the hung driver was never called")
-        if proc.poll() is not None:
-            raise AssertionError(f"scan ended early: {proc.communicate()[1]}")
-        t_sig = time.monotonic()
-        proc.send_signal(signum)
-        try:
-            _, err = proc.communicate(timeout=EXIT_BOUND_S)
-            return time.monotonic() - t_sig, proc.returncode, err
-        except subprocess.TimeoutExpired:
-            return None, None, ""
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    _, exit_s, err = signal_when(proc, marker.exists, signum, "the hung driver")
+    return exit_s, proc.returncode if exit_s is not None else None, err

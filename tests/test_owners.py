@@ -32,12 +32,19 @@ def two_profiles(tmp_path: Path, port: str) -> tuple[Path, Path]:
                                                                        "never")
 
 
-def test_a_second_rig_on_a_held_stage_is_refused_naming_the_holder(tmp_path, dotshell_pm,
-                                                                  serial_emulator, user_dirs):
+@pytest.fixture
+def held(tmp_path, dotshell_pm, serial_emulator, user_dirs):
+    """(emulator, first profile, second profile, a Rig of the first holding the stage)."""
     emu = serial_emulator("zaber")
     first, second = two_profiles(tmp_path, emu.port)
     holder = Rig(load_profile(first, dotshell_pm), dotshell_pm)
     holder.connect()
+    yield emu, first, second, holder
+    holder.close()
+
+
+def test_a_second_rig_on_a_held_stage_is_refused_naming_the_holder(dotshell_pm, held):
+    emu, first, second, holder = held
     try:
         other = Rig(load_profile(second, dotshell_pm), dotshell_pm)
         with pytest.raises(DeviceInUse) as info:
@@ -54,28 +61,17 @@ def test_a_second_rig_on_a_held_stage_is_refused_naming_the_holder(tmp_path, dot
     other.close()
 
 
-def test_a_second_scan_on_a_held_stage_exits_2_naming_the_holder(tmp_path, dotshell_pm,
-                                                                serial_emulator, capsys,
-                                                                user_dirs):
-    emu = serial_emulator("zaber")
-    first, second = two_profiles(tmp_path, emu.port)
-    holder = Rig(load_profile(first, dotshell_pm), dotshell_pm)
-    holder.connect()
-    try:
-        code = main(["scan", str(second), "--out", str(tmp_path / "runs")])
-    finally:
-        holder.close()
+def test_a_second_scan_on_a_held_stage_exits_2_naming_the_holder(tmp_path, held, capsys):
+    emu, first, second, holder = held
+    code = main(["scan", str(second), "--out", str(tmp_path / "runs")])
     err = " ".join(capsys.readouterr().err.split())
     assert code == 2 and "Traceback" not in err
     assert f"pid {os.getpid()}" in err and str(first) in err and "held by" in err
 
 
 def test_a_second_server_on_a_held_stage_is_refused_naming_the_holder(tmp_path, dotshell_pm,
-                                                                     serial_emulator, user_dirs):
-    emu = serial_emulator("zaber")
-    first, second = two_profiles(tmp_path, emu.port)
-    holder = Rig(load_profile(first, dotshell_pm), dotshell_pm)
-    holder.connect()
+                                                                     held):
+    emu, first, second, holder = held
     session = Session(second, pm=dotshell_pm, out_dir=tmp_path / "runs")
     try:
         sock = socket_path(server_name(second))
