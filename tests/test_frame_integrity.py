@@ -106,3 +106,22 @@ def test_frame_ids_name_duplicates_resets_and_gaps():
     assert any("'c' has the frame id 8 of 'b'" in p for p in problems)
     assert any("went back from 8 to 0 at frame 'd'" in p for p in problems)
     assert any("jump from 0 to 2 before frame 'e' (1 frame(s) missing)" in p for p in problems)
+
+
+def test_a_sampled_large_view_still_names_the_stale_pair():
+    """Above SAMPLE_PIXELS the pairs are compared on an even sample of pixels: a pair whose
+    frame shows another pattern is still caught, and clean pairs still pass."""
+    rng = np.random.default_rng(1)
+    shape = (512, 640)  # 327 680 pixels: every 3rd is compared
+    white = rng.integers(1500, 3000, shape).astype(np.uint16)
+    black = rng.integers(0, 50, shape).astype(np.uint16)
+    frames, names = [white, black], ["white", "black"]
+    for k in range(4):
+        lit = (np.arange(shape[1]) // (64 >> k)) % 2 == 0  # stripes, finer each bit
+        lit = np.broadcast_to(lit, shape)
+        frames += [np.where(lit, white, black), np.where(lit, black, white)]
+        names += [f"col_{k:02d}", f"col_{k:02d}_inv"]
+    assert check_view(frames, names, 4095.0).ok
+    frames[names.index("col_02")] = frames[names.index("col_01")].copy()  # stale by one pair
+    problems = check_view(frames, names, 4095.0).problems
+    assert len(problems) == 1 and problems[0].startswith("frames 'col_02' and 'col_02_inv'")
