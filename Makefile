@@ -34,6 +34,7 @@ docs: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/run.py
 	$(PY) benchmarks/devices.py
+	$(PY) benchmarks/frame_checks.py
 
 ## validate: full-resolution accuracy checks, then the codings x PDI table (docs/light-model.md)
 validate: $(STAMP)

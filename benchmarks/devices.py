@@ -8,6 +8,10 @@ reaches a moving stage.
    ``Rig.stop()`` — here the handle's ``stop_now()``, from another thread and from a SIGALRM
    handler while the main thread waits in ``move_to`` — to the emulator receiving the stop
    command, and to the moving call returning.
+3. Stop latency of a signalled `dotshell scan` per case (tests/stop_cases.py: the Zaber stage
+   homing at connect, a hung move, a refused move being retried; SIGINT and SIGTERM): from the
+   signal to the emulator receiving ``stop``, and to the process's end; and SIGTERM to a scan
+   whose stage driver hangs in ``move_to`` whatever it is told.
 
 Prints the figures and writes them to ``bench-results/devices.json``. Nothing here asserts a
 speed.
@@ -108,6 +112,41 @@ def stop_latency(pm: PluginManager, name: str, role: str, backend: str, marker: 
             "received": len(hold), "repeats": repeats}
 
 
+def signalled_scans() -> dict[str, dict[str, float | None]]:
+    """Section 3: each case of tests/stop_cases.py under SIGINT and SIGTERM, printed."""
+    import sys
+
+    sys.path.insert(0, str(ROOT / "tests"))
+    from stop_cases import CASES, SIGNALS, signal_scan
+
+    from dotshell.cli_devices import emulator_class
+
+    out: dict[str, dict[str, float | None]] = {}
+    for case in CASES:
+        for signame in ("SIGINT", "SIGTERM"):
+            with tempfile.TemporaryDirectory() as tmp:
+                emu = emulator_class("zaber")(link=Path(tmp) / "tty", speed_deg_s=10.0).start()
+                try:
+                    r = signal_scan(Path(tmp), emu, case, SIGNALS[signame])
+                finally:
+                    emu.close()
+            out[f"{case} {signame}"] = {"stop_ms": None if r.stop_s is None else 1e3 * r.stop_s,
+                                        "exit_s": r.exit_s, "exit_code": r.exit_code}
+            stop = "never" if r.stop_s is None else f"{1e3 * r.stop_s:.1f} ms"
+            ended = "not within the bound" if r.exit_s is None else f"{r.exit_s:.2f} s"
+            print(f"scan signalled ({case:9s}, {signame:7s}): stop at the stage after {stop}, "
+                  f"process ended after {ended} (exit {r.exit_code})")
+    from stop_cases import hung_driver_scan
+
+    with tempfile.TemporaryDirectory() as tmp:
+        exit_s, code, _ = hung_driver_scan(Path(tmp), SIGNALS["SIGTERM"])
+    out["hung driver SIGTERM"] = {"stop_ms": None, "exit_s": exit_s, "exit_code": code}
+    ended = "not within the bound" if exit_s is None else f"{exit_s:.2f} s"
+    print(f"scan signalled (driver hung in move_to, SIGTERM): process ended after {ended} "
+          f"(exit {code}; the bound: STOP_WAIT_S = 2 s per hung device + saving frames)")
+    return out
+
+
 def main() -> None:
     pm = PluginManager()
     pm.load_entry_points()
@@ -123,6 +162,7 @@ def main() -> None:
                   f"{r['stop_command_ms_median']:.1f} ms (max {r['stop_command_ms_max']:.1f}), "
                   f"move returned after {r['call_returned_ms_median']:.0f} ms (max "
                   f"{r['call_returned_ms_max']:.0f}), {r['received']}/{r['repeats']} seen")
+    out["signalled_scans"] = signalled_scans()
     dest = ROOT / "bench-results" / "devices.json"
     dest.parent.mkdir(exist_ok=True)
     dest.write_text(json.dumps(out, indent=2))

@@ -257,9 +257,10 @@ def cmd_check(args: argparse.Namespace) -> int:
             out.print(f"  {role:<13} {sec['backend']:<16} from {info.distribution}")
     out.print(f"  views         {len(profile.angles_deg())}")
     if args.connect or args.latency:
+        from dotshell.pipeline.lifecycle import connected
         from dotshell.rig_checks import check_resolutions, measure_latency, refused_controls
 
-        with Rig(profile, pm) as rig:
+        with connected(Rig(profile, pm)) as rig:  # stopped by Ctrl-C while homing, too
             for role, status in rig.status().items():
                 out.print(f"  [green]connected[/] {role:<13} {escape(str(status))}")
             cal = rig.calibration(args.calibration)

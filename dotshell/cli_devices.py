@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from typing import Any, Callable
 
@@ -15,6 +16,7 @@ from dotshell.errors import PluginError
 
 EMULATOR_GROUP = "dotshell_emulators"
 out = Console(highlight=False)
+err = Console(stderr=True, highlight=False)
 
 
 def _usb_devices() -> tuple[list[tuple[str, str]], str]:
@@ -41,19 +43,30 @@ def _usb_devices() -> tuple[list[tuple[str, str]], str]:
 
 def cmd_ports(args: argparse.Namespace, pm_of: Callable[[argparse.Namespace], Any]) -> int:
     from dotshell.backends import ROLES
-    from dotshell.ports import list_serial_ports, matching_backends
+    from dotshell.ports import list_serial_ports, matching_backends, running_emulators
 
     pm = pm_of(args)
     backends = {role: pm.backends(role) for role in ROLES}
     ports = list_serial_ports()
     t = Table(title="serial ports")
-    for col in ("port", "by-id", "VID:PID", "serial number", "description", "backends"):
+    for col in ("port", "by-id", "VID:PID", "serial number", "description", "backends",
+                "held by"):
         t.add_column(col)
     for p in ports:
         t.add_row(p.device, escape(p.by_id or "-"), p.vid_pid or "-", escape(p.serial_number or "-"),
                   escape(p.description or "-"), escape(", ".join(matching_backends(p, backends))
-                                                       or "-"))
+                                                       or "-"), escape(_held_by(p.device)))
     out.print(t if ports else "no serial ports found")
+    emulators = running_emulators()
+    if emulators:
+        e = Table(title="emulators (dotshell emulate)")
+        for col in ("port for profiles", "pty", "emulator", "pid", "held by"):
+            e.add_column(col)
+        for info in emulators:
+            e.add_row(escape(str(info.get("link", "-"))), escape(str(info.get("pty", "-"))),
+                      escape(str(info.get("emulator", "-"))), str(info.get("pid", "-")),
+                      escape(_held_by(str(info.get("pty", "")))))
+        out.print(e)
     usb, note = _usb_devices()
     if usb:
         u = Table(title="USB devices")
@@ -69,6 +82,17 @@ def cmd_ports(args: argparse.Namespace, pm_of: Callable[[argparse.Namespace], An
     out.print("Name a port in a profile by path, by-id:NAME (stable across re-plugging) or "
               "serial:NUMBER (the USB serial number).")
     return 0
+
+
+def _held_by(device: str) -> str:
+    """Who holds the device at ``device`` (:mod:`dotshell.owners`), or ``-``."""
+    from dotshell.owners import describe, device_identities, device_lock_dir, holder, lock_name
+
+    for ident in device_identities({"port": device}) if device else []:
+        info = holder(device_lock_dir() / lock_name(ident))
+        if info is not None:
+            return f"{describe(info)} as its {info.get('role', 'device')}"
+    return "-"
 
 
 def emulator_class(name: str) -> type:
@@ -91,23 +115,51 @@ def cmd_emulate(args: argparse.Namespace) -> int:
     link = args.link or f"/tmp/dotshell-emu-{args.name}"
     emu = cls(link=link, speed_deg_s=args.speed)
     for fault in args.fault:
-        setattr(emu.faults, fault, True)
-    emu.faults.vanish_after_s = args.vanish_after
+        try:
+            emu.set_fault(fault)
+        except ValueError as exc:
+            raise PluginError(f"{exc}.") from None
+    emu.faults.vanish_after_connect_s = args.vanish_after
     emu.faults.return_after_s = args.return_after
     emu.start()
+    listed = _list_emulator(args.name, emu)
     t0 = time.monotonic()
     out.print(f"{args.name} emulator on {emu.pty_path}", soft_wrap=True)
     out.print(f"port for profiles: {emu.port}", soft_wrap=True)
     out.print("Ctrl-C stops it.", soft_wrap=True)
+    shown = 0
     try:
         while args.seconds <= 0 or time.monotonic() - t0 < args.seconds:
             time.sleep(0.1)
+            shown = _show_errors(emu, shown)
     except KeyboardInterrupt:
         pass
     finally:
         emu.close()
+        listed.release()
+    _show_errors(emu, shown)
     out.print(f"{len(emu.commands)} commands received; port closed.")
     return 0
+
+
+def _show_errors(emu: Any, shown: int) -> int:
+    """Print the emulator's model errors not shown yet (an emulator bug never kills the port,
+    so this is where it is seen); returns how many are shown."""
+    for text in emu.errors[shown:]:
+        err.print(f"[red]emulator error:[/] {escape(text)} (the port stays up; this is a bug "
+                  "in the emulator's model)", soft_wrap=True)
+    return len(emu.errors)
+
+
+def _list_emulator(name: str, emu: Any) -> Any:
+    """Record the running emulator (name, pty, link) under a lock in the runtime directory,
+    for `dotshell ports`; the record dies with this process."""
+    from dotshell.owners import OwnerLock
+    from dotshell.ports import emulator_dir
+
+    lock = OwnerLock(emulator_dir() / f"{name}-{os.getpid()}.lock")
+    lock.acquire({"emulator": name, "pty": emu.pty_path, "link": emu.port})
+    return lock
 
 
 def add_device_parsers(sub: Any, pm_of: Callable[[argparse.Namespace], Any]) -> None:
@@ -124,11 +176,12 @@ def add_device_parsers(sub: Any, pm_of: Callable[[argparse.Namespace], Any]) -> 
                     "/tmp/dotshell-emu-NAME)")
     sp.add_argument("--speed", type=float, default=360.0, metavar="DEG_S",
                     help="simulated rotation speed in degrees per second (default 360)")
-    sp.add_argument("--fault", action="append", default=[],
-                    choices=("error", "silence", "garbage", "stuck", "alarm"),
-                    help="switch a fault on from the start (repeatable)")
+    sp.add_argument("--fault", action="append", default=[], metavar="NAME",
+                    help="switch a fault on from the start (repeatable): error, silence, "
+                    "garbage, stuck, alarm, or one the emulator defines")
     sp.add_argument("--vanish-after", type=float, metavar="S",
-                    help="the port vanishes S seconds after the first move starts")
+                    help="the port vanishes S seconds after the driver connects (its first "
+                    "bytes)")
     sp.add_argument("--return-after", type=float, metavar="S",
                     help="...and comes back S seconds later (a re-plugged cable)")
     sp.add_argument("--seconds", type=float, default=0.0, help=argparse.SUPPRESS)

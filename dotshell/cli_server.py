@@ -61,8 +61,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
     sock = Path(args.socket) if args.socket else socket_path(args.server or server_name(args.profile))
     on_hangup = args.on_hangup or user_config()["server"]["on_hangup"]
-    if alive(sock):
-        raise ServerError(f"a rig server already answers on {sock}; see dotshell status.")
+    _refuse_a_second_server(sock)
     if args.detach:
         pid = start_server(args.profile, sock=sock, out=args.out, overrides=args.set,
                            exit_when_idle=args.exit_when_idle,
@@ -83,6 +82,19 @@ def cmd_serve(args: argparse.Namespace) -> int:
                        history_file=history_path(), echo=True)
     server.start()
     return server.serve_forever()
+
+
+def _refuse_a_second_server(sock: Path) -> None:
+    """A ServerError naming the holder when a server holds ``sock``'s lock (even one that does
+    not answer at the moment) or answers on it."""
+    from dotshell.owners import describe, holder, server_lock_path
+
+    info = holder(server_lock_path(sock))
+    if info is not None:
+        raise ServerError(f"a rig server already runs on {sock}: {describe(info)}; see "
+                          "dotshell status, or stop it with dotshell stop.")
+    if alive(sock):
+        raise ServerError(f"a rig server already answers on {sock}; see dotshell status.")
 
 
 # ---- tui --------------------------------------------------------------------------------------
@@ -218,14 +230,32 @@ def cmd_status(args: argparse.Namespace) -> int:
     chosen = _which(args) if (args.profile or args.server or args.socket) else None
     socks = [chosen] if chosen is not None else running_servers()
     infos = [_status_of(s) for s in socks if alive(s)]
+    answered = {Path(i["state"]["server"]["socket"]) for i in infos}
+    silent = _silent_servers([s for s in socks if s not in answered])
     if args.json:
         out.print_json(json.dumps(infos))
         return 0
-    if not infos:
+    if not infos and not silent:
         out.print("no rig server is running.")
     for info in infos:
         _print_status(info)
+    _print_silent(silent)
     return 0
+
+
+def _silent_servers(socks: list[Path]) -> list[tuple[Path, dict[str, Any]]]:
+    """Of ``socks`` (none answered), the servers that hold their lock: busy or stalled."""
+    from dotshell.owners import holder, server_lock_path
+
+    return [(s, info) for s in socks if (info := holder(server_lock_path(s))) is not None]
+
+
+def _print_silent(servers: list[tuple[Path, dict[str, Any]]]) -> None:
+    from dotshell.owners import describe
+
+    for sock, info in servers:
+        out.print(escape(f"{sock.stem}: held by {describe(info)} on {sock}, but it does not "
+                         "answer at the moment (busy or stalled); try again shortly."))
 
 
 def cmd_stop(args: argparse.Namespace) -> int:

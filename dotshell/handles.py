@@ -19,9 +19,14 @@ Every call a front end or the pipeline makes on ``rig.stage``, ``rig.camera``, .
 * **Faults named.** Any exception from plugin code that is not a
   :class:`~dotshell.errors.DotshellError` becomes a :class:`~dotshell.errors.PluginFault`:
   "plugin P (role R, backend B) raised ..." with what the rig was doing (view, angle, run).
-* **Reconnected once.** A :class:`~dotshell.errors.DeviceLostError` (or a call that never
-  returned) closes the device, reopens it (retrying for ``reconnect_wait_s``) and repeats the
-  call once; with ``reconnect = false`` it fails at once with a message saying so.
+* **Stopped after a failed motion.** A ``move_to``/``set_angle``/``home`` that raises, times
+  out or faults is followed by the driver's ``stop()`` before any retry, reconnect or close.
+* **Reconnected once.** A :class:`~dotshell.errors.DeviceLostError` closes the device, reopens
+  it (retrying for ``reconnect_wait_s``) and repeats the call once; with ``reconnect = false``
+  it fails at once with a message saying so.
+* **Never under a running call.** Nothing closes, reopens or homes a device while a call is
+  still inside its driver: the device is told to stop and given :data:`STOP_WAIT_S`; a call
+  still running then marks the device lost, with a message naming the plugin and the call.
 
 Properties are read directly (the contract makes them hardware-free) and never take the lock.
 """
@@ -53,6 +58,15 @@ GRACE_S = 2.0
 REOPEN_POLL_S = 0.1
 #: Calls whose last arguments are replayed after a reconnect (settings a device forgets).
 REPLAYED = ("set_exposure",)
+#: Calls that move hardware: when one fails, times out or faults, the device is told to stop
+#: before anything else (a retry, a reconnect, a close) happens.
+MOTIONS = ("move_to", "set_angle", "home")
+#: How long a call still inside its driver may take to end once the device was told to stop
+#: (seconds). Past it the device is declared lost and left alone: never closed, reconnected or
+#: homed under a call that is still running. This bounds how long closing a rig waits per
+#: device, so SIGTERM ends the process within ``STOP_WAIT_S`` per hung device plus the time
+#: to save the frames already captured.
+STOP_WAIT_S = 2.0
 
 
 @dataclass
@@ -209,8 +223,10 @@ class DeviceHandle:
                     raise DeviceLostError(f"{self._label} stopped answering earlier: "
                                           f"{self._lost}")
                 result = self._run(method, args, kwargs)
-            except DeviceError as exc:
-                if self._stops != stops:
+            except (DeviceError, PluginFault) as exc:
+                if method in MOTIONS:
+                    self._halt_after_failure(already_stopped=self._stops != stops)
+                if self._stops != stops and isinstance(exc, DeviceError):
                     raise DeviceStopped(f"{self._label} was stopped during {method}(): "
                                         f"{exc}") from None
                 if isinstance(exc, DeviceLostError) and method not in ("connect", "close"):
@@ -313,21 +329,55 @@ class DeviceHandle:
             self._run("home", (), {})
 
     def _close_for_reopen(self) -> None:
-        worker = self._worker
-        if worker is not None and worker.current is not None:
-            # a call is stuck: close from here, which usually makes its blocking read fail
-            try:
-                self._device.close()
-            except Exception:
-                pass
-            if worker.current is not None and not worker.current.done.wait(GRACE_S):
-                worker.shutdown()  # abandon the stuck thread (a daemon); calls get a new one
-                self._worker = None
-            return
+        if not self._settle():
+            raise self._still_inside()
         try:
             self._run("close", (), {})
         except Exception:  # closing a lost device may fail; reconnecting is what matters
             pass
+
+    # ---- calls still inside the driver --------------------------------------------------------
+
+    def _stop_driver(self) -> None:
+        """The driver's ``stop()`` if it has one (not counted as a user's stop); never raises."""
+        stop = getattr(self._device, "stop", None)
+        if callable(stop):
+            try:
+                stop()
+            except BaseException:  # stopping must not mask what went wrong
+                pass
+
+    def _settle(self) -> bool:
+        """True once no call is inside the driver: if one is, the device is told to stop and
+        the call given :data:`STOP_WAIT_S` to end."""
+        worker = self._worker
+        current = worker.current if worker is not None else None
+        if current is None:
+            return True
+        self._stop_driver()
+        return current.done.wait(STOP_WAIT_S)
+
+    def _still_inside(self) -> DeviceLostError:
+        worker = self._worker
+        current = worker.current if worker is not None else None
+        name = current.fn.__name__ if current is not None else "a call"
+        since = time.monotonic() - current.t_start if current is not None else 0.0
+        return DeviceLostError(
+            f"{self._label}: plugin {self._plugin!r} ({self._distribution}) is still inside "
+            f"{name}() after {since:.0f} s, {STOP_WAIT_S:g} s after it was told to stop; the "
+            "device is left alone (not closed, reconnected or homed under a running call). "
+            "Check the device, power-cycle it and start dotshell again; report the hang to the "
+            "plugin's authors.")
+
+    def _halt_after_failure(self, already_stopped: bool) -> None:
+        """A motion failed, timed out or faulted: stop the device before anything else (unless
+        a stop ended it); if the call is still inside the driver after that, the device is lost
+        (no retry)."""
+        if not self._settle():
+            self._lost = self._still_inside()
+            raise self._lost
+        if not already_stopped:
+            self._stop_driver()
 
     # ---- rig-side operations ------------------------------------------------------------------
 
@@ -376,18 +426,15 @@ class DeviceHandle:
 
     def shutdown(self) -> None:
         """Close the device (directly if a call is stuck) and end its worker thread."""
-        worker = self._worker
-        if worker is not None and worker.stuck() is not None:
+        if not self._settle():
+            self._lost = self._still_inside()  # left alone: its thread is abandoned below
+            self.release()
+            return
+        with self._lock:
             try:
-                self._device.close()
-            except Exception:
+                self._run("close", (), {})
+            except Exception:  # closing must not mask the original error
                 pass
-        else:
-            with self._lock:
-                try:
-                    self._run("close", (), {})
-                except Exception:  # closing must not mask the original error
-                    pass
         self.release()
         self._lost = None
 

@@ -115,3 +115,21 @@ def matching_backends(port: SerialPortInfo, backends: dict[str, dict[str, object
     return [f"{role}:{name}" for role, found in backends.items()
             for name, info in sorted(found.items())
             if vp in getattr(info.backend, "usb_ids", ())]  # type: ignore[attr-defined]
+
+
+def emulator_dir() -> Path:
+    """Where running ``dotshell emulate`` processes record themselves (private runtime dir)."""
+    from dotshell.owners import device_lock_dir
+
+    d = device_lock_dir().parent / "emulators"
+    d.mkdir(mode=0o700, exist_ok=True)
+    return d
+
+
+def running_emulators() -> list[dict[str, object]]:
+    """What each running ``dotshell emulate`` recorded (``emulator``, ``pty``, ``link``,
+    ``pid``), found by its held lock, sorted by link."""
+    from dotshell.owners import holder
+
+    found = [holder(p) for p in sorted(emulator_dir().glob("*.lock"))]
+    return sorted((i for i in found if i), key=lambda i: str(i.get("link")))

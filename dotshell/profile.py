@@ -90,7 +90,12 @@ SCHEMA: dict[str, Setting] = {
         "settle_ms": Setting("float", default=0.0, min=0.0, unit="ms",
                              help="wait after each projector change before capturing"),
         "retries": Setting("int", default=2, min=0, max=20,
-                           help="re-tries of a frame capture that raised DeviceError"),
+                           help="re-tries of a frame capture that raised DeviceError (and "
+                                "re-captures of a view whose frames fail frame_checks)"),
+        "frame_checks": Setting("bool", default=True,
+                                help="check each view's frames against what was projected "
+                                     "(white above black, pattern + inverse = white + black, "
+                                     "frame ids) and capture a failing view again"),
         "acquisition": Setting("str", default="auto", choices=("auto", "sequenced",
                                                                 "show-capture"),
                                help="'sequenced': the projector runs the view's patterns as a "

@@ -13,6 +13,7 @@ from dotshell.errors import (CalibrationError, DeviceError, DotshellError, Plugi
                              PluginFault, ProfileError)
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.handles import DeviceHandle, DevicePolicy, unwrap
+from dotshell.owners import DeviceInUse, DeviceOwnership
 from dotshell.plugins import PluginManager
 from dotshell.profile import DEVICE_ROLES, Profile
 
@@ -57,6 +58,7 @@ class Rig:
         self.records: dict[str, dict[str, Any]] = {}
         self.messages: list[tuple[str, str, float]] = []
         self._listeners: list[Callable[[str, str, float], None]] = []
+        self.owners = DeviceOwnership(str(profile.source))
         for role in DEVICE_ROLES:
             section = profile.role(role)
             if section is not None:
@@ -144,20 +146,31 @@ class Rig:
     # ---- lifecycle ----------------------------------------------------------------------------
 
     def connect(self) -> None:
-        """Connect every device in role order (a lost one is reopened); on failure close the
-        ones already open. Records identity and a status snapshot per device, then homes the
+        """Connect every device in role order (a lost one is reopened), each once this process
+        holds the hardware it names (:mod:`dotshell.owners`); on failure close the ones already
+        open. Records identity and a status snapshot per device, then homes the
         devices whose ``home = "on_connect"``."""
         for role, dev in self.devices.items():
             if role in self.connected:
                 if dev.lost:
                     self._guarded(role, dev.reopen)
                 continue
+            self._claim(role)
             self._guarded(role, dev.connect)
             self.connected.append(role)
             self._guarded(role, lambda: self._record(role))
         for role, policy in self.policies.items():
             if policy.home == "on_connect":
                 self._guarded(role, lambda: self.home(role))
+
+    def _claim(self, role: str) -> None:
+        """Hold the hardware the role's settings name (one process per device,
+        :mod:`dotshell.owners`); refused naming the holder, every device of this rig closed."""
+        try:
+            self.owners.claim(role, self.backend(role), self.profile.role(role)["settings"])
+        except DeviceInUse:
+            self.close()
+            raise
 
     def _guarded(self, role: str, action: Callable[[], Any]) -> None:
         """``action()``; on failure close every device (this one included) and re-raise."""
@@ -219,6 +232,7 @@ class Rig:
             if role not in self.connected:
                 dev.release()  # e.g. polled for status, never connected
         self.connected.clear()
+        self.owners.release()
 
     def stop(self) -> None:
         """Stop every device that can move (:class:`~dotshell.devices.Stoppable`) now; called

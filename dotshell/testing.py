@@ -22,7 +22,14 @@ Rules (names appear in failures; docs/devices.md explains each):
     ``show-pattern``, ``show-rejects-bad-pattern``, ``move-reaches-angle``, ``rejects-bad-angle``,
     ``set-angle``, ``set-on-off``, ``stop-when-idle``, ``stop-returns-fast``,
     ``stop-interrupts-move``, ``home``, ``read-angle``, ``identity``, ``frame-info``,
-    ``set-exposure``.
+    ``set-exposure``; kit v2: ``returns-in-time`` (every step within ``call_limit_s``; a step
+    that hangs fails it and the rules after it are listed as skipped), ``capture-not-none``,
+    ``frame-info-advances`` (two frames' timestamps and ids rise: no stale frame),
+    ``stop-during-home``, and with the author's ``faults`` hooks ``lost-device`` and
+    ``deadline-respected``.
+
+:func:`format_results` lists every rule run (ok, FAIL, skip); :func:`assert_device_conforms`
+prints it, so ``pytest -rA`` shows what was checked.
 """
 
 from __future__ import annotations
@@ -57,23 +64,75 @@ class RuleResult:
     rule: str
     passed: bool
     detail: str = ""
+    skipped: bool = False
 
     def __str__(self) -> str:
-        return f"{'ok  ' if self.passed else 'FAIL'} {self.rule}" + (
-            f": {self.detail}" if self.detail else "")
+        mark = "skip" if self.skipped else "ok  " if self.passed else "FAIL"
+        return f"{mark} {self.rule}" + (f": {self.detail}" if self.detail else "")
+
+
+def format_results(results: list[RuleResult], label: str = "") -> str:
+    """The rules run on one backend, one per line (``ok``, ``FAIL`` or ``skip``)."""
+    head = f"{label}: " if label else ""
+    passed = sum(r.passed and not r.skipped for r in results)
+    lines = [f"{head}{passed} of {len(results)} rules passed"]
+    return "\n".join(lines + [f"  {r}" for r in results])
+
+
+#: How long one step of the kit may take by default (seconds).
+CALL_LIMIT_S = 30.0
+
+
+class _Hung(Exception):
+    """A step did not return within the call limit (the device is left alone after it)."""
 
 
 class _Checker:
-    def __init__(self, label: str) -> None:
+    def __init__(self, label: str, limit_s: float = CALL_LIMIT_S) -> None:
         self.label = label
+        self.limit_s = limit_s
+        self.hung: str | None = None  # the step that did not return
         self.results: list[RuleResult] = []
 
+    def limited(self, step: str, fn: Callable[[], Any]) -> Any:
+        """``fn()`` on a helper thread, waited for at most ``limit_s``; :class:`_Hung` past it
+        (the thread is abandoned: a hung driver must not hang the kit)."""
+        box: list[tuple[bool, Any]] = []
+
+        def run() -> None:
+            try:
+                box.append((True, fn()))
+            except BaseException as exc:  # re-raised on the caller's thread
+                box.append((False, exc))
+
+        worker = threading.Thread(target=run, name="dotshell-kit-call", daemon=True)
+        worker.start()
+        worker.join(self.limit_s)
+        if not box:
+            self.hung = step
+            raise _Hung(step)
+        ok, value = box[0]
+        if not ok:
+            raise value
+        return value
+
     def rule(self, name: str, step: str, fn: Callable[[], Any], any_error: bool = False) -> Any:
-        """Run ``fn`` for rule ``name``; assertion failures fail the rule, exceptions other
-        than DotshellError fail ``raises-device-errors`` (``any_error``: fail ``name``, for
-        steps that must not raise at all)."""
+        """Run ``fn`` for rule ``name`` within the call limit; assertion failures fail the
+        rule, exceptions other than DotshellError fail ``raises-device-errors`` (``any_error``:
+        fail ``name``, for steps that must not raise at all). After a hung step every rule is
+        skipped."""
+        if self.hung is not None:
+            self.results.append(RuleResult(name, False, f"not run: {self.hung} never returned",
+                                           skipped=True))
+            return None
         try:
-            value = fn()
+            value = self.limited(step, fn)
+        except _Hung:
+            self.results.append(RuleResult(
+                "returns-in-time", False, f"{step} did not return within {self.limit_s:g} s "
+                "(the kit's call_limit_s); a driver call must end — by its own timeout "
+                "(context.time_left()) if the device does not answer"))
+            return None
         except AssertionError as exc:
             self.results.append(RuleResult(name, False, str(exc) or step))
             return None
@@ -129,7 +188,11 @@ def _properties(role: str) -> list[str]:
 def check_device(pm: PluginManager, role: str, name: str, settings: dict[str, Any] | None = None,
                  *, context: RigContext | None = None,
                  failing_settings: dict[str, Any] | None = None, move_deg: float = 180.0,
-                 stop_within_s: float = 2.0, angle_tolerance_deg: float = 0.05) -> list[RuleResult]:
+                 stop_within_s: float = 2.0, angle_tolerance_deg: float = 0.05,
+                 call_limit_s: float = CALL_LIMIT_S,
+                 prepare: Callable[[Any], Any] | None = None,
+                 faults: dict[str, Callable[[], Any]] | None = None,
+                 deadline_s: float = 1.0) -> list[RuleResult]:
     """Run the behavioural conformance rules on backend ``name`` of device ``role``.
 
     Args:
@@ -141,10 +204,21 @@ def check_device(pm: PluginManager, role: str, name: str, settings: dict[str, An
         move_deg: how far the stop test moves a stage or analyzer (degrees).
         stop_within_s: how long a stopped move may take to return (seconds).
         angle_tolerance_deg: how close ``position`` must come to a commanded angle.
+        call_limit_s: how long any one step may take (seconds): a step still running then
+            fails ``returns-in-time`` and the rules after it are skipped.
+        prepare: called with the connected device before the rules (home it, load a
+            configuration, put an emulator in a known state).
+        faults: the author's fault switches, each a no-argument callable (plugin-defined
+            faults, e.g. an emulator's): ``"lost"`` makes the device vanish (the next call must
+            raise DeviceLostError: rule ``lost-device``), ``"stuck"`` makes moves never end (a
+            move must give up by its deadline, ``deadline_s`` from the call: rule
+            ``deadline-respected``). Run last, after every other rule.
+        deadline_s: the deadline ``deadline-respected`` gives the move (seconds).
     """
     ctx = context or RigContext()
-    c = _Checker(f"{role} backend {name!r}")
-    dev = pm.create(role, name, settings, ctx.for_device(role, name), "conformance")
+    c = _Checker(f"{role} backend {name!r}", call_limit_s)
+    dctx = ctx.for_device(role, name)
+    dev = pm.create(role, name, settings, dctx, "conformance")
     missing = dv.missing_members(dev, dv.ROLE_PROTOCOLS[role])
     if missing:
         c.fail("protocol-members", f"{type(dev).__name__} lacks {', '.join(missing)} of the "
@@ -168,18 +242,64 @@ def check_device(pm: PluginManager, role: str, name: str, settings: dict[str, An
                   lambda: (dev.connect(), dev.close(), dev.connect(), dev.close(), dev.close())
                   ) and c.results[-1].passed is False:
         return c.results
-    dev.connect()
+    if c.rule("connect", "connect()", dev.connect) is None and not c.results[-1].passed:
+        return _merge(c.results)
     try:
+        if prepare is not None:
+            c.rule("prepare", "the prepare hook", lambda: prepare(dev), any_error=True)
         c.rule("status-cheap", "status() while connected",
                lambda: _timed_status(dev, "while connected"))
         _check_role(c, role, dev, angle_tolerance_deg)
         _check_capabilities(c, role, dev, move_deg, stop_within_s, angle_tolerance_deg)
+        _check_faults(c, role, dev, dctx, faults or {}, deadline_s)
     finally:
-        dev.close()
+        if c.hung is None:
+            c.rule("connect-close-twice", "close()", dev.close, any_error=True)
     c.rule("status-cheap", "status() after close()", lambda: _timed_status(dev, "after close()"))
     if dv.implements(dev, dv.Stoppable):
         c.rule("stop-when-idle", "stop() after close()", dev.stop, any_error=True)
     return _merge(c.results)
+
+
+def _check_faults(c: _Checker, role: str, dev: Any, ctx: RigContext,
+                  faults: dict[str, Callable[[], Any]], deadline_s: float) -> None:
+    """The failure paths the author can provoke (see :func:`check_device`'s ``faults``)."""
+    from dotshell.errors import DeviceLostError
+
+    unknown = set(faults) - {"lost", "stuck"}
+    if unknown:
+        raise ValueError(f"unknown fault hooks {sorted(unknown)}; the kit knows 'lost' and "
+                         "'stuck'")
+    main = _main_call(role, dev)
+    if "stuck" in faults and role in ("stage", "analyzer"):
+        def respected() -> None:
+            faults["stuck"]()
+            ctx.deadline = time.monotonic() + deadline_s
+            t0 = time.monotonic()
+            try:
+                _expect_device_error(f"{main[0]} on a stuck device", main[1])
+            finally:
+                ctx.deadline = math.inf
+            took = time.monotonic() - t0
+            assert took <= deadline_s + 2.0, (
+                f"{main[0]} on a stuck device gave up after {took:.1f} s, past its deadline of "
+                f"{deadline_s:g} s (+2 s grace); watch context.time_left() while waiting")
+
+        c.rule("deadline-respected", f"{main[0]} on a stuck device", respected)
+    if "lost" in faults:
+        def lost() -> None:
+            faults["lost"]()
+            try:
+                main[1]()
+            except DeviceLostError:
+                return
+            except DeviceError as exc:
+                raise AssertionError(f"{main[0]} on a vanished device raised "
+                                     f"{type(exc).__name__} ({exc}), not DeviceLostError: the "
+                                     "rig reconnects only a DeviceLostError") from None
+            raise AssertionError(f"{main[0]} on a vanished device did not raise")
+
+        c.rule("lost-device", f"{main[0]} after the device vanished", lost)
 
 
 def _merge(results: list[RuleResult]) -> list[RuleResult]:
@@ -239,6 +359,10 @@ def _check_camera(c: _Checker, dev: Any) -> None:
     bits = int(dev.bit_depth)
     want = np.uint8 if bits <= 8 else np.uint16
 
+    def not_none() -> None:
+        assert frame is not None, ("capture() returned None (no frame); return the frame, or "
+                                   "raise DeviceError saying why there is none")
+
     def shape() -> None:
         assert isinstance(frame, np.ndarray), f"capture() returned {type(frame).__name__}"
         assert frame.shape == (h, w), (f"capture() returned shape {frame.shape}, but resolution "
@@ -255,6 +379,8 @@ def _check_camera(c: _Checker, dev: Any) -> None:
             f"{bits}-bit range 0..{2 ** bits - 1}")
 
     c.results.pop()  # capture-shape is decided below
+    if not c.rule("capture-not-none", "capture()", not_none) and frame is None:
+        return
     c.rule("capture-shape", "capture()", shape)
     c.rule("capture-dtype", "capture()", dtype)
     c.rule("capture-bit-depth", "capture()", depth)
@@ -289,6 +415,10 @@ def _check_capabilities(c: _Checker, role: str, dev: Any, move_deg: float, stop_
         c.rule("frame-info", "last_frame_info() after capture()",
                lambda: (dev.capture(), _is(dev.last_frame_info(), dv.FrameInfo,
                                            "last_frame_info()")))
+        c.rule("frame-info-advances", "two captures' last_frame_info()",
+               lambda: _frame_info_advances(dev))
+    if dv.implements(dev, dv.Homing) and dv.implements(dev, dv.Stoppable) and moves:
+        _check_stop(c, role, dev, move_deg, stop_within_s, during_home=True)
     if dv.implements(dev, dv.ExposureControl):
         c.rule("set-exposure", "set_exposure(10); set_exposure(-1)", lambda: (
             dev.set_exposure(10.0), _expect_device_error("set_exposure(-1)",
@@ -299,9 +429,37 @@ def _is(value: Any, kind: type, what: str) -> None:
     assert isinstance(value, kind), f"{what} returned {type(value).__name__}, not {kind.__name__}"
 
 
-def _check_stop(c: _Checker, role: str, dev: Any, move_deg: float, within_s: float) -> None:
-    move = dev.move_to if role == "stage" else dev.set_angle
+def _frame_info_advances(dev: Any) -> None:
+    """Each frame is new: timestamps rise, and frame ids (when known) rise."""
+    dev.capture()
+    a = dev.last_frame_info()
+    dev.capture()
+    b = dev.last_frame_info()
+    if math.isfinite(a.timestamp_s) and math.isfinite(b.timestamp_s):
+        assert b.timestamp_s > a.timestamp_s, (
+            f"two captures report timestamps {a.timestamp_s!r} and {b.timestamp_s!r}: the second "
+            "frame is not newer (a stale or repeated frame); report each frame's own time")
+    if a.frame_id >= 0 and b.frame_id >= 0:
+        assert b.frame_id > a.frame_id, (
+            f"two captures report frame ids {a.frame_id} and {b.frame_id}: the second frame is "
+            "not a new one")
+
+
+def _check_stop(c: _Checker, role: str, dev: Any, move_deg: float, within_s: float,
+                during_home: bool = False) -> None:
+    go = dev.move_to if role == "stage" else dev.set_angle
     start = float(getattr(dev, "position", 0.0) or 0.0)
+    if during_home:  # from move_deg away, so homing has a way to go when stop() comes
+        if c.rule("stop-during-home", f"moving to {start + move_deg:g}° before homing",
+                  lambda: go(start + move_deg)) is None and not c.results[-1].passed:
+            return
+        c.results.pop()
+
+    def move(target: float) -> None:
+        if during_home:
+            dev.home()
+        else:
+            go(target)
     done = threading.Event()
     outcome: list[BaseException | None] = []
 
@@ -315,29 +473,33 @@ def _check_stop(c: _Checker, role: str, dev: Any, move_deg: float, within_s: flo
 
     threading.Thread(target=run, daemon=True).start()
     time.sleep(0.1)
+    what = "homing" if during_home else "a move"
+    rule = "stop-during-home" if during_home else "stop-interrupts-move"
     t0 = time.perf_counter()
-    c.rule("stop-returns-fast", "stop() during a move", dev.stop, any_error=True)
+    c.rule("stop-returns-fast", f"stop() during {what}", dev.stop, any_error=True)
     took = time.perf_counter() - t0
     if took > STOP_RETURN_S:
         c.fail("stop-returns-fast", f"stop() took {took:.2f} s (> {STOP_RETURN_S} s); send the "
                                     "stop command and return — the moving call finishes the stop")
     if not done.wait(within_s):
-        c.fail("stop-interrupts-move", f"the move was still running {within_s:g} s after "
-                                       "stop(); the waiting call must notice the stop and return")
-        done.wait(30.0)
+        c.fail(rule, f"{what} was still running {within_s:g} s after stop(); the waiting call "
+                     "must notice the stop and return")
+        if not done.wait(c.limit_s):
+            c.hung = f"{what} after stop()"
         return
     exc = outcome[0] if outcome else None
     if exc is not None and not isinstance(exc, DeviceError):
-        c.fail("raises-device-errors", f"the stopped move raised {type(exc).__name__}: {exc}")
+        c.fail("raises-device-errors", f"the stopped {what} raised {type(exc).__name__}: {exc}")
     else:
-        c.results.append(RuleResult("stop-interrupts-move", True))
+        c.results.append(RuleResult(rule, True))
 
 
 def assert_device_conforms(pm: PluginManager, role: str, name: str,
                            settings: dict[str, Any] | None = None, **options: Any) -> None:
     """Fail (naming every broken rule) unless backend ``name`` passes :func:`check_device`."""
     results = check_device(pm, role, name, settings, **options)
-    failed = [r for r in results if not r.passed]
+    print(format_results(results, f"{role} backend {name!r}"))  # shown by pytest -rA
+    failed = [r for r in results if not r.passed and not r.skipped]
     if failed:
         raise AssertionError(f"{role} backend {name!r} breaks the device contract "
                              "(docs/devices.md):\n" + "\n".join(

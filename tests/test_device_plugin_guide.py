@@ -44,3 +44,66 @@ def test_plugins_settings_show_units_limits_and_choices(capsys, monkeypatch, dot
         assert row in out, row
     # the first-party serial backends too
     assert "(choices: X, Y, Z, A, B, C)" in out and "float [deg] 0..5" in out
+
+
+def rt1_module():
+    """The section-5 blocks (emulator, driver, tests) of the guide, in one module."""
+    text = GUIDE.read_text()
+    blocks = re.findall(r"```python\n(# (rt1_emulator|rt1_driver|test_rt1)\.py\n.*?)```", text,
+                        re.S)
+    assert [name for _, name in blocks] == ["rt1_emulator", "rt1_driver", "test_rt1"]
+    module = types.ModuleType("dotshell_rt1")
+    for code, _ in blocks:
+        exec(compile(code, str(GUIDE), "exec"), module.__dict__)
+    return module
+
+
+def test_the_guide_protocol_exchanges_pass_and_a_wrong_request_is_named():
+    import pytest
+
+    from dotshell.backends import RigContext
+    from dotshell.settings import validate_settings
+    from dotshell_serial.protocol import scripted
+
+    rt1 = rt1_module()
+    rt1.test_rt1_speaks_its_protocol()
+    table = rt1.RT1Stage(validate_settings(rt1.RT1_SETTINGS, {"port": "x"}, "rt1"), RigContext())
+    with pytest.raises(AssertionError, match=r"exchange 1 of 1: the driver sent b'ID\?\\n' "
+                                             r"where the script expects b'VER\?\\n'"):
+        with scripted(table, [(b"VER?\n", b"")]):
+            table.connect()
+
+
+def test_the_guide_rt1_driver_passes_kit_v2_on_its_emulator(tmp_path, dotshell_pm):
+    rt1 = rt1_module()
+    dotshell_pm.register(rt1, name="rt1")
+    rt1.test_rt1_conforms_on_its_emulator(tmp_path, dotshell_pm)
+
+
+def test_the_guide_emulator_defines_its_own_fault(tmp_path, dotshell_pm):
+    import pytest
+
+    from dotshell.errors import DeviceError
+
+    rt1 = rt1_module()
+    dotshell_pm.register(rt1, name="rt1")
+    with rt1.RT1Emulator(link=tmp_path / "rt1") as emu:
+        assert rt1.RT1Emulator.fault_names()[-1] == "overheat"
+        emu.set_fault("overheat")
+        table = dotshell_pm.create("stage", "rt1", {"port": emu.port})
+        table.connect()
+        with pytest.raises(DeviceError, match=r"refused 'MOVE 10.000' \(over temperature\)"):
+            table.move_to(10.0)
+        table.close()
+        with pytest.raises(ValueError, match="no fault 'melt'; its faults: error, silence, "
+                                             "garbage, stuck, alarm, overheat"):
+            emu.set_fault("melt")
+    assert not emu.errors  # the model raised nothing
+
+
+def test_emulate_refuses_an_unknown_fault_naming_the_emulators_faults(capsys):
+    from dotshell.cli import main
+
+    assert main(["emulate", "zaber", "--fault", "melt", "--seconds", "0.1"]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "no fault 'melt'; its faults: error, silence, garbage, stuck, alarm" in err

@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import pytest
 from rich.console import Console
 
+from rig_server import user_dirs  # noqa: F401 (a fixture)
 import dotshell.cli_devices as cli_devices
 import dotshell.ports as ports
 from dotshell.cli import main
@@ -88,3 +89,80 @@ def test_emulate_prints_its_port_and_a_driver_talks_to_it(tmp_path, dotshell_pm)
 def test_emulate_unknown_name_lists_the_emulators(capsys):
     assert main(["emulate", "lightcrafter-9000"]) == 2
     assert "installed emulators: apt, elliptec, grbl, switch, zaber" in capsys.readouterr().err
+
+
+def test_ports_lists_running_emulators_and_vanish_after_counts_from_connect(
+        tmp_path, dotshell_pm, capsys, monkeypatch, user_dirs):
+    from stop_cases import wait_for
+
+    link = tmp_path / "zaber-link"
+    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", "emulate", "zaber", "--link",
+                             str(link), "--vanish-after", "0.3", "--seconds", "60"],
+                            stdout=subprocess.PIPE, text=True)
+    try:
+        pty = proc.stdout.readline().split()[-1]
+        assert proc.stdout.readline().strip() == f"port for profiles: {link}"
+        monkeypatch.setattr(cli_devices, "out", Console(width=400, highlight=False))
+        assert main(["ports"]) == 0
+        listed = [line for line in capsys.readouterr().out.splitlines() if str(link) in line]
+        assert len(listed) == 1 and pty in listed[0] and str(proc.pid) in listed[0]
+        assert listed[0].rstrip(" │").endswith("-")  # nobody holds it yet
+        stage = dotshell_pm.create("stage", "zaber", {"port": str(link)})
+        stage.connect()  # no move: the port vanishes 0.3 s after this connect all the same
+        assert wait_for(lambda: not link.exists(), 20.0)
+        stage.close()
+    finally:
+        proc.send_signal(2)
+        proc.communicate(timeout=10)
+    assert main(["ports"]) == 0
+    assert str(link) not in capsys.readouterr().out  # gone with its process
+
+
+def test_ports_names_who_holds_an_emulators_port(tmp_path, dotshell_pm, serial_emulator, capsys,
+                                                 monkeypatch, user_dirs):
+    from stop_cases import zaber_profile
+    from dotshell.profile import load_profile
+    from dotshell.rig import Rig
+
+    emu = serial_emulator("zaber")
+    fake_comports(monkeypatch, [(emu.pty_path, 0x2939, 0x495A, "33938", "Zaber X-MCB1")])
+    monkeypatch.setattr(cli_devices, "out", Console(width=400, highlight=False))
+    prof = zaber_profile(tmp_path, emu.port, "never")
+    rig = Rig(load_profile(prof, dotshell_pm), dotshell_pm)
+    rig.connect()
+    try:
+        assert main(["ports"]) == 0
+    finally:
+        rig.close()
+    [row] = [line for line in capsys.readouterr().out.splitlines() if emu.pty_path in line]
+    assert f"pid {os.getpid()}" in row and str(prof) in row and "as its stage" in row
+
+
+def test_emulate_prints_its_models_errors(tmp_path, monkeypatch, capsys, user_dirs):
+    import threading
+
+    from stop_cases import wait_for
+    from dotshell_serial.emulators.pty import LineEmulator
+
+    class Broken(LineEmulator):
+        name = "broken"
+
+        def line(self, text):
+            raise ZeroDivisionError(f"cannot parse {text!r}")
+
+    monkeypatch.setattr(cli_devices, "emulator_class", lambda name: Broken)
+    link = tmp_path / "broken-link"
+
+    def talk():
+        assert wait_for(link.exists, 30.0)
+        fd = os.open(link, os.O_RDWR | os.O_NOCTTY)
+        os.write(fd, b"HELLO\n")
+        os.close(fd)
+
+    thread = threading.Thread(target=talk, daemon=True)
+    thread.start()
+    assert main(["emulate", "broken", "--link", str(link), "--seconds", "2"]) == 0
+    thread.join(5)
+    err = " ".join(capsys.readouterr().err.split())
+    assert "emulator error: ZeroDivisionError: cannot parse 'HELLO'" in err
+    assert "the port stays up" in err

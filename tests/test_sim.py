@@ -319,9 +319,9 @@ def test_hooks_provide_backends():
                                  pm.hook.dotshell_stages, pm.hook.dotshell_analyzers,
                                  pm.hook.dotshell_light_sources)
              for backends in hook() for b in backends}
-    assert names == {"sim-camera", "sim-projector", "sim-turntable", "sim-analyzer",
-                     "sim-laser"}
-    (camera,) = pm.hook.dotshell_cameras()[0]
+    assert names == {"sim-camera", "sim-camera-faulty", "sim-projector", "sim-turntable",
+                     "sim-analyzer", "sim-laser"}
+    camera, _faulty = pm.hook.dotshell_cameras()[0]
     assert camera.settings_schema["bit_depth"].default == 12
 
 

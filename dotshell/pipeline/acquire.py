@@ -27,12 +27,13 @@ import numpy as np
 from dotshell.coding import PatternFrame
 from dotshell.devices import (AngleReadback, ExposureControl, FrameInfoSource, accepted_kwargs,
                               implements)
-from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, ProfileError,
-                             RunError)
+from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, FrameError,
+                             ProfileError, RunError)
 from dotshell.events import (EventBus, FrameCaptured, Message, ScanPaused, ScanResumed,
                              ViewCaptured)
 from dotshell.frames import FrameStore
 from dotshell.framecheck import FrameSpec
+from dotshell.pipeline.integrity import ViewIntegrity, check_view
 from dotshell.pipeline.lifecycle import signals_deferred
 from dotshell.pipeline.pdi import Shot, plan_shots
 from dotshell.pipeline.sequenced import SequencedCapture, uses_sequenced
@@ -67,6 +68,14 @@ def check_frame(rig: Rig, spec: FrameSpec, frame: object, what: str) -> np.ndarr
     return spec.check(frame, f"{what} from the camera ({backend})",
                       "Fix the camera's settings or its plugin; frames already written are "
                       "kept.")
+
+
+class _NotAsProjected(Exception):
+    """A captured view failed its integrity checks (raised after its frames were recorded)."""
+
+    def __init__(self, verdict: ViewIntegrity) -> None:
+        super().__init__("; ".join(verdict.problems))
+        self.verdict = verdict
 
 
 class FrameWriter:
@@ -273,8 +282,48 @@ class Acquisition:
 
     def run_view(self, view: int, angle_deg: float) -> list[np.ndarray] | None:
         """Capture all frames of one view; None if the scan was stopped midway (frames taken
-        so far stay on disk and the view is marked incomplete)."""
+        so far stay on disk and the view is marked incomplete). A view whose frames are not
+        what was projected (:mod:`dotshell.pipeline.integrity`) is named, its frames set aside
+        (``frames/view_NNN.partial-K``, kept) and captured again, up to ``scan.retries`` times;
+        a FrameError names the faults if it never passes."""
+        attempts = self.scan["retries"] + 1
+        for attempt in range(1, attempts + 1):
+            try:
+                return self._run_view_once(view, angle_deg, attempt)
+            except _NotAsProjected as exc:
+                problems = "; ".join(exc.verdict.problems[:3])
+                if attempt == attempts:
+                    raise FrameError(
+                        f"view {view}: the frames are not what was projected after {attempts} "
+                        f"captures ({problems}). Check the camera's trigger, buffering and "
+                        "cable; frames are kept in frames/view_NNN.partial-K. Set "
+                        "[scan] frame_checks = false only if the scene itself defeats the "
+                        "checks.") from None
+                self.bus.warn(f"view {view}: frames are not what was projected ({problems}); "
+                              f"capturing the view again ({attempt}/{attempts - 1})")
+                self._set_aside(view)
+        raise AssertionError("unreachable")
+
+    def _set_aside(self, view: int) -> None:
+        """Move a failed capture of ``view`` out of the way (kept) before it is captured again."""
+        from dotshell.pipeline.scan import _set_aside_partial  # the run's one way to do it
+
+        _set_aside_partial(self.store, view)
+        self.writer.written[view] = 0
+        self.store.mark_view(view, 0, False)
+
+    def _check_integrity(self, view: int, frames: list[np.ndarray],
+                         infos: list[dict[str, Any]]) -> ViewIntegrity | None:
+        """The view's frames against what was projected; None when ``frame_checks`` is off."""
+        if not self.scan.get("frame_checks", True) or len(frames) != len(self.shots):
+            return None
+        full_scale = float((1 << self.spec.bit_depth) - 1)
+        return check_view(frames, [s.name for s in self.shots], full_scale, infos or None)
+
+    def _run_view_once(self, view: int, angle_deg: float, attempt: int
+                       ) -> list[np.ndarray] | None:
         t0 = time.perf_counter()
+        verdict: ViewIntegrity | None = None
         frames: list[np.ndarray] = []
         infos: list[dict[str, Any]] = []
         reached: dict[str, Any] = {}
@@ -300,6 +349,7 @@ class Acquisition:
                 frames.append(frame)
                 self.flush_device_log()
                 self.bus.emit(FrameCaptured(view=view, index=i, name=shot.name))
+            verdict = self._check_integrity(view, frames, infos)
         except DeviceStopped as exc:
             self.bus.warn(f"view {view}: {exc}")
             self.stop.set()
@@ -311,24 +361,30 @@ class Acquisition:
             with signals_deferred():  # a stop arriving now is raised once the view is recorded
                 self.writer.end_view(view)  # every frame taken is on disk before we go on
                 written = self.writer.written.get(view, 0)  # on disk, not merely captured
-                self.store.mark_view(view, written, written == len(self.shots))
-                self._record_view(view, reached, infos)
+                self.store.mark_view(view, written, written == len(self.shots) and
+                                     (verdict is None or verdict.ok))
+                self._record_view(view, reached, infos, verdict, attempt)
             self.flush_device_log()
             self.seconds += time.perf_counter() - t0
         self.writer.check()
+        if verdict is not None and not verdict.ok:
+            raise _NotAsProjected(verdict)
         self.bus.emit(ViewCaptured(view=view, angle_deg=angle_deg, n_frames=len(frames)))
         return frames
 
-    def _record_view(self, view: int, reached: dict[str, Any],
-                     infos: list[dict[str, Any]]) -> None:
-        """The angle read back (manifest) and the frames' metadata (``frame_info.json``)."""
+    def _record_view(self, view: int, reached: dict[str, Any], infos: list[dict[str, Any]],
+                     verdict: ViewIntegrity | None = None, attempt: int = 1) -> None:
+        """The angle read back and the frames' integrity (manifest) and the frames' metadata
+        (``frame_info.json``)."""
         if infos:
             record_frame_info(self.store, view, infos)
-        if reached or infos:
+        if reached or infos or verdict is not None:
             m = self.store.manifest
             m["views"][view].update(reached)
             if infos:
                 m["views"][view]["frame_info"] = frame_info_path(view)
+            if verdict is not None:
+                m["views"][view]["integrity"] = {**verdict.to_dict(), "captures": attempt}
             self.store.write_json("manifest.json", m)
 
     def close(self) -> None:

@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from dotshell.errors import RunError
+from dotshell.owners import holder, try_flock
 
 #: Final states; ``running`` is the only other one.
 FINAL_STATES = ("completed", "failed", "aborted", "interrupted")
@@ -71,12 +72,7 @@ class RunLock:
             raise RunError(f"{self.root} cannot be written ({exc.strerror}): a command that "
                            "processes a run writes its results into it. Copy the run somewhere "
                            "writable (`cp -a RUN DEST`) and run the command on the copy.") from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as exc:
-            os.close(fd)
-            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
-                raise
+        if not try_flock(fd):
             raise RunError(f"{self.root} is being written by {describe_holder(read_holder(self.path))}; "
                            "wait for it to finish (`dotshell inspect RUN` shows it), or stop it, "
                            "then try again.") from None
@@ -122,20 +118,7 @@ def describe_holder(info: dict[str, Any]) -> str:
 
 def lock_holder(root: Path | str) -> dict[str, Any] | None:
     """Who holds ``root``'s lock (``{}`` if unknown), or None if nobody does."""
-    path = Path(root) / LOCK_NAME
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except FileNotFoundError:
-        return None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except OSError:
-        return read_holder(path)
-    else:
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        return None
-    finally:
-        os.close(fd)
+    return holder(Path(root) / LOCK_NAME)
 
 
 def effective_status(root: Path | str, manifest: dict[str, Any]) -> tuple[str, str]:
@@ -168,6 +151,21 @@ def on_interrupt(callback: Callable[[], None]) -> Iterator[None]:
         with _callbacks_lock:
             if callback in _callbacks:
                 _callbacks.remove(callback)
+
+
+@contextmanager
+def connected(rig: Any, close: bool = True) -> Iterator[Any]:
+    """``rig`` (a :class:`dotshell.rig.Rig`) connected, its ``stop`` registered for stop
+    signals *before* the first device connects — so Ctrl-C, SIGTERM and SIGHUP stop a stage
+    homing at connect — and closed afterwards (also when connecting was interrupted) when
+    ``close``."""
+    with on_interrupt(rig.stop):
+        try:
+            rig.connect()
+            yield rig
+        finally:
+            if close:
+                rig.close()
 
 
 def run_stop_callbacks() -> None:

@@ -28,7 +28,7 @@ from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.acquire import Acquisition
 from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.generations import Generation, ProductStore
-from dotshell.pipeline.lifecycle import describe_holder, lock_holder, on_interrupt
+from dotshell.pipeline.lifecycle import connected, describe_holder, lock_holder
 from dotshell.pipeline.pdi import plan_shots
 from dotshell.pipeline.steps import (make_coding, reconstruct_one_view,
                                      require_turntable_axis, view_angle)
@@ -75,10 +75,13 @@ def _forward_to_plugins(bus: EventBus, pm: PluginManager, profile: Profile, run_
 
 
 @contextmanager
-def _kept_open(rig: Rig) -> Iterator[Rig]:
-    """A caller's rig: connected for the scan and left open for the caller."""
-    rig.connect()
-    yield rig
+def _stoppable_rig(profile: Profile, pm: PluginManager, rig: Rig | None) -> Iterator[Rig]:
+    """The scan's rig, its stop registered before the first device connects: Ctrl-C, SIGTERM
+    and SIGHUP stop every moving device while connecting and homing as well as during the
+    scan. A rig the scan built is closed afterwards (also when connecting was interrupted);
+    a caller's rig is connected if needed and left open for the caller."""
+    with connected(Rig(profile, pm) if rig is None else rig, close=rig is None) as ready:
+        yield ready
 
 
 class ViewPipeline:
@@ -216,7 +219,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
     gen = Generation.start(store)
     job.generation = gen.number
     products = ProductStore(store, gen.dir)
-    with (Rig(profile, pm) if rig is None else _kept_open(rig)) as rig, on_interrupt(rig.stop):
+    with _stoppable_rig(profile, pm, rig) as rig:
         if resuming:
             calib = RigCalibration.load(store.path("calibration.json"))
         else:

@@ -118,6 +118,9 @@ def store_view(store: RunStore, vc: ViewCloud, first_frame: np.ndarray | None,
     previews for the profile's preview view) and return its report record."""
     write_ply(store.path("views", f"{view_stem(vc.view)}.ply"), vc.points)
     record: dict[str, Any] = {"view": vc.view, "angle_deg": vc.angle_deg, **vc.stats}
+    integrity = getattr(store, "run", store).manifest["views"][vc.view].get("integrity")
+    if integrity is not None:  # the capture's frame checks (dotshell.pipeline.integrity)
+        record["integrity"] = integrity
     out = profile.data["outputs"]
     if out["previews"] and vc.view == out["preview_view"] and vc.correspondence is not None:
         from dotshell.render import column_map_preview, frame_preview

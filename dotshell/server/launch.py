@@ -32,13 +32,30 @@ def locate(profile: str | Path | None = None, name: str | None = None,
     if name is not None:
         return socket_path(name)
     if profile is not None:
-        return socket_path(server_name(profile))
+        return _profile_socket(profile)
     running = running_servers()
     if len(running) > 1:
         names = ", ".join(p.stem for p in running)
         raise ServerError(f"several rig servers run ({names}); name one with --server NAME or "
                           "give its profile.")
     return running[0] if running else None
+
+
+def _profile_socket(profile: str | Path) -> Path:
+    """The socket of ``profile``'s server from any directory: its own name if that server
+    runs, else the running server of the same file (device and inode) or, where no such file
+    is, of the same profile name; else where its server would listen."""
+    from dotshell.owners import holder, server_lock_path, servers_of_profile
+
+    own = socket_path(server_name(profile))
+    if holder(server_lock_path(own)) is not None:
+        return own
+    found = servers_of_profile(own.parent, profile)
+    if len(found) > 1:
+        names = ", ".join(f"{sock.stem} ({info.get('profile')})" for sock, info in found)
+        raise ServerError(f"several rig servers run a profile named {Path(profile).stem} "
+                          f"({names}); name one with --server NAME or give the profile's path.")
+    return found[0][0] if found else own
 
 
 @dataclass

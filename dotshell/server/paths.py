@@ -133,5 +133,10 @@ def alive(path: Path) -> bool:
 
 
 def running_servers() -> list[Path]:
-    """Sockets of the servers that answer, sorted by name."""
-    return [p for p in sorted(runtime_dir().glob("*.sock")) if alive(p)]
+    """Sockets of the servers that hold their lock (:mod:`dotshell.owners`: found even while
+    momentarily unresponsive) or answer, sorted by name."""
+    from dotshell.owners import held_servers
+
+    d = runtime_dir()
+    held = {sock for sock, _ in held_servers(d)}
+    return sorted(held | {p for p in d.glob("*.sock") if p not in held and alive(p)})

@@ -33,7 +33,7 @@ from dotshell.errors import DotshellError
 from dotshell.events import Event, ScanFinished, ScanPaused, ScanResumed, ScanStarted
 from dotshell.server.commands import COMMANDS, Context, profile_summary
 from dotshell.server.describe import describe_event
-from dotshell.server.paths import HANGUP_CHOICES, alive
+from dotshell.server.paths import HANGUP_CHOICES
 from dotshell.server.progress import ScanTracker
 from dotshell.server.protocol import (CONTROL_COMMANDS, PROTOCOL_VERSION, URGENT_COMMANDS,
                                       ServerError, decode, encode, error_reply, read_lines)
@@ -229,11 +229,9 @@ class RigServer:
         """Listen on the socket (0600) and start polling; clients are accepted by
         :meth:`serve_forever`."""
         path = self.socket_path
-        if path.exists():
-            if alive(path):
-                raise ServerError(f"a server already answers on {path}; see dotshell status, "
-                                  "or stop it with dotshell stop.")
-            path.unlink()  # a stale socket left by a server that was killed
+        self._claim(path)
+        if path.exists() or path.is_symlink():
+            path.unlink()  # stale: a server on it would hold the lock
         listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         listener.bind(os.fspath(path))
         os.chmod(path, 0o600)
@@ -244,6 +242,27 @@ class RigServer:
                  f"out {self.session.out_dir.resolve()}; on_hangup {self.on_hangup}"
                  + ("; exits when idle" if self.exit_when_idle else ""))
         threading.Thread(target=self._poll, daemon=True, name="dotshell-poller").start()
+
+    def _claim(self, path: Path) -> None:
+        """Hold the server lock of ``path`` (one server per socket, so per profile, even while
+        a server is momentarily unresponsive); refused naming the holder."""
+        from dotshell.owners import (OwnerLock, describe, held_devices, profile_identity,
+                                     server_lock_path)
+
+        profile = self.session.profile
+        self._owner = OwnerLock(server_lock_path(path))
+        other = self._owner.acquire({"name": self.name, "socket": str(path),
+                                     **profile_identity(profile.source if profile else None)})
+        if other is not None:
+            raise ServerError(f"a rig server already runs on {path}: {describe(other)}; see "
+                              "dotshell status, or stop it with dotshell stop.")
+        held = held_devices(profile) if profile is not None else []
+        if held:
+            self._owner.release()
+            role, ident, info = held[0]
+            raise ServerError(f"the profile's {role} ({ident}) is held by {describe(info)}; one "
+                              "process drives a device at a time. Stop that scan or server "
+                              "(dotshell stop PROFILE) first.")
 
     def serve_forever(self) -> int:
         """Accept clients until the server stops; installs the signal handlers when called
@@ -335,6 +354,7 @@ class RigServer:
                 self.socket_path.unlink()
             except FileNotFoundError:
                 pass
+            self._owner.release()
         with self._log_lock:
             self._log.close()
 

@@ -10,6 +10,14 @@ like a third-party plugin. Backends:
 
 Emulators of each device on a real pseudo-terminal are in :mod:`dotshell_serial.emulators`
 (``dotshell emulate NAME``).
+
+Public API for third-party serial drivers (docs/writing-a-device-plugin.md, section 5):
+:class:`dotshell_serial.link.SerialLink` (a port as a driver uses it),
+:class:`dotshell_serial.base.SerialDevice` (connect/handshake/close, status, identity, stop flag)
+with :func:`~dotshell_serial.base.port_settings`, :func:`~dotshell_serial.base.motion_settings`
+and :class:`~dotshell_serial.base.MotionWatch`; :class:`dotshell_serial.emulators.pty.PtyEmulator`
+and :class:`~dotshell_serial.emulators.pty.LineEmulator` (a device's far end on a pty); and
+:func:`dotshell_serial.protocol.scripted` (request/reply exchanges, no pty).
 """
 
 from __future__ import annotations
@@ -23,7 +31,11 @@ from dotshell_serial.grbl import GRBL_SCHEMA, GrblStage
 from dotshell_serial.switch import SWITCH_SCHEMA, SerialSwitch
 from dotshell_serial.zaber import ZABER_SCHEMA, ZaberStage
 
-__all__ = ["AptRotationStage", "ElliptecAnalyzer", "GrblStage", "SerialSwitch", "ZaberStage"]
+from dotshell_serial.base import MotionWatch, SerialDevice, motion_settings, port_settings
+from dotshell_serial.link import SerialLink
+
+__all__ = ["AptRotationStage", "ElliptecAnalyzer", "GrblStage", "MotionWatch", "SerialDevice",
+           "SerialLink", "SerialSwitch", "ZaberStage", "motion_settings", "port_settings"]
 
 #: USB ids (vid:pid): Arduino Uno/Mega and their CH340/FTDI clones; Zaber's own and FTDI
 #: bridges; Thorlabs APT controllers (FTDI with Thorlabs' product id); Elliptec buses (FT230X).

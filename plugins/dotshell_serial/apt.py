@@ -25,7 +25,8 @@ from typing import Any
 from dotshell.errors import DeviceError, DeviceTimeout
 from dotshell.settings import Setting
 
-from dotshell_serial.base import SerialDevice, finite_degrees, port_settings
+from dotshell_serial.base import (MotionWatch, SerialDevice, finite_degrees, motion_settings,
+                                  port_settings)
 
 HOST = 0x01
 #: Status bits of MOT_GET_STATUSUPDATE (APT protocol, "Status bits").
@@ -34,6 +35,7 @@ LIMIT_BITS = {0x01: "forward (CW) hardware limit", 0x02: "reverse (CCW) hardware
 
 APT_SCHEMA: dict[str, Setting] = {
     **port_settings(115200, 1.0),
+    **motion_settings(),
     "channel": Setting("int", 1, "motor channel", min=1, max=4),
     "destination": Setting("int", 0x50, "APT destination address: 80 (0x50) for a stand-alone "
                            "USB controller such as the K10CR1; 0x21.. for a rack bay",
@@ -98,9 +100,10 @@ class AptRotationStage(SerialDevice):
         self.link.write(message, what)
 
     def _await(self, wanted: set[str], what: str, timeout_s: float | None = None,
-               poll: bool = False) -> Any:
+               poll: bool = False, watch: MotionWatch | None = None) -> Any:
         """The next message named in ``wanted`` (thorlabs_apt_protocol names); errors from the
-        controller raise; with ``poll`` a status request goes out every poll interval."""
+        controller raise; with ``poll`` a status request goes out every poll interval, and
+        ``watch`` sees each position it reports (a stall is named)."""
         if self._unpacker is None:
             self._unpacker = _unpacker_class()(self.link._port(f"wait for {what}"),
                                                on_error="continue")
@@ -128,6 +131,8 @@ class AptRotationStage(SerialDevice):
             if msg is not None:
                 heard = time.monotonic()
                 self._note(msg)
+                if watch is not None and msg.msg == "mot_get_statusupdate":
+                    watch.update(self._position)
                 if msg.msg in ("hw_richresponse", "hw_response"):
                     raise DeviceError(self._controller_error(msg, what))
                 if msg.msg in wanted:
@@ -210,7 +215,8 @@ class AptRotationStage(SerialDevice):
         left = self.context.time_left()
         budget = 120.0 if left == float("inf") else max(left - 0.5, 0.1)
         try:
-            msg = self._await(done | {"mot_move_stopped"}, what, budget, poll=True)
+            msg = self._await(done | {"mot_move_stopped"}, what, budget, poll=True,
+                              watch=MotionWatch(self, what, log_progress=target is None))
         except _Overdue:
             self.stop()
             raise DeviceTimeout(f"{self.link.name}: {what} did not finish in time (at "

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from typing import Any
 
 from dotshell.backends import RigContext
@@ -26,6 +27,53 @@ def port_settings(baudrate: int, reply_timeout_s: float) -> dict[str, Setting]:
         "reply_timeout_s": Setting("float", reply_timeout_s, "how long one reply may take",
                                    "s", min=0.01, max=60.0),
     }
+
+
+def motion_settings() -> dict[str, Setting]:
+    """The settings of backends that move (stall detection, homing progress)."""
+    return {
+        "stall_s": Setting("float", 3.0, "a move or homing that reports busy without moving "
+                           "more than 0.005° for this long is stuck: stopped and named", "s",
+                           min=0.2, max=600.0),
+        "progress_s": Setting("float", 5.0, "how often homing logs where it is", "s",
+                              min=0.5, max=600.0),
+    }
+
+
+class MotionWatch:
+    """Watches one move or homing through the positions polled while it runs: names a stall
+    (no progress for ``stall_s`` seconds) and logs homing progress every ``progress_s``."""
+
+    #: Least change of position that counts as progress (degrees).
+    PROGRESS_DEG = 0.005
+
+    def __init__(self, device: "SerialDevice", what: str, log_progress: bool = False) -> None:
+        self.device, self.what, self.log_progress = device, what, log_progress
+        now = time.monotonic()
+        self.t_moved = self.t_logged = self.t0 = now
+        self.at: float | None = None
+
+    def update(self, position: float) -> None:
+        """A position polled while busy; a DeviceError once it has not changed for
+        ``stall_s`` (the device is stopped first)."""
+        now = time.monotonic()
+        settings = self.device.settings
+        if self.at is None or abs(position - self.at) > self.PROGRESS_DEG:
+            self.at, self.t_moved = position, now
+        elif now - self.t_moved >= settings["stall_s"]:
+            self.device.stop()
+            self.device.stopping.clear()
+            raise DeviceError(f"{self.device.link.name}: {self.what} is stuck — the device says "
+                              f"it is moving but has stayed at {position:.3f}° for "
+                              f"{now - self.t_moved:.1f} s; stopped it. Check what blocks the "
+                              "stage (and its motor current); raise stall_s if it is just "
+                              "slow to start.")
+        if self.log_progress and now - self.t_logged >= settings["progress_s"]:
+            self.t_logged = now
+            left = self.device.context.time_left()
+            deadline = "" if math.isinf(left) else f", {left:.0f} s left of its deadline"
+            self.device.context.log.info(f"{self.what}: at {position:.2f}° after "
+                                         f"{now - self.t0:.0f} s{deadline}")
 
 
 def finite_degrees(value: Any, device: str) -> float:

@@ -22,7 +22,8 @@ from typing import Any
 from dotshell.errors import DeviceError, DeviceTimeout
 from dotshell.settings import Setting
 
-from dotshell_serial.base import SerialDevice, finite_degrees, port_settings
+from dotshell_serial.base import (MotionWatch, SerialDevice, finite_degrees, motion_settings,
+                                  port_settings)
 
 #: GRBL v1.1 error codes (doc/csv/error_codes_en_US.csv), in short.
 ERRORS = {
@@ -62,6 +63,7 @@ ALARMS = {
 
 GRBL_SCHEMA: dict[str, Setting] = {
     **port_settings(115200, 2.0),
+    **motion_settings(),
     "axis": Setting("str", "X", "GRBL axis that turns the stage (set up in degrees: $100 = "
                     "steps per degree)", choices=("X", "Y", "Z", "A", "B", "C")),
     "feed_deg_per_min": Setting("float", 0.0, "rotation speed for moves (G1 F...); 0 = rapid "
@@ -192,6 +194,9 @@ class GrblStage(SerialDevice):
         state, _ = self._status()
         if state.startswith("Hold"):  # a stop() while idle leaves GRBL holding: clear it
             self._reset()
+            state, _ = self._status()
+        if state == "Alarm":
+            self._unlock_and_home(f"the move to {target:g}°")
         self.stopping.clear()
         feed = self.settings["feed_deg_per_min"]
         motion = f"G1 F{feed:g}" if feed > 0 else "G0"
@@ -199,8 +204,18 @@ class GrblStage(SerialDevice):
                       f"the move to {target:g}°")
         self._wait_until_at(target, f"the move to {target:g}°")
 
+    def _unlock_and_home(self, what: str) -> None:
+        """GRBL in ALARM locks every move; after a limit or a reset the position is likely
+        lost, so unlock (``$X``) and home (``$H``) before ``what``, saying so."""
+        self.context.log.warn(f"GRBL is in ALARM ({self.alarm or 'after a reset'}) before "
+                              f"{what}: unlocking ($X) and homing ($H), the position being "
+                              "likely lost")
+        self._command("$X", "the unlock ($X)")
+        self.home()
+
     def _wait_until_at(self, target: float | None, what: str) -> None:
         tol = self.settings["tolerance_deg"]
+        watch = MotionWatch(self, what)
         while True:
             if self.stopping.is_set():
                 raise self._finish_stop()
@@ -215,6 +230,7 @@ class GrblStage(SerialDevice):
                 raise DeviceError(f"{self.link.name}: {what} ended at {pos:.3f}°, "
                                   f"{abs(pos - target):.3f}° from the target (tolerance "
                                   f"{tol:g}°); steps were lost or $100 is wrong.")
+            watch.update(pos)
             if self.context.time_left() < 2 * self.settings["poll_interval_s"] + 0.5:
                 self.link.write_now(b"!", "a feed hold")
                 raise DeviceTimeout(f"{self.link.name}: {what} did not finish in time (at "

@@ -19,7 +19,8 @@ from typing import Any
 from dotshell.errors import DeviceError, DeviceTimeout
 from dotshell.settings import Setting
 
-from dotshell_serial.base import SerialDevice, finite_degrees, port_settings
+from dotshell_serial.base import (MotionWatch, SerialDevice, finite_degrees, motion_settings,
+                                  port_settings)
 
 #: Warning flags (Zaber ASCII protocol manual, "Warning Flags"), in short.
 FLAGS = {
@@ -51,6 +52,7 @@ REJECTIONS = {
 
 ZABER_SCHEMA: dict[str, Setting] = {
     **port_settings(115200, 1.0),
+    **motion_settings(),
     "device": Setting("int", 1, "device address in the daisy chain", min=1, max=99),
     "axis": Setting("int", 1, "axis number of the rotary stage", min=1, max=9),
     "microsteps_per_degree": Setting("float", 4266.666667, "microsteps per degree of the "
@@ -115,7 +117,8 @@ class ZaberStage(SerialDevice):
         if self.flag.startswith("F"):
             raise DeviceError(f"{self.link.name}: fault {self.flag} during {what} "
                               f"({FLAGS.get(self.flag, 'see the Zaber protocol manual')}); fix "
-                              "the cause, then clear it with `warnings clear` or a power cycle.")
+                              "the cause; dotshell clears the flag (warnings clear) before the "
+                              "next move.")
         if self.flag[0] == "W" and self.flag != self._warned:
             self.context.log.warn(f"warning {self.flag}: {FLAGS.get(self.flag, '?')}")
         self._warned = self.flag
@@ -141,14 +144,26 @@ class ZaberStage(SerialDevice):
         self._state = state.lower()
         return self._position
 
+    def _clear_faults(self, what: str) -> None:
+        """A fault flag left by an earlier move (a stall: ``FS``) blocks every move until it is
+        cleared: ``warnings clear``, logged, before ``what``."""
+        if self.flag.startswith("F"):
+            self.context.log.warn(f"clearing fault {self.flag} "
+                                  f"({FLAGS.get(self.flag, 'see the Zaber manual')}) before "
+                                  f"{what} (warnings clear)")
+            self._query("warnings clear", "clearing the warnings", axis=0)
+            self.flag = self._warned = "--"
+
     def move_to(self, degrees: float) -> None:
         target = finite_degrees(degrees, self.link.name)
         self.stopping.clear()
+        self._clear_faults(f"the move to {target:g}°")
         steps = round(target * self.settings["microsteps_per_degree"])
         self._ok(f"move abs {steps}", f"the move to {target:g}°")
         self._wait_idle(f"the move to {target:g}°", target)
 
     def _wait_idle(self, what: str, target: float | None) -> None:
+        watch = MotionWatch(self, what, log_progress=target is None)
         while True:
             time.sleep(self.settings["poll_interval_s"])
             if self.stopping.is_set():
@@ -157,6 +172,7 @@ class ZaberStage(SerialDevice):
             self.read_angle()
             if self._state == "idle":
                 break
+            watch.update(self._position)
             if self.context.time_left() < 2 * self.settings["poll_interval_s"] + 0.5:
                 self.stop()
                 raise DeviceTimeout(f"{self.link.name}: {what} did not finish in time (at "
@@ -180,5 +196,9 @@ class ZaberStage(SerialDevice):
 
     def home(self) -> None:
         self.stopping.clear()
+        self._clear_faults("homing")
+        left = self.context.time_left()
+        self.context.log.info("homing" + ("" if left == float("inf") else
+                                          f" (deadline {left:.0f} s: [stage.timeouts] home)"))
         self._ok("home", "homing")
         self._wait_idle("homing", None)

@@ -16,6 +16,7 @@ from dotshell_sim.devices import (
     ANALYZER_SCHEMA, CAMERA_SCHEMA, LASER_SCHEMA, PROJECTOR_SCHEMA, TURNTABLE_SCHEMA, SimAnalyzer,
     SimCamera, SimLaser, SimProjector, SimTurntable, SimWorld, make_analyzer, make_camera,
     make_laser, make_projector, make_turntable, world_of)
+from dotshell_sim.faults import FAULTY_CAMERA_SCHEMA, make_faulty_camera
 
 __all__ = ["SimAnalyzer", "SimCamera", "SimLaser", "SimProjector", "SimTurntable", "SimWorld",
            "world_of"]
@@ -25,7 +26,10 @@ __all__ = ["SimAnalyzer", "SimCamera", "SimLaser", "SimProjector", "SimTurntable
 def dotshell_cameras() -> list[Backend]:
     return [Backend("sim-camera", make_camera, CAMERA_SCHEMA,
                     "simulated camera: ray-cast scene, supersampling, defocus, shot/read noise, "
-                    "ADC; knows the ground-truth calibration")]
+                    "ADC; knows the ground-truth calibration"),
+            Backend("sim-camera-faulty", make_faulty_camera, FAULTY_CAMERA_SCHEMA,
+                    "the simulated camera with one frame fault (late, reset, duplicate) to "
+                    "prove frame-integrity checks")]
 
 
 @hookimpl

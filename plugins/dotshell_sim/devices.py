@@ -186,6 +186,11 @@ ANALYZER_SCHEMA: dict[str, Setting] = {
                              "analyzer axis", min=0.0, max=1.0),
 }
 
+CAMERA_SCHEMA["analyzer"] = Setting(
+    "table", None, "mixed rigs: the analyzer optics in front of the camera when the rig's "
+    "[analyzer] is a real rotation mount (e.g. elliptec on its emulator) instead of "
+    "sim-analyzer; the optics turn to the angle that mount reports", schema=ANALYZER_SCHEMA)
+
 LASER_SCHEMA: dict[str, Setting] = {
     "wavelength_nm": Setting("float", 780.0, "for the record only (the sample's optics are "
                              "given for the laser's wavelength)", "nm", min=0.0),
@@ -787,15 +792,24 @@ class SimAnalyzer(_Device):
 
     def __init__(self, settings: dict, world: SimWorld):
         super().__init__(settings, world)
-        self.angle_deg = float(settings["initial_deg"])
+        self._angle_deg = float(settings["initial_deg"])
+        self.follow: Any = None  # mixed rigs: () -> the real analyzer's angle (degrees)
+        if world.analyzer is not None:
+            raise DeviceError(f"{self.name}: this rig has both [analyzer] backend = "
+                              "\"sim-analyzer\" and [camera.settings.analyzer]; keep one.")
         world.analyzer = self
+
+    @property
+    def angle_deg(self) -> float:
+        """The analyzer angle (degrees): its own, or the real mount's it follows."""
+        return float(self.follow()) if self.follow is not None else self._angle_deg
 
     def set_angle(self, degrees: float) -> None:
         self._check("set the analyzer angle")
         if not (isinstance(degrees, (int, float)) and math.isfinite(degrees)):
             raise DeviceError(f"{self.name}: angle must be a finite number of degrees, got "
                               f"{degrees!r}.")
-        self.angle_deg = float(degrees)
+        self._angle_deg = float(degrees)
 
     def transmission(self) -> tuple[float, float]:
         """(transmission of the projector-polarized light, of unpolarized light)."""
@@ -942,16 +956,25 @@ def make_camera(settings: dict | None = None, context: RigContext | None = None)
     if camera.settings["turntable"] is not None:
         table = validate_settings(TURNTABLE_SCHEMA, camera.settings["turntable"], "sim-camera",
                                   "camera.settings.turntable")
-        SimTurntable(table, camera.world).follow = lambda: _rig_stage_angle(context)
+        SimTurntable(table, camera.world).follow = lambda: _rig_angle(context, "stage")
+    if camera.settings["analyzer"] is not None:
+        optics = validate_settings(ANALYZER_SCHEMA, camera.settings["analyzer"], "sim-camera",
+                                   "camera.settings.analyzer")
+        follower = SimAnalyzer(optics, camera.world)
+        follower.follow = lambda: _rig_angle(context, "analyzer")
+        follower.connected = True  # in the light path for as long as the camera is
     return camera
 
 
-def _rig_stage_angle(context: RigContext | None) -> float:
-    stage = context.device("stage") if context is not None else None
-    if stage is None:
-        raise DeviceError("sim-camera: [camera.settings.turntable] follows the rig's stage, but "
-                          "this rig has none; add a [stage] section.")
-    return float(stage.position)
+def _rig_angle(context: RigContext | None, role: str) -> float:
+    """The angle (degrees) the rig's ``role`` device reports, which the sim camera's
+    ``[camera.settings.turntable]`` (stage) or ``[camera.settings.analyzer]`` follows."""
+    device = context.device(role) if context is not None else None
+    if device is None:
+        key = "turntable" if role == "stage" else role
+        raise DeviceError(f"sim-camera: [camera.settings.{key}] follows the rig's {role}, but "
+                          f"this rig has none; add a [{role}] section.")
+    return float(device.position)
 make_projector = _factory(SimProjector, PROJECTOR_SCHEMA, "sim-projector")
 make_turntable = _factory(SimTurntable, TURNTABLE_SCHEMA, "sim-turntable")
 make_analyzer = _factory(SimAnalyzer, ANALYZER_SCHEMA, "sim-analyzer")

@@ -16,9 +16,14 @@ import select
 import threading
 import time
 import tty
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
+
+
+#: Bytes the garbage fault never sends: line breaks (they would add reply lines) and XON/XOFF
+#: (0x11/0x13), which freeze a driver that uses software flow control (pyserial's ``xonxoff``).
+NOT_NOISE = (10, 13, 0x11, 0x13)
 
 
 @dataclass
@@ -33,7 +38,11 @@ class Faults:
         stuck: moves start but never finish.
         alarm: a limit switch trips during the next move (the device's alarm/limit state).
         vanish_after_s: the port disappears this long after the next move starts.
+        vanish_after_connect_s: the port disappears this long after the driver first writes to
+            it (``dotshell emulate --vanish-after``: counted from connect, whatever moves).
         return_after_s: ...and comes back this long after vanishing (None = stays gone).
+        extra: the emulator's own faults that are on (names its class lists in
+            ``extra_faults``; its model checks ``"name" in self.faults.extra``).
     """
 
     error: bool | int = False
@@ -42,7 +51,9 @@ class Faults:
     stuck: bool = False
     alarm: bool = False
     vanish_after_s: float | None = None
+    vanish_after_connect_s: float | None = None
     return_after_s: float | None = None
+    extra: set[str] = field(default_factory=set)
 
     NAMES = ("error", "silence", "garbage", "stuck", "alarm", "vanish")
 
@@ -65,6 +76,8 @@ class PtyEmulator:
 
     name = "device"
     newline = b"\n"
+    #: Faults this emulator defines beyond :attr:`Faults.NAMES` (``dotshell emulate --fault``).
+    extra_faults: tuple[str, ...] = ()
 
     def __init__(self, link: str | os.PathLike | None = None, speed_deg_s: float = 360.0,
                  seed: int = 0) -> None:
@@ -107,6 +120,23 @@ class PtyEmulator:
         if self._thread is not None:
             self._thread.join(2.0)
         self._unplug()
+
+    @classmethod
+    def fault_names(cls) -> tuple[str, ...]:
+        """Every fault ``set_fault`` takes: the switches of :class:`Faults` and the
+        emulator's own ``extra_faults``."""
+        return tuple(n for n in Faults.NAMES if n != "vanish") + tuple(cls.extra_faults)
+
+    def set_fault(self, name: str) -> None:
+        """Switch fault ``name`` on (a :class:`Faults` switch or one of ``extra_faults``);
+        ValueError naming the choices otherwise."""
+        if name in self.extra_faults:
+            self.faults.extra.add(name)
+        elif name in self.fault_names():
+            setattr(self.faults, name, True)
+        else:
+            raise ValueError(f"the {self.name} emulator has no fault {name!r}; its faults: "
+                             f"{', '.join(self.fault_names())}")
 
     def __enter__(self) -> "PtyEmulator":
         return self.start()
@@ -168,6 +198,9 @@ class PtyEmulator:
                 data = b""
             try:
                 if data:
+                    if not self.received and self.faults.vanish_after_connect_s is not None:
+                        self._vanish_at = time.monotonic() + self.faults.vanish_after_connect_s
+                        self.faults.vanish_after_connect_s = None
                     self.received.append((time.monotonic(), data))
                     with self._lock:
                         self.feed(data)
@@ -184,7 +217,7 @@ class PtyEmulator:
         if self.faults.silence or self._master < 0:
             return
         if self.faults.garbage:
-            noise = [b for b in range(1, 255) if b not in (10, 13)]  # no extra line breaks
+            noise = [b for b in range(1, 255) if b not in NOT_NOISE]
             data = bytes(self._rng.choice(noise) for _ in range(7)) + data
         try:
             os.write(self._master, data)
