@@ -277,8 +277,9 @@ class Scene:
             t, nrm = shape.intersect(origins, dirs)
             closer = t < t_best
             t_best = np.where(closer, t, t_best)
-            normals[closer] = nrm[closer]
-            mat[closer] = shape.material
+            # masked copies: a boolean gather and scatter of (N, 3) cost ~3x as much
+            np.copyto(normals, nrm, where=closer[:, None])
+            np.copyto(mat, shape.material, where=closer, casting="unsafe")
         return t_best, normals, mat
 
     def blocked(self, origins: np.ndarray, dirs: np.ndarray, t_max: np.ndarray) -> np.ndarray:
@@ -324,9 +325,25 @@ class StagedScene:
         self.fixed = list(fixed)
         self.materials = list(materials)
 
+    def turns_into_itself(self) -> bool:
+        """Whether turning the stage leaves the scene as it is: every sample shape is symmetric
+        about the turntable axis (the sample frame's z axis). A view of such a scene is then the
+        same at every stage angle (the fixed shapes do not turn, and neither does anything the
+        camera and projector see of the sample)."""
+        return all(_symmetric_about_axis(s) for s in self.sample)
+
     def at(self, angle_deg: float) -> Scene:
         """The scene in the sample frame with the stage at ``angle_deg``."""
         return Scene(self.sample + [_rotated(s, angle_deg) for s in self.fixed], self.materials)
+
+
+def _symmetric_about_axis(shape: Shape) -> bool:
+    """Whether ``shape`` (sample frame) is its own image under any turn about the z axis."""
+    if isinstance(shape, (Cylinder, Disk)):
+        return tuple(shape.center) == (0.0, 0.0)
+    if isinstance(shape, Plane):
+        return shape.normal[0] == 0.0 and shape.normal[1] == 0.0
+    return False  # meshes and anything else: assume not
 
 
 def _rotated(shape: Shape, angle_deg: float) -> Shape:
