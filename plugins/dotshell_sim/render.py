@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from dotshell import hugepages
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens
 
@@ -118,7 +119,11 @@ class Light:
 
     @property
     def total(self) -> np.ndarray:
-        return self.polarized + self.depolarized
+        """Both states together (H, W), in lent memory (:mod:`dotshell.hugepages`)."""
+        return np.add(self.polarized, self.depolarized,
+                      out=hugepages.empty(np.broadcast_shapes(self.polarized.shape,
+                                                              self.depolarized.shape),
+                                          np.result_type(self.polarized, self.depolarized)))
 
 
 #: Cached views a renderer keeps beyond its ``cache_views`` (and a closed camera leaves it)
@@ -499,24 +504,28 @@ class Renderer:
         base = view.base
         if radiance is None:
             return Light(np.zeros_like(base), base.copy())
-        # float maps on a float image: exact bilinear interpolation (checked in the tests)
+        # float maps on a float image: exact bilinear interpolation (checked in the tests).
+        # The frame's image-sized arrays are lent (dotshell.hugepages): each fresh one is a new
+        # mapping whose pages fault in and are zeroed (dotshell.runtime.fix_mmap_threshold),
+        # ~7 000 faults and 19-30 ms of system time a full-resolution frame
         s = cv2.remap(radiance, view.map_x, view.map_y, cv2.INTER_LINEAR,
+                      dst=hugepages.empty(view.map_x.shape, np.float32),
                       borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         h, w = base.shape
-        # the supersampled products share one scratch array: each fresh one of that size
-        # (1.3 MiB at 320x256, 2x2) is a new mapping whose pages fault in
-        # (dotshell.runtime.fix_mmap_threshold)
-        scratch = np.empty_like(s) if view.ss > 1 else None
+        # the supersampled products share one scratch array
+        scratch = hugepages.empty(s.shape, np.float32) if view.ss > 1 else None
 
         def weighted(weight: np.ndarray) -> np.ndarray:
             """The box-average of ``s · weight`` over each pixel's sub-samples."""
             if scratch is None:
                 return s * weight
             return cv2.resize(np.multiply(s, weight, out=scratch), (w, h),
+                              dst=hugepages.empty((h, w), np.float32),
                               interpolation=cv2.INTER_AREA)
 
         pol = weighted(view.weight_pol)
-        dep = weighted(view.depolarized_weight()) + base
+        dep = weighted(view.depolarized_weight())
+        dep += base
         if view.subsurface is not None:
             dep += view.subsurface.exitance(radiance)
             share, sigma_px = view.retained
@@ -598,7 +607,7 @@ def _exact_pixels(lam: np.ndarray, model: SensorModel) -> np.ndarray:
     lo, hi = exact_poisson_range(model.read_noise_e)
     fw = model.full_well_e
     near_full = fw - _FULL_WELL_SIGMAS * math.sqrt(fw)
-    exact = lam > np.float32(near_full)
+    exact = np.greater(lam, np.float32(near_full), out=hugepages.empty(lam.shape, bool))
     if hi > lo:
         exact |= (lam >= np.float32(lo)) & (lam < np.float32(hi))
     return np.flatnonzero(exact)
@@ -612,9 +621,11 @@ def sensor(electrons: np.ndarray, model: SensorModel, rng: np.random.Generator) 
     drawn as one normal N(λ, λ + r²) (exact mean and variance; ~5× faster than numpy's Poisson
     draw, which took ~3/4 of a frame's CPU); elsewhere exactly: Poisson, clipped at the full
     well, plus read noise."""
-    lam = np.maximum(electrons, 0.0, dtype=np.float32)
-    e = rng.standard_normal(lam.shape, dtype=np.float32)
-    std = lam + np.float32(model.read_noise_e ** 2)
+    lam = np.maximum(electrons, 0.0, out=hugepages.empty(electrons.shape, np.float32))
+    e = rng.standard_normal(lam.shape, dtype=np.float32, out=hugepages.empty(lam.shape,
+                                                                           np.float32))
+    std = np.add(lam, np.float32(model.read_noise_e ** 2), out=hugepages.empty(lam.shape,
+                                                                               np.float32))
     np.sqrt(std, out=std)
     e *= std
     e += lam
