@@ -279,26 +279,18 @@ class Renderer:
         origins = np.broadcast_to(o_s, d_s.shape)
         t, n_s, mat = scene.intersect(origins, d_s)
         hit = mat >= 0
-        all_hit = bool(hit.all())  # the usual case: a background plane behind everything
-        with np.errstate(invalid="ignore"):
-            points = t[:, None] * d_c
-        if not all_hit:
-            points[~hit] = np.nan
+        points = np.full((n, 3), np.nan)
+        points[hit] = t[hit, None] * d_c[hit]
         normals = n_s @ M.T
 
         # projector side, computed for the hit rays only
         h = np.flatnonzero(hit)
-
-        def hits(a: np.ndarray) -> np.ndarray:
-            """The hit rays' rows of ``a`` (``a`` itself when every ray hit: no gather)."""
-            return a if all_hit else a[h]
-
-        P = hits(points)
-        N = hits(normals)
+        P = points[h]
+        N = normals[h]
         to_p = self.calib.projector_centre - P
         dist_p = np.sqrt(np.einsum("ij,ij->i", to_p, to_p))
         L = to_p / dist_p[:, None]
-        V = -hits(d_c)
+        V = -d_c[h]
         cos_i = np.einsum("ij,ij->i", N, L)
         cos_v = np.einsum("ij,ij->i", N, V)
         facing = (cos_i > 0) & (cos_v > 0)
@@ -319,8 +311,8 @@ class Renderer:
             shadow[k] = scene.blocked(p_s, L[k] @ M, dist_p[k])
         lit = np.flatnonzero(in_proj & ~shadow)
 
-        m = hits(mat)
-        vign = V[:, 2] ** 4  # natural cos^4 fall-off of the camera lens
+        m = mat[h]
+        vign = d_c[h, 2] ** 4  # natural cos^4 fall-off of the camera lens
         weight = np.zeros(n)
         weight_pol = np.zeros(n)
         entering = np.zeros(n)
