@@ -52,6 +52,7 @@ import batch_bench
 import decoders
 import forward_bench
 import frame_io
+import issue32
 from bench_profile import ROOT, load_bench_profile
 from dotshell import parallel
 from dotshell.runtime import configure_process
@@ -178,6 +179,7 @@ def run_child(mode: str, path: Path, quick: bool, work: Path) -> dict[str, Any]:
     subprocess.run(cmd + (["--quick"] if quick else []), check=True)
     out = json.loads(result.read_text())
     out["process_wall_s"] = time.perf_counter() - t0
+    out["load"] = os.getloadavg()[0]
     return out
 
 
@@ -287,6 +289,11 @@ def main() -> None:
                                                    Path(results["scan"]["run_dir"]),
                                                    args.quick, work)
             print_reconstruct_run(results["reconstruct_run"], baseline)
+            results["mesh_run"] = run_child("mesh", Path(results["scan"]["run_dir"]),
+                                            args.quick, work)
+            print(f"\n== 5b. dotshell mesh of that run: wall {results['mesh_run']['wall_s']:.1f}"
+                  f" s, CPU {results['mesh_run']['cpu_s']:.1f} s, peak RSS "
+                  f"{results['mesh_run']['peak_rss_mib']:.0f} MiB ==")
         results["acquisition_rate"] = acquisition_rate.measure(pm, work / "acquisition")
         acquisition_rate.print_rates(results["acquisition_rate"])
         if not args.skip_tui:
@@ -301,6 +308,8 @@ def main() -> None:
         results["forward"] = forward_bench.measure(work, args.quick, args.repeats,
                                                    args.repeats if args.quick else 2)
         forward_bench.print_forward(results["forward"])
+        results["cli"] = issue32.measure_cli()
+        issue32.print_table(results)
     results["machine"]["loadavg_1min_end"] = os.getloadavg()[0]
     print(f"\n1-min load average at end {os.getloadavg()[0]:.2f} (other work on the machine "
           "skews every figure above; the sides of each comparison ran interleaved)")

@@ -5,6 +5,7 @@ Usage (run by ``run.py``)::
 
     python benchmarks/scan_child.py scan OUT_DIR RESULT_JSON [--quick]
     python benchmarks/scan_child.py reconstruct RUN_DIR RESULT_JSON
+    python benchmarks/scan_child.py mesh RUN_DIR RESULT_JSON
 
 BLAS runs on one thread and the heap is set up as in the ``dotshell`` command
 (:func:`dotshell.runtime.configure_process`).
@@ -31,18 +32,28 @@ def peak_rss_mib() -> float:
     return kib / 1024.0
 
 
+def cpu_s() -> float:
+    """CPU seconds (user + system) of this process so far, every thread."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def main(mode: str, path: str, result_path: str, quick: bool) -> None:
     configure_process()
     pm = get_plugin_manager()
     profile = load_bench_profile(pm, quick)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), cpu_s()
     if mode == "scan":
         result = scan(profile, pm, Path(path))
+    elif mode == "mesh":
+        from dotshell.pipeline.commands import mesh_run
+
+        result = mesh_run(path, pm)
     else:
         result = reconstruct_run(path, pm)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, cpu_s() - c0
     cam = profile.role("camera")["settings"]
-    out = {"status": result.status, "wall_s": wall, "peak_rss_mib": peak_rss_mib(),
+    out = {"status": getattr(result, "status", result.report.get("status")), "wall_s": wall, "cpu_s": cpu, "peak_rss_mib": peak_rss_mib(),
            "run_dir": str(result.run_dir), "views": len(profile.angles_deg()),
            "camera": [cam["width"], cam["height"]], "report": result.report}
     Path(result_path).write_text(json.dumps(out, default=str))

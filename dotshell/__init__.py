@@ -1,8 +1,19 @@
 """dotshell — instrument shell for structured-light surface scanning on DOT rigs."""
 
-import pluggy
+from __future__ import annotations
+
+from typing import Any
 
 __version__ = "0.1.0"
 
-#: Decorator for plugin hook implementations: ``@dotshell.hookimpl``.
-hookimpl = pluggy.HookimplMarker("dotshell")
+
+def __getattr__(name: str) -> Any:
+    """``dotshell.hookimpl``, the decorator for plugin hook implementations
+    (``@dotshell.hookimpl``), made at first use: importing pluggy costs ~60 ms that
+    ``dotshell --version`` does not need (:mod:`dotshell.cli_entry`)."""
+    if name == "hookimpl":
+        import pluggy
+
+        globals()["hookimpl"] = marker = pluggy.HookimplMarker("dotshell")
+        return marker
+    raise AttributeError(f"module 'dotshell' has no attribute {name!r}")

@@ -112,6 +112,9 @@ def _print_report(report: dict[str, Any], run_dir: Path) -> None:
         out.print("pixels: " + ", ".join(f"{k} {v:.1f} %" for k, v in losses))
     cloud = report.get("cloud", {})
     print_as_is(out, f"cloud: {cloud.get('points', 0)} points → {run_dir / 'cloud.ply'}")
+    timing = timing_line(report.get("timings_s") or {})
+    if timing:
+        out.print(timing)
     for name, rel in (report.get("previews") or {}).items():
         print_as_is(out, f"preview {name}: {run_dir / rel}")
     if "normalize" in report:
@@ -119,6 +122,18 @@ def _print_report(report: dict[str, Any], run_dir: Path) -> None:
 
         print_section(report["normalize"], run_dir)
     print_as_is(out, f"run: {run_dir}  (status: {report.get('status', '?')})")
+
+
+#: (timings_s key, label) of the scan's times the report prints, in the order they happen
+TIMING_LABELS = (("acquire", "acquisition"), ("last_frame_to_cloud", "last frame → cloud.ply"),
+                 ("merge", "merge"), ("validate", "validation"), ("previews", "previews"))
+
+
+def timing_line(timings: dict[str, float]) -> str:
+    """``time: acquisition 41.2 s, last frame → cloud.ply 1.3 s, ...`` from a report's
+    ``timings_s`` (the keys it has; empty when it has none of them)."""
+    parts = [f"{label} {timings[key]:.1f} s" for key, label in TIMING_LABELS if key in timings]
+    return "time: " + ", ".join(parts) if parts else ""
 
 
 #: Where a camera pixel can be lost on the way to a point, in pipeline order.

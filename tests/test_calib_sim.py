@@ -74,10 +74,12 @@ def test_small_calibration_against_ground_truth(small_capture, small_solution):
     # 256x205 camera, 6 poses, 3 stage angles (measured: focal 0.02 % camera, 0.15 %
     # projector; principal points 0.8-1.8 px of these 5x coarser pixels; baseline 0.16 %;
     # axis 0.06° and 0.14 mm, 0.22 mm along); the issue's limits are held at full resolution
-    # (slow test)
+    # (slow test). The principal points move with the noise's realization: over the camera
+    # seeds 1-3, with the exact Poisson draw and the sensor's normal draw alike, they were off
+    # by 0.1-5.4 px (issue 32, docs/performance.md), so the bound is 6 px
     for w in ("camera", "projector"):
         assert max(abs(g[w]["fx_pct"]), abs(g[w]["fy_pct"])) < 0.5
-        assert max(abs(g[w]["cx_px"]), abs(g[w]["cy_px"])) < 4.0
+        assert max(abs(g[w]["cx_px"]), abs(g[w]["cy_px"])) < 6.0
     assert abs(g["baseline_pct"]) < 0.5
     assert g["axis_direction_deg"] < 0.2 and g["axis_point_mm"] < 0.4
     assert abs(g["axis_plate_offset_mm"]) < 0.6

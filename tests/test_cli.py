@@ -160,3 +160,19 @@ def test_a_users_script_ends_with_pythons_exit_so_what_it_left_open_is_written(t
                        capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "out.txt").read_text() == "kept"
+
+
+def test_version_answers_without_heavy_imports():
+    """``dotshell --version`` (the entry point :mod:`dotshell.cli_entry`) prints the version
+    without importing rich, pluggy or numpy; any other command goes on to the full CLI."""
+    from dotshell import __version__
+
+    probe = ("import sys\nfrom dotshell.cli_entry import main\ncode = main(['--version'])\n"
+             "heavy = sorted(m for m in ('rich', 'pluggy', 'numpy', 'dotshell.cli') "
+             "if m in sys.modules)\nprint('heavy', heavy, code)\n")
+    r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines() == [f"dotshell {__version__}", "heavy [] 0"]
+    r = subprocess.run([sys.executable, "-m", "dotshell.cli_entry", "no-such-command"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "invalid choice" in r.stderr

@@ -52,6 +52,30 @@ def test_report_meets_accuracy_and_coverage_at_quarter_resolution(small_scan):
         assert view["decoded"] > 0 and view["outside_roi"] > 0 and view["points"] > 0
 
 
+def test_report_times_acquisition_and_last_frame_to_cloud(small_scan, tmp_path):
+    """The report records the acquisition time and the latency from the last stored frame
+    to ``cloud.ply`` (which holds the merge, but not the validation or previews that follow
+    it); the command prints them. A reconstruction of the run keeps the scan's figures (as it
+    keeps its acquisition time) and times its own merge."""
+    from dotshell.cli import timing_line
+    from dotshell.pipeline.scan import reconstruct_run
+    from dotshell.plugins import PluginManager
+
+    result, _ = small_scan
+    t = result.report["timings_s"]
+    assert t["acquire"] > 0
+    assert t["merge"] <= t["last_frame_to_cloud"] < t["merge"] + t["acquire"]
+    line = timing_line(t)
+    assert line.startswith("time: acquisition ") and "last frame → cloud.ply" in line
+    pm = PluginManager()
+    pm.load_entry_points()
+    copy = tmp_path / "run"  # the shared run stays at its first generation
+    shutil.copytree(result.run_dir, copy, symlinks=True)
+    again = reconstruct_run(copy, pm).report["timings_s"]
+    assert again["last_frame_to_cloud"] == t["last_frame_to_cloud"]
+    assert again["acquire"] == t["acquire"] and "merge" in again
+
+
 def test_events_in_order_and_logged(small_scan):
     result, events = small_scan
     kinds = [type(e) for e in events]

@@ -11,6 +11,7 @@ Front ends call :func:`scan`, :func:`resume_run` and :func:`reconstruct_run` and
 from __future__ import annotations
 
 import threading
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -258,6 +259,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
                 if fringes:
                     pipeline.submit(view, view_angle(store.manifest["views"][view]), frames)
                     del frames  # the pipeline holds them only until the view is reconstructed
+            last_frame_at = time.monotonic() if todo else None  # last frames stored
             reconstructed = pipeline.results()
         finally:
             acq.close()
@@ -265,7 +267,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
     if not any(v["complete"] for v in store.manifest["views"]) and job.status == "aborted":
         return {}
     options = {"reconstructed": reconstructed, "prewritten": {"views": gen.listing()},
-               "timings": {"acquire": acq.seconds}}
+               "timings": {"acquire": acq.seconds}, "last_frame_at": last_frame_at}
     return process(job, profile, pm, SCAN_TARGETS, options,
                    final_status=job.status or "completed", generation=gen)
 

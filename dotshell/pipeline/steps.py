@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
@@ -244,6 +245,9 @@ def cloud_step(ctx: StepContext) -> dict[str, Any]:
     ids = np.repeat(np.asarray(views, np.float32), [len(p) for p in parts])
     del parts
     write_ply(ctx.store.path("cloud.ply"), points, view=ids)
+    last_frame_at = ctx.options.get("last_frame_at")
+    if last_frame_at is not None:  # a scan: the latency from its last stored frame (s)
+        ctx.timings["last_frame_to_cloud"] = time.monotonic() - last_frame_at
     ctx.cloud = points
     return {"cloud": {"path": "cloud.ply", "points": int(n)}}
 

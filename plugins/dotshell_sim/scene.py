@@ -324,9 +324,25 @@ class StagedScene:
         self.fixed = list(fixed)
         self.materials = list(materials)
 
+    def turns_into_itself(self) -> bool:
+        """Whether turning the stage leaves the scene as it is: every sample shape is symmetric
+        about the turntable axis (the sample frame's z axis). A view of such a scene is then the
+        same at every stage angle (the fixed shapes do not turn, and neither does anything the
+        camera and projector see of the sample)."""
+        return all(_symmetric_about_axis(s) for s in self.sample)
+
     def at(self, angle_deg: float) -> Scene:
         """The scene in the sample frame with the stage at ``angle_deg``."""
         return Scene(self.sample + [_rotated(s, angle_deg) for s in self.fixed], self.materials)
+
+
+def _symmetric_about_axis(shape: Shape) -> bool:
+    """Whether ``shape`` (sample frame) is its own image under any turn about the z axis."""
+    if isinstance(shape, (Cylinder, Disk)):
+        return tuple(shape.center) == (0.0, 0.0)
+    if isinstance(shape, Plane):
+        return shape.normal[0] == 0.0 and shape.normal[1] == 0.0
+    return False  # meshes and anything else: assume not
 
 
 def _rotated(shape: Shape, angle_deg: float) -> Shape:
