@@ -202,24 +202,50 @@ def print_coding(coding: dict[str, Any], profile, out: Console) -> None:
                       "for these frames")
 
 
+COEFFICIENT_KEYS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+
+
+def _value(entry: dict[str, Any], key: str) -> str:
+    """``value ± sigma`` of a solved coefficient, ``0 (fixed)`` of one not solved."""
+    v, s = entry["value"], entry["sigma"]
+    if s is None:
+        return "0 (fixed)" if v == 0 else f"{v:.4g} (fixed)"
+    digits = 2 if key in ("fx", "fy", "cx", "cy") else 5
+    return f"{v:.{digits}f} ± {s:.{digits}f}" if digits == 2 else f"{v:.4g} ± {s:.2g}"
+
+
 def print_calibration(report: dict[str, Any], calib, out: Console) -> None:
-    t = Table(title="Calibration")
-    for col in ("", "fx [px]", "fy [px]", "cx [px]", "cy [px]", "k1", "k2", "RMS [px]"):
-        t.add_column(col)
+    """The lenses with every coefficient and its one-sigma, the model chosen and why, the
+    warnings with their fixes, the report's pictures, and the ground truth when there is one."""
     rms = report["rms_px"]
+    coeffs = report.get("coefficients")
+    out.print("[bold]Calibration[/] (value ± one-sigma of the joint solve; fx … cy in px)")
     for name, lens in (("camera", calib.camera), ("projector", calib.projector)):
-        K = lens.K
-        t.add_row(name, f"{K[0, 0]:.2f}", f"{K[1, 1]:.2f}", f"{K[0, 2]:.2f}", f"{K[1, 2]:.2f}",
-                  f"{lens.dist[0]:.4f}", f"{lens.dist[1]:.4f}", f"{rms[name]:.3f}")
-    out.print(t)
+        if coeffs:
+            cells = [f"{k} {_value(coeffs[name][k], k)}" for k in COEFFICIENT_KEYS]
+        else:
+            values = (lens.K[0, 0], lens.K[1, 1], lens.K[0, 2], lens.K[1, 2], *lens.dist)
+            cells = [f"{k} {v:.4g}" for k, v in zip(COEFFICIENT_KEYS, values)]
+        out.print(f"  {name}: " + ", ".join(cells) + f"; RMS {rms[name]:.3f} px")
     out.print(f"camera–projector: baseline {calib.baseline_mm:.3f} mm, joint RMS "
               f"{rms['stereo']:.3f} px")
     sig = report.get("sigma")
     if sig:
-        c, p = sig["camera"], sig["projector"]
-        out.print(f"one-sigma (joint solve covariance): camera cx ±{c['cx']:.2f}, cy "
-                  f"±{c['cy']:.2f} px, fx ±{c['fx']:.2f} px; projector cx ±{p['cx']:.2f}, cy "
-                  f"±{p['cy']:.2f} px, fx ±{p['fx']:.2f} px; baseline ±{sig['baseline_mm']:.3f} mm")
+        out.print(f"one-sigma of the baseline: ±{sig['baseline_mm']:.3f} mm")
+    for which, m in (report.get("model") or {}).items():
+        out.print(f"{which} lens model: {m['model']} ({' '.join(m['terms'])}): "
+                  f"{escape(m['reason'])}")
+    cov = report.get("coverage_pct")
+    if cov:
+        out.print(f"corners cover {cov['camera']:.0f} % of the camera image, "
+                  f"{cov['projector']:.0f} % of the projector's")
+    for line in report.get("warnings", []):
+        out.print(f"[yellow]warning:[/] {escape(line)}")
+    pics = report.get("residual_pictures")
+    if pics:
+        first = next(iter(pics.values()))
+        out.print(f"residual vectors per pose: {len(pics)} pictures ({escape(first)} …) beside "
+                  "calibration-report.json")
     d, p = calib.axis_direction, calib.axis_point
     if calib.axis_measured:
         out.print(f"turntable axis: direction ({d[0]:.5f}, {d[1]:.5f}, {d[2]:.5f}), plate point "
