@@ -12,7 +12,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from dotshell.cli_decode import add_layout_arg, pixel_counts
+from dotshell.cli_decode import add_layout_arg, loss_notes, pixel_counts, refuse_layout_overrides
 from dotshell.cli_print import print_as_is
 
 
@@ -41,8 +41,11 @@ def reconstruct_captures_command(args: argparse.Namespace, pm, out: Console) -> 
     res = reconstruct_captures(args.captures, args.calibration, args.layout, pm, args.out,
                                reference=args.reference, coverage_radius_mm=args.coverage_radius)
     r = res.report
-    out.print(pixel_counts({**r["decode"], "grazing": r.get("grazing", 0),
-                            "row_rejected": r.get("row_rejected", 0)}))
+    counts = {**r["decode"], "grazing": r.get("grazing", 0),
+              "row_rejected": r.get("row_rejected", 0)}
+    out.print(pixel_counts(counts))
+    for line in loss_notes(counts):
+        print_as_is(out, f"  {line}")
     out.print(f"{r['cloud']['points']} points (camera frame, mm)")
     ref = r.get("reference")
     if ref:
@@ -113,6 +116,7 @@ def calibrate_settings(args: argparse.Namespace, pm):
     from dotshell.profile import apply_overrides, load_profile
     from dotshell.settings import validate_settings
 
+    refuse_layout_overrides(args.set, getattr(args, "layout", None))
     profile = None
     if args.profile:
         profile = load_profile(args.profile, pm, args.set)

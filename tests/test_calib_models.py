@@ -178,3 +178,24 @@ def test_wide_angle_report_shows_its_evidence(wide_capture, tmp_path, capsys):
     img = cv2.imread(str(copy / pics["pose_00"]))
     assert img is not None and img.shape[1] == 1280
     assert all(r["poses"][n]["stereo_rms_px"] < 0.2 for n in pics)
+
+
+def test_board_counted_in_inner_corners_is_named_at_the_first_pose(wide_capture, tmp_path):
+    """The printed board has 8x6 squares; 7x5 (its inner corners) is refused at the first
+    pose, before any pose is decoded, naming --board 8x6."""
+    import json
+    import shutil
+
+    from dotshell.calibration.procedure import solve
+    from dotshell.errors import CalibrationError
+
+    prof, run, pm = wide_capture
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    cap = json.loads((copy / "capture.json").read_text())
+    cap["board"].update(columns=7, rows=5)
+    (copy / "capture.json").write_text(json.dumps(cap))
+    with pytest.raises(CalibrationError, match=r"frames/pose_00/000_white.png: no checkerboard "
+                       r"of 7x5 squares \(6x4 inner corners\).*give --board 8x6.*squares, not "
+                       r"inner corners"):
+        solve(copy, prof.data["calibrate"], pm)

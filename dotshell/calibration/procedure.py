@@ -296,6 +296,8 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
         rep: dict[str, Any] = {"image": white}
         poses_report[name] = rep
         if det is None:
+            if pose is free[0]:  # the first pose only: a wrong count is named at once
+                _refuse_other_count(frames[0], board, white)
             left_out[name] = f"target not found in {white}"
             continue
         rep["corners"] = int(len(det.ids))
@@ -323,8 +325,8 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
         names = ", ".join(frames_of.white(p) for p in free) or "(no free poses)"
         raise CalibrationError(
             f"{run}: the {board.kind} ({board.columns}x{board.rows} squares) was not found in "
-            f"any image: {names}. Check [calibrate] target, columns and rows (squares, not inner "
-            "corners), exposure and focus.")
+            f"any image: {names}. Check the target and its counts (--board COLSxROWS or "
+            "[calibrate] columns and rows: squares, not inner corners), exposure and focus.")
     t1 = time.perf_counter()
     cam, proj, models, choices = solve_lenses(cam_poses, proj_poses, cam_size, proj_size,
                                               settings["distortion"], rule, left_out)
@@ -373,6 +375,21 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
         report["ground_truth"] = compare_to_truth(calib, RigCalibration.load(truth_path))
     _publish(run, calib, report, out_of_bounds(calib, joint.sigma, axis, settings))
     return CalibrationResult(calib, report, run)
+
+
+def _refuse_other_count(image: np.ndarray, board: Board, where: str) -> None:
+    """Stop at once when ``image`` holds the board with one square more or fewer each way
+    (inner corners counted for squares): the message names the counts that would work."""
+    from dotshell.calibration.board import other_count
+
+    other = other_count(image, board)
+    if other is not None:
+        raise CalibrationError(
+            f"{where}: no checkerboard of {board.columns}x{board.rows} squares "
+            f"({board.inner[0]}x{board.inner[1]} inner corners) in the image, but one of "
+            f"{other.columns}x{other.rows} squares is: give --board {other.columns}x{other.rows} "
+            f"(or [calibrate] columns = {other.columns}, rows = {other.rows}); the counts are "
+            "squares, not inner corners.")
 
 
 def solve_lenses(cam_poses: list[PoseData], proj_poses: list[PoseData], cam_size, proj_size,
