@@ -120,5 +120,10 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
 def print_view(view: dict[str, Any], out: Console) -> None:
     out.print(pixel_counts(view["counts"]))
+    q = view.get("quality")
+    if q:
+        out.print(f"  decoded {q['decoded_pct']:.1f} % of the image; estimated wrong codes: "
+                  f"{q['reversals']} neighbour reversals ({q['reversals_pct']:.2f} % of the "
+                  "decoded pixels)")
     for line in loss_notes(view["counts"]):
         print_as_is(out, f"  {line}")

@@ -30,6 +30,7 @@ def test_loss_lines_name_their_meaning_and_fix():
               "row_rejected": 3}
     notes = loss_notes(counts)
     assert len(notes) == 2  # shadow is 2 %: no note; row rejections always explained
-    assert notes[0].startswith("uncertain (27.0 %)") and 'classification = "contrast"' in notes[0]
+    assert notes[0].startswith("uncertain (27.0 %)") and 'classification = "adaptive"' in notes[0]
+    assert "[decoder]" in notes[0]
     assert notes[1].startswith("row rejected (0.3 %)")
     assert "do not meet in one point" in notes[1] and "calibration" in notes[1]
