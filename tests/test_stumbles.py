@@ -34,3 +34,15 @@ def test_loss_lines_name_their_meaning_and_fix():
     assert "[decoder]" in notes[0]
     assert notes[1].startswith("row rejected (0.3 %)")
     assert "do not meet in one point" in notes[1] and "calibration" in notes[1]
+
+
+def test_opencv_layout_says_what_min_contrast_does():
+    """The shipped opencv-graycode layout names its classification, and min_contrast's help
+    says what it does under each (it guards only the finest pairs under robust)."""
+    from dotshell.pipeline.captures import load_layout
+    from dotshell_codings.graycode import SETTINGS_SCHEMA
+
+    layout = load_layout("opencv-graycode")
+    assert layout.coding_settings()["classification"] == "robust"
+    text = SETTINGS_SCHEMA["min_contrast"].help
+    assert "contrast classification" in text and "robust and adaptive" in text

@@ -81,9 +81,10 @@ SETTINGS_SCHEMA: dict[str, Setting] = {
              "decoded"),
     "min_contrast": Setting(
         "float", 0.1, min=0.0, max=1.0,
-        help="minimum |pattern - inverse| as a fraction of the pixel's white - black range "
-             "(without inverses: 2 |pattern - mid|); weaker bits mark the pixel low_contrast "
-             "(classification = 'contrast' only)"),
+        help="contrast classification: minimum |pattern - inverse| as a fraction of the "
+             "pixel's white - black range (without inverses: 2 |pattern - mid|), weaker bits "
+             "mark the pixel low_contrast; robust and adaptive: the finest pairs' minimum "
+             "|pattern - inverse| as a fraction of the direct light L_d (weaker: uncertain)"),
     "direct_min": Setting(
         "float", 0.0, min=0.0, max=1.0,
         help="robust classification: minimum direct light L_d as a fraction of full scale; "
