@@ -98,6 +98,9 @@ def add_calibrate_parser(sub, profile_args=None) -> None:
     sp.add_argument("--marker", type=float, metavar="MM", help="ChArUco marker side (mm)")
     sp.add_argument("--dictionary", metavar="NAME",
                     help="ChArUco ArUco dictionary (default DICT_4X4_50)")
+    sp.add_argument("--camera-only", nargs="+", metavar="IMAGE_OR_DIR",
+                    help="calibrate the camera alone from plain photos of the board (files, or "
+                         "folders of them; needs --board/--square without a profile)")
     sp.add_argument("--turntable", metavar="DIR",
                     help="white frames of the board on the stage, one per stage angle (name "
                          "order); solves the turntable axis (optional)")
@@ -159,6 +162,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     def ask(message: str) -> None:
         input(f"{message}\nPress Enter when the board is in place... ")
 
+    if args.camera_only:
+        return camera_only_command(args, settings, profile, out)
     with view.progress:
         if args.captures:
             if not args.layout:
@@ -190,6 +195,33 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     if profile is not None:
         print_as_is(out, f"use it: dotshell scan {args.profile} --calibration "
                          f"{run / 'calibration.json'}")
+    return 0
+
+
+def camera_only_command(args: argparse.Namespace, settings: dict[str, Any], profile,
+                        out: Console) -> int:
+    """``dotshell calibrate --camera-only``: the camera from plain board photos."""
+    from dotshell.calibration.board import Board
+    from dotshell.calibration.camera_only import calibrate_camera
+    from dotshell.errors import CalibrationError
+
+    if not (args.board or profile) or not (args.square or profile):
+        raise CalibrationError("calibrate --camera-only needs the target: --board COLSxROWS "
+                               "--square MM (or a profile's [calibrate]).")
+    res = calibrate_camera(args.camera_only, Board.from_settings(settings), settings, args.out)
+    r = res.report
+    cells = [f"{k} {_value(r['coefficients'][k], k)}" for k in COEFFICIENT_KEYS]
+    out.print("[bold]Camera[/] (value ± one-sigma; fx … cy in px): " + ", ".join(cells)
+              + f"; RMS {r['rms_px']:.3f} px")
+    m = r["model"]
+    out.print(f"lens model: {m['model']} ({' '.join(m['terms'])}): {escape(m['reason'])}")
+    out.print(f"corners cover {r['coverage_pct']:.0f} % of the image")
+    for line in r["warnings"]:
+        out.print(f"[yellow]warning:[/] {escape(line)}")
+    for name, why in r["left_out"].items():
+        out.print(f"[yellow]left out:[/] {name}: {escape(why)}")
+    print_as_is(out, f"camera: {res.run_dir / 'camera.json'} (report: calibration-report.json, "
+                     "report/residuals_*.png)")
     return 0
 
 

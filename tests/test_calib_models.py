@@ -199,3 +199,45 @@ def test_board_counted_in_inner_corners_is_named_at_the_first_pose(wide_capture,
                        r"of 7x5 squares \(6x4 inner corners\).*give --board 8x6.*squares, not "
                        r"inner corners"):
         solve(copy, prof.data["calibrate"], pm)
+
+
+def test_camera_only_from_plain_board_photos(wide_capture, tmp_path, capsys):
+    """The wide-angle bench's white frames as plain photos of the board: the camera alone,
+    its model chosen by held-out poses, against the simulator's truth (reduced-scale bounds
+    of tests/test_calib_sim.py)."""
+    import json
+    import shutil
+
+    from dotshell.cli import main
+    from dotshell.geometry.calibration import RigCalibration
+
+    prof, run, pm = wide_capture
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for k, pose in enumerate(sorted((run / "frames").iterdir())):
+        shutil.copy(pose / "000_white.png", photos / f"IMG_{k + 1}.png")
+    assert main(["calibrate", "--camera-only", str(photos), "--board", "8x6", "--square", "10",
+                 "--set", "calibrate.min_poses=5", "--out", str(tmp_path / "runs")]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "lens model: k1k2p1p2" in text or "lens model: full" in text
+    out = next((tmp_path / "runs").iterdir())
+    cam = json.loads((out / "camera.json").read_text())
+    assert cam["format"] == "dotshell-camera-calibration/1"
+    truth = RigCalibration.load(run / "ground_truth.json").camera
+    K = np.array(cam["camera"]["K"])
+    print(K, cam["camera"]["dist"], truth.K)
+    assert abs(K[0, 0] / truth.K[0, 0] - 1) < 0.005       # measured 0.05 %
+    assert np.hypot(*(K[:2, 2] - truth.K[:2, 2])) < 4.0    # measured 0.4 px
+    report = json.loads((out / "calibration-report.json").read_text())
+    assert len(report["residual_pictures"]) == 10 and report["coverage_pct"] > 40
+    assert "p1" in cam["sigma"] and cam["sigma"]["p1"] > 0
+
+
+def test_camera_only_names_photos_without_the_board(tmp_path, capsys):
+    from dotshell.cli import main
+
+    cv2.imwrite(str(tmp_path / "a.png"), np.full((120, 160), 90, np.uint8))
+    assert main(["calibrate", "--camera-only", str(tmp_path), "--board", "8x6",
+                 "--square", "10", "--out", str(tmp_path / "runs")]) == 2
+    err = " ".join(capsys.readouterr().err.split())
+    assert "was not found in any photo: a.png" in err and "squares, not inner corners" in err

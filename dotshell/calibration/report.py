@@ -111,7 +111,7 @@ def write_residual_pictures(out_dir: Path, residuals: dict[str, dict[str, tuple]
     written = {}
     for name, by_device in residuals.items():
         panels = []
-        for which in ("camera", "projector"):
+        for which in [w for w in ("camera", "projector") if w in by_device]:
             px, vec = by_device[which]
             rms = float(np.sqrt(np.mean(np.sum(vec ** 2, axis=1)))) if len(vec) else float("nan")
             title = (f"{name} {which}: RMS {rms:.3f} px, {len(vec)} corners, arrows x{scale:.0f}")

@@ -1,0 +1,159 @@
+"""Camera-only calibration from plain photos of the board (no projector, no pattern sequence).
+
+Each image is one pose of the board; the board's corners give the camera's intrinsics and
+distortion with the lens model chosen as for a rig (:mod:`dotshell.calibration.models`). The
+result is written to a run directory::
+
+    <out>/<time>_calibrate-camera/
+        camera.json              format dotshell-camera-calibration/1 (docs/calibration.md)
+        calibration-report.json  model choice, coefficients with one-sigma, coverage, poses
+        report/residuals_<pose>.png
+
+Lengths in mm, image quantities in pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from dotshell.calibration.board import Board, detect
+from dotshell.calibration.models import (COEFFICIENTS, MODEL_TERMS, choose_model,
+                                         solve_candidate)
+from dotshell.calibration.solve import OutlierRule, PoseData, calibrate_lens, initial_matrix
+from dotshell.errors import CalibrationError
+from dotshell.geometry.lens import Lens
+
+CAMERA_FORMAT = "dotshell-camera-calibration/1"
+IMAGE_SUFFIXES = (".png", ".bmp", ".tif", ".tiff", ".jpg", ".jpeg", ".pgm")
+
+
+@dataclass
+class CameraResult:
+    """The solved camera, its report (as written) and the run directory."""
+
+    lens: Lens
+    report: dict[str, Any]
+    run_dir: Path
+
+
+def board_images(paths: list[Path | str]) -> list[Path]:
+    """Image files given directly or as folders (sorted by name, numbers compared as numbers)."""
+    from dotshell.calibration.captures import _natural_key
+
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            out += sorted((q for q in p.iterdir() if q.suffix.lower() in IMAGE_SUFFIXES),
+                          key=lambda q: _natural_key(q.name))
+        elif p.is_file():
+            out.append(p)
+        else:
+            raise CalibrationError(f"{p}: no such image or folder of board photos.")
+    if not out:
+        raise CalibrationError(f"no board photos ({', '.join(IMAGE_SUFFIXES)}) in "
+                               f"{', '.join(map(str, paths))}.")
+    return out
+
+
+def _gray(path: Path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise CalibrationError(f"{path}: cannot be read as an image.")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    return img
+
+
+def _detect_all(images: list[Path], board: Board, max_blur_px: float
+                ) -> tuple[list[PoseData], dict[str, str], dict[str, Any], tuple[int, int]]:
+    """Poses from the photos where the board is found sharp; the others left out (named)."""
+    from dotshell.calibration.procedure import _refuse_other_count
+
+    objp = board.object_points()
+    poses, left_out, report, size = [], {}, {}, None
+    for k, path in enumerate(images):
+        img = _gray(path)
+        here = (img.shape[1], img.shape[0])
+        size = size or here
+        if here != size:
+            raise CalibrationError(f"{path}: {here[0]}x{here[1]} px, but {images[0].name} is "
+                                   f"{size[0]}x{size[1]}: all photos must come from this camera "
+                                   "at one resolution.")
+        name = f"pose_{k:02d}"
+        report[name] = {"image": str(path)}
+        det = detect(img, board)
+        if det is None:
+            if k == 0:
+                _refuse_other_count(img, board, str(path))
+            left_out[name] = f"target not found in {path}"
+            continue
+        report[name].update(corners=int(len(det.ids)), sharpness_px=det.sharpness_px)
+        if det.sharpness_px > max_blur_px:
+            left_out[name] = f"blurred: edges {det.sharpness_px:.1f} px wide in {path}"
+            continue
+        poses.append(PoseData(name, objp[det.ids], det.pixels))
+    return poses, left_out, report, size
+
+
+def calibrate_camera(paths: list[Path | str], board: Board, settings: dict[str, Any],
+                     out_dir: Path | str = "runs") -> CameraResult:
+    """Solve a camera from plain board photos (``settings``: ``[calibrate]``) and write the run
+    directory described in the module docstring."""
+    from dotshell.calibration.report import (coverage_pct, lens_warnings,
+                                             write_residual_pictures)
+    from dotshell.store import RunStore
+
+    images = board_images(paths)
+    poses, left_out, poses_report, size = _detect_all(images, board, settings["max_blur_px"])
+    if not poses:
+        raise CalibrationError(
+            f"the {board.kind} ({board.columns}x{board.rows} squares) was not found in any "
+            f"photo: {', '.join(p.name for p in images[:6])}. Check the target and its counts "
+            "(--board COLSxROWS: squares, not inner corners), exposure and focus.")
+    rule = OutlierRule(settings["min_poses"], settings["outlier_factor"], settings["max_rms_px"])
+    distortion = settings["distortion"]
+    first = calibrate_lens("camera", poses, size, "full" if distortion == "auto" else distortion,
+                           rule, left_out)
+    kept = [p for p in poses if p.name in first.per_pose_rms_px]
+    choice = choose_model("camera", kept, size) if distortion == "auto" else None
+    model = choice.chosen if choice else distortion
+    solved = calibrate_lens("camera", poses, size, model, rule, first.left_out)
+    kept = [p for p in poses if p.name in solved.per_pose_rms_px]
+    cand = solve_candidate(kept, size, model, initial_matrix(size, kept))
+    lens = solved.lens
+    residuals = {}
+    for p in kept:
+        px, _ = cv2.projectPoints(p.object_points, solved.rvecs[p.name], solved.tvecs[p.name],
+                                  lens.K, lens.dist)
+        residuals[p.name] = {"camera": (p.image_points, px.reshape(-1, 2) - p.image_points)}
+        poses_report[p.name]["camera_rms_px"] = solved.per_pose_rms_px[p.name]
+    coverage = coverage_pct([p.image_points for p in kept], size)
+    values = dict(zip(("fx", "fy", "cx", "cy") + COEFFICIENTS,
+                      (lens.K[0, 0], lens.K[1, 1], lens.K[0, 2], lens.K[1, 2], *lens.dist)))
+    solved_terms = ("fx", "fy", "cx", "cy") + MODEL_TERMS[model]
+    coefficients = {k: {"value": float(v), "sigma": cand.sigma[k] if k in solved_terms else None}
+                    for k, v in values.items()}
+    sigma = {k: cand.sigma[k] for k in solved_terms}
+    report = {
+        "format": CAMERA_FORMAT, "camera": lens.to_dict(), "rms_px": solved.rms_px,
+        "model": {"model": model, "terms": list(MODEL_TERMS[model]),
+                  **(choice.as_dict() if choice else {"reason": "given by [calibrate] distortion"})},
+        "coefficients": coefficients, "coverage_pct": coverage,
+        "warnings": lens_warnings("camera", lens, sigma, model, coverage,
+                                  settings.get("warn_sigma_pct", 0.25)),
+        "left_out": solved.left_out, "poses": poses_report,
+    }
+    store = RunStore.create(Path(out_dir), "calibrate-camera")
+    (store.root / "report").mkdir(exist_ok=True)
+    pictures = write_residual_pictures(store.root / "report", residuals, {"camera": size})
+    report["residual_pictures"] = {n: f"report/{f}" for n, f in pictures.items()}
+    store.write_json("camera.json", {k: report[k] for k in ("format", "camera", "rms_px")}
+                     | {"model": model, "sigma": sigma})
+    store.write_json("calibration-report.json", report)
+    store.close()
+    return CameraResult(lens, report, store.root)
