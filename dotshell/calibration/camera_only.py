@@ -24,7 +24,8 @@ import numpy as np
 from dotshell.calibration.board import Board, detect
 from dotshell.calibration.models import (COEFFICIENTS, MODEL_TERMS, choose_model,
                                          solve_candidate)
-from dotshell.calibration.solve import OutlierRule, PoseData, calibrate_lens, initial_matrix
+from dotshell.calibration.solve import (LensSolve, OutlierRule, PoseData, calibrate_lens,
+                                        initial_matrix)
 from dotshell.errors import CalibrationError
 from dotshell.geometry.lens import Lens
 
@@ -157,3 +158,55 @@ def calibrate_camera(paths: list[Path | str], board: Board, settings: dict[str, 
     store.write_json("calibration-report.json", report)
     store.close()
     return CameraResult(lens, report, store.root)
+
+
+@dataclass
+class PairSolve:
+    """Two cameras solved together: both lenses, camera 2's pose in camera 1's frame
+    ``X2 = R X1 + T`` (mm), the joint RMS (px) and the poses used."""
+
+    camera1: Lens
+    camera2: Lens
+    R: np.ndarray
+    T: np.ndarray
+    rms_px: float
+    poses: list[str]
+
+
+def calibrate_pair(poses1: list[PoseData], poses2: list[PoseData], solve1: LensSolve,
+                   solve2: LensSolve, models: tuple[str, str]) -> PairSolve:
+    """Two cameras from board photos taken by both at once (poses matched by name, corners by
+    board point): their pose from OpenCV's stereo solve with each lens as solved alone, then
+    one bundle adjustment of both lenses (each with its model), the pose and every board pose
+    (:func:`dotshell.calibration.bundle.bundle_adjust`, camera 2 in the projector's place)."""
+    from dotshell.calibration.bundle import bundle_adjust
+
+    lens1, lens2 = solve1.lens, solve2.lens
+    by2 = {p.name: p for p in poses2}
+    obj, img1, img2, names = [], [], [], []
+    for p in poses1:
+        q = by2.get(p.name)
+        if q is None or p.name not in solve1.rvecs:
+            continue
+        key = {tuple(np.round(o, 6)): i for i, o in enumerate(q.object_points)}
+        pairs = [(i, key[tuple(np.round(o, 6))]) for i, o in enumerate(p.object_points)
+                 if tuple(np.round(o, 6)) in key]
+        if len(pairs) < 6:
+            continue
+        i1, i2 = np.array(pairs).T
+        obj.append(p.object_points[i1].astype(np.float32).reshape(-1, 1, 3))
+        img1.append(p.image_points[i1].astype(np.float32).reshape(-1, 1, 2))
+        img2.append(q.image_points[i2].astype(np.float32).reshape(-1, 1, 2))
+        names.append(p.name)
+    if len(names) < 3:
+        raise CalibrationError(f"camera pair: {len(names)} board photos seen by both cameras, "
+                               "at least 3 are needed (the same board pose photographed by "
+                               "each camera, named alike).")
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    out = cv2.stereoCalibrate(obj, img1, img2, lens1.K, lens1.dist, lens2.K, lens2.dist,
+                              lens1.size, flags=cv2.CALIB_FIX_INTRINSIC, criteria=crit)
+    kept2 = [by2[n] for n in names]
+    joint = bundle_adjust([p for p in poses1 if p.name in names], kept2, lens1, lens2,
+                          np.asarray(out[5]), np.asarray(out[6]).ravel(), solve1.rvecs,
+                          solve1.tvecs, models)
+    return PairSolve(joint.camera, joint.projector, joint.R, joint.T, joint.rms_px, names)
