@@ -28,9 +28,9 @@ from dotshell.calibration.solve import (LensSolve, OutlierRule, PoseData, calibr
                                         initial_matrix)
 from dotshell.errors import CalibrationError
 from dotshell.geometry.lens import Lens
+from dotshell.pipeline.captures import _read_gray as read_gray
 
 CAMERA_FORMAT = "dotshell-camera-calibration/1"
-IMAGE_SUFFIXES = (".png", ".bmp", ".tif", ".tiff", ".jpg", ".jpeg", ".pgm")
 
 
 @dataclass
@@ -44,7 +44,7 @@ class CameraResult:
 
 def board_images(paths: list[Path | str]) -> list[Path]:
     """Image files given directly or as folders (sorted by name, numbers compared as numbers)."""
-    from dotshell.calibration.captures import _natural_key
+    from dotshell.calibration.captures import IMAGE_SUFFIXES, _natural_key
 
     out: list[Path] = []
     for p in map(Path, paths):
@@ -61,15 +61,6 @@ def board_images(paths: list[Path | str]) -> list[Path]:
     return out
 
 
-def _gray(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise CalibrationError(f"{path}: cannot be read as an image.")
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    return img
-
-
 def _detect_all(images: list[Path], board: Board, max_blur_px: float
                 ) -> tuple[list[PoseData], dict[str, str], dict[str, Any], tuple[int, int]]:
     """Poses from the photos where the board is found sharp; the others left out (named)."""
@@ -78,7 +69,7 @@ def _detect_all(images: list[Path], board: Board, max_blur_px: float
     objp = board.object_points()
     poses, left_out, report, size = [], {}, {}, None
     for k, path in enumerate(images):
-        img = _gray(path)
+        img = read_gray(path)
         here = (img.shape[1], img.shape[0])
         size = size or here
         if here != size:
