@@ -13,11 +13,10 @@ import tomllib
 
 import numpy as np
 import pytest
-
 from conftest import ROOT
-from dotshell.geometry.code_stereo import match_by_codes, triangulate_pair
 from dotshell_codings.graycode import make_graycode
 
+from dotshell.geometry.code_stereo import match_by_codes, triangulate_pair
 
 
 def camera_pose(centre_mm, look_at_mm=(0.0, 0.0, 200.0)) -> tuple[np.ndarray, np.ndarray]:
@@ -141,13 +140,14 @@ def test_camera_pair_calibrated_from_board_photos_reconstructs_the_cylinder(two_
     calibration in the cloud. Measured at 0.25x with 12 board poses: pair RMS 0.058 px,
     baseline off by 0.4 mm, cylinder radius 7.689 mm (-0.14 %), mean relative radius error
     0.18 % about the cloud's own axis (0.125 % with the true lenses and pose)."""
-    from dotshell.calibration.board import Board
-    from dotshell.calibration.models import choose_model
-    from dotshell.calibration.solve import OutlierRule, calibrate_lens
-    from dotshell.calibration.camera_only import calibrate_pair
-    from dotshell.geometry.calibration import rot_z
     from dotshell_sim.bench import scale_profile
     from sim_sequences import connected_rig
+
+    from dotshell.calibration.board import Board
+    from dotshell.calibration.camera_only import calibrate_pair
+    from dotshell.calibration.models import choose_model
+    from dotshell.calibration.solve import OutlierRule, calibrate_lens
+    from dotshell.geometry.calibration import rot_z
 
     views, R, T = two_views
     raw = scale_profile(tomllib.loads((ROOT / "profiles" / "sim-metal-cylinder.toml")

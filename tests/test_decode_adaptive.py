@@ -13,12 +13,12 @@ import tomllib
 
 import numpy as np
 import pytest
-
 from conftest import ROOT
-from dotshell.pipeline.decode_maps import decode_quality, neighbour_reversals
 from dotshell_codings.graycode import make_graycode
 from dotshell_codings.robust import noise_model
 from test_codings_robust import run
+
+from dotshell.pipeline.decode_maps import decode_quality, neighbour_reversals
 
 
 def _truth_counts(corr, u, v, lit) -> tuple[int, int]:

@@ -22,10 +22,19 @@ import cv2
 import numpy as np
 
 from dotshell.calibration.board import Board, detect
-from dotshell.calibration.models import (COEFFICIENTS, MODEL_TERMS, choose_model,
-                                         solve_candidate)
-from dotshell.calibration.solve import (LensSolve, OutlierRule, PoseData, calibrate_lens,
-                                        initial_matrix)
+from dotshell.calibration.models import (
+    COEFFICIENTS,
+    MODEL_TERMS,
+    choose_model,
+    solve_candidate,
+)
+from dotshell.calibration.solve import (
+    LensSolve,
+    OutlierRule,
+    PoseData,
+    calibrate_lens,
+    initial_matrix,
+)
 from dotshell.errors import CalibrationError
 from dotshell.geometry.lens import Lens
 from dotshell.pipeline.captures import _read_gray as read_gray
@@ -96,8 +105,11 @@ def calibrate_camera(paths: list[Path | str], board: Board, settings: dict[str, 
                      out_dir: Path | str = "runs") -> CameraResult:
     """Solve a camera from plain board photos (``settings``: ``[calibrate]``) and write the run
     directory described in the module docstring."""
-    from dotshell.calibration.report import (coverage_pct, lens_warnings,
-                                             write_residual_pictures)
+    from dotshell.calibration.report import (
+        coverage_pct,
+        lens_warnings,
+        write_residual_pictures,
+    )
     from dotshell.store import RunStore
 
     images = board_images(paths)

@@ -13,7 +13,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from dotshell.calibration.models import COEFFICIENTS, MODEL_TERMS, radial_fold, undetermined_terms
+from dotshell.calibration.models import (
+    COEFFICIENTS,
+    MODEL_TERMS,
+    radial_fold,
+    undetermined_terms,
+)
 from dotshell.geometry.lens import Lens
 
 #: Coverage is counted on a grid of this many cells across and down the image.
