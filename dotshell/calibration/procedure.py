@@ -8,6 +8,7 @@ Run directory::
     <out>/<time>_calibrate-<profile>/
         profile.toml  capture.json  frames/pose_00/000_white.png ...  frames/turntable_00/...
         calibration.json  calibration.yml  calibration-report.json  [ground_truth.json]
+        report/residuals_<pose>.png  residual vectors per pose (camera | projector)
         [calibration-refused.json]   a solve out of bounds: its figures (nothing else written)
 
 ``capture.json`` (format ``dotshell-calibration-capture/1``, documented in
