@@ -366,9 +366,10 @@ class GrayCode:
         firsts = np.cumsum([0] + [ax.nb for ax in axes])[:-1]
         sep = [int(f) + ax.nb - 1 - i for f, ax in zip(firsts, axes)
                for i in range(min(self.high_frequency_pairs, ax.nb))]
-        sigmas = second_weakest_sigmas(frames, floor, gain, sep)
         uncertain = robust.reason == robust.reason_names.index("uncertain")
-        rescued = uncertain & plain.valid & (sigmas >= self.adaptive_sigmas)
+        rescued = uncertain & plain.valid
+        sure = second_weakest_sigmas(frames, floor, gain, sep, rescued) >= self.adaptive_sigmas
+        rescued[rescued] = sure
         n = int(rescued.sum())
         stats = dict(robust.stats)
         stats["decoded"] += n
