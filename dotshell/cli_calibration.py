@@ -12,7 +12,12 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from dotshell.cli_decode import add_layout_arg, loss_notes, pixel_counts, refuse_layout_overrides
+from dotshell.cli_decode import (
+    add_layout_arg,
+    loss_notes,
+    pixel_counts,
+    refuse_layout_overrides,
+)
 from dotshell.cli_print import print_as_is
 
 
@@ -22,6 +27,15 @@ def add_captures_args(sp: argparse.ArgumentParser) -> None:
                     help="reconstruct the image sequence in DIR (made by another rig or program) "
                          "instead of a run; needs --calibration and --layout")
     add_layout_arg(sp)
+    sp.add_argument("--captures2", metavar="DIR",
+                    help="a second camera's sequence of the same projector patterns: with "
+                         "--camera-pair, camera 1 (--captures) is triangulated against camera 2 "
+                         "through the projector codes (the projector needs no calibration)")
+    sp.add_argument("--camera-pair", metavar="FILE",
+                    help="camera-pair.json of the two cameras (dotshell calibrate --camera-pair)")
+    sp.add_argument("--layout2", metavar="LAYOUT",
+                    help="layout of --captures2 when it differs from --layout (e.g. other file "
+                         "names)")
     sp.add_argument("--reference", metavar="FILE",
                     help="reference cloud (.ply, or .mat with xyz) to measure the result against")
     sp.add_argument("--coverage-radius", type=float, default=1.0, metavar="MM",
@@ -33,6 +47,8 @@ def reconstruct_captures_command(args: argparse.Namespace, pm, out: Console) -> 
     from dotshell.errors import RunError
     from dotshell.pipeline.captures import reconstruct_captures
 
+    if args.captures2 or args.camera_pair:
+        return camera_pair_command(args, pm, out)
     missing = [flag for flag, v in (("--captures", args.captures), ("--calibration",
                args.calibration), ("--layout", args.layout)) if not v]
     if missing:
@@ -71,6 +87,30 @@ def reconstruct_captures_command(args: argparse.Namespace, pm, out: Console) -> 
     return 0
 
 
+def camera_pair_command(args: argparse.Namespace, pm, out: Console) -> int:
+    """``reconstruct --captures DIR1 --captures2 DIR2 --camera-pair FILE --layout L``."""
+    from dotshell.errors import RunError
+    from dotshell.pipeline.camera_pair import reconstruct_camera_pair
+
+    missing = [flag for flag, v in (("--captures", args.captures), ("--captures2",
+               args.captures2), ("--camera-pair", args.camera_pair), ("--layout", args.layout))
+               if not v]
+    if missing:
+        raise RunError("two cameras sharing one projector need --captures DIR1 --captures2 DIR2 "
+                       f"--camera-pair FILE --layout LAYOUT; missing: {', '.join(missing)}.")
+    res = reconstruct_camera_pair(args.captures, args.captures2, args.camera_pair, args.layout,
+                                  args.layout2, pm, args.out)
+    r = res.report
+    for name, counts in zip(("camera 1", "camera 2"), r["decode"]):
+        out.print(f"{name}: {pixel_counts(counts)}")
+    gap = r["ray_gap_mm"]
+    out.print(f"{r['matches']} pixels matched by projector code; {r['cloud']['points']} points "
+              f"(camera 1 frame, mm); median ray gap {gap['median']:.4f} mm, {gap['dropped']} "
+              f"dropped over {gap['dropped_over']:g} mm")
+    print_as_is(out, f"output: {res.out_dir}  (cloud.ply, report.json)")
+    return 0
+
+
 def add_calibrate_parser(sub, profile_args=None) -> None:
     """``dotshell calibrate``; its own arguments (the profile is optional with --solve and
     --captures, so the shared ``profile_args`` are not used)."""
@@ -101,6 +141,10 @@ def add_calibrate_parser(sub, profile_args=None) -> None:
     sp.add_argument("--camera-only", nargs="+", metavar="IMAGE_OR_DIR",
                     help="calibrate the camera alone from plain photos of the board (files, or "
                          "folders of them; needs --board/--square without a profile)")
+    sp.add_argument("--camera-pair", nargs=2, metavar=("DIR1", "DIR2"),
+                    help="calibrate two cameras and their pose from board photos both took "
+                         "(one photo per pose in each folder, paired in name order); writes "
+                         "camera-pair.json for reconstruct --captures2")
     sp.add_argument("--turntable", metavar="DIR",
                     help="white frames of the board on the stage, one per stage angle (name "
                          "order); solves the turntable axis (optional)")
@@ -164,6 +208,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
     if args.camera_only:
         return camera_only_command(args, settings, profile, out)
+    if args.camera_pair:
+        return camera_pair_calibration_command(args, settings, profile, out)
     with view.progress:
         if args.captures:
             if not args.layout:
@@ -222,6 +268,30 @@ def camera_only_command(args: argparse.Namespace, settings: dict[str, Any], prof
         out.print(f"[yellow]left out:[/] {name}: {escape(why)}")
     print_as_is(out, f"camera: {res.run_dir / 'camera.json'} (report: calibration-report.json, "
                      "report/residuals_*.png)")
+    return 0
+
+
+def camera_pair_calibration_command(args: argparse.Namespace, settings: dict[str, Any],
+                                    profile, out: Console) -> int:
+    """``dotshell calibrate --camera-pair DIR1 DIR2``: two cameras from board photos."""
+    import numpy as np
+
+    from dotshell.calibration.board import Board
+    from dotshell.calibration.camera_only import calibrate_camera_pair
+    from dotshell.errors import CalibrationError
+
+    if not (args.board or profile) or not (args.square or profile):
+        raise CalibrationError("calibrate --camera-pair needs the target: --board COLSxROWS "
+                               "--square MM (or a profile's [calibrate]).")
+    pair, run = calibrate_camera_pair(args.camera_pair[0], args.camera_pair[1],
+                                      Board.from_settings(settings), settings, args.out)
+    for name, lens in (("camera 1", pair.camera1), ("camera 2", pair.camera2)):
+        K = lens.K
+        out.print(f"{name}: fx {K[0, 0]:.2f}, fy {K[1, 1]:.2f}, cx {K[0, 2]:.2f}, cy "
+                  f"{K[1, 2]:.2f} px, k1 k2 p1 p2 k3 {', '.join(f'{d:.4g}' for d in lens.dist)}")
+    out.print(f"camera 2 from camera 1: baseline {float(np.linalg.norm(pair.T)):.3f} mm, joint RMS "
+              f"{pair.rms_px:.3f} px over {len(pair.poses)} poses")
+    print_as_is(out, f"camera pair: {run / 'camera-pair.json'}")
     return 0
 
 

@@ -71,12 +71,11 @@ def two_views():
     return render_two_views(0.25)
 
 
-def radius_error(views, R, T, lenses=None) -> tuple[int, float]:
+def radius_error(views, R, T) -> tuple[int, float]:
     """(lateral points, mean relative radius error in %) of the camera–camera cloud from the
-    cameras' ``lenses`` (default: the true ones) and pose (R, T); the radius is measured about
-    the true turntable axis."""
+    true lenses and camera 2's pose (R, T), about the true turntable axis."""
     (c1, truth1), (c2, truth2) = views
-    lens1, lens2 = lenses or (truth1.camera, truth2.camera)
+    lens1, lens2 = truth1.camera, truth2.camera
     pix1, pix2 = match_by_codes(c1.column, c1.row, c1.valid, c2.column, c2.row, c2.valid)
     pts, gap = triangulate_pair(lens1, lens2, R, T, pix1, pix2)
     sample = truth1.camera_to_sample(pts, 0.0)
@@ -85,17 +84,6 @@ def radius_error(views, R, T, lenses=None) -> tuple[int, float]:
     rel = np.abs(r[lateral] - 7.7) / 7.7 * 100
     print(f"{len(pix1)} matches, {lateral.sum()} on the lateral surface, mean relative radius "
           f"error {rel.mean():.4f} %, median ray gap {np.median(gap):.4f} mm")
-    if lenses is not None:
-        # a calibrated camera 1 frame is turned a little against the true one (a principal
-        # point 1 px off turns it by 0.04°, 0.14 mm at 200 mm): measure about the cloud's own
-        # axis, as a scan measures about its own calibrated turntable axis
-        from dotshell.geometry.fit import fit_cylinder, radial_distance
-
-        lat = sample[lateral]
-        fit = fit_cylinder(lat)
-        rel = np.abs(radial_distance(lat, fit.point, fit.axis) - 7.7) / 7.7 * 100
-        print(f"about the fitted axis: radius {fit.radius_mm:.4f} mm, mean relative radius "
-              f"error {rel.mean():.4f} %")
     return int(lateral.sum()), float(rel.mean())
 
 
@@ -113,65 +101,73 @@ def test_two_cameras_full_resolution():
     assert n > 100000 and err < 0.05
 
 
-def _board_poses(rig, board, poses, stage_deg: float):
-    """The board at each pose (sample frame of this rig, stage at ``stage_deg``), detected."""
-    from dotshell.calibration.board import detect
-    from dotshell.calibration.solve import PoseData
+def test_camera_pair_commands_end_to_end(tmp_path, capsys):
+    """Captures made elsewhere: both cameras' OpenCV gray-code sequences and their board photos
+    (12 poses) as files; `calibrate --camera-pair` (each lens, then both lenses, their pose and
+    the board poses in one bundle adjustment) then `reconstruct --captures --captures2`: no
+    ground truth and no projector calibration in the cloud. A calibrated camera frame is turned
+    a little against the true one (a principal point 1 px off turns it by 0.04°, 0.14 mm at
+    200 mm), so the cylinder is measured about its own fitted axis, as a scan measures about its
+    own calibrated turntable axis: measured at 0.25x radius 7.689 mm (-0.14 %), mean relative
+    radius error 0.18 % (0.125 % with the true lenses and pose)."""
+    import json
 
-    w, h = rig["projector"].resolution
-    rig["projector"].show(np.full((h, w), 255, np.uint8))
-    rig["camera"].set_exposure(10.0)
-    rig["stage"].move_to(stage_deg)
-    objp = board.object_points()
-    out = []
-    for k, pose in enumerate(poses):
-        rig["stage"].place_target(board.sim_dict(), {"rotation_deg": list(pose[:3]),
-                                                     "centre_mm": list(pose[3:])})
-        det = detect(rig["camera"].capture(), board)
-        if det is not None:
-            out.append(PoseData(f"pose_{k:02d}", objp[det.ids], det.pixels))
-    rig["stage"].place_target(None, None)
-    return out
-
-
-def test_camera_pair_calibrated_from_board_photos_reconstructs_the_cylinder(two_views):
-    """Both cameras calibrated from board photos alone (each camera's lens, then both lenses,
-    their pose and the board poses in one bundle adjustment): no ground truth and no projector
-    calibration in the cloud. Measured at 0.25x with 12 board poses: pair RMS 0.058 px,
-    baseline off by 0.4 mm, cylinder radius 7.689 mm (-0.14 %), mean relative radius error
-    0.18 % about the cloud's own axis (0.125 % with the true lenses and pose)."""
+    import cv2
+    import opencv_graycode
     from dotshell_sim.bench import scale_profile
-    from sim_sequences import connected_rig
+    from sim_sequences import connected_rig, render_sequence
 
     from dotshell.calibration.board import Board
-    from dotshell.calibration.camera_only import calibrate_pair
-    from dotshell.calibration.models import choose_model
-    from dotshell.calibration.solve import OutlierRule, calibrate_lens
-    from dotshell.geometry.calibration import rot_z
+    from dotshell.cli import main
+    from dotshell.geometry.fit import fit_cylinder, radial_distance
+    from dotshell.pipeline.captures import SHIPPED_LAYOUTS
+    from dotshell.ply import read_ply
 
-    views, R, T = two_views
     raw = scale_profile(tomllib.loads((ROOT / "profiles" / "sim-metal-cylinder.toml")
                                       .read_text()), 0.25)
-    poses = raw["calibrate"]["poses"][:12]
-    board = Board("checkerboard", 10, 7, 3.0)
+    R, T = camera_pose((-70.0, 0.0, 10.0))
     rigs = [connected_rig(raw), connected_rig(moved_profile(raw, R, T))]
     truths = [rig["camera"].ground_truth_calibration() for rig in rigs]
-    # the same physical board: rig 2's stage frame is turned about the axis against rig 1's
-    B1, B2 = truths[0].stage_basis(), truths[1].stage_basis() @ R
-    turn = B2 @ B1.T
-    stage_deg = float(np.degrees(np.arctan2(turn[1, 0], turn[0, 0])))
-    assert np.allclose(rot_z(stage_deg), turn, atol=1e-6)
-    detected = [_board_poses(rig, board, poses, a) for rig, a in zip(rigs, (0.0, stage_deg))]
-    rule = OutlierRule(5, 3.0, 1.0)
-    solves, models = [], []
-    for det, rig in zip(detected, rigs):
-        size = rig["camera"].resolution
-        models.append(choose_model("camera", det, size).chosen)
-        solves.append(calibrate_lens("camera", det, size, models[-1], rule))
-    pair = calibrate_pair(detected[0], detected[1], *solves, tuple(models))
-    lenses = (pair.camera1, pair.camera2)
-    print("pair RMS", pair.rms_px, "T", pair.T, "truth", T, models,
-          [(lens.K[0, 0], lens.K[0, 2], lens.K[1, 2]) for lens in lenses])
-    assert pair.rms_px < 0.2 and np.linalg.norm(pair.T - T) < 2.0
-    n, err = radius_error(views, pair.R, pair.T, lenses)
-    assert n > 2000 and err < 0.3
+    w, h = rigs[0]["projector"].resolution
+    layout = tmp_path / "layout.toml"
+    layout.write_text((SHIPPED_LAYOUTS / "opencv-graycode.toml").read_text()
+                      .replace("projector_width = 1024", f"projector_width = {w}")
+                      .replace("projector_height = 768", f"projector_height = {h}"))
+    images = opencv_graycode.capture_sequence(w, h)
+    for k, rig in enumerate(rigs):
+        render_sequence(rig, images, tmp_path / f"cam{k + 1}", opencv_graycode.file_name)
+    board = Board("checkerboard", 10, 7, 3.0)
+    turn = truths[1].stage_basis() @ R @ truths[0].stage_basis().T
+    angles = (0.0, float(np.degrees(np.arctan2(turn[1, 0], turn[0, 0]))))
+    for k, (rig, angle) in enumerate(zip(rigs, angles)):
+        folder = tmp_path / f"board{k + 1}"
+        folder.mkdir()
+        rig["projector"].show(np.full((h, w), 255, np.uint8))
+        rig["camera"].set_exposure(10.0)
+        rig["stage"].move_to(angle)
+        for i, pose in enumerate(raw["calibrate"]["poses"][:12]):
+            rig["stage"].place_target(board.sim_dict(), {"rotation_deg": list(pose[:3]),
+                                                         "centre_mm": list(pose[3:])})
+            cv2.imwrite(str(folder / f"photo_{i:02d}.png"), rig["camera"].capture())
+    assert main(["calibrate", "--camera-pair", str(tmp_path / "board1"),
+                 str(tmp_path / "board2"), "--board", "10x7", "--square", "3",
+                 "--set", "calibrate.min_poses=5", "--out", str(tmp_path / "runs")]) == 0
+    pair = next((tmp_path / "runs").glob("*camera-pair*/camera-pair.json"))
+    solved = json.loads(pair.read_text())
+    assert solved["format"] == "dotshell-camera-pair/1"
+    # measured: joint RMS 0.058 px, camera 2 0.4 mm from where it is
+    assert solved["rms_px"] < 0.2 and np.linalg.norm(np.array(solved["T"]) - T) < 2.0
+    assert main(["reconstruct", "--captures", str(tmp_path / "cam1"), "--captures2",
+                 str(tmp_path / "cam2"), "--camera-pair", str(pair), "--layout", str(layout),
+                 "--out", str(tmp_path / "out")]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "matched by projector code" in text
+    out = next((tmp_path / "out").iterdir())
+    pts = truths[0].camera_to_sample(read_ply(out / "cloud.ply")[0], 0.0)
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    lat = pts[(pts[:, 2] > 2.0) & (pts[:, 2] < 28.0) & (np.abs(r - 7.7) < 1.0)]
+    fit = fit_cylinder(lat)
+    rel = np.abs(radial_distance(lat, fit.point, fit.axis) - 7.7) / 7.7 * 100
+    print(f"{len(lat)} lateral points, radius {fit.radius_mm:.4f} mm, mean relative radius "
+          f"error {rel.mean():.4f} %")
+    assert len(lat) > 2000 and rel.mean() < 0.3

@@ -213,3 +213,58 @@ def calibrate_pair(poses1: list[PoseData], poses2: list[PoseData], solve1: LensS
                           np.asarray(out[5]), np.asarray(out[6]).ravel(), solve1.rvecs,
                           solve1.tvecs, models)
     return PairSolve(joint.camera, joint.projector, joint.R, joint.T, joint.rms_px, names)
+
+
+PAIR_FORMAT = "dotshell-camera-pair/1"
+
+
+def calibrate_camera_pair(dir1: Path | str, dir2: Path | str, board: Board,
+                          settings: dict[str, Any], out_dir: Path | str = "runs"
+                          ) -> tuple[PairSolve, Path]:
+    """Two cameras from board photos both took: ``dir1`` and ``dir2`` hold one photo per board
+    pose each, paired in name order. Each lens is solved alone (model by held-out poses), then
+    both with their pose (:func:`calibrate_pair`); writes ``camera-pair.json`` (format
+    ``dotshell-camera-pair/1``) into a new run directory and returns (solve, directory)."""
+    from dotshell.store import RunStore
+
+    images = [board_images([d]) for d in (dir1, dir2)]
+    if len(images[0]) != len(images[1]):
+        raise CalibrationError(f"camera pair: {dir1} holds {len(images[0])} photos but {dir2} "
+                               f"{len(images[1])}; each board pose needs one photo from each "
+                               "camera (paired in name order).")
+    rule = OutlierRule(settings["min_poses"], settings["outlier_factor"], settings["max_rms_px"])
+    found, solves, models = [], [], []
+    for imgs in images:
+        poses, left_out, _, size = _detect_all(imgs, board, settings["max_blur_px"])
+        if not poses:
+            raise CalibrationError(f"camera pair: the board was not found in any photo of "
+                                   f"{imgs[0].parent} (--board COLSxROWS counts squares).")
+        model = (choose_model("camera", poses, size).chosen if settings["distortion"] == "auto"
+                 else settings["distortion"])
+        found.append(poses)
+        models.append(model)
+        solves.append(calibrate_lens("camera", poses, size, model, rule, left_out))
+    pair = calibrate_pair(found[0], found[1], solves[0], solves[1], (models[0], models[1]))
+    store = RunStore.create(Path(out_dir), "calibrate-camera-pair")
+    store.write_json("camera-pair.json", {
+        "format": PAIR_FORMAT, "camera1": pair.camera1.to_dict(), "camera2": pair.camera2.to_dict(),
+        "R": pair.R.tolist(), "T": pair.T.tolist(), "rms_px": pair.rms_px, "models": models,
+        "poses": pair.poses, "photos": [str(Path(d).resolve()) for d in (dir1, dir2)]})
+    store.close()
+    return pair, store.root
+
+
+def load_camera_pair(path: Path | str) -> PairSolve:
+    """A ``camera-pair.json`` written by :func:`calibrate_camera_pair`."""
+    import json
+
+    try:
+        d = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise CalibrationError(f"{path}: not a readable camera-pair file ({exc}).") from None
+    if d.get("format") != PAIR_FORMAT:
+        raise CalibrationError(f"{path}: format is {d.get('format')!r}, expected {PAIR_FORMAT!r} "
+                               "(written by dotshell calibrate --camera-pair).")
+    return PairSolve(Lens.from_dict(d["camera1"]), Lens.from_dict(d["camera2"]),
+                     np.array(d["R"], float), np.array(d["T"], float), float(d["rms_px"]),
+                     list(d.get("poses", [])))
