@@ -138,15 +138,17 @@ def test_wide_angle_chosen_model_meets_the_bounds_and_k1_fails(wide_capture, tmp
     print(cam["reason"], {w: g[w] for w in ("camera", "projector", "baseline_pct")})
     assert {"k1", "p1", "p2"} <= set(cam["terms"])
     assert "held-out" in cam["reason"] and len(cam["candidates"]) == 4
-    # the reduced-scale bounds of tests/test_calib_sim.py (measured: camera focal 0.013 %,
-    # principal point 0.7-1.3 px; projector 0.06 %, 1.6-1.8 px; baseline 0.11 %)
+    # the reduced-scale bounds of tests/test_calib_sim.py (measured: camera focal -0.08 %,
+    # principal point -0.6/-1.5 px; projector -0.085 %, -1.4/-2.2 px; baseline -0.13 %)
     for w in ("camera", "projector"):
         assert max(abs(g[w]["fx_pct"]), abs(g[w]["fy_pct"])) < 0.5
         assert max(abs(g[w]["cx_px"]), abs(g[w]["cy_px"])) < 4.0
     assert abs(g["baseline_pct"]) < 0.5
-    # k1 alone: the camera focal length is off by 0.72 % (measured), beyond the bound
+    # k1 alone: the camera focal length is off by 0.72-0.75 % and cx by 6.2 px (measured),
+    # beyond the bounds
     k1 = _solve(wide_capture, tmp_path / "k1", distortion="k1").report
     gk = k1["ground_truth"]["camera"]
+    print("k1:", gk, k1["ground_truth"]["baseline_pct"], k1["rms_px"], r["rms_px"])
     k1_focal = max(abs(gk["fx_pct"]), abs(gk["fy_pct"]))
     assert k1_focal > 0.5 and k1_focal > 5 * max(abs(g["camera"]["fx_pct"]),
                                                  abs(g["camera"]["fy_pct"]))

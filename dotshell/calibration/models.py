@@ -4,9 +4,11 @@ Each candidate model (:data:`CANDIDATES`, simplest first) is solved on the poses
 is how well it predicts a pose it did not see (leave-one-pose-out: the lens solved from the
 other poses, the left-out pose's board pose alone fitted to its corners, the RMS of those
 corners' residuals in pixels). A richer model is chosen only when it predicts held-out poses
-at least :data:`GAIN_NEEDED` better than every simpler one; a model whose radial distortion
-folds back inside the image (not monotonic — no real lens does that) is never chosen. Every
-candidate's figures are kept for the report.
+at least :data:`GAIN_NEEDED` better than every simpler one. Never chosen: a model whose radial
+distortion folds back inside the image (not monotonic — no real lens does that), and one with
+a term the poses do not determine (one-sigma above half its value: an over-fit whose terms
+cancel each other, e.g. k2 = −500 against k3 = 60 000 in a narrow field). Every candidate's
+figures are kept for the report.
 
 Rational (k4–k6) and thin-prism terms are not candidates: :class:`~dotshell.geometry.lens.Lens`
 holds OpenCV's five coefficients, which every narrow- and wide-angle lens measured here needs
@@ -157,11 +159,13 @@ def choose_model(what: str, poses: list[PoseData], size: tuple[int, int],
     K0 = initial_matrix(size, poses)
     solved = [solve_candidate(poses, size, m, K0) for m in candidates]
     physical = [c for c in solved if not c.non_physical and np.isfinite(c.held_out_rms_px)]
-    if not physical:
-        return ModelChoice(what, candidates[0], "no candidate is physical and predicts held-out "
-                           f"poses; {candidates[0]} kept (see the candidates' problems)", solved)
-    best = min(physical, key=lambda c: c.held_out_rms_px)
-    chosen = next(c for c in physical
+    determined = [c for c in physical if not c.undetermined]
+    if not determined:
+        return ModelChoice(what, candidates[0], f"no candidate has every term determined by "
+                           f"these poses and a physical lens; {candidates[0]}, the simplest, is "
+                           "kept (see the candidates' problems and the warnings)", solved)
+    best = min(determined, key=lambda c: c.held_out_rms_px)
+    chosen = next(c for c in determined
                   if c.held_out_rms_px <= best.held_out_rms_px * (1 + GAIN_NEEDED))
     return ModelChoice(what, chosen.model, _reason(chosen, best, solved), solved)
 
@@ -178,4 +182,7 @@ def _reason(chosen: Candidate, best: Candidate, solved: list[Candidate]) -> str:
     folded = [c.model for c in solved if c.non_physical]
     if folded:
         why += f"; not physical, never chosen: {', '.join(folded)}"
+    loose = [c.model for c in solved if c.undetermined and not c.non_physical]
+    if loose:
+        why += f"; terms not determined by these poses, not chosen: {', '.join(loose)}"
     return why
