@@ -12,7 +12,12 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from dotshell.cli_decode import add_layout_arg, pixel_counts
+from dotshell.cli_decode import (
+    add_layout_arg,
+    loss_notes,
+    pixel_counts,
+    refuse_layout_overrides,
+)
 from dotshell.cli_print import print_as_is
 
 
@@ -22,6 +27,15 @@ def add_captures_args(sp: argparse.ArgumentParser) -> None:
                     help="reconstruct the image sequence in DIR (made by another rig or program) "
                          "instead of a run; needs --calibration and --layout")
     add_layout_arg(sp)
+    sp.add_argument("--captures2", metavar="DIR",
+                    help="a second camera's sequence of the same projector patterns: with "
+                         "--camera-pair, camera 1 (--captures) is triangulated against camera 2 "
+                         "through the projector codes (the projector needs no calibration)")
+    sp.add_argument("--camera-pair", metavar="FILE",
+                    help="camera-pair.json of the two cameras (dotshell calibrate --camera-pair)")
+    sp.add_argument("--layout2", metavar="LAYOUT",
+                    help="layout of --captures2 when it differs from --layout (e.g. other file "
+                         "names)")
     sp.add_argument("--reference", metavar="FILE",
                     help="reference cloud (.ply, or .mat with xyz) to measure the result against")
     sp.add_argument("--coverage-radius", type=float, default=1.0, metavar="MM",
@@ -33,6 +47,8 @@ def reconstruct_captures_command(args: argparse.Namespace, pm, out: Console) -> 
     from dotshell.errors import RunError
     from dotshell.pipeline.captures import reconstruct_captures
 
+    if args.captures2 or args.camera_pair:
+        return camera_pair_command(args, pm, out)
     missing = [flag for flag, v in (("--captures", args.captures), ("--calibration",
                args.calibration), ("--layout", args.layout)) if not v]
     if missing:
@@ -41,8 +57,11 @@ def reconstruct_captures_command(args: argparse.Namespace, pm, out: Console) -> 
     res = reconstruct_captures(args.captures, args.calibration, args.layout, pm, args.out,
                                reference=args.reference, coverage_radius_mm=args.coverage_radius)
     r = res.report
-    out.print(pixel_counts({**r["decode"], "grazing": r.get("grazing", 0),
-                            "row_rejected": r.get("row_rejected", 0)}))
+    counts = {**r["decode"], "grazing": r.get("grazing", 0),
+              "row_rejected": r.get("row_rejected", 0)}
+    out.print(pixel_counts(counts))
+    for line in loss_notes(counts):
+        print_as_is(out, f"  {line}")
     out.print(f"{r['cloud']['points']} points (camera frame, mm)")
     ref = r.get("reference")
     if ref:
@@ -64,6 +83,30 @@ def reconstruct_captures_command(args: argparse.Namespace, pm, out: Console) -> 
         print_as_is(out, f"preview {name}: {res.out_dir / rel}")
     if r.get("preview_warning"):
         out.print(f"[yellow]warning:[/] {escape(r['preview_warning'])}")
+    print_as_is(out, f"output: {res.out_dir}  (cloud.ply, report.json)")
+    return 0
+
+
+def camera_pair_command(args: argparse.Namespace, pm, out: Console) -> int:
+    """``reconstruct --captures DIR1 --captures2 DIR2 --camera-pair FILE --layout L``."""
+    from dotshell.errors import RunError
+    from dotshell.pipeline.camera_pair import reconstruct_camera_pair
+
+    missing = [flag for flag, v in (("--captures", args.captures), ("--captures2",
+               args.captures2), ("--camera-pair", args.camera_pair), ("--layout", args.layout))
+               if not v]
+    if missing:
+        raise RunError("two cameras sharing one projector need --captures DIR1 --captures2 DIR2 "
+                       f"--camera-pair FILE --layout LAYOUT; missing: {', '.join(missing)}.")
+    res = reconstruct_camera_pair(args.captures, args.captures2, args.camera_pair, args.layout,
+                                  args.layout2, pm, args.out)
+    r = res.report
+    for name, counts in zip(("camera 1", "camera 2"), r["decode"]):
+        out.print(f"{name}: {pixel_counts(counts)}")
+    gap = r["ray_gap_mm"]
+    out.print(f"{r['matches']} pixels matched by projector code; {r['cloud']['points']} points "
+              f"(camera 1 frame, mm); median ray gap {gap['median']:.4f} mm, {gap['dropped']} "
+              f"dropped over {gap['dropped_over']:g} mm")
     print_as_is(out, f"output: {res.out_dir}  (cloud.ply, report.json)")
     return 0
 
@@ -95,6 +138,13 @@ def add_calibrate_parser(sub, profile_args=None) -> None:
     sp.add_argument("--marker", type=float, metavar="MM", help="ChArUco marker side (mm)")
     sp.add_argument("--dictionary", metavar="NAME",
                     help="ChArUco ArUco dictionary (default DICT_4X4_50)")
+    sp.add_argument("--camera-only", nargs="+", metavar="IMAGE_OR_DIR",
+                    help="calibrate the camera alone from plain photos of the board (files, or "
+                         "folders of them; needs --board/--square without a profile)")
+    sp.add_argument("--camera-pair", nargs=2, metavar=("DIR1", "DIR2"),
+                    help="calibrate two cameras and their pose from board photos both took "
+                         "(one photo per pose in each folder, paired in name order); writes "
+                         "camera-pair.json for reconstruct --captures2")
     sp.add_argument("--turntable", metavar="DIR",
                     help="white frames of the board on the stage, one per stage angle (name "
                          "order); solves the turntable axis (optional)")
@@ -113,6 +163,7 @@ def calibrate_settings(args: argparse.Namespace, pm):
     from dotshell.profile import apply_overrides, load_profile
     from dotshell.settings import validate_settings
 
+    refuse_layout_overrides(args.set, getattr(args, "layout", None))
     profile = None
     if args.profile:
         profile = load_profile(args.profile, pm, args.set)
@@ -155,6 +206,10 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     def ask(message: str) -> None:
         input(f"{message}\nPress Enter when the board is in place... ")
 
+    if args.camera_only:
+        return camera_only_command(args, settings, profile, out)
+    if args.camera_pair:
+        return camera_pair_calibration_command(args, settings, profile, out)
     with view.progress:
         if args.captures:
             if not args.layout:
@@ -189,6 +244,57 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def camera_only_command(args: argparse.Namespace, settings: dict[str, Any], profile,
+                        out: Console) -> int:
+    """``dotshell calibrate --camera-only``: the camera from plain board photos."""
+    from dotshell.calibration.board import Board
+    from dotshell.calibration.camera_only import calibrate_camera
+    from dotshell.errors import CalibrationError
+
+    if not (args.board or profile) or not (args.square or profile):
+        raise CalibrationError("calibrate --camera-only needs the target: --board COLSxROWS "
+                               "--square MM (or a profile's [calibrate]).")
+    res = calibrate_camera(args.camera_only, Board.from_settings(settings), settings, args.out)
+    r = res.report
+    cells = [f"{k} {_value(r['coefficients'][k], k)}" for k in COEFFICIENT_KEYS]
+    out.print("[bold]Camera[/] (value ± one-sigma; fx … cy in px): " + ", ".join(cells)
+              + f"; RMS {r['rms_px']:.3f} px")
+    m = r["model"]
+    out.print(f"lens model: {m['model']} ({' '.join(m['terms'])}): {escape(m['reason'])}")
+    out.print(f"corners cover {r['coverage_pct']:.0f} % of the image")
+    for line in r["warnings"]:
+        out.print(f"[yellow]warning:[/] {escape(line)}")
+    for name, why in r["left_out"].items():
+        out.print(f"[yellow]left out:[/] {name}: {escape(why)}")
+    print_as_is(out, f"camera: {res.run_dir / 'camera.json'} (report: calibration-report.json, "
+                     "report/residuals_*.png)")
+    return 0
+
+
+def camera_pair_calibration_command(args: argparse.Namespace, settings: dict[str, Any],
+                                    profile, out: Console) -> int:
+    """``dotshell calibrate --camera-pair DIR1 DIR2``: two cameras from board photos."""
+    import numpy as np
+
+    from dotshell.calibration.board import Board
+    from dotshell.calibration.camera_only import calibrate_camera_pair
+    from dotshell.errors import CalibrationError
+
+    if not (args.board or profile) or not (args.square or profile):
+        raise CalibrationError("calibrate --camera-pair needs the target: --board COLSxROWS "
+                               "--square MM (or a profile's [calibrate]).")
+    pair, run = calibrate_camera_pair(args.camera_pair[0], args.camera_pair[1],
+                                      Board.from_settings(settings), settings, args.out)
+    for name, lens in (("camera 1", pair.camera1), ("camera 2", pair.camera2)):
+        K = lens.K
+        out.print(f"{name}: fx {K[0, 0]:.2f}, fy {K[1, 1]:.2f}, cx {K[0, 2]:.2f}, cy "
+                  f"{K[1, 2]:.2f} px, k1 k2 p1 p2 k3 {', '.join(f'{d:.4g}' for d in lens.dist)}")
+    out.print(f"camera 2 from camera 1: baseline {float(np.linalg.norm(pair.T)):.3f} mm, joint RMS "
+              f"{pair.rms_px:.3f} px over {len(pair.poses)} poses")
+    print_as_is(out, f"camera pair: {run / 'camera-pair.json'}")
+    return 0
+
+
 def print_coding(coding: dict[str, Any], profile, out: Console) -> None:
     """Which coding decoded the frames: capture.json's, the one they were captured with."""
     settings = ", ".join(f"{k}={v}" for k, v in sorted(coding["settings"].items()))
@@ -202,24 +308,50 @@ def print_coding(coding: dict[str, Any], profile, out: Console) -> None:
                       "for these frames")
 
 
+COEFFICIENT_KEYS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+
+
+def _value(entry: dict[str, Any], key: str) -> str:
+    """``value ± sigma`` of a solved coefficient, ``0 (fixed)`` of one not solved."""
+    v, s = entry["value"], entry["sigma"]
+    if s is None:
+        return "0 (fixed)" if v == 0 else f"{v:.4g} (fixed)"
+    digits = 2 if key in ("fx", "fy", "cx", "cy") else 5
+    return f"{v:.{digits}f} ± {s:.{digits}f}" if digits == 2 else f"{v:.4g} ± {s:.2g}"
+
+
 def print_calibration(report: dict[str, Any], calib, out: Console) -> None:
-    t = Table(title="Calibration")
-    for col in ("", "fx [px]", "fy [px]", "cx [px]", "cy [px]", "k1", "k2", "RMS [px]"):
-        t.add_column(col)
+    """The lenses with every coefficient and its one-sigma, the model chosen and why, the
+    warnings with their fixes, the report's pictures, and the ground truth when there is one."""
     rms = report["rms_px"]
+    coeffs = report.get("coefficients")
+    out.print("[bold]Calibration[/] (value ± one-sigma of the joint solve; fx … cy in px)")
     for name, lens in (("camera", calib.camera), ("projector", calib.projector)):
-        K = lens.K
-        t.add_row(name, f"{K[0, 0]:.2f}", f"{K[1, 1]:.2f}", f"{K[0, 2]:.2f}", f"{K[1, 2]:.2f}",
-                  f"{lens.dist[0]:.4f}", f"{lens.dist[1]:.4f}", f"{rms[name]:.3f}")
-    out.print(t)
+        if coeffs:
+            cells = [f"{k} {_value(coeffs[name][k], k)}" for k in COEFFICIENT_KEYS]
+        else:
+            values = (lens.K[0, 0], lens.K[1, 1], lens.K[0, 2], lens.K[1, 2], *lens.dist)
+            cells = [f"{k} {v:.4g}" for k, v in zip(COEFFICIENT_KEYS, values)]
+        out.print(f"  {name}: " + ", ".join(cells) + f"; RMS {rms[name]:.3f} px")
     out.print(f"camera–projector: baseline {calib.baseline_mm:.3f} mm, joint RMS "
               f"{rms['stereo']:.3f} px")
     sig = report.get("sigma")
     if sig:
-        c, p = sig["camera"], sig["projector"]
-        out.print(f"one-sigma (joint solve covariance): camera cx ±{c['cx']:.2f}, cy "
-                  f"±{c['cy']:.2f} px, fx ±{c['fx']:.2f} px; projector cx ±{p['cx']:.2f}, cy "
-                  f"±{p['cy']:.2f} px, fx ±{p['fx']:.2f} px; baseline ±{sig['baseline_mm']:.3f} mm")
+        out.print(f"one-sigma of the baseline: ±{sig['baseline_mm']:.3f} mm")
+    for which, m in (report.get("model") or {}).items():
+        out.print(f"{which} lens model: {m['model']} ({' '.join(m['terms'])}): "
+                  f"{escape(m['reason'])}")
+    cov = report.get("coverage_pct")
+    if cov:
+        out.print(f"corners cover {cov['camera']:.0f} % of the camera image, "
+                  f"{cov['projector']:.0f} % of the projector's")
+    for line in report.get("warnings", []):
+        out.print(f"[yellow]warning:[/] {escape(line)}")
+    pics = report.get("residual_pictures")
+    if pics:
+        first = next(iter(pics.values()))
+        out.print(f"residual vectors per pose: {len(pics)} pictures ({escape(first)} …) beside "
+                  "calibration-report.json")
     d, p = calib.axis_direction, calib.axis_point
     if calib.axis_measured:
         out.print(f"turntable axis: direction ({d[0]:.5f}, {d[1]:.5f}, {d[2]:.5f}), plate point "

@@ -27,6 +27,47 @@ def pixel_counts(counts: dict[str, Any]) -> str:
             f"{', '.join(losses) or 'none'}")
 
 
+def refuse_layout_overrides(overrides: list[str], layout: str | None) -> None:
+    """``--set layout.KEY=…`` is refused with the way that works: a layout is a file, so copy
+    it, change the key there and pass the copy with ``--layout``."""
+    from dotshell.errors import ProfileError
+
+    keys = [o.split("=", 1)[0] for o in overrides if o.strip().startswith(("layout.", "decoder."))]
+    if not keys:
+        return
+    source = "the layout file"
+    if layout:
+        from dotshell.errors import RunError
+        from dotshell.pipeline.captures import resolve_layout_path
+
+        try:
+            source = str(resolve_layout_path(layout))
+        except RunError:
+            pass
+    raise ProfileError(
+        f"--set {keys[0]}=…: layout keys are not settings of the command; they live in the "
+        f"layout file. Copy {source} to a file of your own (cp {source} my-layout.toml), set "
+        f"{keys[0].split('.', 1)[1]} there and pass --layout my-layout.toml.")
+
+
+#: A loss at least this share of the pixels (%) gets its meaning and fix printed.
+NOTE_SHARE_PCT = 5.0
+
+
+def loss_notes(counts: dict[str, Any]) -> list[str]:
+    """What each large loss means and what would fix it (one line each; row rejections at any
+    share, since each is a code the calibration contradicts)."""
+    from dotshell.pipeline.reconstruct import LOSSES
+
+    total = max(int(counts.get("pixels", 0)), 1)
+    out = []
+    for key in LOSS_ORDER:
+        share = 100 * int(counts.get(key) or 0) / total
+        if key in LOSSES and (share >= NOTE_SHARE_PCT or (key == "row_rejected" and share > 0)):
+            out.append(f"{key.replace('_', ' ')} ({share:.1f} %): {LOSSES[key]}")
+    return out
+
+
 def add_layout_arg(sp: argparse.ArgumentParser, what: str = "the sequence") -> None:
     """``--layout LAYOUT``: a layout TOML or the name of a shipped one."""
     from dotshell.shipped import shipped_names
@@ -79,3 +120,10 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
 def print_view(view: dict[str, Any], out: Console) -> None:
     out.print(pixel_counts(view["counts"]))
+    q = view.get("quality")
+    if q:
+        out.print(f"  decoded {q['decoded_pct']:.1f} % of the image; estimated wrong codes: "
+                  f"{q['reversals']} neighbour reversals ({q['reversals_pct']:.2f} % of the "
+                  "decoded pixels)")
+    for line in loss_notes(view["counts"]):
+        print_as_is(out, f"  {line}")

@@ -95,7 +95,10 @@ def sim_bench_view():
 
     pm = get_plugin_manager()
     profile = load_bench_profile(pm, quick=True)
-    settings = {k: v for k, v in profile.role("coding")["settings"].items() if k != "subpixel"}
+    # the frozen decoder has no adaptive classification (robust plus rescued pixels, tested in
+    # tests/test_decode_adaptive.py): its setting is left out
+    settings = {k: v for k, v in profile.role("coding")["settings"].items()
+                if k not in ("subpixel", "adaptive_sigmas")}
     coding = GrayCode(**settings)
     with Rig(profile, pm) as rig:
         rig.camera.set_exposure(profile.data["scan"]["exposure_ms"])

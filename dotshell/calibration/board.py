@@ -271,3 +271,16 @@ def fit_corner(gray: np.ndarray, start: np.ndarray, half: int,
 def flipped(det: Detection, board: Board) -> Detection:
     """The same detection with the corner order rotated by 180° (a checkerboard's symmetry)."""
     return Detection(det.pixels[::-1].copy(), det.ids.copy(), det.sharpness_px)
+
+
+def other_count(image: np.ndarray, board: Board) -> Board | None:
+    """A checkerboard one square more or fewer each way than ``board`` found in ``image``
+    (the counts given as inner corners, or as squares where corners were meant); ``None``
+    when neither is there or the target is not a checkerboard."""
+    if board.kind != "checkerboard":
+        return None
+    for step in (1, -1):
+        other = replace(board, columns=board.columns + step, rows=board.rows + step)
+        if min(other.columns, other.rows) >= 3 and detect(image, other) is not None:
+            return other
+    return None

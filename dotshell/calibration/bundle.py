@@ -13,7 +13,7 @@ its one-sigma uncertainty, reported with the result.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -24,40 +24,43 @@ from dotshell.errors import CalibrationError
 from dotshell.geometry.lens import Lens, project_points
 
 #: Distortion coefficients (OpenCV order k1, k2, p1, p2, k3) solved for, per ``distortion``.
-FREE_DISTORTION = {"k1": (0,), "k1k2": (0, 1), "k1k2k3": (0, 1, 4), "full": (0, 1, 2, 3, 4)}
+FREE_DISTORTION = {"k1": (0,), "k1k2": (0, 1), "k1k2k3": (0, 1, 4), "k1k2p1p2": (0, 1, 2, 3),
+                   "full": (0, 1, 2, 3, 4)}
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy")
+DISTORTION_NAMES = ("k1", "k2", "p1", "p2", "k3")
 
 
 @dataclass
 class _Layout:
     """Where each group of parameters sits in the parameter vector."""
 
-    n_dist: int
+    n_dist_cam: int
+    n_dist_proj: int
     n_poses: int
 
     @property
-    def lens_len(self) -> int:
-        return 4 + self.n_dist
+    def lenses_len(self) -> int:
+        return 8 + self.n_dist_cam + self.n_dist_proj
 
     @property
     def cam(self) -> slice:
-        return slice(0, self.lens_len)
+        return slice(0, 4 + self.n_dist_cam)
 
     @property
     def proj(self) -> slice:
-        return slice(self.lens_len, 2 * self.lens_len)
+        return slice(4 + self.n_dist_cam, self.lenses_len)
 
     @property
     def stereo(self) -> slice:
-        return slice(2 * self.lens_len, 2 * self.lens_len + 6)
+        return slice(self.lenses_len, self.lenses_len + 6)
 
     def pose(self, i: int) -> slice:
-        s = 2 * self.lens_len + 6 + 6 * i
+        s = self.lenses_len + 6 + 6 * i
         return slice(s, s + 6)
 
     @property
     def size(self) -> int:
-        return 2 * self.lens_len + 6 + 6 * self.n_poses
+        return self.lenses_len + 6 + 6 * self.n_poses
 
 
 @dataclass
@@ -65,7 +68,9 @@ class BundleSolve:
     """Result of :func:`bundle_adjust`.
 
     ``sigma`` holds the one-sigma uncertainties from the covariance: ``camera`` and
-    ``projector`` → {fx, fy, cx, cy (px)}, ``baseline_mm``.
+    ``projector`` → {fx, fy, cx, cy (px), and each distortion term solved}, ``baseline_mm``.
+    ``residuals`` holds, per pose name, ``camera`` and ``projector`` → (corner pixels (N, 2),
+    residual vectors (N, 2) px, model minus measured).
     """
 
     camera: Lens
@@ -79,6 +84,7 @@ class BundleSolve:
     projector_rms_px: float
     per_pose_rms_px: dict[str, float]
     sigma: dict
+    residuals: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]] = field(default_factory=dict)
 
 
 def _lens_vector(lens: Lens, free: tuple[int, ...]) -> np.ndarray:
@@ -95,7 +101,7 @@ def _lens_from(v: np.ndarray, free: tuple[int, ...], fixed: np.ndarray) -> tuple
 
 def bundle_adjust(cam_poses: list[PoseData], proj_poses: list[PoseData], camera: Lens,
                   projector: Lens, R: np.ndarray, T: np.ndarray, rvecs: dict[str, np.ndarray],
-                  tvecs: dict[str, np.ndarray], distortion: str) -> BundleSolve:
+                  tvecs: dict[str, np.ndarray], distortion: str | tuple[str, str]) -> BundleSolve:
     """Refine both lenses, ``X_p = R X_c + T`` and every board pose together.
 
     Args:
@@ -103,7 +109,8 @@ def bundle_adjust(cam_poses: list[PoseData], proj_poses: list[PoseData], camera:
             missing or carry a subset of the corners; matched by pose name and object point).
         camera, projector, R, T: the initial solve (e.g. OpenCV's stereo calibration).
         rvecs, tvecs: initial board → camera poses by pose name (Rodrigues vector, mm).
-        distortion: ``k1`` | ``k1k2`` | ``k1k2k3`` | ``full`` (terms not solved stay as given).
+        distortion: a model of :data:`FREE_DISTORTION` for both lenses, or (camera model,
+            projector model); terms not solved stay as given.
     """
     problem = _Problem(cam_poses, proj_poses, camera, projector, R, T, rvecs, tvecs, distortion)
     # Levenberg–Marquardt from the stereo solve converges in a few steps (a dense Jacobian of
@@ -118,8 +125,9 @@ class _Problem:
 
     def __init__(self, cam_poses: list[PoseData], proj_poses: list[PoseData], camera: Lens,
                  projector: Lens, R: np.ndarray, T: np.ndarray, rvecs: dict[str, np.ndarray],
-                 tvecs: dict[str, np.ndarray], distortion: str) -> None:
-        self.free = FREE_DISTORTION[distortion]
+                 tvecs: dict[str, np.ndarray], distortion: str | tuple[str, str]) -> None:
+        cam_model, proj_model = (distortion, distortion) if isinstance(distortion, str) else distortion
+        self.free_c, self.free_p = FREE_DISTORTION[cam_model], FREE_DISTORTION[proj_model]
         self.names = [p.name for p in cam_poses if p.name in rvecs]
         if len(self.names) < 3:
             raise CalibrationError(f"bundle adjustment: {len(self.names)} poses with a board "
@@ -127,10 +135,10 @@ class _Problem:
         cam_by = {p.name: p for p in cam_poses}
         proj_by = {p.name: p for p in proj_poses}
         self.camera, self.projector = camera, projector
-        self.lay = lay = _Layout(len(self.free), len(self.names))
+        self.lay = lay = _Layout(len(self.free_c), len(self.free_p), len(self.names))
         x0 = np.zeros(lay.size)
-        x0[lay.cam] = _lens_vector(camera, self.free)
-        x0[lay.proj] = _lens_vector(projector, self.free)
+        x0[lay.cam] = _lens_vector(camera, self.free_c)
+        x0[lay.proj] = _lens_vector(projector, self.free_p)
         x0[lay.stereo] = np.concatenate([cv2.Rodrigues(np.asarray(R, float))[0].ravel(),
                                          np.asarray(T, float).ravel()])
         for i, n in enumerate(self.names):
@@ -147,8 +155,8 @@ class _Problem:
         self.n_proj = [len(o) for o in self.obj_p]
 
     def lenses(self, x: np.ndarray):
-        Kc, dc = _lens_from(x[self.lay.cam], self.free, self.dist_c0)
-        Kp, dp = _lens_from(x[self.lay.proj], self.free, self.dist_p0)
+        Kc, dc = _lens_from(x[self.lay.cam], self.free_c, self.dist_c0)
+        Kp, dp = _lens_from(x[self.lay.proj], self.free_p, self.dist_p0)
         return Kc, dc, Kp, dp
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
@@ -172,11 +180,13 @@ class _Problem:
         x, lay, names = sol.x, self.lay, self.names
         Kc, dc, Kp, dp = self.lenses(x)
         res = sol.fun
-        per, cam_sq, proj_sq, r = {}, [], [], 0
-        for n, nc, np_ in zip(names, self.n_cam, self.n_proj):
+        per, cam_sq, proj_sq, r, vectors = {}, [], [], 0, {}
+        for i, (n, nc, np_) in enumerate(zip(names, self.n_cam, self.n_proj)):
             c = res[r:r + 2 * nc]
             p = res[r + 2 * nc:r + 2 * nc + 2 * np_]
             r += 2 * (nc + np_)
+            vectors[n] = {"camera": (self.img_c[i], c.reshape(-1, 2)),
+                          "projector": (self.img_p[i], p.reshape(-1, 2))}
             cam_sq.append(c ** 2)
             proj_sq.append(p ** 2)
             both = np.concatenate([c, p])
@@ -190,7 +200,7 @@ class _Problem:
             {n: x[lay.pose(i)][3:].copy() for i, n in enumerate(names)},
             float(np.sqrt(2 * np.mean(res ** 2))), float(np.sqrt(2 * np.mean(cam_sq))),
             float(np.sqrt(2 * np.mean(proj_sq))) if len(proj_sq) else float("nan"), per,
-            _sigmas(sol, lay))
+            _sigmas(sol, lay, self.free_c, self.free_p), vectors)
 
 
 def covariance(jac, residuals: np.ndarray) -> np.ndarray:
@@ -207,11 +217,13 @@ def covariance(jac, residuals: np.ndarray) -> np.ndarray:
     return s2 * inv / np.outer(scale, scale)
 
 
-def _sigmas(sol, lay: _Layout) -> dict:
+def _sigmas(sol, lay: _Layout, free_c: tuple[int, ...], free_p: tuple[int, ...]) -> dict:
     cov = covariance(sol.jac, sol.fun)
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
-    out = {"camera": dict(zip(INTRINSIC_NAMES, sd[lay.cam][:4].tolist())),
-           "projector": dict(zip(INTRINSIC_NAMES, sd[lay.proj][:4].tolist()))}
+    out = {}
+    for which, part, free in (("camera", lay.cam, free_c), ("projector", lay.proj, free_p)):
+        names = INTRINSIC_NAMES + tuple(DISTORTION_NAMES[i] for i in free)
+        out[which] = dict(zip(names, sd[part].tolist()))
     T = sol.x[lay.stereo][3:]
     g = T / np.linalg.norm(T)  # d|T|/dT
     cT = cov[lay.stereo, lay.stereo][3:, 3:]

@@ -8,6 +8,7 @@ Run directory::
     <out>/<time>_calibrate-<profile>/
         profile.toml  capture.json  frames/pose_00/000_white.png ...  frames/turntable_00/...
         calibration.json  calibration.yml  calibration-report.json  [ground_truth.json]
+        report/residuals_<pose>.png  residual vectors per pose (camera | projector)
         [calibration-refused.json]   a solve out of bounds: its figures (nothing else written)
 
 ``capture.json`` (format ``dotshell-calibration-capture/1``, documented in
@@ -29,6 +30,7 @@ import numpy as np
 
 from dotshell.calibration.board import Board, detect, flipped
 from dotshell.calibration.bundle import bundle_adjust
+from dotshell.calibration.models import choose_model
 from dotshell.calibration.solve import (OutlierRule, PoseData, calibrate_lens, calibrate_stereo,
                                         projector_corners, turntable_axis)
 from dotshell.errors import CalibrationError
@@ -295,6 +297,8 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
         rep: dict[str, Any] = {"image": white}
         poses_report[name] = rep
         if det is None:
+            if pose is free[0]:  # the first pose only: a wrong count is named at once
+                _refuse_other_count(frames[0], board, white)
             left_out[name] = f"target not found in {white}"
             continue
         rep["corners"] = int(len(det.ids))
@@ -322,20 +326,17 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
         names = ", ".join(frames_of.white(p) for p in free) or "(no free poses)"
         raise CalibrationError(
             f"{run}: the {board.kind} ({board.columns}x{board.rows} squares) was not found in "
-            f"any image: {names}. Check [calibrate] target, columns and rows (squares, not inner "
-            "corners), exposure and focus.")
+            f"any image: {names}. Check the target and its counts (--board COLSxROWS or "
+            "[calibrate] columns and rows: squares, not inner corners), exposure and focus.")
     t1 = time.perf_counter()
-    cam_left = {k: v for k, v in left_out.items() if ":" not in k}
-    cam = calibrate_lens("camera", cam_poses, cam_size, settings["distortion"], rule, cam_left)
-    proj_left = {k.split(":")[0]: v for k, v in left_out.items()}
-    proj_left.update({k: "left out of the camera solve" for k in cam.left_out if k not in proj_left})
-    proj = calibrate_lens("projector", proj_poses, proj_size, settings["distortion"], rule,
-                          proj_left)
-    stereo = calibrate_stereo(cam, proj, cam_poses, proj_poses, settings["distortion"])
+    cam, proj, models, choices = solve_lenses(cam_poses, proj_poses, cam_size, proj_size,
+                                              settings["distortion"], rule, left_out)
+    pair = (models["camera"], models["projector"])
+    stereo = calibrate_stereo(cam, proj, cam_poses, proj_poses, pair)
     joint = bundle_adjust([p for p in cam_poses if p.name in cam.per_pose_rms_px],
                           [p for p in proj_poses if p.name in proj.per_pose_rms_px],
                           stereo.camera, stereo.projector, stereo.R, stereo.T, cam.rvecs,
-                          cam.tvecs, settings["distortion"])
+                          cam.tvecs, pair)
     t2 = time.perf_counter()
     axis = solve_turntable(run, turn, board, joint.camera, cam_size, settings) if turn else None
     t3 = time.perf_counter()
@@ -365,6 +366,8 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
                      "turntable": axis.left_out if axis else {}},
         "poses": poses_report,
         "sigma": joint.sigma,
+        **evidence(run, joint, models, choices, {"camera": cam_size, "projector": proj_size},
+                   settings),
         "timings_s": {"detect_decode": round(t1 - t0, 3), "solve": round(t2 - t1, 3),
                       "turntable": round(t3 - t2, 3)},
     }
@@ -373,6 +376,72 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
         report["ground_truth"] = compare_to_truth(calib, RigCalibration.load(truth_path))
     _publish(run, calib, report, out_of_bounds(calib, joint.sigma, axis, settings))
     return CalibrationResult(calib, report, run)
+
+
+def _refuse_other_count(image: np.ndarray, board: Board, where: str) -> None:
+    """Stop at once when ``image`` holds the board with one square more or fewer each way
+    (inner corners counted for squares): the message names the counts that would work."""
+    from dotshell.calibration.board import other_count
+
+    other = other_count(image, board)
+    if other is not None:
+        raise CalibrationError(
+            f"{where}: no checkerboard of {board.columns}x{board.rows} squares "
+            f"({board.inner[0]}x{board.inner[1]} inner corners) in the image, but one of "
+            f"{other.columns}x{other.rows} squares is: give --board {other.columns}x{other.rows} "
+            f"(or [calibrate] columns = {other.columns}, rows = {other.rows}); the counts are "
+            "squares, not inner corners.")
+
+
+def solve_lenses(cam_poses: list[PoseData], proj_poses: list[PoseData], cam_size, proj_size,
+                 distortion: str, rule: OutlierRule, left_out: dict[str, str]):
+    """Camera and projector solved alone: (camera solve, projector solve, lens → model,
+    lens → :class:`~dotshell.calibration.models.ModelChoice` when ``distortion`` is
+    ``"auto"``). Choosing, outlier poses are judged by the richest model (a simple model's
+    misfit is not a bad pose), then each lens is solved again with its chosen model.
+    ``left_out`` holds the poses already left out (``name:projector`` for the projector only)."""
+    first = "full" if distortion == "auto" else distortion
+    cam_left = {k: v for k, v in left_out.items() if ":" not in k}
+    cam = calibrate_lens("camera", cam_poses, cam_size, first, rule, cam_left)
+    proj_left = {k.split(":")[0]: v for k, v in left_out.items()}
+    proj_left.update({k: "left out of the camera solve" for k in cam.left_out if k not in proj_left})
+    proj = calibrate_lens("projector", proj_poses, proj_size, first, rule, proj_left)
+    if distortion != "auto":
+        return cam, proj, {"camera": distortion, "projector": distortion}, {}
+    choices, solves = {}, []
+    for what, lens_solve, poses, size in (("camera", cam, cam_poses, cam_size),
+                                          ("projector", proj, proj_poses, proj_size)):
+        kept = [p for p in poses if p.name in lens_solve.per_pose_rms_px]
+        choices[what] = choose_model(what, kept, size)
+        solves.append(calibrate_lens(what, poses, size, choices[what].chosen, rule,
+                                     lens_solve.left_out))
+    return solves[0], solves[1], {w: c.chosen for w, c in choices.items()}, choices
+
+
+def evidence(run: Path, joint, models: dict[str, str], choices: dict, sizes: dict[str, tuple],
+             settings: dict[str, Any]) -> dict[str, Any]:
+    """The report's evidence: the lens models (chosen and why), every coefficient with its
+    one-sigma, the image coverage by corners, residual pictures per pose (``report/``) and
+    the warnings that name a poorly determined parameter and its fix."""
+    from dotshell.calibration.report import (coverage_pct, lens_warnings, model_summary,
+                                             write_residual_pictures)
+
+    warn_pct = settings.get("warn_sigma_pct", 0.25)
+    coverage, coefficients, warnings = {}, {}, []
+    for which, lens in (("camera", joint.camera), ("projector", joint.projector)):
+        points = [r[which][0] for r in joint.residuals.values()]
+        coverage[which] = coverage_pct(points, sizes[which])
+        sig = joint.sigma[which]
+        values = {"fx": lens.K[0, 0], "fy": lens.K[1, 1], "cx": lens.K[0, 2], "cy": lens.K[1, 2],
+                  **dict(zip(("k1", "k2", "p1", "p2", "k3"), lens.dist))}
+        coefficients[which] = {k: {"value": float(v), "sigma": sig.get(k)}
+                               for k, v in values.items()}
+        warnings += lens_warnings(which, lens, sig, models[which], coverage[which], warn_pct)
+    (run / "report").mkdir(exist_ok=True)
+    pictures = write_residual_pictures(run / "report", joint.residuals, sizes)
+    return {"model": model_summary(choices, models), "coefficients": coefficients,
+            "coverage_pct": coverage, "warnings": warnings,
+            "residual_pictures": {n: f"report/{f}" for n, f in pictures.items()}}
 
 
 def out_of_bounds(calib: RigCalibration, sigma: dict[str, Any], axis: "_Axis | None",
@@ -494,7 +563,8 @@ def compare_to_truth(calib: RigCalibration, truth: RigCalibration) -> dict[str, 
     def lens(m, t):
         return {"fx_pct": 100 * (m.K[0, 0] / t.K[0, 0] - 1), "fy_pct": 100 * (m.K[1, 1] / t.K[1, 1] - 1),
                 "cx_px": m.K[0, 2] - t.K[0, 2], "cy_px": m.K[1, 2] - t.K[1, 2],
-                "k1": m.dist[0] - t.dist[0], "k2": m.dist[1] - t.dist[1]}
+                "k1": m.dist[0] - t.dist[0], "k2": m.dist[1] - t.dist[1],
+                "p1": m.dist[2] - t.dist[2], "p2": m.dist[3] - t.dist[3]}
 
     dR = calib.R @ truth.R.T
     cos = np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)

@@ -17,8 +17,11 @@ CALIBRATE_SCHEMA: dict[str, Setting] = {
                           help="ArUco dictionary of the ChArUco markers (cv2.aruco name)"),
     "exposure_ms": Setting("float", default=10.0, min=0.001, unit="ms",
                            help="camera exposure for the target frames"),
-    "distortion": Setting("str", default="k1", choices=("k1", "k1k2", "k1k2k3", "full"),
-                          help="distortion terms solved for: k1 | k1 k2 | k1 k2 k3 | k1 k2 p1 p2 k3 (narrow fields of view: k1)"),
+    "distortion": Setting("str", default="auto",
+                          choices=("auto", "k1", "k1k2", "k1k2k3", "k1k2p1p2", "full"),
+                          help="lens model solved for: auto (each lens's model chosen by "
+                               "held-out poses, docs/calibration.md) | k1 | k1 k2 | k1 k2 k3 | "
+                               "k1 k2 p1 p2 | full = k1 k2 p1 p2 k3"),
     "min_poses": Setting("int", default=4, min=3,
                          help="fewest good poses a solve accepts (a solve from few poses is "
                               "still refused when its uncertainty exceeds max_sigma_pct)"),
@@ -34,6 +37,10 @@ CALIBRATE_SCHEMA: dict[str, Setting] = {
                                   "uncertainty of a focal length or of the baseline exceeds "
                                   "this share of its value, or that of a principal point this "
                                   "share of the focal length"),
+    "warn_sigma_pct": Setting("float", default=0.25, min=0.0001, unit="%",
+                              help="a principal point or focal length whose one-sigma exceeds "
+                                   "this share of the focal length is named as poorly "
+                                   "determined, with the pose that would determine it"),
     "max_blur_px": Setting("float", default=6.0, min=0.5, unit="px",
                            help="checkerboard edges wider than this (10–90 % rise) mark the "
                                 "pose blurred"),

@@ -24,6 +24,7 @@ DISTORTION_FLAGS = {
     "k1": cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
     "k1k2": cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
     "k1k2k3": cv2.CALIB_ZERO_TANGENT_DIST,
+    "k1k2p1p2": cv2.CALIB_FIX_K3,
     "full": 0,
 }
 
@@ -171,9 +172,11 @@ class StereoSolve:
 
 
 def calibrate_stereo(cam: LensSolve, proj: LensSolve, cam_poses: list[PoseData],
-                     proj_poses: list[PoseData], distortion: str) -> StereoSolve:
+                     proj_poses: list[PoseData], distortion: str | tuple[str, str]) -> StereoSolve:
     """Jointly refine the camera and projector lenses and solve ``X_p = R X_c + T`` from the
-    poses both solves kept (each with the corners seen by both)."""
+    poses both solves kept (each with the corners seen by both). With two different models
+    (camera model, projector model) the lenses stay as their own solves left them (the bundle
+    adjustment refines them) and only the pose is solved."""
     names = [n for n in proj.per_pose_rms_px if n in cam.per_pose_rms_px]
     if not names:
         raise CalibrationError("camera–projector: no pose was kept by both the camera and the "
@@ -189,7 +192,9 @@ def calibrate_stereo(cam: LensSolve, proj: LensSolve, cam_poses: list[PoseData],
         obj.append(p.object_points.astype(np.float32).reshape(-1, 1, 3))
         ic.append(c.image_points[idx].astype(np.float32).reshape(-1, 1, 2))
         ip.append(p.image_points.astype(np.float32).reshape(-1, 1, 2))
-    flags = DISTORTION_FLAGS[distortion] | cv2.CALIB_USE_INTRINSIC_GUESS
+    models = (distortion, distortion) if isinstance(distortion, str) else tuple(distortion)
+    flags = (DISTORTION_FLAGS[models[0]] | cv2.CALIB_USE_INTRINSIC_GUESS
+             if models[0] == models[1] else cv2.CALIB_FIX_INTRINSIC)
     out = cv2.stereoCalibrateExtended(
         obj, ic, ip, cam.lens.K.copy(), cam.lens.dist.copy(), proj.lens.K.copy(),
         proj.lens.dist.copy(), cam.lens.size, np.eye(3), np.zeros(3), flags=flags,

@@ -195,6 +195,19 @@ def _read_gray(path: Path) -> np.ndarray:
     return img
 
 
+def _nothing_matches(directory: Path, layout: Layout, first: str) -> str:
+    """The error when no file of ``directory`` matches the layout's ``files`` pattern: what the
+    pattern expects, what the directory holds, and the two keys that say it."""
+    held = sorted(p.name for p in directory.iterdir() if p.is_file())
+    shown = ", ".join(held[:5]) + (" …" if len(held) > 5 else "") if held else "no files"
+    return (f"{directory}: no file matches the files = {layout.files!r} of layout "
+            f"{layout.name!r} "
+            f"(its first frame would be {first}, from first_index = {layout.first_index}); the "
+            f"directory holds {shown}. Set [layout] files (and first_index, the number of the "
+            f"first frame) to your files' names in a copy of {layout.source} and pass it with "
+            "--layout.")
+
+
 def sequence_files(directory: Path, layout: Layout, order: list[str]) -> list[Path]:
     """The files of the sequence in ``directory``, in capture order; a missing frame or a file
     matching the layout's pattern that the layout does not expect is an error naming them."""
@@ -204,6 +217,8 @@ def sequence_files(directory: Path, layout: Layout, order: list[str]) -> list[Pa
     rx = _glob_pattern(layout.files)
     present = sorted(p.name for p in directory.iterdir() if rx.match(p.name))
     expected = [layout.file_name(i) for i in range(len(order))]
+    if not present:
+        raise RunError(_nothing_matches(directory, layout, expected[0]))
     missing = [n for n in expected if n not in present]
     extra = [n for n in present if n not in expected]
     if missing or extra:
@@ -213,7 +228,8 @@ def sequence_files(directory: Path, layout: Layout, order: list[str]) -> list[Pa
             f"{len(present)} files matching {layout.files!r}"
             + (f"; missing: {', '.join(missing[:6])}{' …' if len(missing) > 6 else ''}" if missing else "")
             + (f"; not in the layout: {', '.join(extra[:6])}{' …' if len(extra) > 6 else ''}" if extra else "")
-            + ". Check the layout's order, inverse, drop_low_bits and projector size.")
+            + ". Check the layout's files and first_index (the names), order, inverse, "
+            "drop_low_bits and projector size.")
     return [directory / fn for fn in expected]
 
 

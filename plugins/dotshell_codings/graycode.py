@@ -66,16 +66,25 @@ SETTINGS_SCHEMA: dict[str, Setting] = {
         help="project each bit with its inverse and compare the pair (robust to albedo and "
              "defocus); false: compare with the per-pixel (white + black) / 2"),
     "classification": Setting(
-        "str", "robust", choices=("contrast", "robust"),
+        "str", "robust", choices=("contrast", "robust", "adaptive"),
         help="how each bit is decided: 'contrast' = pattern > inverse, bits weaker than "
              "min_contrast mark the pixel low_contrast; 'robust' = Xu & Aliaga's rule with "
-             "direct/global separation (bit decided or uncertain); without inverses "
-             "'contrast' is used"),
+             "direct/global separation (bit decided or uncertain); 'adaptive' = robust, and "
+             "a pixel robust leaves uncertain is decoded as 'contrast' decodes it when all its "
+             "bits but one also stand out of the camera noise by adaptive_sigmas (the noise "
+             "model is measured from the frames) and beyond what global light could do; "
+             "without inverses 'contrast' is used"),
+    "adaptive_sigmas": Setting(
+        "float", 6.0, min=1.0,
+        help="adaptive classification: the least |pattern - inverse| of a pixel's bits (all "
+             "but its weakest) in noise sigmas for a pixel robust leaves uncertain to be "
+             "decoded"),
     "min_contrast": Setting(
         "float", 0.1, min=0.0, max=1.0,
-        help="minimum |pattern - inverse| as a fraction of the pixel's white - black range "
-             "(without inverses: 2 |pattern - mid|); weaker bits mark the pixel low_contrast "
-             "(classification = 'contrast' only)"),
+        help="contrast classification: minimum |pattern - inverse| as a fraction of the "
+             "pixel's white - black range (without inverses: 2 |pattern - mid|), weaker bits "
+             "mark the pixel low_contrast; robust and adaptive: the finest pairs' minimum "
+             "|pattern - inverse| as a fraction of the direct light L_d (weaker: uncertain)"),
     "direct_min": Setting(
         "float", 0.0, min=0.0, max=1.0,
         help="robust classification: minimum direct light L_d as a fraction of full scale; "
@@ -220,13 +229,13 @@ class GrayCode:
                  shadow_threshold: float = 0.03, drop_low_bits: int = 0, subpixel: bool = True,
                  bit_depth: int = 0, classification: str = "robust", direct_min: float = 0.0,
                  high_frequency_pairs: int = 2, black_level: float = 0.0,
-                 centred: bool = True) -> None:
+                 centred: bool = True, adaptive_sigmas: float = 6.0) -> None:
         if axes not in ("columns", "both"):
             raise ValueError(f"axes must be 'columns' or 'both', not {axes!r}")
-        if classification not in ("contrast", "robust"):
-            raise ValueError(f"classification must be 'contrast' or 'robust', not "
+        if classification not in ("contrast", "robust", "adaptive"):
+            raise ValueError(f"classification must be 'contrast', 'robust' or 'adaptive', not "
                              f"{classification!r}")
-        if classification == "robust" and not inverse:
+        if classification in ("robust", "adaptive") and not inverse:
             classification = "contrast"  # the rule needs inverses; see the setting's help
         self.axes = axes
         self.inverse = bool(inverse)
@@ -240,6 +249,7 @@ class GrayCode:
         self.high_frequency_pairs = int(high_frequency_pairs)
         self.black_level = float(black_level)
         self.centred = bool(centred)
+        self.adaptive_sigmas = float(adaptive_sigmas)
 
     # ---- patterns ------------------------------------------------------------------------
 
@@ -311,6 +321,8 @@ class GrayCode:
         return stack, full
 
     def decode(self, frames: Sequence[np.ndarray], projector_size: tuple[int, int]) -> Correspondence:
+        if self.classification == "adaptive":
+            return self._decode_adaptive(frames, projector_size)
         axes = self._axes(projector_size)
         stack, full = self._stack(frames, axes)
         rule = self._rule(stack, axes, full)
@@ -329,6 +341,48 @@ class GrayCode:
         return Correspondence(column=coords[0], row=coords[1] if len(coords) > 1 else None,
                               valid=valid, stats=stats, reason=reason,
                               reason_names=("decoded", "shadow", poor, "out_of_range"))
+
+    def _with(self, **changes: Any) -> "GrayCode":
+        """A copy of this coding with some attributes changed."""
+        import copy
+
+        other = copy.copy(self)
+        other.__dict__.update(changes)
+        return other
+
+    def _decode_adaptive(self, frames: Sequence[np.ndarray],
+                         projector_size: tuple[int, int]) -> Correspondence:
+        """Robust where it decides; where it leaves a pixel uncertain, the contrast rule's code
+        when every bit but the weakest stands ``adaptive_sigmas`` noise sigmas beyond what
+        global light could do to it (``max(L_g − L_d, 0)``; the one weak bit is the stripe edge
+        the decoder tolerates anyway)."""
+        from dotshell_codings.robust import noise_model, second_weakest_sigmas
+
+        robust = self._with(classification="robust").decode(frames, projector_size)
+        plain = self._with(classification="contrast").decode(frames,
+                                                                               projector_size)
+        floor, gain = noise_model(frames)
+        axes = self._axes(projector_size)
+        firsts = np.cumsum([0] + [ax.nb for ax in axes])[:-1]
+        sep = [int(f) + ax.nb - 1 - i for f, ax in zip(firsts, axes)
+               for i in range(min(self.high_frequency_pairs, ax.nb))]
+        uncertain = robust.reason == robust.reason_names.index("uncertain")
+        rescued = uncertain & plain.valid
+        sure = second_weakest_sigmas(frames, floor, gain, sep, rescued) >= self.adaptive_sigmas
+        rescued[rescued] = sure
+        n = int(rescued.sum())
+        stats = dict(robust.stats)
+        stats["decoded"] += n
+        stats["uncertain"] -= n
+        stats["adaptive_rescued"] = n
+        stats["noise_floor"] = round(float(np.sqrt(floor)), 3)
+        stats["noise_gain"] = round(float(gain), 5)
+        reason = robust.reason.copy()
+        reason[rescued] = 0
+        row = None if robust.row is None else np.where(rescued, plain.row, robust.row)
+        return Correspondence(column=np.where(rescued, plain.column, robust.column), row=row,
+                              valid=robust.valid | rescued, stats=stats, reason=reason,
+                              reason_names=robust.reason_names)
 
     def _decode_rows(self, stack: np.ndarray, axes: list[_Axis], rule: tuple,
                      words: "ClassifiedBits | None") -> tuple:

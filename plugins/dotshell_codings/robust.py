@@ -150,3 +150,66 @@ def robust_bits(pattern: np.ndarray, inverse: np.ndarray, ld: np.ndarray, lg: np
     zero = np.where(direct_wins, p <= q, enough & (p <= ld) & (q >= lg))
     one = np.where(direct_wins, p > q, enough & (p >= lg) & (q <= ld)) & ~zero  # 0 tested first
     return one, ~(one | zero)
+
+
+#: Noise-model fit: pixels whose white − black is below this share of full scale are left out
+#: (shadow), as are those within 1 % of full scale (saturation breaks the identity).
+_MODEL_MIN_RANGE = 0.03
+
+
+def noise_model(frames: Sequence[np.ndarray]) -> tuple[float, float]:
+    """The camera's noise, ``var(I) = floor + gain · (I − black)`` (frame units²), measured
+    from a pattern/inverse sequence (white, black, then pairs).
+
+    Light adds linearly, so pattern + inverse = white + black at every pixel, global light
+    included: ``r = p + q − w − b`` is pure noise with ``var(r) = 4 floor + 2 gain (w − b)``.
+    The fit is a line through the medians of ``r²`` (÷ 0.4549, the median of χ²₁) in ten
+    equal-count bins of ``w − b``, on every second pixel each way."""
+
+    def sub(k: int) -> np.ndarray:
+        return np.asarray(frames[k])[::2, ::2].astype(np.float32)
+
+    white, black = sub(0), sub(1)
+    rng = white - black
+    top = full_scale(np.asarray(frames[0]))
+    ok = (rng > _MODEL_MIN_RANGE * top) & (white < 0.99 * top) & np.isfinite(rng)
+    if ok.sum() < 100 or len(frames) < 4:
+        return float(noise_sigma(np.asarray(frames[1])) ** 2), 0.0
+    level, base = rng[ok], (white + black)[ok]
+    order = np.argsort(level, kind="stable")
+    sq = np.stack([(sub(k)[ok] + sub(k + 1)[ok] - base) ** 2
+                   for k in range(2, len(frames) - 1, 2)], axis=1)[order]
+    chunks = np.array_split(np.arange(len(order)), 10)
+    xs = [float(np.median(level[order][c])) for c in chunks]
+    ys = [float(np.median(sq[c])) / 0.4549 for c in chunks]
+    slope, intercept = np.polyfit(xs, ys, 1)
+    return max(float(intercept), 0.0) / 4.0, max(float(slope), 0.0) / 2.0
+
+
+def second_weakest_sigmas(frames: Sequence[np.ndarray], floor: float, gain: float,
+                          separation_pairs: Sequence[int], where: np.ndarray) -> np.ndarray:
+    """For the pixels ``where`` (H, W bool) is true, how far all their bits but the weakest are
+    from undecidable, in noise sigmas (1-D, in ``np.nonzero(where)`` order): the second
+    smallest ``(|p − q| − max(L_g − L_d, 0)) / σ(p − q)`` over the pattern/inverse pairs.
+    ``L_d``, ``L_g``: :func:`direct_global` of the pairs numbered ``separation_pairs`` (0 = the
+    first pair); where global light exceeds direct light a bit's sign is sure only beyond
+    ``L_g − L_d`` (a pattern's and its inverse's global light differ by at most that);
+    ``σ² = 2 floor + gain (p + q − 2 black)`` (:func:`noise_model`)."""
+    ys, xs = np.nonzero(where)
+
+    def at(k: int) -> np.ndarray:
+        return np.asarray(frames[k])[ys, xs].astype(np.float32)
+
+    black = at(1)
+    sep = [at(2 + 2 * k + j) - black for k in separation_pairs for j in (0, 1)]
+    ld, lg = direct_global(sep) if sep else (np.zeros_like(black), np.zeros_like(black))
+    ambiguous = np.maximum(lg - ld, 0.0)
+    low = np.full(black.shape, np.inf, np.float32)
+    second = np.full(black.shape, np.inf, np.float32)
+    for k in range(2, len(frames) - 1, 2):
+        p, q = at(k), at(k + 1)
+        var = np.maximum(2 * floor + gain * np.maximum(p + q - 2 * black, 0.0), 1e-6)
+        z = np.nan_to_num((np.abs(p - q) - ambiguous) / np.sqrt(var), nan=-np.inf)
+        second = np.minimum(second, np.maximum(low, z))
+        low = np.minimum(low, z)
+    return second
