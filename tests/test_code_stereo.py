@@ -120,7 +120,7 @@ def test_camera_pair_commands_end_to_end(tmp_path, capsys):
     from dotshell.calibration.board import Board
     from dotshell.cli import main
     from dotshell.geometry.fit import fit_cylinder, radial_distance
-    from dotshell.pipeline.captures import SHIPPED_LAYOUTS
+    from dotshell.shipped import shipped_file
     from dotshell.ply import read_ply
 
     raw = scale_profile(tomllib.loads((ROOT / "profiles" / "sim-metal-cylinder.toml")
@@ -130,7 +130,7 @@ def test_camera_pair_commands_end_to_end(tmp_path, capsys):
     truths = [rig["camera"].ground_truth_calibration() for rig in rigs]
     w, h = rigs[0]["projector"].resolution
     layout = tmp_path / "layout.toml"
-    layout.write_text((SHIPPED_LAYOUTS / "opencv-graycode.toml").read_text()
+    layout.write_text(shipped_file("layouts", "opencv-graycode").read_text()
                       .replace("projector_width = 1024", f"projector_width = {w}")
                       .replace("projector_height = 768", f"projector_height = {h}"))
     images = opencv_graycode.capture_sequence(w, h)
