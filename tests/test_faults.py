@@ -1419,3 +1419,36 @@ def test_a_stop_signal_never_cuts_a_queue_operation_short() -> None:
             time.sleep(0.05)  # the handler has run by now, and did not raise here
             reached_end = True
     assert reached_end and stopped.value.signame == "SIGTERM"
+
+
+# ==== a slow host (issue 33) =====================================================================
+
+@pytest.mark.parametrize("acquisition", ["sequenced", "show-capture"])
+def test_a_slow_simulator_never_times_out(acquisition: str, tmp_path: Path, monkeypatch,
+                                          capsys) -> None:
+    """The simulated camera's rendering is slowed (every render waits 50 ms more, as on a
+    host whose cores other work holds) while its calls' timeouts are 0.2 s: rendering is the
+    simulator's own compute, so the scan completes. Without ``RigContext.computing`` the
+    sequence's ``read_armed()`` (30 renders) and each capture failed with DeviceTimeout. A
+    device that really stalls still times out: tests/test_device_handles.py."""
+    import dotshell.handles as handles
+    from dotshell_sim.render import Renderer
+
+    monkeypatch.setattr(handles, "GRACE_S", 0.05)
+    render = Renderer.render
+    slowed = []
+
+    def slow_render(self, view, radiance):
+        slowed.append(1)
+        time.sleep(0.05)
+        return render(self, view, radiance)
+
+    monkeypatch.setattr(Renderer, "render", slow_render)
+    prof = write_profile(tmp_path / "p.toml", tiny_profile_dict(
+        scan__acquisition=acquisition, camera__timeouts={"capture": 0.2, "other": 0.2},
+        mesh={"after_scan": False}))
+    code = main(["scan", str(prof), "--out", str(tmp_path / "runs")])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert manifest(only_run(tmp_path / "runs"))["status"] == "completed"
+    assert len(slowed) >= 60  # 2 views of 30 frames, each rendered more slowly than 0.2 s / 4
