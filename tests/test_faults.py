@@ -649,6 +649,42 @@ _calibration_case("empty", lambda g: "", ("is not valid JSON",), command="scan")
 _calibration_case("not UTF-8", lambda g: b"\xff\xfe{}", ("is not valid JSON",))
 
 
+# ==== 8b. calibration models and sizes (issue 33) ===============================================
+
+_calibration_case("40 distortion terms", _with(camera__dist=[0.01] * 40),
+                  ("40 distortion terms", "4, 5, 8, 12 or 14", "k4, k5, k6, s1"))
+_calibration_case("tilted sensor terms", _with(projector__dist=[0.0] * 12 + [0.02, 0.0]),
+                  ("tilted-sensor distortion", "tau_x = 0.02"))
+_calibration_case("width 128.5", _with(camera__width=128.5),
+                  ("width 128.5 is not a whole number of pixels",))
+
+
+@case("calibration model", "/dev/zero as the calibration",
+      ("/dev/zero is not a regular file", "calibration.json"))
+def _(env):
+    return ["reconstruct", str(env.run()), "--calibration", "/dev/zero"]
+
+
+def _reconstructed_with_the_yml(env: Env, err: str) -> None:
+    run = env.tmp / "run1"
+    assert manifest(run)["status"] == "completed"
+    gens = sorted((run / "gen").iterdir())
+    assert any(str(env.tmp / "cal.yml") in (g / "calibration.json").read_text()
+               for g in gens if (g / "calibration.json").exists()), gens
+
+
+@case("calibration model", "an OpenCV .yml for a run (reconstruct RUN --calibration)", (),
+      code=0, then=_reconstructed_with_the_yml, state_may_change=True)
+def _(env):
+    from dotshell.geometry.calibration import RigCalibration
+    from dotshell.geometry.opencv_io import write_opencv_calibration
+
+    run = env.run()
+    calib = RigCalibration.load(run / "calibration.json")
+    write_opencv_calibration(calib, env.tmp / "cal.yml")
+    return ["reconstruct", str(run), "--calibration", str(env.tmp / "cal.yml")]
+
+
 @case("calibration", "a directory", ("{tmp}/caldir", "is a directory, not a file"))
 def _(env):
     (env.tmp / "caldir").mkdir()

@@ -12,6 +12,7 @@ from typing import Any, Iterable
 from dotshell.errors import CalibrationError, RunError
 from dotshell.events import EventBus
 from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.steps import require_turntable_axis
 from dotshell.plugins import PluginManager
@@ -43,7 +44,7 @@ def reprocess(run_dir: Path | str, pm: PluginManager, command: str, targets: Ite
 def check_calibration_for_run(path: str | Path, store: RunStore) -> RigCalibration:
     """A calibration file that can re-process this run: valid, and its camera the size of the
     run's frames. Checked before anything is written."""
-    calib = RigCalibration.load(path)
+    calib = load_any_calibration(path)
     captured = RigCalibration.load(store.path("calibration.json"))
     if calib.camera.size != captured.camera.size:
         raise CalibrationError(

@@ -25,6 +25,7 @@ from dotshell.framecheck import FrameSpec
 from dotshell.events import EventBus, ScanFinished, ScanStarted, StepStarted, ViewCaptured, \
     ViewReconstructed
 from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.acquire import Acquisition
 from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.generations import Generation, ProductStore
@@ -145,7 +146,7 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
     coding = make_coding(profile, pm)  # a bad coding or calibration is refused before a run
     calibration = calibration_file or profile.calibration_path()  # is made
     if calibration is not None and rig is None:
-        RigCalibration.load(calibration)
+        load_any_calibration(calibration)
     store = RunStore.create(Path(out_dir), profile.name)
 
     def create() -> None:
