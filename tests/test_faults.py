@@ -880,6 +880,34 @@ _layout_case("a bad format spec", "f_{index:q}.png", ("{index:q}",))
 _layout_case("an unclosed brace", "f_{index.png", ("f_{index.png",))
 
 
+# ==== 10b. captures of mixed pixel formats (issue 33) ===========================================
+
+def _mixed_captures(env: Env, convert) -> list[str]:
+    """The captures (16-bit) with frame 5 converted by ``convert`` (an 8-bit or a colour frame):
+    such a mix was decoded with exit 0 (issue 33: 1,920 of 3,840 pixels off by up to 31
+    projector columns)."""
+    import cv2
+
+    from dotshell.frames import export_png, open_frames
+
+    run = env.shared("base")
+    (env.tmp / "caps").mkdir()
+    for i, p in enumerate(export_png(open_frames(run, 0, manifest(run)), env.tmp / "png")):
+        p.rename(env.tmp / "caps" / f"f_{i:03d}.png")
+    args = _captures_args(env)
+    f = env.tmp / "caps" / "f_005.png"
+    cv2.imwrite(str(f), convert(cv2.imread(str(f), cv2.IMREAD_UNCHANGED)))
+    return args
+
+
+case("captures", "one 8-bit frame among 16-bit frames",
+     ("f_005.png (uint8, 1 channel)", "f_000.png is uint16, 1 channel", "one pixel format"),
+     then=_nothing_written)(lambda env: _mixed_captures(env, lambda im: (im >> 4).astype(np.uint8)))
+case("captures", "one colour frame among grey frames",
+     ("f_005.png (uint16, 3 channels)", "differ in bit depth or channels"),
+     then=_nothing_written)(lambda env: _mixed_captures(env, lambda im: np.dstack([im] * 3)))
+
+
 # ==== 11. plugins ===============================================================================
 
 def _backend_plugin(hook: str, body: str) -> str:
