@@ -1516,3 +1516,31 @@ def test_a_slow_simulator_never_times_out(acquisition: str, tmp_path: Path, monk
     assert code == 0, err
     assert manifest(only_run(tmp_path / "runs"))["status"] == "completed"
     assert len(slowed) >= 60  # 2 views of 30 frames, each rendered more slowly than 0.2 s / 4
+
+
+# ==== generations keep what they did not recompute (issue 33) ===================================
+
+def _validation_kept(env: Env, err: str) -> None:
+    run = env.tmp / "run1"
+    before = json.loads((env.shared("base") / "report.json").read_text())["validation"]
+    report = json.loads((run / "report.json").read_text())
+    assert report["generation"] == 2 and report["validation"] == before
+    assert "validation" not in report.get("dropped", [])
+    assert main(["validate", str(run), "--out", str(env.tmp / "val")]) == 0
+    assert (env.tmp / "val" / "validation.csv").read_text().count("\n") == 2
+
+
+@case("generations", "validation survives `mesh`", (), code=0, then=_validation_kept,
+      state_may_change=True)
+def _(env):
+    return ["mesh", str(env.run())]
+
+
+@case("generations", "validation survives `mesh` of a run made before it was listed", (),
+      code=0, then=_validation_kept, state_may_change=True)
+def _(env):
+    run = env.run()
+    products = run / "gen" / "001" / "products.json"
+    edit_json(products, lambda p: {**p, "files": {k: v for k, v in p["files"].items()
+                                                  if k != "validation"}})
+    return ["mesh", str(run)]

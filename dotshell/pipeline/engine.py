@@ -239,12 +239,18 @@ def prepare(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
                      "from the frames.")
     options = dict(options or {})
     ctx = StepContext(ProductStore(job.store, gen.dir), profile, pm, job.bus, options)
-    run, carry, dropped = plan(targets, ctx, set(gen.base_products()))
+    base = set(gen.base_products())
+    run, carry, dropped = plan(targets, ctx, base)
     gen.carry(carry)
     base_report = gen.base_report()
     report: dict[str, Any] = {"profile": profile.name, "generation": gen.number,
                               "based_on": gen.base, "command": job.command}
+    for name in REPORT_ONLY:  # generations published before report-only products were listed
+        if (name not in base and name not in run and any(k in base_report for k in sections_of(name))
+                and not any(r in run for r in STEP_BY_NAME[name].reads)):
+            carry.append(name)
     for name in carry:
+        gen.files.setdefault(name, [])
         report.update({k: base_report[k] for k in sections_of(name) if k in base_report})
     timings = dict(base_report.get("timings_s", {})) if carry else {}
     return JobWork(job.store.root, gen.number, gen.base, run, dropped, options, report,
@@ -274,8 +280,9 @@ def run_steps(work: JobWork, profile: Profile, pm: PluginManager, bus: EventBus,
         done.report.update(STEP_BY_NAME[name].run(ctx))
         ctx.timings.setdefault(_timing_name(name), time.perf_counter() - t0)
         gen.record(name, before)
-        if name in gen.files:
-            done.files[name] = gen.files[name]
+        # a product may be report sections only (validation): listed without files, it is
+        # carried into later generations like any other, never lost without a word
+        done.files[name] = gen.files.setdefault(name, [])
     done.timings = dict(ctx.timings)
     return done
 
@@ -323,6 +330,10 @@ def process(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
     work = prepare(job, profile, pm, targets, options, generation)
     return publish(job, work, [run_steps(work, profile, pm, job.bus, extra=extra)],
                    final_status)
+
+
+#: Products made of report.json sections only, without files.
+REPORT_ONLY = ("validation",)
 
 
 def sections_of(product: str) -> tuple[str, ...]:
