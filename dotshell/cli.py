@@ -173,11 +173,12 @@ def cmd_resume(args: argparse.Namespace) -> int:
     view = ScanProgress(err)
     bus.subscribe(view)
     with view.progress:
-        result = resume_run(args.run, pm, bus=bus, stop=threading.Event())
+        result = resume_run(args.run, pm, bus=bus, stop=threading.Event(), views=args.view)
     return _scan_outcome(result)
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
+    from dotshell.frames import damaged_views, frames_on_disk
     from dotshell.pipeline.generations import current_number, generation_numbers
     from dotshell.store import RunStore
 
@@ -185,12 +186,17 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     m = store.manifest
     status, reason = store.status()
     views = m["views"]
-    done = sum(v["complete"] for v in views)
+    on_disk = frames_on_disk(store.root, m)
+    damaged = damaged_views(store.root, m)
+    done = sum(v["complete"] for v in views) - len(damaged)
     print_as_is(out, f"run: {store.root}")
     out.print(f"status: [bold]{status}[/]" + (f" — {escape(reason)}" if reason else ""))
     out.print(f"profile: {escape(str(m.get('profile', '?')))}, created {m.get('created', '?')}")
-    out.print(f"views: {done} of {len(views)} complete, "
-              f"{sum(v['frames'] for v in views)} frames on disk")
+    out.print(f"views: {done} of {len(views)} complete, {sum(on_disk)} frames on disk")
+    for v, n, recorded in damaged:
+        print_as_is(out, f"view {v}: {n} of its {recorded} frames on disk (cut or deleted "
+                    f"after the scan); re-capture it with `dotshell resume {store.root} "
+                    f"--view {v}`")
     cur = current_number(store.root)
     gens = generation_numbers(store.root)
     out.print(f"generations: {', '.join(f'{g:03d}' for g in gens) or 'none'}; published: "
@@ -345,6 +351,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("resume", help="finish an interrupted, aborted or failed scan (the "
                         "views it misses, then the processing)")
     sp.add_argument("run", help="run directory")
+    sp.add_argument("--view", type=int, action="append", metavar="N",
+                    help="also capture view N again (frames/view_NNN.tif cut or deleted; "
+                         "the old frames are kept aside); repeat for several views")
     sp.set_defaults(func=cmd_resume)
 
     sp = sub.add_parser("inspect", help="a run's true status, views, generations and jobs")

@@ -1544,3 +1544,63 @@ def _(env):
     edit_json(products, lambda p: {**p, "files": {k: v for k, v in p["files"].items()
                                                   if k != "validation"}})
     return ["mesh", str(run)]
+
+
+# ==== dead ends offer the way out (issue 33) =====================================================
+
+def _cut_stack(run: Path, view: int = 1, keep: float = 1 / 3) -> Path:
+    stack = run / "frames" / f"view_{view:03d}.tif"
+    os.truncate(stack, int(stack.stat().st_size * keep))
+    return run
+
+
+@case("dead ends", "inspect counts only the whole pages of a cut stack",
+      ("views: 1 of 2 complete", "view 1: 10 of its 30 frames on disk",
+       "resume {tmp}/run1 --view 1"), code=0)
+def _(env):
+    run = _cut_stack(env.run())
+    assert frames_on_disk(run, 1) == 10  # counted by tifffile, not by dotshell
+    return ["inspect", str(run)]
+
+
+@case("dead ends", "resume names a cut stack and the way out",
+      ("view 1 has 10 of its 30 frames on disk", "cut or deleted",
+       "dotshell resume {tmp}/run1 --view 1"))
+def _(env):
+    return ["resume", str(_cut_stack(env.run()))]
+
+
+@case("dead ends", "resume names a deleted stack and the way out",
+      ("view 0 has 0 of its 30 frames on disk", "--view 0"))
+def _(env):
+    run = env.run()
+    (run / "frames" / "view_000.tif").unlink()
+    return ["resume", str(run)]
+
+
+@case("dead ends", "reconstruct on a cut stack offers the re-capture",
+      ("view_001.tif", "dotshell resume {tmp}/run1 --view 1"))
+def _(env):
+    return ["reconstruct", str(_cut_stack(env.run()))]
+
+
+@case("dead ends", "resume --view of a view the run does not have", ("--view 5", "views 0 to 1"))
+def _(env):
+    return ["resume", str(env.run()), "--view", "5"]
+
+
+def test_resume_view_captures_a_cut_stack_again(shared, tmp_path: Path, capsys) -> None:
+    """The way out works: `resume RUN --view 1` sets the cut stack aside (kept), captures the
+    view again and publishes a new generation; the run's counts are true."""
+    import subprocess as sp
+
+    run = tmp_path / "run"
+    sp.run(["cp", "-a", str(shared("base")), str(run)], check=True)
+    cut = (_cut_stack(run) / "frames" / "view_001.tif").read_bytes()
+    assert main(["resume", str(run), "--view", "1"]) == 0, capsys.readouterr().err
+    m = manifest(run)
+    assert m["status"] == "completed" and [v["frames"] for v in m["views"]] == [30, 30]
+    counts_are_true(run)
+    assert (run / "frames" / "view_001.partial-1.tif").read_bytes() == cut
+    assert main(["inspect", str(run)]) == 0
+    assert "views: 2 of 2 complete, 60 frames on disk" in capsys.readouterr().out
