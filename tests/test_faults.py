@@ -1604,3 +1604,30 @@ def test_resume_view_captures_a_cut_stack_again(shared, tmp_path: Path, capsys) 
     assert (run / "frames" / "view_001.partial-1.tif").read_bytes() == cut
     assert main(["inspect", str(run)]) == 0
     assert "views: 2 of 2 complete, 60 frames on disk" in capsys.readouterr().out
+
+
+# ==== a run's status is true after every failure path (issue 33) =================================
+
+def _status_unchanged(kind: str):
+    def then(env: Env, err: str) -> None:
+        m = manifest(env.tmp / "run1")
+        assert m["status"] == kind and m.get("job") is None, m  # never left "running"
+        assert main(["inspect", str(env.tmp / "run1")]) == 0
+    return then
+
+
+@case("states", "resume on a disk that is still full",
+      ("the disk is full", "no space left on device", "free disk space", "run is unchanged"),
+      then=_status_unchanged("aborted"))
+def _(env):
+    run = env.run("aborted")
+    FullDisk(env.monkeypatch, run, free=20_000)
+    return ["resume", str(run)]
+
+
+@case("states", "mesh on a full disk names the disk and keeps the status",
+      ("the disk is full", "free disk space"), then=_status_unchanged("completed"))
+def _(env):
+    run = env.run()
+    FullDisk(env.monkeypatch, run, free=20_000)
+    return ["mesh", str(run)]

@@ -33,7 +33,7 @@ from dotshell.pipeline.lifecycle import Interrupted, RunLock, effective_status
 from dotshell.pipeline.steps import STEP_BY_NAME, STEPS, StepContext, import_ahead
 from dotshell.plugins import PluginManager
 from dotshell.profile import Profile
-from dotshell.store import RunStore
+from dotshell.store import FULL, RESERVE_BYTES, RunStore
 
 
 class RunJob:
@@ -74,7 +74,14 @@ class RunJob:
             if self.create is None and manifest["status"] == "running":  # its writer is gone
                 self._history({"command": (manifest.get("job") or {}).get("command", "?"),
                                "status": "interrupted", "reason": self.previous[1]})
-            self.store.reserve_space()
+            full = self.store.reserve_space()
+            if full is not None and full.errno in FULL and self.create is None:
+                # nothing written yet: the run keeps its true status instead of a 'running'
+                # the full disk would not let this job take back
+                raise RunError(f"{self.store.root}: the disk is full ({full.strerror}): there is "
+                               f"not even room for the {RESERVE_BYTES // 1024} kB the job holds "
+                               "back to record its outcome. Free disk space and run the "
+                               "command again; the run is unchanged.")
             for p in [*self.store.clean_orphans(), *remove_unpublished(self.store.root)]:
                 self.bus.info(f"removed {p.relative_to(self.store.root)}, left by an "
                               "interrupted job")
