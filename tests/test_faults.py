@@ -1631,3 +1631,31 @@ def _(env):
     run = env.run()
     FullDisk(env.monkeypatch, run, free=20_000)
     return ["mesh", str(run)]
+
+
+# ==== every long computation bounded by what its input asks (issue 33) ===========================
+
+@case("bounds", "mesh --node-distance 0.001 (ran for more than 300 s)",
+      ("--node-distance 0.001 mm", "smallest node distance", "0.05 mm"))
+def _(env):
+    return ["mesh", str(env.run()), "--node-distance", "0.001"]
+
+
+@case("bounds", "a mesh whose node count would exceed the limit",
+      ("a mesh at 0.06 mm would have about", "nodes", "5,000,000", "larger node distance"))
+def _(env):
+    import tomllib
+
+    import tomli_w
+
+    run = env.run()
+    raw = tomllib.loads((run / "profile.toml").read_text())
+    raw["mesh"]["also_node_distances_mm"] = [0.06]
+    replace_file(run / "profile.toml", tomli_w.dumps(raw))
+    return ["mesh", str(run)]
+
+
+@case("bounds", "normalize --min-sin-beta 2 (sin β ≤ 1)",
+      ("--min-sin-beta", "[normalize.min_sin_beta] = 2.0", "[0.0, 1.0]"))
+def _(env):
+    return ["normalize", str(env.run()), "--min-sin-beta", "2"]

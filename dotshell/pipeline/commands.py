@@ -82,9 +82,10 @@ def normalize_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None =
                   max_normal_spread_deg: float | None = None) -> dict[str, Any]:
     """``dotshell normalize RUN``: normalize the trans-illumination frames on the run's surface
     into a new generation; returns the ``normalize`` report section."""
-    from dotshell.pipeline.normalize import transillumination_entry
+    from dotshell.pipeline.normalize import checked_overrides, transillumination_entry
 
-    transillumination_entry(RunStore.open(Path(run_dir)))  # before anything is made
+    checked_overrides(min_sin_beta, max_normal_spread_deg)  # before anything is read or made
+    transillumination_entry(RunStore.open(Path(run_dir)))
     options = {"normalizer": normalizer, "min_sin_beta": min_sin_beta,
                "max_normal_spread_deg": max_normal_spread_deg}
     return reprocess(run_dir, pm, "normalize", ["normalize"], bus, options)["normalize"]
