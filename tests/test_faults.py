@@ -1659,3 +1659,17 @@ def _(env):
       ("--min-sin-beta", "[normalize.min_sin_beta] = 2.0", "[0.0, 1.0]"))
 def _(env):
     return ["normalize", str(env.run()), "--min-sin-beta", "2"]
+
+
+# ==== `check` validates what the scan will use, with the scan's bounds (issue 33) ================
+
+_profile("check bounds", "exposure 1e308", ("[scan.exposure_ms] = 1e+308", "[0.001, 600000.0] ms"),
+         scan__exposure_ms=1e308)
+_profile("check bounds", "settle_ms 1e12 (the scan hung)", ("[scan.settle_ms] = 1000000000000.0",
+                                                            "[0.0, 600000.0] ms"),
+         scan__settle_ms=1e12)
+_profile("check bounds", "ROI radius 0", ("[processing.roi.radius_mm] = 0.0", "[0.001, +inf] mm"),
+         processing__roi__radius_mm=0.0)
+_profile("check bounds", "ROI z_min above z_max",
+         ("[processing.roi] z_min_mm = 30 is not below z_max_mm = 10", "z_min_mm < z_max_mm"),
+         processing__roi__z_min_mm=30.0, processing__roi__z_max_mm=10.0)
