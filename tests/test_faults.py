@@ -1673,3 +1673,24 @@ _profile("check bounds", "ROI radius 0", ("[processing.roi.radius_mm] = 0.0", "[
 _profile("check bounds", "ROI z_min above z_max",
          ("[processing.roi] z_min_mm = 30 is not below z_max_mm = 10", "z_min_mm < z_max_mm"),
          processing__roi__z_min_mm=30.0, processing__roi__z_max_mm=10.0)
+
+
+# ==== a user script's own error shows its traceback (issue 33) ===================================
+
+@pytest.mark.parametrize("source, says", [
+    ("x = 1\ndef f():\n    return 1 / 0\nf()\n", ("line 4, in <module>", "line 3, in f",
+                                                    "ZeroDivisionError: division by zero")),
+    ("x = (1,\n", ("line 1", "SyntaxError", "never closed")),
+], ids=["raises", "syntax error"])
+def test_a_scripts_own_error_shows_its_traceback(source, says, tmp_path, capsys) -> None:
+    """docs/tui.md promises the traceback; it said "internal error … a bug in dotshell"."""
+    script = tmp_path / "mine.py"
+    script.write_text(source)
+    code = main(["script", str(script), "--profile",
+                 str(write_profile(tmp_path / "p.toml", tiny_profile_dict()))])
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert f"script {script} failed" in err and "internal error" not in err, err
+    for s in says:
+        assert s in err, (s, err)
+    assert "console.py" not in err  # dotshell's own frames are left out
