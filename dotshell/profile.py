@@ -285,16 +285,24 @@ def load_profile(path: str | Path, pm: PluginManager, overrides: list[str] | Non
     """
     path = Path(path)
     if path.is_dir():
+        inside = sorted(p.name for p in path.glob("*.toml") if p.is_file())
         raise ProfileError(f"profile {path} is a directory; give a profile TOML file in it, "
-                           f"e.g. one of {sorted(p.name for p in path.glob('*.toml')) or 'none'}.")
+                           f"e.g. one of {inside or 'none'}.")
+    if path.exists() and not path.is_file():
+        raise ProfileError(f"profile {path} is not a regular file (a FIFO, device or socket); "
+                           "give a profile TOML file.")
     if not path.is_file():
-        near = sorted(p.name for p in path.parent.glob("*.toml")) if path.parent.is_dir() else []
+        near = sorted(p.name for p in path.parent.glob("*.toml") if p.is_file()) \
+            if path.parent.is_dir() else []
         hint = f" Profiles in {path.parent}: {', '.join(near)}." if near else ""
         raise ProfileError(f"profile {path} does not exist.{hint}")
     try:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise ProfileError(f"{path}: not valid TOML ({exc}). Fix the syntax at that line.") from None
+    except RecursionError:
+        raise ProfileError(f"{path}: not a profile: its arrays or tables are nested too deeply "
+                           "to read. Fix or replace the file.") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ProfileError(f"{path}: cannot be read ({exc}).") from None
     if overrides:

@@ -319,7 +319,7 @@ class RunStore:
             return json.loads(p.read_text())
         except FileNotFoundError:
             raise RunError(f"{p} is missing from the run.") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
             raise RunError(f"{p} is not valid JSON ({exc}); it is written by dotshell only: "
                            "restore it from a backup.") from None
 

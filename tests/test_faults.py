@@ -1694,3 +1694,39 @@ def test_a_scripts_own_error_shows_its_traceback(source, says, tmp_path, capsys)
     for s in says:
         assert s in err, (s, err)
     assert "console.py" not in err  # dotshell's own frames are left out
+
+
+# ==== files that are not what they seem (issue 33) ===============================================
+
+@case("odd files", "a FIFO given as the profile", ("{tmp}/p.toml is not a regular file", "FIFO"))
+def _(env):
+    os.mkfifo(env.tmp / "p.toml")
+    return ["check", str(env.tmp / "p.toml")]
+
+
+@case("odd files", "a FIFO is not listed among the profiles",
+      ("{tmp}/nope.toml does not exist", "profiles in {tmp}: real.toml"))
+def _(env):
+    os.mkfifo(env.tmp / "fifo.toml")
+    env.profile("real.toml")
+    return ["check", str(env.tmp / "nope.toml")]
+
+
+@case("odd files", "a 50k-deep TOML array as the profile", ("{tmp}/p.toml", "nested too deeply"))
+def _(env):
+    env.file("p.toml", "a = " + "[" * 50_000 + "]" * 50_000 + "\n")
+    return ["check", str(env.tmp / "p.toml")]
+
+
+@case("odd files", "a 100k-deep JSON manifest", ("{tmp}/run1/manifest.json", "not valid json",
+                                                 "maximum recursion depth"))
+def _(env):
+    run = env.run()
+    replace_file(run / "manifest.json", "[" * 100_000 + "]" * 100_000)
+    return ["inspect", str(run)]
+
+
+@case("odd files", "a 100k-deep JSON calibration", ("{tmp}/cal.json", "not valid json"))
+def _(env):
+    env.file("cal.json", "[" * 100_000 + "]" * 100_000)
+    return ["reconstruct", str(env.run()), "--calibration", str(env.tmp / "cal.json")]

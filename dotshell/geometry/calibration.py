@@ -189,7 +189,7 @@ class RigCalibration:
                                    "calibration.json written by dotshell.")
         try:
             data = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
             raise CalibrationError(f"calibration file {path} is not valid JSON ({exc}). Write it "
                                    "again with `dotshell calibrate`, or restore it from a "
                                    "backup.") from None

@@ -393,7 +393,7 @@ def load_run_profile(store: RunStore, pm: PluginManager) -> Profile:
         raw = tomllib.loads(p.read_text())
     except FileNotFoundError:
         raise RunError(f"{p} is missing; this run cannot be re-processed.") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, RecursionError) as exc:
         raise RunError(f"{p} is damaged ({exc}); it is written by dotshell only — restore it "
                        "from a backup or copy the profile the run was made with.") from None
     return validate_profile(raw, pm, str(p), store.root)
