@@ -1730,3 +1730,18 @@ def _(env):
 def _(env):
     env.file("cal.json", "[" * 100_000 + "]" * 100_000)
     return ["reconstruct", str(env.run()), "--calibration", str(env.tmp / "cal.json")]
+
+
+@case("odd files", "serve --socket in a missing directory",
+      ("--socket {tmp}/nowhere/rig.sock", "{tmp}/nowhere does not exist", "mkdir -m 700"))
+def _(env):
+    return ["serve", str(env.profile()), "--socket", str(env.tmp / "nowhere" / "rig.sock")]
+
+
+@case("states", "full disk while writing the mesh names the file",
+      ("no space left on device", "{tmp}/run1/gen/002/", "free disk space"),
+      then=_status_unchanged("completed"))
+def _(env):
+    run = env.run()
+    FullDisk(env.monkeypatch, run / "gen", free=30_000)  # the reserve fits, the mesh does not
+    return ["mesh", str(run)]

@@ -284,7 +284,12 @@ def run_steps(work: JobWork, profile: Profile, pm: PluginManager, bus: EventBus,
         import_ahead(names, name)
         before = gen.listing() - prewritten.get(name, set())
         t0 = time.perf_counter()
-        done.report.update(STEP_BY_NAME[name].run(ctx))
+        try:
+            done.report.update(STEP_BY_NAME[name].run(ctx))
+        except OSError as exc:
+            if exc.filename is None:  # a library's write (a mesh, an export) names no file:
+                exc.filename = f"{gen.dir}/ (step {name})"  # the step writes only there
+            raise
         ctx.timings.setdefault(_timing_name(name), time.perf_counter() - t0)
         gen.record(name, before)
         # a product may be report sections only (validation): listed without files, it is
