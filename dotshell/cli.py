@@ -475,15 +475,39 @@ def run_command(args: argparse.Namespace) -> int:
                   "continues a scan).")
         return 130
     except MemoryError as exc:
-        return _fail(args, exc, "out of memory. Lower the camera or projector resolution "
-                     "(e.g. --set camera.settings.width=... --set camera.settings.height=...), "
-                     "scan fewer views, or use a machine with more memory.", 2)
+        return _fail(args, exc, "out of memory" + limits_in_force() + ". Lower the camera or "
+                     "projector resolution (e.g. --set camera.settings.width=... --set "
+                     "camera.settings.height=...), scan fewer views, or use a machine with more "
+                     "memory.", 2)
     except OSError as exc:
         return _fail(args, exc, os_error_message(exc), 2)
+    except RuntimeError as exc:
+        if "can't start new thread" not in str(exc):
+            return _fail(args, exc, _internal(exc), 1)
+        return _fail(args, exc, "could not start a thread" + limits_in_force() + ": the "
+                     "process's memory or thread limit is reached. Raise the limit, or close "
+                     "other programs.", 2)
     except Exception as exc:  # a bug: one paragraph, the traceback with --debug
-        return _fail(args, exc, f"internal error: {type(exc).__name__}: {exc}. This is a bug in "
-                     "dotshell or a plugin; run again with --debug for the traceback and report "
-                     "it.", 1)
+        return _fail(args, exc, _internal(exc), 1)
+
+
+def _internal(exc: BaseException) -> str:
+    return (f"internal error: {type(exc).__name__}: {exc}. This is a bug in dotshell or a "
+            "plugin; run again with --debug for the traceback and report it.")
+
+
+def limits_in_force() -> str:
+    """The process's address-space and thread limits, when set (`` (ulimit -v 700000 kB)``),
+    or '' — what a user raises after running out of memory or threads."""
+    import resource
+
+    parts = []
+    for name, limit, unit in (("ulimit -v", resource.RLIMIT_AS, 1024),
+                              ("ulimit -u", resource.RLIMIT_NPROC, 1)):
+        soft = resource.getrlimit(limit)[0]
+        if soft != resource.RLIM_INFINITY:
+            parts.append(f"{name} {soft // unit}" + (" kB" if unit > 1 else " processes"))
+    return f" (limits: {', '.join(parts)})" if parts else ""
 
 
 def _fail(args: argparse.Namespace, exc: BaseException, text: str, code: int) -> int:

@@ -1745,3 +1745,41 @@ def _(env):
     run = env.run()
     FullDisk(env.monkeypatch, run / "gen", free=30_000)  # the reserve fits, the mesh does not
     return ["mesh", str(run)]
+
+
+# ==== resource exhaustion names the limit (issue 33) =============================================
+
+def test_an_address_space_limit_exits_2_naming_it(tmp_path: Path) -> None:
+    """`ulimit -v 700000`: the scan cannot start its threads or get its memory; it said
+    "internal error: RuntimeError: can't start new thread" with exit 1."""
+    import resource
+
+    prof = write_profile(tmp_path / "p.toml", tiny_profile_dict())
+    limit = 700_000 * 1024
+
+    def limited() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+    proc = subprocess.run([sys.executable, "-m", "dotshell.cli", "scan", str(prof), "--out",
+                           str(tmp_path / "runs")], preexec_fn=limited, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 2, proc.stderr
+    assert "ulimit -v 700000 kB" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert "internal error" not in proc.stderr, proc.stderr
+
+
+def test_a_thread_that_cannot_start_exits_2_naming_the_limits(tmp_path, monkeypatch,
+                                                              capsys) -> None:
+    import resource
+
+    def refuse(self):
+        raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(threading.Thread, "start", refuse)
+    soft, hard = resource.getrlimit(resource.RLIMIT_NPROC)
+    prof = write_profile(tmp_path / "p.toml", tiny_profile_dict())
+    assert main(["scan", str(prof), "--out", str(tmp_path / "runs")]) == 2
+    err = capsys.readouterr().err
+    assert "could not start a thread" in err and "thread limit" in err, err
+    if soft != resource.RLIM_INFINITY:
+        assert f"ulimit -u {soft}" in err
