@@ -1783,3 +1783,17 @@ def test_a_thread_that_cannot_start_exits_2_naming_the_limits(tmp_path, monkeypa
     assert "could not start a thread" in err and "thread limit" in err, err
     if soft != resource.RLIM_INFINITY:
         assert f"ulimit -u {soft}" in err
+
+
+def _validated_now(env: Env, err: str) -> None:
+    kept = json.loads((env.shared("base") / "report.json").read_text())["validation"]
+    row = (env.tmp / "val" / "validation.csv").read_text().splitlines()[1].split(",")
+    assert float(row[4]) == pytest.approx(kept["mean_rel_error_pct"], abs=1e-4), row  # CSV: 4 d.
+
+
+@case("generations", "validate a run whose report lacks the validation", (), code=0,
+      then=_validated_now)
+def _(env):
+    run = env.run()
+    edit_json(run / "report.json", lambda r: {k: v for k, v in r.items() if k != "validation"})
+    return ["validate", str(run), "--out", str(env.tmp / "val")]
