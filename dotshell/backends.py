@@ -6,8 +6,9 @@ import logging
 import math
 import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 from dotshell.settings import Setting
 
@@ -98,6 +99,7 @@ class RigContext:
     log: DeviceLog = field(default_factory=DeviceLog)
     peers: dict[str, Any] = field(default_factory=dict, repr=False)
     deadline: float = field(default=math.inf, repr=False)
+    computing_since: float = field(default=math.inf, repr=False)
 
     def device(self, role: str) -> Any | None:
         """The rig's device for another ``role`` (as the rig hands it out: calls serialised),
@@ -108,12 +110,34 @@ class RigContext:
         """Seconds left before the rig's timeout for the call in progress (``inf`` outside a
         rig call). Drivers that wait for motion use it to fail with their own, more precise
         :class:`~dotshell.errors.DeviceTimeout` before the rig's backstop does."""
-        return self.deadline - time.monotonic()
+        return self.current_deadline() - time.monotonic()
+
+    @contextmanager
+    def computing(self) -> Iterator[None]:
+        """A block of the driver's own computation that a real device does not do (a simulator
+        rendering its frames): the rig's timeout for the call in progress is extended by the
+        block's duration, so a slow or busy host never turns it into a device timeout. Time
+        spent waiting on hardware must stay outside such blocks, or a stalled device would
+        never time out."""
+        if self.computing_since != math.inf:  # nested: the outer block counts
+            yield
+            return
+        self.computing_since = time.monotonic()
+        try:
+            yield
+        finally:  # the deadline moves first: a reader never sees the block's time missing
+            self.deadline += time.monotonic() - self.computing_since  # inf stays inf
+            self.computing_since = math.inf
+
+    def current_deadline(self) -> float:
+        """The call's deadline (monotonic seconds), a computing block in progress included."""
+        since = self.computing_since  # read before the deadline (see computing())
+        return self.deadline + (time.monotonic() - since if since != math.inf else 0.0)
 
     def for_device(self, role: str, backend: str) -> "RigContext":
         """A context for one device of this rig: same ``shared`` and peers, its own log."""
         return replace(self, role=role, backend=backend, log=DeviceLog(f"{role} ({backend})"),
-                       deadline=math.inf)
+                       deadline=math.inf, computing_since=math.inf)
 
 
 @dataclass(frozen=True)

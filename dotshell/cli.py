@@ -188,11 +188,12 @@ def cmd_resume(args: argparse.Namespace) -> int:
     view = ScanProgress(err)
     bus.subscribe(view)
     with view.progress:
-        result = resume_run(args.run, pm, bus=bus, stop=threading.Event())
+        result = resume_run(args.run, pm, bus=bus, stop=threading.Event(), views=args.view)
     return _scan_outcome(result)
 
 
 def cmd_inspect(args: argparse.Namespace) -> int:
+    from dotshell.frames import damaged_views, frames_on_disk
     from dotshell.pipeline.generations import current_number, generation_numbers
     from dotshell.store import RunStore
 
@@ -200,12 +201,17 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     m = store.manifest
     status, reason = store.status()
     views = m["views"]
-    done = sum(v["complete"] for v in views)
+    on_disk = frames_on_disk(store.root, m)
+    damaged = damaged_views(store.root, m)
+    done = sum(v["complete"] for v in views) - len(damaged)
     print_as_is(out, f"run: {store.root}")
     out.print(f"status: [bold]{status}[/]" + (f" — {escape(reason)}" if reason else ""))
     out.print(f"profile: {escape(str(m.get('profile', '?')))}, created {m.get('created', '?')}")
-    out.print(f"views: {done} of {len(views)} complete, "
-              f"{sum(v['frames'] for v in views)} frames on disk")
+    out.print(f"views: {done} of {len(views)} complete, {sum(on_disk)} frames on disk")
+    for v, n, recorded in damaged:
+        print_as_is(out, f"view {v}: {n} of its {recorded} frames on disk (cut or deleted "
+                    f"after the scan); re-capture it with `dotshell resume {store.root} "
+                    f"--view {v}`")
     cur = current_number(store.root)
     gens = generation_numbers(store.root)
     out.print(f"generations: {', '.join(f'{g:03d}' for g in gens) or 'none'}; published: "
@@ -367,6 +373,9 @@ def build_parser() -> argparse.ArgumentParser:
     sp = sub.add_parser("resume", help="finish an interrupted, aborted or failed scan (the "
                         "views it misses, then the processing)")
     sp.add_argument("run", help="run directory")
+    sp.add_argument("--view", type=int, action="append", metavar="N",
+                    help="also capture view N again (frames/view_NNN.tif cut or deleted; "
+                         "the old frames are kept aside); repeat for several views")
     sp.set_defaults(func=cmd_resume)
 
     sp = sub.add_parser("inspect", help="a run's true status, views, generations and jobs")
@@ -500,15 +509,39 @@ def run_command(args: argparse.Namespace) -> int:
                   "continues a scan).")
         return 130
     except MemoryError as exc:
-        return _fail(args, exc, "out of memory. Lower the camera or projector resolution "
-                     "(e.g. --set camera.settings.width=... --set camera.settings.height=...), "
-                     "scan fewer views, or use a machine with more memory.", 2)
+        return _fail(args, exc, "out of memory" + limits_in_force() + ". Lower the camera or "
+                     "projector resolution (e.g. --set camera.settings.width=... --set "
+                     "camera.settings.height=...), scan fewer views, or use a machine with more "
+                     "memory.", 2)
     except OSError as exc:
         return _fail(args, exc, os_error_message(exc), 2)
+    except RuntimeError as exc:
+        if "can't start new thread" not in str(exc):
+            return _fail(args, exc, _internal(exc), 1)
+        return _fail(args, exc, "could not start a thread" + limits_in_force() + ": the "
+                     "process's memory or thread limit is reached. Raise the limit, or close "
+                     "other programs.", 2)
     except Exception as exc:  # a bug: one paragraph, the traceback with --debug
-        return _fail(args, exc, f"internal error: {type(exc).__name__}: {exc}. This is a bug in "
-                     "dotshell or a plugin; run again with --debug for the traceback and report "
-                     "it.", 1)
+        return _fail(args, exc, _internal(exc), 1)
+
+
+def _internal(exc: BaseException) -> str:
+    return (f"internal error: {type(exc).__name__}: {exc}. This is a bug in dotshell or a "
+            "plugin; run again with --debug for the traceback and report it.")
+
+
+def limits_in_force() -> str:
+    """The process's address-space and thread limits, when set (`` (ulimit -v 700000 kB)``),
+    or '' — what a user raises after running out of memory or threads."""
+    import resource
+
+    parts = []
+    for name, limit, unit in (("ulimit -v", resource.RLIMIT_AS, 1024),
+                              ("ulimit -u", resource.RLIMIT_NPROC, 1)):
+        soft = resource.getrlimit(limit)[0]
+        if soft != resource.RLIM_INFINITY:
+            parts.append(f"{name} {soft // unit}" + (" kB" if unit > 1 else " processes"))
+    return f" (limits: {', '.join(parts)})" if parts else ""
 
 
 def _fail(args: argparse.Namespace, exc: BaseException, text: str, code: int) -> int:

@@ -60,6 +60,10 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from dotshell.server.launch import start_server
 
     sock = Path(args.socket) if args.socket else socket_path(args.server or server_name(args.profile))
+    if not sock.parent.is_dir():
+        raise ServerError(f"--socket {sock}: its directory {sock.parent} does not exist; create "
+                          "it (private to you: mkdir -m 700) or give a socket path in an "
+                          "existing directory.")
     on_hangup = args.on_hangup or user_config()["server"]["on_hangup"]
     _refuse_a_second_server(sock)
     if args.detach:

@@ -735,11 +735,33 @@ def run_script(path: Path | str, session: Session, argv: Sequence[str] = ()) -> 
                             "of a Python file.") from None
     ns = session.namespace()
     ns.update(__name__="__main__", __file__=str(path))
-    code = compile(source, str(path), "exec")
     old_argv = sys.argv
     sys.argv = [str(path), *argv]
     try:
-        exec(code, ns)
+        exec(compile(source, str(path), "exec"), ns)
+    except DotshellError:
+        raise
+    except Exception as exc:  # the script's own error: its traceback, not "a bug in dotshell"
+        raise ScriptError(f"script {path} failed:\n{script_traceback(exc, path)}") from None
     finally:
         sys.argv = old_argv
     return ns
+
+
+class ScriptError(DotshellError):
+    """A user's script raised (or does not compile); the message holds its traceback."""
+
+    exit_code = 1
+
+
+def script_traceback(exc: BaseException, path: Path) -> str:
+    """The traceback of ``exc`` from the script's first frame on (dotshell's frames that ran
+    the script left out); for a syntax error, the line and the caret."""
+    import traceback
+
+    if isinstance(exc, SyntaxError):
+        return "".join(traceback.format_exception_only(exc)).rstrip()
+    tb = exc.__traceback__
+    while tb is not None and tb.tb_frame.f_code.co_filename != str(path):
+        tb = tb.tb_next
+    return "".join(traceback.format_exception(type(exc), exc, tb)).rstrip()

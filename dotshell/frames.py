@@ -138,7 +138,9 @@ class FrameStore:
 
     def _missing(self, what: str) -> RunError:
         return RunError(f"{what} of view {self.view} is missing or unreadable in {self.path}; "
-                        f"the view cannot be reconstructed from it.")
+                        f"the view cannot be reconstructed from it. Re-capture it with "
+                        f"`dotshell resume {self.root} --view {self.view}` (the damaged frames "
+                        "are kept aside).")
 
     def _check_index(self, index: int) -> str:
         if not 0 <= index < len(self.names):
@@ -338,6 +340,22 @@ def open_frames(root: Path, view: int, manifest: dict) -> FrameStore:
         raise RunError(f"{root}: frames are stored as {fmt!r}, which this dotshell cannot read "
                        f"(it reads {', '.join(FORMATS)}); update dotshell.")
     return FORMATS[fmt](root, view, manifest["frame_names"])
+
+
+def frames_on_disk(root: Path, manifest: dict) -> list[int]:
+    """How many whole frames each view of the run at ``root`` has on disk, in view order: what
+    the stacks hold, whatever the manifest recorded (a stack cut short by a copy, or deleted,
+    counts what is left; a page cut in the middle does not count)."""
+    return [open_frames(Path(root), v["index"], manifest).count() if v.get("frames") else 0
+            for v in manifest["views"]]
+
+
+def damaged_views(root: Path, manifest: dict) -> list[tuple[int, int, int]]:
+    """(view, frames on disk, frames recorded) of every view recorded complete whose frames
+    on disk are fewer (cut or deleted after the scan)."""
+    return [(v["index"], n, v["frames"]) for v, n in zip(manifest["views"],
+                                                         frames_on_disk(root, manifest))
+            if v.get("complete") and n < v["frames"]]
 
 
 def export_png(frames: FrameStore, out_dir: Path) -> list[Path]:

@@ -106,8 +106,21 @@ class _Job:
         self.result: Any = None
         self.error: BaseException | None = None
 
+    def deadline(self) -> float:
+        """When the call's timeout runs out (monotonic seconds): its start plus its timeout,
+        plus whatever the driver spent in ``context.computing()`` blocks so far."""
+        base, extended = self.t_start + self.timeout, self.context.current_deadline()
+        return extended if base < extended < math.inf else base
+
     def overdue(self) -> bool:
-        return time.monotonic() > self.t_start + self.timeout + GRACE_S
+        return time.monotonic() > self.deadline() + GRACE_S
+
+    def wait(self) -> bool:
+        """Wait for the call to end; False once it is past its (extended) deadline and grace."""
+        while not self.done.wait(max(0.0, self.deadline() + GRACE_S - time.monotonic())):
+            if self.overdue():
+                return self.done.is_set()
+        return True
 
     def run(self) -> None:
         self.t_start = time.monotonic()
@@ -248,7 +261,7 @@ class DeviceHandle:
                 self._lost = DeviceTimeout(self._timeout_text(stuck.fn.__name__, stuck.timeout,
                                                               None))
                 raise self._lost
-        if not job.done.wait(timeout + GRACE_S):
+        if not job.wait():
             self._lost = DeviceTimeout(self._timeout_text(method, timeout, default))
             raise self._lost
         if job.error is None:

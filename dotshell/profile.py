@@ -58,6 +58,9 @@ def _device_role(required: bool, homing: bool = False) -> Setting:
 
 
 HOME_CHOICES = ("never", "on_connect", "before_scan")
+#: Longest exposure, settle time or pattern period a profile may ask (ms): 10 minutes. A
+#: larger value is a typo (1e12 ms hung the scan for 31 years).
+MAX_WAIT_MS = 600_000.0
 
 SCHEMA: dict[str, Setting] = {
     "profile": Setting("table", schema={
@@ -85,9 +88,9 @@ SCHEMA: dict[str, Setting] = {
                          help="views equally spaced over 360 degrees (ignored if angles_deg set)"),
         "angles_deg": Setting("list[float]", default=[], unit="deg",
                               help="explicit stage angles; overrides views"),
-        "exposure_ms": Setting("float", default=20.0, min=0.001, unit="ms",
+        "exposure_ms": Setting("float", default=20.0, min=0.001, max=MAX_WAIT_MS, unit="ms",
                                help="camera exposure (when the camera supports it)"),
-        "settle_ms": Setting("float", default=0.0, min=0.0, unit="ms",
+        "settle_ms": Setting("float", default=0.0, min=0.0, max=MAX_WAIT_MS, unit="ms",
                              help="wait after each projector change before capturing"),
         "retries": Setting("int", default=2, min=0, max=20,
                            help="re-tries of a frame capture that raised DeviceError (and "
@@ -102,7 +105,7 @@ SCHEMA: dict[str, Setting] = {
                                     "stored sequence and triggers the camera; 'show-capture': "
                                     "show, settle, capture each frame; 'auto': sequenced when "
                                     "both devices can (docs/hardware.md)"),
-        "pattern_period_ms": Setting("float", default=0.0, min=0.0, unit="ms",
+        "pattern_period_ms": Setting("float", default=0.0, min=0.0, max=MAX_WAIT_MS, unit="ms",
                                      help="sequenced acquisition: time per pattern; 0 = the "
                                           "shortest both devices allow"),
         "pdi": Setting("bool", default=False,
@@ -114,7 +117,7 @@ SCHEMA: dict[str, Setting] = {
     }, default={}),
     "processing": Setting("table", schema={
         "roi": Setting("table", schema={
-            "radius_mm": Setting("float", default=50.0, min=0.0, unit="mm",
+            "radius_mm": Setting("float", default=50.0, min=0.001, unit="mm",
                                  help="keep points within this distance of the turntable axis"),
             "z_min_mm": Setting("float", default=0.5, unit="mm",
                                 help="drop points below this height above the stage plate"),
@@ -251,7 +254,15 @@ def validate_profile(raw: dict[str, Any], pm: PluginManager, where: str,
                            "calibration written by dotshell), or source = \"ground-truth\" on a "
                            "simulated rig.")
     _check_transillumination(data, where)
+    _check_roi(data["processing"]["roi"], where)
     return Profile(data, where, Path(base_dir))
+
+
+def _check_roi(roi: dict[str, Any], where: str) -> None:
+    if roi["z_min_mm"] >= roi["z_max_mm"]:
+        raise ProfileError(f"{where}: [processing.roi] z_min_mm = {roi['z_min_mm']:g} is not below "
+                           f"z_max_mm = {roi['z_max_mm']:g}: no point could be kept; give a "
+                           "height band with z_min_mm < z_max_mm.")
 
 
 def _check_transillumination(data: dict[str, Any], where: str) -> None:
@@ -282,16 +293,24 @@ def load_profile(path: str | Path, pm: PluginManager, overrides: list[str] | Non
 
     path = resolve("profiles", path)
     if path.is_dir():
+        inside = sorted(p.name for p in path.glob("*.toml") if p.is_file())
         raise ProfileError(f"profile {path} is a directory; give a profile TOML file in it, "
-                           f"e.g. one of {sorted(p.name for p in path.glob('*.toml')) or 'none'}.")
+                           f"e.g. one of {inside or 'none'}.")
+    if path.exists() and not path.is_file():
+        raise ProfileError(f"profile {path} is not a regular file (a FIFO, device or socket); "
+                           "give a profile TOML file.")
     if not path.is_file():
-        near = sorted(p.name for p in path.parent.glob("*.toml")) if path.parent.is_dir() else []
+        near = sorted(p.name for p in path.parent.glob("*.toml") if p.is_file()) \
+            if path.parent.is_dir() else []
         hint = f" Profiles in {path.parent}: {', '.join(near)}." if near else ""
         raise ProfileError(f"profile {path} does not exist.{hint} {unknown_hint('profiles')}")
     try:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
     except tomllib.TOMLDecodeError as exc:
         raise ProfileError(f"{path}: not valid TOML ({exc}). Fix the syntax at that line.") from None
+    except RecursionError:
+        raise ProfileError(f"{path}: not a profile: its arrays or tables are nested too deeply "
+                           "to read. Fix or replace the file.") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ProfileError(f"{path}: cannot be read ({exc}).") from None
     if overrides:

@@ -12,6 +12,7 @@ from dotshell.backends import RigContext
 from dotshell.errors import (CalibrationError, DeviceError, DotshellError, PluginError,
                              PluginFault, ProfileError)
 from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.handles import DeviceHandle, DevicePolicy, unwrap
 from dotshell.owners import DeviceInUse, DeviceOwnership
 from dotshell.plugins import PluginManager
@@ -258,10 +259,10 @@ class Rig:
     def calibration(self, override_path: str | None = None) -> RigCalibration:
         """The calibration this rig's scans use: a file, or the simulator's ground truth."""
         if override_path:
-            return RigCalibration.load(override_path)
+            return load_any_calibration(override_path)
         path = self.profile.calibration_path()
         if path is not None:
-            return RigCalibration.load(path)
+            return load_any_calibration(path)
         for dev in self.devices.values():
             if devices.implements(dev, devices.GroundTruth):
                 return dev.ground_truth_calibration()

@@ -288,17 +288,20 @@ class RunStore:
             atomic_write_text(p, text)
         return p
 
-    def reserve_space(self) -> None:
-        """Hold :data:`RESERVE_BYTES` back in the run (see :data:`RESERVE`); a disk already too
-        full for it is met later, by the writes themselves."""
+    def reserve_space(self) -> OSError | None:
+        """Hold :data:`RESERVE_BYTES` back in the run (see :data:`RESERVE`); returns the error
+        of a disk already too full for it (or a size limit), met later by the writes
+        themselves unless the caller stops first."""
         p = self.path(RESERVE)
         if p.is_file():
-            return
+            return None
         try:
             atomic_write_bytes(p, bytes(RESERVE_BYTES))
         except OSError as exc:
             if exc.errno not in (*FULL, errno.EFBIG):  # no room (or a size limit): go without
                 raise
+            return exc
+        return None
 
     def release_reserve(self) -> bool:
         """Give the reserve back to the file system; whether there was one. From then on this
@@ -316,7 +319,7 @@ class RunStore:
             return json.loads(p.read_text())
         except FileNotFoundError:
             raise RunError(f"{p} is missing from the run.") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
             raise RunError(f"{p} is not valid JSON ({exc}); it is written by dotshell only: "
                            "restore it from a backup.") from None
 

@@ -289,3 +289,68 @@ def test_a_batch_mesh_gives_the_mesh_commands_bytes(cluster, study, tmp_path):
         pa, pb = _without_meshio_stamp(products(a)), _without_meshio_stamp(products(b))
         assert "volume.vtu" in pa and sorted(pa) == sorted(pb)
         assert [k for k in pa if pa[k] != pb[k]] == [], a.name
+
+
+# ---- issue 33: a batch breaks nothing it should spare -------------------------------------------
+
+def test_a_truncated_stack_fails_its_run_alone_and_again_alone(study, serial, tmp_path, capsys):
+    """One run's view stack cut to a third (as a copy cut short would): the failing task used
+    to travel through Dask as an exception, and `_collect` cancelled the future it had just
+    released; healthy runs were then reported "cancelled by the cluster" with Dask tracebacks
+    printed, and again on the next batch. Now the run fails alone, twice over, and the healthy
+    runs complete in the same invocation with the single-run command's bytes."""
+    import os
+
+    from dotshell.cli import main
+
+    runs = copy_study(study, tmp_path / "study")
+    damaged = runs[1]
+    stack = damaged / "frames" / "view_001.tif"
+    os.truncate(stack, stack.stat().st_size // 3)
+    for attempt in range(2):
+        code = main(["batch", "reconstruct", str(tmp_path / "study"), "--workers", "2",
+                     "--out", str(tmp_path / f"out{attempt}")])
+        err = capsys.readouterr().err
+        assert code == 1 and "1 of 4 runs failed" in err, err
+        assert "Traceback" not in err and "cancelled" not in err, err
+        rows = (tmp_path / f"out{attempt}" / "batch.csv").read_text().splitlines()
+        statuses = [r.split(",")[1] for r in rows[1:]]
+        assert statuses == (["completed", "failed", "completed", "completed"] if attempt == 0
+                            else ["skipped", "failed", "skipped", "skipped"]), rows
+        last = json.loads((damaged / "manifest.json").read_text())["jobs"][-1]
+        assert last["status"] == "failed" and "view_001.tif" in last["reason"], last
+    others = [r for r in runs if r != damaged]
+    assert_same_products(others, [s for s in serial["plain"] if s.name != damaged.name])
+
+
+def test_a_run_named_with_glob_characters_is_processed_when_named(study, tmp_path):
+    runs = copy_study(study, tmp_path / "study")
+    named = runs[0].rename(runs[0].with_name("run[1]"))
+    assert find_runs([str(named)]) == [named.absolute()]
+    assert find_runs([str(tmp_path / "study" / "run*")]) == [named.absolute()]
+
+
+def test_a_negative_worker_count_is_refused_at_once(study, capsys):
+    from dotshell.cli import main
+
+    assert main(["batch", "reconstruct", str(study), "--workers", "-3"]) == 2
+    err = capsys.readouterr().err
+    assert "--workers -3" in err and "at least 1" in err and "Traceback" not in err, err
+
+
+def test_a_task_reports_its_runs_fault_instead_of_raising_it_through_dask(tmp_path):
+    """A run's fault travels as the task's outcome, and the tasks after it pass it on unrun:
+    nothing for Dask to cancel, retry or print."""
+    from dotshell import __version__
+    from dotshell.errors import FrameError
+    from dotshell.pipeline.batch_tasks import _failed_before, _measured
+
+    def cut_stack(bus):
+        raise FrameError("frame 10 ('col_04') of view 1 is missing or unreadable in "
+                         "run/frames/view_001.tif")
+
+    view = _measured(tmp_path, "view", 1, cut_stack, __version__)
+    assert view.value is None and "view_001.tif" in str(view.error)
+    tail = _failed_before(tmp_path, "tail", None, [None, view])
+    assert tail.kind == "tail" and tail.error is view.error
+    assert _failed_before(tmp_path, "tail", None, [None]) is None

@@ -184,3 +184,71 @@ def test_stop_from_a_signal_handler_while_the_main_thread_is_inside_the_call():
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, old)
     assert fired and ended - fired[0] < 0.5
+
+
+class Renderer:
+    """A simulated device: its frames are computed by the host (``context.computing()``) or it
+    stalls like hardware; both end only when the test releases them."""
+
+    def __init__(self, context):
+        self.context = context
+        self.release = threading.Event()
+
+    def connect(self):
+        pass
+
+    def close(self):
+        self.release.set()
+
+    def render(self):
+        with self.context.computing():
+            self.release.wait()
+        return "frame"
+
+    def stall(self):
+        self.release.wait()
+        return "frame"
+
+
+def _past_the_deadline(h, method, timeout_s):
+    """Call ``method`` in a thread; release the device once the call has run past its timeout
+    and grace (a lower bound on time, never an upper one); return (result, error)."""
+    out = {}
+
+    def go():
+        try:
+            out["result"] = getattr(h, method)()
+        except Exception as exc:
+            out["error"] = exc
+
+    dev = h._device
+    t = threading.Thread(target=go)
+    t0 = time.monotonic()
+    t.start()
+    while time.monotonic() < t0 + timeout_s + handles.GRACE_S + 0.2 and t.is_alive():
+        t.join(0.05)
+    dev.release.set()
+    t.join()
+    return out.get("result"), out.get("error")
+
+
+def test_a_devices_own_computing_time_never_counts_against_its_timeout(monkeypatch):
+    """Issue 33: a simulated camera rendering on a busy host must not time out; a device that
+    really stalls still does, with the same timeout."""
+    monkeypatch.setattr(handles, "GRACE_S", 0.05)
+    ctx = RigContext().for_device("camera", "renderer")
+    policy = DevicePolicy(timeouts_s={"other": 0.1})
+    h = DeviceHandle("camera", "renderer", "p", "d", Renderer(ctx), ctx, policy)
+    result, error = _past_the_deadline(h, "render", 0.1)
+    assert error is None and result == "frame"
+    ctx = RigContext().for_device("camera", "renderer")
+    h = DeviceHandle("camera", "renderer", "p", "d", Renderer(ctx), ctx, policy)
+    result, error = _past_the_deadline(h, "stall", 0.1)
+    assert isinstance(error, DeviceTimeout) and "did not finish stall() within 0.1 s" in str(error)
+
+
+def test_computing_outside_a_rig_call_changes_nothing():
+    ctx = RigContext()
+    with ctx.computing():
+        pass
+    assert ctx.time_left() == float("inf")

@@ -649,6 +649,42 @@ _calibration_case("empty", lambda g: "", ("is not valid JSON",), command="scan")
 _calibration_case("not UTF-8", lambda g: b"\xff\xfe{}", ("is not valid JSON",))
 
 
+# ==== 8b. calibration models and sizes (issue 33) ===============================================
+
+_calibration_case("40 distortion terms", _with(camera__dist=[0.01] * 40),
+                  ("40 distortion terms", "4, 5, 8, 12 or 14", "k4, k5, k6, s1"))
+_calibration_case("tilted sensor terms", _with(projector__dist=[0.0] * 12 + [0.02, 0.0]),
+                  ("tilted-sensor distortion", "tau_x = 0.02"))
+_calibration_case("width 128.5", _with(camera__width=128.5),
+                  ("width 128.5 is not a whole number of pixels",))
+
+
+@case("calibration model", "/dev/zero as the calibration",
+      ("/dev/zero is not a regular file", "calibration.json"))
+def _(env):
+    return ["reconstruct", str(env.run()), "--calibration", "/dev/zero"]
+
+
+def _reconstructed_with_the_yml(env: Env, err: str) -> None:
+    run = env.tmp / "run1"
+    assert manifest(run)["status"] == "completed"
+    gens = sorted((run / "gen").iterdir())
+    assert any(str(env.tmp / "cal.yml") in (g / "calibration.json").read_text()
+               for g in gens if (g / "calibration.json").exists()), gens
+
+
+@case("calibration model", "an OpenCV .yml for a run (reconstruct RUN --calibration)", (),
+      code=0, then=_reconstructed_with_the_yml, state_may_change=True)
+def _(env):
+    from dotshell.geometry.calibration import RigCalibration
+    from dotshell.geometry.opencv_io import write_opencv_calibration
+
+    run = env.run()
+    calib = RigCalibration.load(run / "calibration.json")
+    write_opencv_calibration(calib, env.tmp / "cal.yml")
+    return ["reconstruct", str(run), "--calibration", str(env.tmp / "cal.yml")]
+
+
 @case("calibration", "a directory", ("{tmp}/caldir", "is a directory, not a file"))
 def _(env):
     (env.tmp / "caldir").mkdir()
@@ -842,6 +878,34 @@ _layout_case("a positional field {0}", "f_{index:03d}_{0}.png", ("{0}", "only {i
 _layout_case("an unknown field {other}", "f_{index:03d}_{other}.png", ("{other}", "only {index}"))
 _layout_case("a bad format spec", "f_{index:q}.png", ("{index:q}",))
 _layout_case("an unclosed brace", "f_{index.png", ("f_{index.png",))
+
+
+# ==== 10b. captures of mixed pixel formats (issue 33) ===========================================
+
+def _mixed_captures(env: Env, convert) -> list[str]:
+    """The captures (16-bit) with frame 5 converted by ``convert`` (an 8-bit or a colour frame):
+    such a mix was decoded with exit 0 (issue 33: 1,920 of 3,840 pixels off by up to 31
+    projector columns)."""
+    import cv2
+
+    from dotshell.frames import export_png, open_frames
+
+    run = env.shared("base")
+    (env.tmp / "caps").mkdir()
+    for i, p in enumerate(export_png(open_frames(run, 0, manifest(run)), env.tmp / "png")):
+        p.rename(env.tmp / "caps" / f"f_{i:03d}.png")
+    args = _captures_args(env)
+    f = env.tmp / "caps" / "f_005.png"
+    cv2.imwrite(str(f), convert(cv2.imread(str(f), cv2.IMREAD_UNCHANGED)))
+    return args
+
+
+case("captures", "one 8-bit frame among 16-bit frames",
+     ("f_005.png (uint8, 1 channel)", "f_000.png is uint16, 1 channel", "one pixel format"),
+     then=_nothing_written)(lambda env: _mixed_captures(env, lambda im: (im >> 4).astype(np.uint8)))
+case("captures", "one colour frame among grey frames",
+     ("f_005.png (uint16, 3 channels)", "differ in bit depth or channels"),
+     then=_nothing_written)(lambda env: _mixed_captures(env, lambda im: np.dstack([im] * 3)))
 
 
 # ==== 11. plugins ===============================================================================
@@ -1419,3 +1483,317 @@ def test_a_stop_signal_never_cuts_a_queue_operation_short() -> None:
             time.sleep(0.05)  # the handler has run by now, and did not raise here
             reached_end = True
     assert reached_end and stopped.value.signame == "SIGTERM"
+
+
+# ==== a slow host (issue 33) =====================================================================
+
+@pytest.mark.parametrize("acquisition", ["sequenced", "show-capture"])
+def test_a_slow_simulator_never_times_out(acquisition: str, tmp_path: Path, monkeypatch,
+                                          capsys) -> None:
+    """The simulated camera's rendering is slowed (every render waits 50 ms more, as on a
+    host whose cores other work holds) while its calls' timeouts are 0.2 s: rendering is the
+    simulator's own compute, so the scan completes. Without ``RigContext.computing`` the
+    sequence's ``read_armed()`` (30 renders) and each capture failed with DeviceTimeout. A
+    device that really stalls still times out: tests/test_device_handles.py."""
+    import dotshell.handles as handles
+    from dotshell_sim.render import Renderer
+
+    monkeypatch.setattr(handles, "GRACE_S", 0.05)
+    render = Renderer.render
+    slowed = []
+
+    def slow_render(self, view, radiance):
+        slowed.append(1)
+        time.sleep(0.05)
+        return render(self, view, radiance)
+
+    monkeypatch.setattr(Renderer, "render", slow_render)
+    prof = write_profile(tmp_path / "p.toml", tiny_profile_dict(
+        scan__acquisition=acquisition, camera__timeouts={"capture": 0.2, "other": 0.2},
+        mesh={"after_scan": False}))
+    code = main(["scan", str(prof), "--out", str(tmp_path / "runs")])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert manifest(only_run(tmp_path / "runs"))["status"] == "completed"
+    assert len(slowed) >= 60  # 2 views of 30 frames, each rendered more slowly than 0.2 s / 4
+
+
+# ==== generations keep what they did not recompute (issue 33) ===================================
+
+def _validation_kept(env: Env, err: str) -> None:
+    run = env.tmp / "run1"
+    before = json.loads((env.shared("base") / "report.json").read_text())["validation"]
+    report = json.loads((run / "report.json").read_text())
+    assert report["generation"] == 2 and report["validation"] == before
+    assert "validation" not in report.get("dropped", [])
+    assert main(["validate", str(run), "--out", str(env.tmp / "val")]) == 0
+    assert (env.tmp / "val" / "validation.csv").read_text().count("\n") == 2
+
+
+@case("generations", "validation survives `mesh`", (), code=0, then=_validation_kept,
+      state_may_change=True)
+def _(env):
+    return ["mesh", str(env.run())]
+
+
+@case("generations", "validation survives `mesh` of a run made before it was listed", (),
+      code=0, then=_validation_kept, state_may_change=True)
+def _(env):
+    run = env.run()
+    products = run / "gen" / "001" / "products.json"
+    edit_json(products, lambda p: {**p, "files": {k: v for k, v in p["files"].items()
+                                                  if k != "validation"}})
+    return ["mesh", str(run)]
+
+
+# ==== dead ends offer the way out (issue 33) =====================================================
+
+def _cut_stack(run: Path, view: int = 1, keep: float = 1 / 3) -> Path:
+    stack = run / "frames" / f"view_{view:03d}.tif"
+    os.truncate(stack, int(stack.stat().st_size * keep))
+    return run
+
+
+@case("dead ends", "inspect counts only the whole pages of a cut stack",
+      ("views: 1 of 2 complete", "view 1: 10 of its 30 frames on disk",
+       "resume {tmp}/run1 --view 1"), code=0)
+def _(env):
+    run = _cut_stack(env.run())
+    assert frames_on_disk(run, 1) == 10  # counted by tifffile, not by dotshell
+    return ["inspect", str(run)]
+
+
+@case("dead ends", "resume names a cut stack and the way out",
+      ("view 1 has 10 of its 30 frames on disk", "cut or deleted",
+       "dotshell resume {tmp}/run1 --view 1"))
+def _(env):
+    return ["resume", str(_cut_stack(env.run()))]
+
+
+@case("dead ends", "resume names a deleted stack and the way out",
+      ("view 0 has 0 of its 30 frames on disk", "--view 0"))
+def _(env):
+    run = env.run()
+    (run / "frames" / "view_000.tif").unlink()
+    return ["resume", str(run)]
+
+
+@case("dead ends", "reconstruct on a cut stack offers the re-capture",
+      ("view_001.tif", "dotshell resume {tmp}/run1 --view 1"))
+def _(env):
+    return ["reconstruct", str(_cut_stack(env.run()))]
+
+
+@case("dead ends", "resume --view of a view the run does not have", ("--view 5", "views 0 to 1"))
+def _(env):
+    return ["resume", str(env.run()), "--view", "5"]
+
+
+def test_resume_view_captures_a_cut_stack_again(shared, tmp_path: Path, capsys) -> None:
+    """The way out works: `resume RUN --view 1` sets the cut stack aside (kept), captures the
+    view again and publishes a new generation; the run's counts are true."""
+    import subprocess as sp
+
+    run = tmp_path / "run"
+    sp.run(["cp", "-a", str(shared("base")), str(run)], check=True)
+    cut = (_cut_stack(run) / "frames" / "view_001.tif").read_bytes()
+    assert main(["resume", str(run), "--view", "1"]) == 0, capsys.readouterr().err
+    m = manifest(run)
+    assert m["status"] == "completed" and [v["frames"] for v in m["views"]] == [30, 30]
+    counts_are_true(run)
+    assert (run / "frames" / "view_001.partial-1.tif").read_bytes() == cut
+    assert main(["inspect", str(run)]) == 0
+    assert "views: 2 of 2 complete, 60 frames on disk" in capsys.readouterr().out
+
+
+# ==== a run's status is true after every failure path (issue 33) =================================
+
+def _status_unchanged(kind: str):
+    def then(env: Env, err: str) -> None:
+        m = manifest(env.tmp / "run1")
+        assert m["status"] == kind and m.get("job") is None, m  # never left "running"
+        assert main(["inspect", str(env.tmp / "run1")]) == 0
+    return then
+
+
+@case("states", "resume on a disk that is still full",
+      ("the disk is full", "no space left on device", "free disk space", "run is unchanged"),
+      then=_status_unchanged("aborted"))
+def _(env):
+    run = env.run("aborted")
+    FullDisk(env.monkeypatch, run, free=20_000)
+    return ["resume", str(run)]
+
+
+@case("states", "mesh on a full disk names the disk and keeps the status",
+      ("the disk is full", "free disk space"), then=_status_unchanged("completed"))
+def _(env):
+    run = env.run()
+    FullDisk(env.monkeypatch, run, free=20_000)
+    return ["mesh", str(run)]
+
+
+# ==== every long computation bounded by what its input asks (issue 33) ===========================
+
+@case("bounds", "mesh --node-distance 0.001 (ran for more than 300 s)",
+      ("--node-distance 0.001 mm", "smallest node distance", "0.05 mm"))
+def _(env):
+    return ["mesh", str(env.run()), "--node-distance", "0.001"]
+
+
+@case("bounds", "a mesh whose node count would exceed the limit",
+      ("a mesh at 0.06 mm would have about", "nodes", "5,000,000", "larger node distance"))
+def _(env):
+    import tomllib
+
+    import tomli_w
+
+    run = env.run()
+    raw = tomllib.loads((run / "profile.toml").read_text())
+    raw["mesh"]["also_node_distances_mm"] = [0.06]
+    replace_file(run / "profile.toml", tomli_w.dumps(raw))
+    return ["mesh", str(run)]
+
+
+@case("bounds", "normalize --min-sin-beta 2 (sin β ≤ 1)",
+      ("--min-sin-beta", "[normalize.min_sin_beta] = 2.0", "[0.0, 1.0]"))
+def _(env):
+    return ["normalize", str(env.run()), "--min-sin-beta", "2"]
+
+
+# ==== `check` validates what the scan will use, with the scan's bounds (issue 33) ================
+
+_profile("check bounds", "exposure 1e308", ("[scan.exposure_ms] = 1e+308", "[0.001, 600000.0] ms"),
+         scan__exposure_ms=1e308)
+_profile("check bounds", "settle_ms 1e12 (the scan hung)", ("[scan.settle_ms] = 1000000000000.0",
+                                                            "[0.0, 600000.0] ms"),
+         scan__settle_ms=1e12)
+_profile("check bounds", "ROI radius 0", ("[processing.roi.radius_mm] = 0.0", "[0.001, +inf] mm"),
+         processing__roi__radius_mm=0.0)
+_profile("check bounds", "ROI z_min above z_max",
+         ("[processing.roi] z_min_mm = 30 is not below z_max_mm = 10", "z_min_mm < z_max_mm"),
+         processing__roi__z_min_mm=30.0, processing__roi__z_max_mm=10.0)
+
+
+# ==== a user script's own error shows its traceback (issue 33) ===================================
+
+@pytest.mark.parametrize("source, says", [
+    ("x = 1\ndef f():\n    return 1 / 0\nf()\n", ("line 4, in <module>", "line 3, in f",
+                                                    "ZeroDivisionError: division by zero")),
+    ("x = (1,\n", ("line 1", "SyntaxError", "never closed")),
+], ids=["raises", "syntax error"])
+def test_a_scripts_own_error_shows_its_traceback(source, says, tmp_path, capsys) -> None:
+    """docs/tui.md promises the traceback; it said "internal error … a bug in dotshell"."""
+    script = tmp_path / "mine.py"
+    script.write_text(source)
+    code = main(["script", str(script), "--profile",
+                 str(write_profile(tmp_path / "p.toml", tiny_profile_dict()))])
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert f"script {script} failed" in err and "internal error" not in err, err
+    for s in says:
+        assert s in err, (s, err)
+    assert "console.py" not in err  # dotshell's own frames are left out
+
+
+# ==== files that are not what they seem (issue 33) ===============================================
+
+@case("odd files", "a FIFO given as the profile", ("{tmp}/p.toml is not a regular file", "FIFO"))
+def _(env):
+    os.mkfifo(env.tmp / "p.toml")
+    return ["check", str(env.tmp / "p.toml")]
+
+
+@case("odd files", "a FIFO is not listed among the profiles",
+      ("{tmp}/nope.toml does not exist", "profiles in {tmp}: real.toml"))
+def _(env):
+    os.mkfifo(env.tmp / "fifo.toml")
+    env.profile("real.toml")
+    return ["check", str(env.tmp / "nope.toml")]
+
+
+@case("odd files", "a 50k-deep TOML array as the profile", ("{tmp}/p.toml", "nested too deeply"))
+def _(env):
+    env.file("p.toml", "a = " + "[" * 50_000 + "]" * 50_000 + "\n")
+    return ["check", str(env.tmp / "p.toml")]
+
+
+@case("odd files", "a 100k-deep JSON manifest", ("{tmp}/run1/manifest.json", "not valid json",
+                                                 "maximum recursion depth"))
+def _(env):
+    run = env.run()
+    replace_file(run / "manifest.json", "[" * 100_000 + "]" * 100_000)
+    return ["inspect", str(run)]
+
+
+@case("odd files", "a 100k-deep JSON calibration", ("{tmp}/cal.json", "not valid json"))
+def _(env):
+    env.file("cal.json", "[" * 100_000 + "]" * 100_000)
+    return ["reconstruct", str(env.run()), "--calibration", str(env.tmp / "cal.json")]
+
+
+@case("odd files", "serve --socket in a missing directory",
+      ("--socket {tmp}/nowhere/rig.sock", "{tmp}/nowhere does not exist", "mkdir -m 700"))
+def _(env):
+    return ["serve", str(env.profile()), "--socket", str(env.tmp / "nowhere" / "rig.sock")]
+
+
+@case("states", "full disk while writing the mesh names the file",
+      ("no space left on device", "{tmp}/run1/gen/002/", "free disk space"),
+      then=_status_unchanged("completed"))
+def _(env):
+    run = env.run()
+    FullDisk(env.monkeypatch, run / "gen", free=30_000)  # the reserve fits, the mesh does not
+    return ["mesh", str(run)]
+
+
+# ==== resource exhaustion names the limit (issue 33) =============================================
+
+def test_an_address_space_limit_exits_2_naming_it(tmp_path: Path) -> None:
+    """`ulimit -v 700000`: the scan cannot start its threads or get its memory; it said
+    "internal error: RuntimeError: can't start new thread" with exit 1."""
+    import resource
+
+    prof = write_profile(tmp_path / "p.toml", tiny_profile_dict())
+    limit = 700_000 * 1024
+
+    def limited() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+
+    proc = subprocess.run([sys.executable, "-m", "dotshell.cli", "scan", str(prof), "--out",
+                           str(tmp_path / "runs")], preexec_fn=limited, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 2, proc.stderr
+    assert "ulimit -v 700000 kB" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
+    assert "internal error" not in proc.stderr, proc.stderr
+
+
+def test_a_thread_that_cannot_start_exits_2_naming_the_limits(tmp_path, monkeypatch,
+                                                              capsys) -> None:
+    import resource
+
+    def refuse(self):
+        raise RuntimeError("can't start new thread")
+
+    monkeypatch.setattr(threading.Thread, "start", refuse)
+    soft, hard = resource.getrlimit(resource.RLIMIT_NPROC)
+    prof = write_profile(tmp_path / "p.toml", tiny_profile_dict())
+    assert main(["scan", str(prof), "--out", str(tmp_path / "runs")]) == 2
+    err = capsys.readouterr().err
+    assert "could not start a thread" in err and "thread limit" in err, err
+    if soft != resource.RLIM_INFINITY:
+        assert f"ulimit -u {soft}" in err
+
+
+def _validated_now(env: Env, err: str) -> None:
+    kept = json.loads((env.shared("base") / "report.json").read_text())["validation"]
+    row = (env.tmp / "val" / "validation.csv").read_text().splitlines()[1].split(",")
+    assert float(row[4]) == pytest.approx(kept["mean_rel_error_pct"], abs=1e-4), row  # CSV: 4 d.
+
+
+@case("generations", "validate a run whose report lacks the validation", (), code=0,
+      then=_validated_now)
+def _(env):
+    run = env.run()
+    edit_json(run / "report.json", lambda r: {k: v for k, v in r.items() if k != "validation"})
+    return ["validate", str(run), "--out", str(env.tmp / "val")]

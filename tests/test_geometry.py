@@ -186,7 +186,7 @@ def test_image_triangulation_equals_per_point_and_the_truth(pdist, threads):
     y0 = (row[ys, xs].astype(float) - k[1, 2]) / k[1, 1]
     x, y, steps = x0, y0, np.zeros(len(x0), int)
     for _ in range(50):
-        nx, ny = tr._undistort_step(*lens_p.dist, x0, y0, x, y)
+        nx, ny = tr._undistort_step(tr._twelve_terms(lens_p.dist), x0, y0, x, y)
         moving = (np.abs(nx - x) >= 1e-15) | (np.abs(ny - y) >= 1e-15)
         steps += moving
         x, y = nx, ny
@@ -194,3 +194,57 @@ def test_image_triangulation_equals_per_point_and_the_truth(pdist, threads):
     truth = X[ys, xs][kept] @ to_frame[:, :3].T + to_frame[:, 3]
     # float32 decoded coordinates: ~1e-5 px, a few µm along these rays
     assert np.abs(img.points - truth).max() < 0.01
+
+
+# ---- OpenCV's longer distortion models (issue 33) ----------------------------------------------
+
+RATIONAL = (-0.08, 0.04, 0.001, -0.0005, 0.0, 0.02, -0.01, 0.005)  # k1..k3, k4..k6
+THIN_PRISM = RATIONAL + (0.002, -0.001, 0.0015, 0.0005)  # + s1..s4
+
+
+@pytest.mark.parametrize("dist", [RATIONAL, THIN_PRISM, THIN_PRISM + (0.0, 0.0)],
+                         ids=["rational", "thin prism", "14 terms, not tilted"])
+def test_every_opencv_distortion_model_is_applied_as_opencv_applies_it(dist):
+    """Issue 33: an 8-term rational calibration was cut to 5 terms without a word, moving a
+    corner pixel by ~19 px. Projection equals cv2.projectPoints; triangulation through the
+    model recovers the points; the same rig cut to 5 terms does not."""
+    import cv2
+
+    from dotshell.geometry.lens import Lens
+
+    cal = _rig(dist=dist, pdist=dist)
+    assert cal.camera.dist.size == 12
+    rng = np.random.default_rng(5)
+    X = rng.uniform([-40, -30, 185], [40, 30, 215], size=(400, 3))
+    ours = cal.camera.project(X)
+    theirs, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), cal.camera.K, np.array(dist))
+    assert np.abs(ours - theirs.reshape(-1, 2)).max() < 1e-9
+    prj_px = cal.projector.project(X @ cal.R.T + cal.T)
+    tri = triangulate(cal.camera.rays(ours), prj_px[:, 0], cal, row=prj_px[:, 1])
+    assert tri.keep.all() and np.abs(tri.points - X).max() < 1e-6
+    cut = RigCalibration(Lens(cal.camera.K, dist[:5], 640, 512),
+                         Lens(cal.projector.K, dist[:5], 512, 384), cal.R, cal.T,
+                         cal.axis_point, cal.axis_direction)
+    wrong = triangulate(cut.camera.rays(ours), prj_px[:, 0], cut)
+    assert np.nanmax(np.abs(wrong.points - X[wrong.keep])) > 0.05  # mm: the terms matter
+
+
+@pytest.mark.parametrize("dist, says", [
+    ((0.1,) * 40, "40 distortion terms: OpenCV's models have 4, 5, 8, 12 or 14"),
+    ((0.0,) * 12 + (0.01, 0.0), "tilted-sensor distortion (tau_x = 0.01, tau_y = 0)"),
+])
+def test_distortion_models_nothing_applies_are_refused_naming_the_terms(dist, says):
+    from dotshell.geometry.lens import Lens
+
+    with pytest.raises(ValueError) as refused:
+        Lens(np.eye(3), dist, 64, 48)
+    assert says in str(refused.value)
+
+
+def test_opencv_file_with_a_rational_model_reads_back_whole(tmp_path):
+    from dotshell.geometry.opencv_io import read_opencv_calibration, write_opencv_calibration
+
+    cal = _rig(dist=THIN_PRISM, pdist=RATIONAL)
+    back = read_opencv_calibration(write_opencv_calibration(cal, tmp_path / "cal.yml"))
+    assert np.array_equal(back.camera.dist, cal.camera.dist)
+    assert np.array_equal(back.projector.dist[:8], RATIONAL)

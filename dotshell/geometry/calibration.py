@@ -180,12 +180,16 @@ class RigCalibration:
         if path.is_dir():
             raise CalibrationError(f"calibration file {path} is a directory, not a file. Give "
                                    "the path of a calibration.json written by dotshell.")
+        if path.exists() and not path.is_file():
+            raise CalibrationError(f"calibration file {path} is not a regular file (a device, "
+                                   "FIFO or socket). Give the path of a calibration.json written "
+                                   "by dotshell.")
         if not path.is_file():
             raise CalibrationError(f"calibration file {path} does not exist. Give the path of a "
                                    "calibration.json written by dotshell.")
         try:
             data = json.loads(path.read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
             raise CalibrationError(f"calibration file {path} is not valid JSON ({exc}). Write it "
                                    "again with `dotshell calibrate`, or restore it from a "
                                    "backup.") from None

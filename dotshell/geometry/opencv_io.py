@@ -2,7 +2,9 @@
 
 Key names (all matrices ``opencv-matrix``; lengths in mm, pixel quantities in pixels):
 
-* ``Kc`` (3x3), ``kc`` (5x1) — camera intrinsics and distortion (k1, k2, p1, p2, k3);
+* ``Kc`` (3x3), ``kc`` (5x1) — camera intrinsics and distortion (k1, k2, p1, p2, k3), or any
+  of OpenCV's longer models (8, 12 or 14 terms: rational k4–k6, thin prism s1–s4; tilted τx, τy
+  are refused unless zero, see :func:`dotshell.geometry.lens.distortion`);
 * ``Kp``, ``kp`` — projector intrinsics and distortion;
 * ``Rp`` (3x3), ``Tp`` (3x1) — camera frame → projector frame, ``X_p = Rp X_c + Tp``;
 * ``frameWidth``, ``frameHeight`` — camera image size; ``screenResX``, ``screenResY`` —
@@ -28,7 +30,8 @@ import numpy as np
 from dotshell.errors import CalibrationError
 from dotshell.geometry.calibration import (PLACEHOLDER_AXIS_DIRECTION, PLACEHOLDER_AXIS_POINT,
                                            RigCalibration)
-from dotshell.geometry.lens import Lens
+from dotshell.geometry.lens import (DISTORTION_TERMS, OPENCV_DISTORTION_LENGTHS, Lens,
+                                   distortion)
 
 OPENCV_SUFFIXES = (".xml", ".yml", ".yaml")
 _RMS_KEYS = {"cam_error": "camera", "proj_error": "projector", "stereo_error": "stereo"}
@@ -71,6 +74,23 @@ def _whole_matrix(node: cv2.FileNode) -> bool:
             and all(data.at(i).isReal() or data.at(i).isInt() for i in range(n)))
 
 
+def _distortion(fs: cv2.FileStorage, key: str, where: str) -> np.ndarray:
+    """A distortion vector of any of OpenCV's lengths, checked (terms named when refused)."""
+    node = fs.getNode(key)
+    rows, cols = (node.getNode(k) for k in ("rows", "cols")) if node.isMap() else (None, None)
+    size = 5  # a missing or malformed entry: _matrix says what is wrong
+    if rows is not None and rows.isInt() and cols.isInt():
+        size = int(rows.real()) * int(cols.real())
+    if size not in OPENCV_DISTORTION_LENGTHS:
+        raise CalibrationError(f"{where}: {key!r} has {size} distortion terms; OpenCV's models "
+                               f"have 4, 5, 8, 12 or 14 ({', '.join(DISTORTION_TERMS)}).")
+    d = _matrix(fs, key, (size,), where)
+    try:
+        return distortion(d)
+    except ValueError as exc:
+        raise CalibrationError(f"{where}: {key!r}: {exc}.") from None
+
+
 def _int(fs: cv2.FileStorage, key: str, where: str) -> int:
     node = fs.getNode(key)
     if node.empty() or not node.isReal() and not node.isInt():
@@ -83,6 +103,9 @@ def read_opencv_calibration(path: Path | str) -> RigCalibration:
     """A :class:`RigCalibration` from an OpenCV FileStorage file (SLStudio's or dotshell's)."""
     path = Path(path)
     where = str(path)
+    if path.exists() and not path.is_file():
+        raise CalibrationError(f"calibration file {path} is not a regular file (a device, FIFO "
+                               "or socket); give an OpenCV .yml/.xml file.")
     if not path.is_file():
         raise CalibrationError(f"calibration file {path} does not exist.")
     try:
@@ -94,9 +117,9 @@ def read_opencv_calibration(path: Path | str) -> RigCalibration:
     if not fs.isOpened():
         raise CalibrationError(f"{where}: not a readable OpenCV FileStorage file.")
     try:
-        camera = Lens(_matrix(fs, "Kc", (3, 3), where), _matrix(fs, "kc", (5,), where),
+        camera = Lens(_matrix(fs, "Kc", (3, 3), where), _distortion(fs, "kc", where),
                       _int(fs, "frameWidth", where), _int(fs, "frameHeight", where))
-        projector = Lens(_matrix(fs, "Kp", (3, 3), where), _matrix(fs, "kp", (5,), where),
+        projector = Lens(_matrix(fs, "Kp", (3, 3), where), _distortion(fs, "kp", where),
                          _int(fs, "screenResX", where), _int(fs, "screenResY", where))
         R = _matrix(fs, "Rp", (3, 3), where)
         T = _matrix(fs, "Tp", (3,), where)
@@ -139,9 +162,9 @@ def write_opencv_calibration(calib: RigCalibration, path: Path | str) -> Path:
     fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
     try:
         fs.write("Kc", calib.camera.K)
-        fs.write("kc", calib.camera.dist.reshape(5, 1))
+        fs.write("kc", calib.camera.dist.reshape(-1, 1))
         fs.write("Kp", calib.projector.K)
-        fs.write("kp", calib.projector.dist.reshape(5, 1))
+        fs.write("kp", calib.projector.dist.reshape(-1, 1))
         fs.write("Rp", calib.R)
         fs.write("Tp", calib.T.reshape(3, 1))
         if calib.axis_measured:

@@ -108,11 +108,19 @@ class _Rig:
     def of(cls, calib: RigCalibration, tolerance_px: float, min_angle_deg: float) -> "_Rig":
         return cls(np.ascontiguousarray(calib.R, np.float64),
                    np.ascontiguousarray(calib.T, np.float64).ravel(),
-                   calib.projector.K, calib.projector.dist,
+                   calib.projector.K, _twelve_terms(calib.projector.dist),
                    float(tolerance_px) ** 2, float(np.sin(np.deg2rad(min_angle_deg))) ** 2)
 
     def args(self) -> tuple:
         return (self.R, self.T, self.K, self.dist, self.tolerance2, self.sin2_min)
+
+
+def _twelve_terms(dist: np.ndarray) -> np.ndarray:
+    """Distortion as the compiled solves take it: OpenCV's first 12 terms (k1, k2, p1, p2, k3,
+    k4, k5, k6, s1, s2, s3, s4), zeros for those a 5-term lens does not use."""
+    out = np.zeros(12)
+    out[: len(dist)] = dist
+    return out
 
 
 def triangulate(rays: np.ndarray, column: np.ndarray, calib: RigCalibration,
@@ -265,11 +273,10 @@ def _ideal(K, dist, u, v):
 @numba.njit(**_INNER)
 def _ideal_from(K, dist, u, v, x, y):
     """:func:`_ideal` iterated from the guess (x, y)."""
-    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     x0 = (u - K[0, 2]) / K[0, 0]
     y0 = (v - K[1, 2]) / K[1, 1]
     for _ in range(MAX_UNDISTORT_STEPS):
-        nx, ny = _undistort_step(k1, k2, p1, p2, k3, x0, y0, x, y)
+        nx, ny = _undistort_step(dist, x0, y0, x, y)
         if abs(nx - x) < 1e-15 and abs(ny - y) < 1e-15:
             return nx, ny
         x, y = nx, ny
@@ -277,13 +284,14 @@ def _ideal_from(K, dist, u, v, x, y):
 
 
 @numba.njit(**_INNER)
-def _undistort_step(k1, k2, p1, p2, k3, x0, y0, x, y):
+def _undistort_step(d, x0, y0, x, y):
     """One fixed-point step towards the ideal point (x, y) whose distorted image is (x0, y0)
-    (normalized coordinates)."""
+    (normalized coordinates); ``d``: the 12 terms of :func:`_twelve_terms`."""
     r2 = x * x + y * y
-    icdist = 1.0 / (1.0 + ((k3 * r2 + k2) * r2 + k1) * r2)
-    dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    icdist = (1.0 + ((d[7] * r2 + d[6]) * r2 + d[5]) * r2) / (
+        1.0 + ((d[4] * r2 + d[1]) * r2 + d[0]) * r2)
+    dx = 2.0 * d[2] * x * y + d[3] * (r2 + 2.0 * x * x) + (d[8] + d[9] * r2) * r2
+    dy = d[2] * (r2 + 2.0 * y * y) + 2.0 * d[3] * x * y + (d[10] + d[11] * r2) * r2
     return (x0 - dx) * icdist, (y0 - dy) * icdist
 
 
@@ -294,7 +302,6 @@ def _ideal_batch(K, dist, u, v, n, xs, ys, last):
     then one step at a time for all while one of them still moves (at most
     :data:`BATCH_UNDISTORT_STEPS` in all), then iterated on to convergence where the last step
     still moved (``last``: scratch)."""
-    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     for j in range(n):
         x0 = (u[j] - cx) / fx
@@ -302,7 +309,7 @@ def _ideal_batch(K, dist, u, v, n, xs, ys, last):
         x, y = x0, y0
         step = 0.0
         for _ in range(FIRST_UNDISTORT_STEPS):
-            nx, ny = _undistort_step(k1, k2, p1, p2, k3, x0, y0, x, y)
+            nx, ny = _undistort_step(dist, x0, y0, x, y)
             step = max(abs(nx - x), abs(ny - y))
             x, y = nx, ny
         xs[j] = x
@@ -317,7 +324,7 @@ def _ideal_batch(K, dist, u, v, n, xs, ys, last):
         for j in range(n):
             x0 = (u[j] - cx) / fx
             y0 = (v[j] - cy) / fy
-            nx, ny = _undistort_step(k1, k2, p1, p2, k3, x0, y0, xs[j], ys[j])
+            nx, ny = _undistort_step(dist, x0, y0, xs[j], ys[j])
             last[j] = max(abs(nx - xs[j]), abs(ny - ys[j]))
             xs[j] = nx
             ys[j] = ny
@@ -373,10 +380,11 @@ def _project_y(K, dist, px, py, pz):
     """Distorted projector pixel row of a projector-frame point (OpenCV's model)."""
     x = px / pz
     y = py / pz
-    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
     r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    radial = (1.0 + r2 * (dist[0] + r2 * (dist[1] + r2 * dist[4]))) / (
+        1.0 + r2 * (dist[5] + r2 * (dist[6] + r2 * dist[7])))
+    yd = (y * radial + dist[2] * (r2 + 2.0 * y * y) + 2.0 * dist[3] * x * y
+          + (dist[10] + dist[11] * r2) * r2)
     return K[1, 1] * yd + K[1, 2]
 
 

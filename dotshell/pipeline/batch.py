@@ -124,13 +124,14 @@ class RunOutcome:
 def find_runs(patterns: list[str]) -> list[Path]:
     """The run directories named by ``patterns``, in order, each once: a run directory, a
     study directory (its sub-directories that are runs), or a glob (its matches that are runs;
-    quote it so dotshell, not the shell, expands it). Absolute, symbolic links kept, so the
-    paths are the ones workers see on a shared file system."""
+    quote it so dotshell, not the shell, expands it). A directory that exists under the name
+    given is taken as named, glob characters and all (``run[1]``). Absolute, symbolic links
+    kept, so the paths are the ones workers see on a shared file system."""
     import glob
 
     runs: list[Path] = []
     for pattern in patterns:
-        if any(c in pattern for c in "*?["):
+        if any(c in pattern for c in "*?[") and not Path(pattern).exists():
             found = [Path(m) for m in sorted(glob.glob(pattern))]
             found = [p for p in found if (p / "manifest.json").is_file()]
             if not found:
@@ -468,9 +469,10 @@ class StudyBatch:
             del active[root]
             exc = future.exception() if future.status == "error" else RunError(
                 f"a task of {root.name} was cancelled by the cluster")
+            for f in run.futures:  # the failed one is done: cancelling it again confused Dask
+                if f is not future:
+                    f.cancel()
             future.release()
-            for f in run.futures:
-                f.cancel()
             wait_for_tasks(client, [root], STRAGGLER_WAIT_S)  # its other running tasks
             self._total -= len(run.futures) - len(run.outcomes) - 1  # never to be done
             self._close(run.job, exc, run.outcomes)
@@ -484,6 +486,10 @@ class StudyBatch:
         if outcome.kind != "tail":
             return
         del active[root]
+        failed = next((o.error for o in run.outcomes if o.error is not None), None)
+        if failed is not None:  # every task of the run has ended: nothing writes any more
+            self._close(run.job, failed, run.outcomes)
+            return
         try:
             parts = [o.value for o in run.outcomes if o.kind in ("head", "tail")]
             report = publish(run.job, run.work, parts)
@@ -540,6 +546,9 @@ def run_batch(command: str, patterns: list[str], pm: PluginManager,
     """``dotshell batch COMMAND RUN_OR_GLOB ...``: re-process the study's runs on a Dask cluster
     (the scheduler at ``scheduler``, else a local cluster of ``workers`` processes); returns one
     outcome per run. ``redo`` re-processes runs this batch already finished."""
+    if workers is not None and workers < 1:
+        raise BatchError(f"--workers {workers}: a local cluster needs at least 1 worker "
+                         "process; give a positive number or leave it out (one per core).")
     runs = find_runs(patterns)
     options = dict(options or {})
     if options.get("calibration_file"):

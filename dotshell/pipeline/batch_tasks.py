@@ -27,7 +27,7 @@ from dotshell import __version__
 from dotshell.errors import RunError
 from dotshell.events import Event, EventBus
 from dotshell.geometry.calibration import RigCalibration
-from dotshell.pipeline.engine import JobWork, StepsDone, run_steps
+from dotshell.pipeline.engine import JobWork, StepsDone, outcome_of, run_steps
 from dotshell.pipeline.generations import ProductStore
 from dotshell.pipeline.steps import make_coding, reconstruct_one_view
 from dotshell.plugins import get_plugin_manager
@@ -50,6 +50,10 @@ class TaskOutcome:
     read_bytes: int | None
     worker: str
     events: list[Event] = field(default_factory=list)
+    #: what failed the task (a one-paragraph :class:`~dotshell.errors.RunError`), or None. A
+    #: task never raises for its run's own faults: an exception travelling through Dask made
+    #: it cancel and retry tasks of healthy runs (issue 33); the client fails the run alone.
+    error: RunError | None = None
 
 
 def identity() -> dict[str, str]:
@@ -104,12 +108,25 @@ def _measured(run_root: Path, kind: str, view: int | None,
     bus = EventBus()
     bus.subscribe(events.append)
     r0, t0 = _read_bytes(), time.perf_counter()
-    value = body(bus)
+    error = None
+    try:
+        value = body(bus)
+    except Exception as exc:  # the run's own fault: reported in the outcome, never raised
+        value, error = None, RunError(outcome_of(exc)[1])
     seconds = time.perf_counter() - t0
     r1 = _read_bytes()
     return TaskOutcome(run_root.name, kind, view, value, seconds,
                        None if r0 is None or r1 is None else r1 - r0,
-                       f"{socket.gethostname()}:{os.getpid()}", events)
+                       f"{socket.gethostname()}:{os.getpid()}", events, error)
+
+
+def _failed_before(run_root: Path, kind: str, view: int | None,
+                   inputs: list[TaskOutcome | None]) -> TaskOutcome | None:
+    """The outcome of a task whose input task failed: that failure, passed on unrun."""
+    for o in inputs:
+        if o is not None and o.error is not None:
+            return TaskOutcome(run_root.name, kind, view, None, 0.0, 0, o.worker, [], o.error)
+    return None
 
 
 def _profile(run_root: Path) -> Profile:
@@ -148,7 +165,8 @@ def view_task(work: JobWork, view: int, angle_deg: float, client_version: str,
         return reconstruct_one_view(store, view, angle_deg, profile, make_coding(profile, pm),
                                     calib, bus)
 
-    return _measured(work.run_root, "view", view, body, client_version)
+    failed = _failed_before(work.run_root, "view", view, [after])
+    return failed or _measured(work.run_root, "view", view, body, client_version)
 
 
 def tail_task(work: JobWork, names: list[str], client_version: str,
@@ -167,4 +185,5 @@ def tail_task(work: JobWork, names: list[str], client_version: str,
             done.timings["reconstruct"] = sum(o.seconds for o in views)
         return done
 
-    return _measured(work.run_root, "tail", None, body, client_version)
+    failed = _failed_before(work.run_root, "tail", None, [head, *views])
+    return failed or _measured(work.run_root, "tail", None, body, client_version)

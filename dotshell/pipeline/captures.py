@@ -184,15 +184,30 @@ def _glob_pattern(files: str) -> re.Pattern:
     return re.compile("^" + r"\d+".join(re.escape(p) for p in parts) + "$")
 
 
-def _read_gray(path: Path) -> np.ndarray:
+def _read_gray(path: Path) -> tuple[np.ndarray, str]:
+    """The frame as one grey channel, and what the file held (e.g. ``uint16, 1 channel``)."""
     import cv2
 
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise RunError(f"{path}: cannot be read as an image (is it a PNG/BMP/TIFF?).")
+    channels = img.shape[2] if img.ndim == 3 else 1
+    kind = f"{img.dtype}, {channels} channel{'s' if channels > 1 else ''}"
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
-    return img
+    return img, kind
+
+
+def _one_kind(directory: Path, kinds: dict[str, str]) -> None:
+    """All frames of a sequence have one bit depth and one channel count: a 16-bit frame among
+    8-bit ones would be decoded against thresholds of the wrong scale, without a word."""
+    first_name, first = next(iter(kinds.items()))
+    odd = [f"{fn} ({k})" for fn, k in kinds.items() if k != first]
+    if odd:
+        raise RunError(f"{directory}: frames differ in bit depth or channels: {first_name} is "
+                       f"{first} but {', '.join(odd[:6])}{' …' if len(odd) > 6 else ''}. All "
+                       "frames of a sequence must come from one camera in one pixel format; "
+                       "capture or convert them again alike.")
 
 
 def _nothing_matches(directory: Path, layout: Layout, first: str) -> str:
@@ -234,11 +249,14 @@ def sequence_files(directory: Path, layout: Layout, order: list[str]) -> list[Pa
 
 
 def read_captures(directory: Path, layout: Layout, coding_names: list[str]) -> dict[str, np.ndarray]:
-    """The frames of ``directory`` by coding frame name; checks count, names and sizes."""
+    """The frames of ``directory`` by coding frame name; checks count, names, sizes, bit depth
+    and channel count."""
     order = capture_order(layout, coding_names)
     files = sequence_files(directory, layout, order)
     expected = [f.name for f in files]
-    frames = {name: _read_gray(f) for name, f in zip(order, files)}
+    read = {name: _read_gray(f) for name, f in zip(order, files)}
+    _one_kind(directory, {fn: read[name][1] for name, fn in zip(order, expected)})
+    frames = {name: img for name, (img, _) in read.items()}
     shapes = {fn: frames[name].shape for name, fn in zip(order, expected)}
     first = shapes[expected[0]]
     odd = [f"{fn} ({s[1]}x{s[0]})" for fn, s in shapes.items() if s != first]

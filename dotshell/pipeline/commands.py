@@ -12,6 +12,7 @@ from typing import Any, Iterable
 from dotshell.errors import CalibrationError, RunError
 from dotshell.events import EventBus
 from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.steps import require_turntable_axis
 from dotshell.plugins import PluginManager
@@ -43,7 +44,7 @@ def reprocess(run_dir: Path | str, pm: PluginManager, command: str, targets: Ite
 def check_calibration_for_run(path: str | Path, store: RunStore) -> RigCalibration:
     """A calibration file that can re-process this run: valid, and its camera the size of the
     run's frames. Checked before anything is written."""
-    calib = RigCalibration.load(path)
+    calib = load_any_calibration(path)
     captured = RigCalibration.load(store.path("calibration.json"))
     if calib.camera.size != captured.camera.size:
         raise CalibrationError(
@@ -81,9 +82,10 @@ def normalize_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None =
                   max_normal_spread_deg: float | None = None) -> dict[str, Any]:
     """``dotshell normalize RUN``: normalize the trans-illumination frames on the run's surface
     into a new generation; returns the ``normalize`` report section."""
-    from dotshell.pipeline.normalize import transillumination_entry
+    from dotshell.pipeline.normalize import checked_overrides, transillumination_entry
 
-    transillumination_entry(RunStore.open(Path(run_dir)))  # before anything is made
+    checked_overrides(min_sin_beta, max_normal_spread_deg)  # before anything is read or made
+    transillumination_entry(RunStore.open(Path(run_dir)))
     options = {"normalizer": normalizer, "min_sin_beta": min_sin_beta,
                "max_normal_spread_deg": max_normal_spread_deg}
     return reprocess(run_dir, pm, "normalize", ["normalize"], bus, options)["normalize"]

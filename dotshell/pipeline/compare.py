@@ -29,17 +29,14 @@ def run_row(store: RunStore) -> dict[str, Any]:
     report = store.read_json("report.json")
     v = report.get("validation") or {}
     if "mean_rel_error_pct" not in v:
-        raise RunError(f"{store.root}: report.json has no shape validation; give runs whose "
-                       "profile has [validation] shape = \"cylinder\".")
+        v = validation_of(store)
     views = report.get("views", [])
     decoded = sum(x.get("decoded", 0) for x in views)
     rejected = sum(x.get("low_contrast", 0) + x.get("uncertain", 0) + x.get("row_rejected", 0)
                    + x.get("speckle", 0) for x in views)
     seen = decoded + sum(x.get("low_contrast", 0) + x.get("uncertain", 0) for x in views)
     manifest = store.manifest
-    import tomllib
-
-    prof = tomllib.loads(store.path("profile.toml").read_text())
+    prof = _run_profile(store)
     return {
         "run": store.root.name, "profile": report.get("profile", ""),
         "pdi": bool(prof.get("scan", {}).get("pdi", False)),
@@ -51,6 +48,44 @@ def run_row(store: RunStore) -> dict[str, Any]:
         "rejected_pct": 100.0 * rejected / max(1, seen),
         "_band": v["band_mm"], "_radius": v["true_radius_mm"], "_frames": len(manifest["frame_names"]),
     }
+
+
+def _run_profile(store: RunStore) -> dict[str, Any]:
+    """The run's own profile as recorded (defaults filled in when it was scanned)."""
+    import tomllib
+
+    p = store.path("profile.toml")
+    try:
+        return tomllib.loads(p.read_text())
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError, RecursionError) as exc:
+        raise RunError(f"{p} cannot be read ({exc}); restore it from a backup.") from None
+
+
+def validation_of(store: RunStore) -> dict[str, Any]:
+    """The shape validation of a run whose report lacks it (a generation made before it was
+    kept, or a report written elsewhere), measured now from its cloud and calibration, when
+    its profile names the shape; RunError saying what to change otherwise."""
+    from dotshell.geometry.calibration import RigCalibration
+    from dotshell.pipeline.validate import cylinder_report
+
+    prof = _run_profile(store)
+    v = prof.get("validation") or {}
+    if v.get("shape") != "cylinder":
+        raise RunError(f"{store.root}: no shape validation (its profile's [validation] shape is "
+                       f"{v.get('shape', 'none')!r}); give runs scanned with [validation] shape "
+                       "= \"cylinder\".")
+    if not store.path("cloud.ply").is_file():
+        raise RunError(f"{store.root} has no cloud.ply to validate; make it with `dotshell "
+                       "reconstruct RUN`.")
+    try:
+        roi = prof["processing"]["roi"]
+        calib = RigCalibration.load(store.path("current", "calibration.json")
+                                    if store.path("current", "calibration.json").is_file()
+                                    else store.path("calibration.json"))
+        return cylinder_report(read_ply(store.path("cloud.ply"))[0], calib, v, roi)
+    except KeyError as exc:
+        raise RunError(f"{store.path('profile.toml')} lacks {exc} needed to validate the run; "
+                       "re-process it with `dotshell reconstruct RUN`.") from None
 
 
 def write_csv(rows: list[dict[str, Any]], path: Path,

@@ -33,7 +33,7 @@ from dotshell.pipeline.lifecycle import Interrupted, RunLock, effective_status
 from dotshell.pipeline.steps import STEP_BY_NAME, STEPS, StepContext, import_ahead
 from dotshell.plugins import PluginManager
 from dotshell.profile import Profile
-from dotshell.store import RunStore
+from dotshell.store import FULL, RESERVE_BYTES, RunStore
 
 
 class RunJob:
@@ -74,7 +74,14 @@ class RunJob:
             if self.create is None and manifest["status"] == "running":  # its writer is gone
                 self._history({"command": (manifest.get("job") or {}).get("command", "?"),
                                "status": "interrupted", "reason": self.previous[1]})
-            self.store.reserve_space()
+            full = self.store.reserve_space()
+            if full is not None and full.errno in FULL and self.create is None:
+                # nothing written yet: the run keeps its true status instead of a 'running'
+                # the full disk would not let this job take back
+                raise RunError(f"{self.store.root}: the disk is full ({full.strerror}): there is "
+                               f"not even room for the {RESERVE_BYTES // 1024} kB the job holds "
+                               "back to record its outcome. Free disk space and run the "
+                               "command again; the run is unchanged.")
             for p in [*self.store.clean_orphans(), *remove_unpublished(self.store.root)]:
                 self.bus.info(f"removed {p.relative_to(self.store.root)}, left by an "
                               "interrupted job")
@@ -239,12 +246,18 @@ def prepare(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
                      "from the frames.")
     options = dict(options or {})
     ctx = StepContext(ProductStore(job.store, gen.dir), profile, pm, job.bus, options)
-    run, carry, dropped = plan(targets, ctx, set(gen.base_products()))
+    base = set(gen.base_products())
+    run, carry, dropped = plan(targets, ctx, base)
     gen.carry(carry)
     base_report = gen.base_report()
     report: dict[str, Any] = {"profile": profile.name, "generation": gen.number,
                               "based_on": gen.base, "command": job.command}
+    for name in REPORT_ONLY:  # generations published before report-only products were listed
+        if (name not in base and name not in run and any(k in base_report for k in sections_of(name))
+                and not any(r in run for r in STEP_BY_NAME[name].reads)):
+            carry.append(name)
     for name in carry:
+        gen.files.setdefault(name, [])
         report.update({k: base_report[k] for k in sections_of(name) if k in base_report})
     timings = dict(base_report.get("timings_s", {})) if carry else {}
     return JobWork(job.store.root, gen.number, gen.base, run, dropped, options, report,
@@ -271,11 +284,17 @@ def run_steps(work: JobWork, profile: Profile, pm: PluginManager, bus: EventBus,
         import_ahead(names, name)
         before = gen.listing() - prewritten.get(name, set())
         t0 = time.perf_counter()
-        done.report.update(STEP_BY_NAME[name].run(ctx))
+        try:
+            done.report.update(STEP_BY_NAME[name].run(ctx))
+        except OSError as exc:
+            if exc.filename is None:  # a library's write (a mesh, an export) names no file:
+                exc.filename = f"{gen.dir}/ (step {name})"  # the step writes only there
+            raise
         ctx.timings.setdefault(_timing_name(name), time.perf_counter() - t0)
         gen.record(name, before)
-        if name in gen.files:
-            done.files[name] = gen.files[name]
+        # a product may be report sections only (validation): listed without files, it is
+        # carried into later generations like any other, never lost without a word
+        done.files[name] = gen.files.setdefault(name, [])
     done.timings = dict(ctx.timings)
     return done
 
@@ -323,6 +342,10 @@ def process(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
     work = prepare(job, profile, pm, targets, options, generation)
     return publish(job, work, [run_steps(work, profile, pm, job.bus, extra=extra)],
                    final_status)
+
+
+#: Products made of report.json sections only, without files.
+REPORT_ONLY = ("validation",)
 
 
 def sections_of(product: str) -> tuple[str, ...]:

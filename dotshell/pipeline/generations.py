@@ -116,7 +116,7 @@ class Generation:
         try:
             data = json.loads((d / PRODUCTS_FILE).read_text())
             return {str(k): [str(f) for f in v] for k, v in data["files"].items()}
-        except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as exc:
             raise RunError(f"{d / PRODUCTS_FILE} is damaged ({exc}); re-process the run from "
                            "its frames with `dotshell reconstruct RUN`.") from None
 
@@ -127,7 +127,7 @@ class Generation:
             return {}
         try:
             report = json.loads(p.read_text())
-        except ValueError as exc:
+        except (ValueError, RecursionError) as exc:
             raise RunError(f"{p} is not valid JSON ({exc}); re-process the run with "
                            "`dotshell reconstruct RUN`.") from None
         return report if isinstance(report, dict) else {}

@@ -23,6 +23,7 @@ from dotshell.errors import RunError
 from dotshell.events import EventBus, StepStarted
 from dotshell.fem import MeshError, TetMesh, quality_report
 from dotshell.geometry.calibration import RigCalibration
+from dotshell.mesh_schema import MESH_SCHEMA
 from dotshell.meshfiles import (optodes_from_settings, read_optodes, read_volume, write_optodes,
                                 write_surface, write_volume)
 from dotshell.plugins import PluginManager
@@ -31,6 +32,9 @@ from dotshell.profile import Profile
 from dotshell.store import RunStore
 
 DEFAULT_BACKENDS = {"surface_mesher": "open3d-poisson", "volume_mesher": "tetgen"}
+#: Largest volume mesh made (nodes, estimated before meshing): at 1 mm a 30 mm phantom has
+#: ~31 k; 5 M take tens of GB and hours, so a typo such as 0.001 mm is refused at once.
+MAX_MESH_NODES = 5_000_000
 
 
 def _mesher(profile: Profile, pm: PluginManager, role: str):
@@ -65,9 +69,16 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
     if not (isinstance(primary, (int, float)) and math.isfinite(primary) and primary > 0):
         raise MeshError(f"node distance must be a positive number of mm, got {primary!r}; set "
                         "[mesh] node_distance_mm or pass --node-distance (e.g. 1.0).")
+    smallest = MESH_SCHEMA["node_distance_mm"].min
+    if node_distance_mm is not None and node_distance_mm < smallest:
+        raise MeshError(f"--node-distance {node_distance_mm:g} mm is below the smallest node "
+                        f"distance [mesh] node_distance_mm allows ({smallest:g} mm); give a "
+                        "larger one (e.g. 1.0).")
     points, scalars = read_ply(store.path("cloud.ply"))
     if len(points) == 0:
         raise MeshError(f"{store.path('cloud.ply')} has no points; nothing to mesh.")
+    for d in [primary, *cfg["also_node_distances_mm"]]:
+        refuse_huge_mesh(points, d)
     views = viewpoints_mm(store, scalars["view"]) if "view" in scalars else None
     surface_mesher = _mesher(profile, pm, "surface_mesher")
     volume_mesher = _mesher(profile, pm, "volume_mesher")
@@ -86,6 +97,24 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
             entry["previews"] = _previews(store, target, d, bus)
         out["meshes"].append(entry)
     return out
+
+
+def estimated_nodes(points: np.ndarray, node_distance_mm: float) -> int:
+    """Nodes of a volume mesh of the cloud at ``node_distance_mm``: its bounding box's volume
+    over the node distance cubed (the order of tetgen's count; the test phantom's cloud at
+    1 mm: 6,980)."""
+    extent = np.ptp(points, axis=0) if len(points) else np.zeros(3)
+    return int(np.prod(np.maximum(extent, node_distance_mm)) / node_distance_mm ** 3)
+
+
+def refuse_huge_mesh(points: np.ndarray, node_distance_mm: float) -> None:
+    """Refuse, before any work, a mesh above :data:`MAX_MESH_NODES` nodes, with the estimate."""
+    n = estimated_nodes(points, node_distance_mm)
+    if n > MAX_MESH_NODES:
+        raise MeshError(f"a mesh at {node_distance_mm:g} mm would have about {n:,} nodes, more "
+                        f"than the {MAX_MESH_NODES:,} dotshell makes (hours and tens of GB); give "
+                        "a larger node distance ([mesh] node_distance_mm, also_node_distances_mm "
+                        "or --node-distance).")
 
 
 def mesh_one(points, views, node_distance_mm: float, bottom_z_mm: float | None, surface_mesher,

@@ -34,6 +34,7 @@ from dotshell.plugins import PluginManager
 from dotshell.pipeline.transillum import source_names
 from dotshell.profile import Profile
 from dotshell.settings import validate_settings
+from dotshell.transillum_schema import NORMALIZE_SCHEMA
 from dotshell.store import RunStore
 
 DEFAULT_NORMALIZER = "diffuse-fresnel"
@@ -192,6 +193,20 @@ def error_stats(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:
             "median_signed_pct": round(float(np.median(rel)) * 100, 3)}
 
 
+def checked_overrides(min_sin_beta: float | None, max_normal_spread_deg: float | None
+                      ) -> dict[str, float]:
+    """The command line's ``--min-sin-beta`` and ``--max-normal-spread`` (None: not given),
+    checked against the bounds of their ``[normalize]`` keys (ProfileError naming the flag)."""
+    out: dict[str, float] = {}
+    for flag, key, value in (("--min-sin-beta", "min_sin_beta", min_sin_beta),
+                             ("--max-normal-spread", "max_normal_spread_deg",
+                              max_normal_spread_deg)):
+        if value is not None:
+            out.update(validate_settings({key: NORMALIZE_SCHEMA[key]}, {key: value}, flag,
+                                         "normalize"))
+    return out
+
+
 class Normalization:
     """Normalizes one run's trans-illumination frames (see the module docstring)."""
 
@@ -199,12 +214,9 @@ class Normalization:
                  normalizer: str | None = None, min_sin_beta: float | None = None,
                  max_normal_spread_deg: float | None = None) -> None:
         self.store, self.profile, self.bus = store, profile, bus
+        self.cfg = {**profile.data["normalize"],
+                    **checked_overrides(min_sin_beta, max_normal_spread_deg)}
         self.entry = transillumination_entry(store)
-        self.cfg = dict(profile.data["normalize"])
-        if min_sin_beta is not None:
-            self.cfg["min_sin_beta"] = min_sin_beta
-        if max_normal_spread_deg is not None:
-            self.cfg["max_normal_spread_deg"] = max_normal_spread_deg
         self.surface = _load_surface(store)
         self.unscanned = unscanned_nodes(store, self.surface, self.cfg["max_cloud_distance_mm"])
         self.crease = normal_spread_deg(self.surface) > self.cfg["max_normal_spread_deg"]

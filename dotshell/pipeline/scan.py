@@ -26,6 +26,7 @@ from dotshell.framecheck import FrameSpec
 from dotshell.events import EventBus, ScanFinished, ScanStarted, StepStarted, ViewCaptured, \
     ViewReconstructed
 from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.acquire import Acquisition
 from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.generations import Generation, ProductStore
@@ -149,7 +150,7 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
     coding = make_coding(profile, pm)  # a bad coding or calibration is refused before a run
     calibration = calibration_file or profile.calibration_path()  # is made
     if calibration is not None and rig is None:
-        RigCalibration.load(calibration)
+        load_any_calibration(calibration)
     store = RunStore.create(Path(out_dir), profile.name)
 
     def create() -> None:
@@ -162,19 +163,23 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
 
 def resume_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
                stop: threading.Event | None = None, running: threading.Event | None = None,
-               rig: Rig | None = None) -> ScanResult:
+               rig: Rig | None = None, views: list[int] | None = None) -> ScanResult:
     """``dotshell resume RUN``: capture the views an interrupted, aborted or failed scan did not
     finish — same profile, same calibration, the stage back at each view's angle — then process
     the whole run into a new generation. Frames of an unfinished view are set aside in
-    ``frames/view_NNN.partial-K`` (never deleted) before the view is captured again."""
+    ``frames/view_NNN.partial-K`` (never deleted) before the view is captured again.
+    ``views``: also capture these views again (``--view N``: a view whose frame stack was cut
+    or deleted after the scan; a completed run included)."""
     bus = bus or EventBus()
     store = RunStore.open(Path(run_dir))
+    recapture = _views_asked(store, views or [])
     status, _ = store.status()
     if status == "running":
         raise RunError(f"{store.root} is being written by "
                        f"{describe_holder(lock_holder(store.root) or {})}; it can be resumed "
                        "once that process has ended (`dotshell inspect RUN` shows it).")
-    if status == "completed":
+    _refuse_damaged_views(store, recapture)
+    if status == "completed" and not recapture:
         raise RunError(f"{store.root} is completed; nothing to resume. Re-process it with "
                        "`dotshell reconstruct RUN`.")
     profile = load_run_profile(store, pm)
@@ -185,13 +190,38 @@ def resume_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = No
         raise RunError(f"{store.root} has frames but no calibration.json; restore the run's "
                        "calibration.json from a backup to resume it.")
     return _capture_and_process(store, profile, pm, bus, "resume", coding, stop, running, rig,
-                                None, None)
+                                None, None, recapture)
+
+
+def _views_asked(store: RunStore, views: list[int]) -> frozenset[int]:
+    n = len(store.manifest["views"])
+    wrong = [v for v in views if not 0 <= v < n]
+    if wrong:
+        raise RunError(f"--view {wrong[0]}: {store.root} has views 0 to {n - 1} (the N of "
+                       "frames/view_NNN.tif).")
+    return frozenset(views)
+
+
+def _refuse_damaged_views(store: RunStore, recapture: frozenset[int]) -> None:
+    """A view recorded complete whose frames were cut or deleted since is named, with the way
+    out, unless it is to be captured again."""
+    from dotshell.frames import damaged_views
+
+    damaged = [d for d in damaged_views(store.root, store.manifest) if d[0] not in recapture]
+    if damaged:
+        named = "; ".join(f"view {v} has {n} of its {rec} frames on disk" for v, n, rec in damaged)
+        flags = " ".join(f"--view {v}" for v, _, _ in damaged)
+        raise RunError(f"{store.root}: {named} (its frame stack was cut or deleted after the "
+                       f"scan). Re-capture it with `dotshell resume {store.root} {flags}` (the "
+                       "rig set up as for the scan; the damaged frames are kept aside as "
+                       "view_NNN.partial-K), or restore the stack from a backup.")
 
 
 def _capture_and_process(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
                          command: str, coding: Any, stop: threading.Event | None,
                          running: threading.Event | None, rig: Rig | None,
-                         calibration_file: str | None, create) -> ScanResult:
+                         calibration_file: str | None, create,
+                         recapture: frozenset[int] = frozenset()) -> ScanResult:
     unsubs = [bus.subscribe(lambda ev: store.append_event(ev.to_dict())),
               _forward_to_plugins(bus, pm, profile, str(store.root))]
     job = RunJob(store, command, bus, create)
@@ -199,7 +229,7 @@ def _capture_and_process(store: RunStore, profile: Profile, pm: PluginManager, b
     try:
         with job:
             report = _acquire_then_process(job, profile, pm, coding, stop, running, rig,
-                                           calibration_file)
+                                           calibration_file, recapture)
     finally:
         if job.status is not None:
             bus.emit(ScanFinished(status=job.status, run_dir=str(store.root),
@@ -212,7 +242,8 @@ def _capture_and_process(store: RunStore, profile: Profile, pm: PluginManager, b
 
 def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, coding: Any,
                           stop: threading.Event | None, running: threading.Event | None,
-                          rig: Rig | None, calibration_file: str | None) -> dict[str, Any]:
+                          rig: Rig | None, calibration_file: str | None,
+                          recapture: frozenset[int] = frozenset()) -> dict[str, Any]:
     store, bus = job.store, job.bus
     # a resumed run continues with its own calibration; one killed before it recorded any
     # (nothing was captured yet) starts as a new scan would
@@ -240,7 +271,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
         pipeline = ViewPipeline(products, profile, coding, calib, bus)
         try:
             trans = _transillumination(rig, store, profile, acq, bus)
-            todo = _views_to_capture(store, trans)
+            todo = _views_to_capture(store, trans, recapture)
             bus.emit(StepStarted(step="acquire", total=len(todo) * len(shots)))
             for view, fringes in todo:
                 angle = angles[view]
@@ -309,17 +340,19 @@ def _record_sequence(store: RunStore, shots, patterns, resuming: bool) -> None:
                           pattern_names=[p.name for p in patterns])
 
 
-def _views_to_capture(store: RunStore, trans: TransilluminationCapture | None
-                      ) -> list[tuple[int, bool]]:
-    """(view, fringes needed) for every view that misses fringe or trans-illumination frames."""
+def _views_to_capture(store: RunStore, trans: TransilluminationCapture | None,
+                      recapture: frozenset[int] = frozenset()) -> list[tuple[int, bool]]:
+    """(view, fringes needed) for every view that misses fringe or trans-illumination frames,
+    and those of ``recapture`` (captured again whole)."""
     m = store.manifest
     done_trans = (m.get("transillumination") or {}).get("views", {})
     todo = []
     for v in m["views"]:
         needs_trans = trans is not None and trans.covers(v["index"]) and \
             done_trans.get(str(v["index"])) != trans.expected_names()
-        if not v["complete"] or needs_trans:
-            todo.append((v["index"], not v["complete"]))
+        again = v["index"] in recapture
+        if not v["complete"] or needs_trans or again:
+            todo.append((v["index"], not v["complete"] or again))
     return todo
 
 
@@ -365,7 +398,7 @@ def load_run_profile(store: RunStore, pm: PluginManager) -> Profile:
         raw = tomllib.loads(p.read_text())
     except FileNotFoundError:
         raise RunError(f"{p} is missing; this run cannot be re-processed.") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, RecursionError) as exc:
         raise RunError(f"{p} is damaged ({exc}); it is written by dotshell only — restore it "
                        "from a backup or copy the profile the run was made with.") from None
     return validate_profile(raw, pm, str(p), store.root)

@@ -32,6 +32,7 @@ from dotshell.errors import CalibrationError, ReconstructionError, RunError
 from dotshell.events import EventBus, StepProgress, StepStarted, ViewReconstructed
 from dotshell.framecheck import FrameSpec
 from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.pdi import combine, shots_from_manifest
 from dotshell.plugins import PluginManager
 from dotshell.ply import read_ply, write_ply
@@ -89,7 +90,7 @@ def calibration_step(ctx: StepContext) -> dict[str, Any]:
     """This generation's calibration: the command's ``--calibration`` file (validated before
     anything is written) or the one the run was captured with."""
     source = ctx.options.get("calibration_file") or ctx.store.path("..", "..", "calibration.json")
-    calib = RigCalibration.load(source)
+    calib = load_any_calibration(source)  # a user's file may be an OpenCV .yml/.xml
     calib.save(ctx.store.path("calibration.json"))
     ctx._calib = calib
     return {"calibration": calib.source}

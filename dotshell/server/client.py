@@ -17,7 +17,7 @@ from typing import Any, Callable
 from dotshell.events import Event
 from dotshell.server.progress import ScanTracker
 from dotshell.server.protocol import (PROTOCOL_VERSION, ServerError, decode, encode,
-                                      event_from_wire, raise_remote, read_lines)
+                                      event_from_wire, peer_uid, raise_remote, read_lines)
 
 Handler = Callable[[dict[str, Any]], None]
 
@@ -54,6 +54,13 @@ class ServerClient:
             raise ServerError(f"no rig server answers on {self.path} ({exc.strerror or exc}); "
                               "start one with dotshell serve PROFILE (dotshell tui PROFILE "
                               "starts one itself).") from None
+        uid = peer_uid(self.sock)
+        if uid != os.getuid():  # a socket another user planted: never send it a request
+            self.sock.close()
+            raise ServerError(f"the server on {self.path} runs as another user (uid {uid}, "
+                              f"you are {os.getuid()}); dotshell talks only to your own "
+                              "servers. Give the socket of a server you started, or leave "
+                              "out --socket.")
         self._ids = itertools.count(1)
         self._pending: dict[int, _Pending] = {}
         self._lock = threading.Lock()

@@ -53,10 +53,27 @@ def runtime_dir() -> Path:
 
 
 def state_dir() -> Path:
-    """The directory for server logs and the console history (created on demand)."""
-    d = Path(platformdirs.user_state_dir("dotshell"))
-    d.mkdir(parents=True, exist_ok=True)
+    """The directory for server logs and the console history (created on demand, 0700
+    whatever the umask: it holds typed code and paths)."""
+    return private_dir(Path(platformdirs.user_state_dir("dotshell")))
+
+
+def private_dir(d: Path) -> Path:
+    """``d`` made (with its parents) and set to mode 0700 whatever the umask, also when an
+    earlier version made it open to others."""
+    d.mkdir(mode=0o700, parents=True, exist_ok=True)
+    if stat.S_IMODE(d.stat().st_mode) != 0o700:
+        d.chmod(0o700)
     return d
+
+
+def open_private(path: Path, mode: str = "a") -> Any:
+    """``path`` opened for text (``a`` or ``w``, UTF-8, line-buffered) with mode 0600 whatever
+    the umask, also when an earlier version made it open to others."""
+    flags = os.O_WRONLY | os.O_CREAT | (os.O_APPEND if mode == "a" else os.O_TRUNC)
+    fd = os.open(path, flags | os.O_CLOEXEC, 0o600)
+    os.fchmod(fd, 0o600)
+    return os.fdopen(fd, mode, encoding="utf-8", buffering=1)
 
 
 def config_path() -> Path:
@@ -109,9 +126,7 @@ def socket_path(name: str) -> Path:
 
 
 def server_log_dir(name: str) -> Path:
-    d = state_dir() / "servers" / name
-    d.mkdir(parents=True, exist_ok=True)
-    return d
+    return private_dir(state_dir() / "servers" / name)
 
 
 def history_path() -> Path:

@@ -75,6 +75,8 @@ def decode(line: bytes) -> dict[str, Any]:
         message = json.loads(line)
     except ValueError as exc:
         raise ServerError(f"not a protocol line ({exc}): {line[:80]!r}") from None
+    except RecursionError:  # JSON nested deeper than Python's stack: refused, never fatal
+        raise ServerError(f"not a protocol line (nested too deeply): {line[:80]!r}") from None
     if not isinstance(message, dict):
         raise ServerError(f"not a protocol message (a JSON object): {line[:80]!r}")
     return message
@@ -95,6 +97,15 @@ def read_lines(sock: socket.socket, stop: threading.Event | None = None) -> Iter
                 yield line
         if len(buf) > MAX_LINE:
             raise ServerError(f"a line longer than {MAX_LINE} bytes; the connection is closed.")
+
+
+def peer_uid(sock: socket.socket) -> int:
+    """The user id of the process at the other end of a Unix socket (Linux SO_PEERCRED)."""
+    import struct
+
+    _, uid, _ = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
+                                                    struct.calcsize("3i")))
+    return uid
 
 
 def error_reply(request_id: Any, exc: BaseException) -> dict[str, Any]:

@@ -14,6 +14,7 @@ from typing import Any, Callable
 
 from dotshell.console import Session, SessionBusy, readable_repr
 from dotshell.server.interpreter import Interpreter
+from dotshell.server.paths import open_private
 
 #: Inputs kept in the history file and offered to ↑/↓.
 HISTORY_SIZE = 1000
@@ -85,7 +86,7 @@ class ServerConsole:
             self.history.append(source)
             del self.history[:-HISTORY_SIZE]
             if self.history_file is not None:
-                with open(self.history_file, "a", encoding="utf-8") as f:
+                with open_private(self.history_file) as f:
                     f.write(json.dumps({"time": time.time(), "source": source}) + "\n")
 
     # ---- output, batched ----------------------------------------------------------------------

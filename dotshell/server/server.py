@@ -33,10 +33,11 @@ from dotshell.errors import DotshellError
 from dotshell.events import Event, ScanFinished, ScanPaused, ScanResumed, ScanStarted
 from dotshell.server.commands import COMMANDS, Context, profile_summary
 from dotshell.server.describe import describe_event
-from dotshell.server.paths import HANGUP_CHOICES
+from dotshell.server.paths import HANGUP_CHOICES, open_private
 from dotshell.server.progress import ScanTracker
 from dotshell.server.protocol import (CONTROL_COMMANDS, PROTOCOL_VERSION, URGENT_COMMANDS,
-                                      ServerError, decode, encode, error_reply, read_lines)
+                                      ServerError, decode, encode, error_reply, peer_uid,
+                                      read_lines)
 from dotshell.server.repl import ServerConsole
 
 #: Messages waiting for one client before it is dropped as stalled.
@@ -51,9 +52,9 @@ LIFECYCLE = (ScanStarted, ScanFinished, ScanPaused, ScanResumed)
 
 def _peer(sock: socket.socket) -> tuple[int, int]:
     """(pid, uid) of the process at the other end of a Unix socket (Linux SO_PEERCRED)."""
-    pid, uid, _ = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
-                                                      struct.calcsize("3i")))
-    return pid, uid
+    pid, _, _ = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
+                                                    struct.calcsize("3i")))
+    return pid, peer_uid(sock)
 
 
 class Connection:
@@ -122,6 +123,7 @@ class Connection:
     # ---- in --------------------------------------------------------------------------------------
 
     def _read(self) -> None:
+        reason = "disconnected"
         try:
             for line in read_lines(self.sock, self.closed):
                 self._dispatch(line)
@@ -129,7 +131,10 @@ class Connection:
             self.send(error_reply(None, exc))
         except OSError:
             pass
-        self.close("disconnected")
+        except Exception as exc:  # whatever a line does, the connection ends cleanly
+            self.send(error_reply(None, exc))
+            reason = f"its request failed ({type(exc).__name__}: {exc})"
+        self.close(reason)
 
     def _dispatch(self, line: bytes) -> None:
         try:
@@ -209,7 +214,7 @@ class RigServer:
         # attaching client gets each of them exactly once, and never after a newer one
         self._event_lock = threading.RLock()
         self._log_lock = threading.RLock()
-        self._log: TextIO = open(self.log_path, "a", encoding="utf-8", buffering=1)
+        self._log: TextIO = open_private(self.log_path)
         self._run_log: TextIO | None = None
         self._next_id = 1
         self._last_state: dict[str, Any] | None = None

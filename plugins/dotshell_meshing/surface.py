@@ -59,13 +59,8 @@ class PoissonSurfaceMesher:
         o3d = import_open3d()
         stats: dict[str, Any] = {"input_points": int(len(points_mm))}
         t0 = time.perf_counter()
-        pts, views = _finite(points_mm, viewpoints_mm)
         voxel = self.s["voxel_mm"] or max(0.1, node_distance_mm / 4)
-        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-        if views is not None:
-            pcd.normals = o3d.utility.Vector3dVector(views)  # carried through the filters
-        if len(pts) > 200_000:  # millions of points: thin them first, the filter is O(N k)
-            pcd = pcd.voxel_down_sample(voxel / 3)
+        pcd = _thinned_cloud(o3d, points_mm, viewpoints_mm, voxel / 3)
         pcd, _ = pcd.remove_statistical_outlier(self.s["outlier_neighbors"],
                                                 self.s["outlier_std_ratio"])
         pcd = pcd.voxel_down_sample(voxel)
@@ -73,7 +68,7 @@ class PoissonSurfaceMesher:
         self._require_points(len(pcd.points), len(points_mm), voxel)
         pts = np.asarray(pcd.points)
         _require_not_flat(pts, max(node_distance_mm / 2, 2 * voxel))
-        views = np.asarray(pcd.normals).copy() if views is not None else None
+        views = np.asarray(pcd.normals).copy() if viewpoints_mm is not None else None
         normals = _oriented_normals(o3d, pts, views, voxel)
         if bottom_z_mm is not None:
             pts, normals, n_added = close_bottom(pts, normals, bottom_z_mm, voxel)
@@ -152,6 +147,35 @@ def check_node_distance(node_distance_mm: float) -> None:
         raise MeshError(f"node distance must be a positive number of mm, got "
                         f"{node_distance_mm!r}. Set [mesh] node_distance_mm (e.g. 1.0) or pass "
                         "--node-distance.")
+
+
+#: Points thinned at a time (millions of points: open3d's copies of the whole cloud and its
+#: viewpoints took ~1 GB at full resolution; a chunk at a time, tens of MB).
+THIN_CHUNK = 1_000_000
+
+
+def _thinned_cloud(o3d, points_mm: np.ndarray, viewpoints_mm: np.ndarray | None,
+                   voxel_mm: float):
+    """The finite points (with their viewpoints as normals, carried through the filters) as an
+    open3d cloud; above 200,000 points first thinned to ``voxel_mm`` voxels, a chunk of
+    :data:`THIN_CHUNK` points at a time (the outlier filter is O(N k))."""
+    n = len(points_mm)
+    parts = []
+    for s in range(0, n, THIN_CHUNK if n > 200_000 else max(n, 1)):
+        pts, views = _finite(points_mm[s:s + THIN_CHUNK],
+                             None if viewpoints_mm is None else viewpoints_mm[s:s + THIN_CHUNK])
+        pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        if views is not None:
+            pcd.normals = o3d.utility.Vector3dVector(views)
+        parts.append(pcd.voxel_down_sample(voxel_mm) if n > 200_000 else pcd)
+    if len(parts) <= 1:
+        return parts[0] if parts else o3d.geometry.PointCloud()
+    out = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
+        np.concatenate([np.asarray(p.points) for p in parts])))
+    if viewpoints_mm is not None:
+        out.normals = o3d.utility.Vector3dVector(
+            np.concatenate([np.asarray(p.normals) for p in parts]))
+    return out.voxel_down_sample(voxel_mm)  # a voxel seen by several chunks: one point again
 
 
 def _finite(points: np.ndarray, views: np.ndarray | None):

@@ -387,6 +387,10 @@ class SimCamera(_Device):
         self._repeats: dict[bytes, int] = {}
         self._vignetting_map: tuple[float, np.ndarray] | None = None  # (loss, map)
         world.camera = self
+        #: The rig's context (set by :func:`make_camera`): rendering runs in its
+        #: ``computing()`` blocks, so the rig's call timeouts count only the modelled hardware's
+        #: time, never the host's rendering time.
+        self.rig_context = RigContext()
 
     @property
     def resolution(self) -> tuple[int, int]:
@@ -447,7 +451,7 @@ class SimCamera(_Device):
         how many frames were taken in that same state before (see
         :meth:`SimWorld.state_digest`)."""
         exposure_s = self.exposure_ms / 1000.0
-        with self.world.clock.computing():
+        with self.world.clock.computing(), self.rig_context.computing():
             electrons = self.expected_electrons(start_s)
             light = self.world.projector.light_digest(start_s, start_s + exposure_s)
             state = self.world.state_digest(self.exposure_ms, light)
@@ -953,6 +957,8 @@ def make_camera(settings: dict | None = None, context: RigContext | None = None)
     """The sim camera; with a ``turntable`` setting (mixed rigs) also the simulated sample on
     whatever stage the rig has, turning to that stage's reported angle."""
     camera = _make_camera(settings, context)
+    if context is not None:
+        camera.rig_context = context
     if camera.settings["turntable"] is not None:
         table = validate_settings(TURNTABLE_SCHEMA, camera.settings["turntable"], "sim-camera",
                                   "camera.settings.turntable")

@@ -37,7 +37,7 @@ import numpy as np
 
 from dotshell import hugepages
 from dotshell.geometry.calibration import RigCalibration
-from dotshell.geometry.lens import Lens
+from dotshell.geometry.lens import Lens, distort_normalized
 
 from dotshell_sim.scene import StagedScene
 from dotshell_sim.subsurface import SubsurfaceView, fresnel_transmittance, gaussian_mixture
@@ -63,7 +63,6 @@ def project_points(lens: Lens, points: np.ndarray) -> tuple[np.ndarray, np.ndarr
     with np.errstate(divide="ignore", invalid="ignore"):
         x = p[:, 0] / z
         y = p[:, 1] / z
-    k1, k2, p1, p2, k3 = lens.dist
     K = lens.K
     fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
     half_x = 1.5 * max(cx + 0.5, lens.width - 0.5 - cx) / fx
@@ -71,10 +70,7 @@ def project_points(lens: Lens, points: np.ndarray) -> tuple[np.ndarray, np.ndarr
     valid = (z > 0) & (np.abs(x) <= half_x) & (np.abs(y) <= half_y)
     x = np.where(valid, x, 0.0)
     y = np.where(valid, y, 0.0)
-    r2 = x * x + y * y
-    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    xd, yd = distort_normalized(lens.dist, x, y)
     return np.column_stack([fx * xd + skew * yd + cx, fy * yd + cy]), valid
 
 
