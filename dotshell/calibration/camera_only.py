@@ -78,7 +78,7 @@ def _detect_all(images: list[Path], board: Board, max_blur_px: float
     objp = board.object_points()
     poses, left_out, report, size = [], {}, {}, None
     for k, path in enumerate(images):
-        img = read_gray(path)
+        img, _kind = read_gray(path)
         here = (img.shape[1], img.shape[0])
         size = size or here
         if here != size:
