@@ -53,6 +53,10 @@ GRACE_S = 2.0
 REOPEN_POLL_S = 0.1
 #: Calls whose last arguments are replayed after a reconnect (settings a device forgets).
 REPLAYED = ("set_exposure",)
+#: Told of every device call as it starts (``enter(label, method)``) and ends (``leave(label)``):
+#: the rig server's session worker writes them where the server can read them even when a
+#: driver hangs holding the GIL (:mod:`dotshell.server.callboard`). None: nobody listens.
+call_watcher: Any = None
 
 
 @dataclass
@@ -221,6 +225,16 @@ class DeviceHandle:
             return result
 
     def _run(self, method: str, args: tuple, kwargs: dict) -> Any:
+        watcher = call_watcher
+        if watcher is None:
+            return self._run_watched(method, args, kwargs)
+        watcher.enter(self._label, method)
+        try:
+            return self._run_watched(method, args, kwargs)
+        finally:
+            watcher.leave(self._label)
+
+    def _run_watched(self, method: str, args: tuple, kwargs: dict) -> Any:
         timeout, default = self._policy.timeout(method)
         fn = getattr(self._device, method)
         job = _Job(fn, args, kwargs, timeout, self._context)

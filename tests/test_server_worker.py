@@ -1,0 +1,235 @@
+"""The session in a worker process: a camera driver that hangs in C holding the GIL stops only
+the worker. The server keeps answering its clients, names the hung call, ends the worker when
+a scan is aborted (run ``aborted``, every written frame kept) and restarts it on request."""
+
+import ctypes
+import json
+import os
+import subprocess
+import sys
+import threading
+import tomllib
+from pathlib import Path
+
+import pytest
+import tomli_w
+
+from conftest import make_dist, write_test_profile
+from dotshell.server.supervisor import WorkerGone, WorkerSession
+from dotshell.store import RunStore
+from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
+from test_server import Inbox
+
+#: A camera backend: the simulated camera, whose capture() calls libc's sleep through
+#: ctypes.PyDLL (which, unlike CDLL, keeps the GIL during the call) once a flag file exists:
+#: a driver stuck in C that no Python thread of its process can get past.
+HUNG_CAMERA = '''
+import ctypes, os
+from dotshell import hookimpl
+from dotshell.backends import Backend
+from dotshell_sim.devices import CAMERA_SCHEMA, make_camera
+
+_libc = ctypes.PyDLL("libc.so.6")
+
+
+def make_hung_camera(settings=None, context=None):
+    camera = make_camera(settings, context)
+    capture = camera.capture
+
+    def hanging_capture():
+        if os.path.exists(os.environ["DOTSHELL_TEST_HANG_FLAG"]):
+            _libc.sleep(3600)
+        return capture()
+
+    camera.capture = hanging_capture
+    return camera
+
+
+@hookimpl
+def dotshell_cameras():
+    return [Backend("hung-camera", make_hung_camera, CAMERA_SCHEMA,
+                    "the sim camera, hanging in C with the GIL held once a flag file exists")]
+'''
+
+
+@pytest.fixture
+def hung_rig(tmp_path, user_dirs, monkeypatch):
+    """(profile, flag): a 3-view sim profile whose camera hangs once ``flag`` exists; the
+    plugin is installed for the worker processes (PYTHONPATH)."""
+    site = make_dist(tmp_path / "site", "dotshell-hung", "dotshell_hung_camera", HUNG_CAMERA,
+                     "hung")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(site),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    flag = tmp_path / "hang"
+    monkeypatch.setenv("DOTSHELL_TEST_HANG_FLAG", str(flag))
+    prof = write_test_profile(tmp_path, views=3)
+    raw = tomllib.loads(prof.read_text())
+    raw["camera"]["backend"] = "hung-camera"
+    prof.write_text(tomli_w.dumps(raw))
+    return prof, flag
+
+
+def _ticks_during(lib, seconds: float) -> int:
+    """How often another thread counted while ``lib.usleep`` ran in this one."""
+    count, stop = [0], threading.Event()
+
+    def tick():
+        while not stop.is_set():
+            count[0] += 1
+
+    t = threading.Thread(target=tick)
+    t.start()
+    while count[0] < 1000:  # the counter runs
+        pass
+    before = count[0]
+    lib.usleep(int(seconds * 1e6))
+    after = count[0]
+    stop.set()
+    t.join()
+    return after - before
+
+
+def test_pydll_holds_the_gil_where_cdll_releases_it():
+    """The fake driver's premise: through PyDLL no other thread runs during the C call (at most
+    the switch interval before it); through CDLL it runs the whole time."""
+    held = _ticks_during(ctypes.PyDLL("libc.so.6"), 0.5)
+    released = _ticks_during(ctypes.CDLL("libc.so.6"), 0.5)
+    assert held * 4 < released, (held, released)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _worker(m):
+    return (m.get("state") or {}).get("worker") or {}
+
+
+def test_a_driver_hung_in_c_leaves_the_server_answering_and_stop_abort_ends_the_scan(hung_rig,
+                                                                                      tmp_path):
+    prof, flag = hung_rig
+    session = WorkerSession(prof, out_dir=tmp_path / "runs", hang_s=2.0, abort_bound_s=3.0)
+    first_pid = session.pid
+    with served(session, name="hung", poll_s=0.1) as server:
+        controller = attach(server)
+        watcher = attach(server, "watcher", control=False)
+        inbox = Inbox(watcher)
+        run_dir = Path(controller.scan()["run_dir"])
+        inbox.wait_for(lambda m: m.get("type") == "event"
+                       and m["event"]["event"] == "FrameCaptured")
+        flag.touch()  # the next capture() hangs in C with the GIL held
+        hung = inbox.wait_for(lambda m: m.get("type") == "state"
+                              and _worker(m).get("state") == "hung", timeout=120)
+        assert "camera (hung-camera) capture() for" in _worker(hung)["hung"]
+        assert _pid_alive(first_pid)
+        # the server answers every client while the worker is stuck: replies and pushes
+        for _ in range(5):
+            state = watcher.refresh()["state"]
+            assert state["worker"]["state"] == "hung" and state["session"] == "running"
+        assert [r["role"] for r in watcher.call("devices")] == ["camera", "projector", "stage"]
+        silent = _worker(hung)["silent_s"]  # pushed as it grows, every second while hung
+        inbox.wait_for(lambda m: m.get("type") == "state" and _worker(m).get("silent_s", 0)
+                       >= silent + 2)
+        assert session.pid == first_pid and _pid_alive(first_pid)
+        log = inbox.wait_for(lambda m: m.get("type") == "event"
+                             and "has not answered" in m["event"].get("text", ""))
+        assert "camera (hung-camera) capture()" in log["event"]["text"]
+
+        stopped = subprocess.run([sys.executable, "-m", "dotshell.cli", "stop", "--server",
+                                  "hung", "--abort"], capture_output=True, text=True,
+                                 timeout=300)
+        assert stopped.returncode == 0, stopped.stdout + stopped.stderr
+        assert "stopped" in stopped.stdout
+        assert server.wait(120)
+    assert not _pid_alive(first_pid)
+    finished = [m["event"] for m in inbox.of("event") if m["event"]["event"] == "ScanFinished"]
+    assert [f["status"] for f in finished] == ["aborted"]
+    assert "camera (hung-camera) capture()" in finished[0]["reason"]
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    assert manifest["status"] == "aborted"
+    assert "within 3 s of the stop; it was inside camera (hung-camera) capture() for" \
+        in manifest["reason"]
+    store = RunStore.open(run_dir)
+    on_disk = sum(store.frames(v["index"]).count() for v in manifest["views"])
+    written = [m for m in inbox.of("event") if m["event"]["event"] == "FrameCaptured"]
+    assert sum(v["frames"] for v in manifest["views"]) == on_disk >= len(written) >= 1
+    assert store.events()[-1]["event"] == "ScanFinished"
+    assert RunStore.open(run_dir).status()[0] == "aborted"
+
+
+def test_a_hung_worker_is_restarted_and_the_new_one_works(hung_rig, tmp_path):
+    prof, flag = hung_rig
+    session = WorkerSession(prof, out_dir=tmp_path / "runs", hang_s=2.0)
+    first_pid = session.pid
+    with served(session, name="hung2", poll_s=0.1) as server:
+        controller = attach(server)
+        inbox = Inbox(controller)
+        controller.connect()
+        flag.touch()
+        failed: list[BaseException] = []
+        snapping = threading.Thread(target=lambda: _catch(controller.snap, failed))
+        snapping.start()
+        inbox.wait_for(lambda m: m.get("type") == "state" and _worker(m).get("state") == "hung",
+                       timeout=120)
+        flag.unlink()
+        restarted = subprocess.run([sys.executable, "-m", "dotshell.cli", "stop", "--server",
+                                    "hung2", "--restart-worker"], capture_output=True, text=True,
+                                   timeout=300)
+        assert restarted.returncode == 0, restarted.stdout + restarted.stderr
+        assert "session worker restarted" in restarted.stdout
+        snapping.join(60)
+        assert not snapping.is_alive() and failed
+        assert "was ended: restart requested" in str(failed[0])
+        assert not _pid_alive(first_pid) and session.pid != first_pid
+        state = controller.refresh()["state"]
+        assert state["worker"]["restarts"] == 1 and state["worker"]["state"] == "running"
+        assert state["connected"] is False and state["profile"]["roles"]["camera"] == "hung-camera"
+        controller.connect()
+        snap = controller.snap()  # the new worker drives the (no longer hanging) camera
+        assert snap["width"] > 0 and Path(snap["path"]).is_file()
+
+
+def _catch(fn, into):
+    try:
+        fn()
+    except Exception as exc:  # the request fails when its worker is ended
+        into.append(exc)
+
+
+
+def test_an_abort_ends_a_hung_worker_within_its_bound_and_a_new_one_takes_over(hung_rig,
+                                                                               tmp_path):
+    """A watcher's abort (any client may abort): the hung worker is ended ``abort_bound_s``
+    after it, the run is marked, and a new worker serves the same profile; the server goes on."""
+    prof, flag = hung_rig
+    session = WorkerSession(prof, out_dir=tmp_path / "runs", hang_s=2.0, abort_bound_s=3.0)
+    first_pid = session.pid
+    with served(session, name="hung3", poll_s=0.1) as server:
+        controller = attach(server)
+        watcher = attach(server, "watcher", control=False)
+        inbox = Inbox(watcher)
+        run_dir = Path(controller.scan()["run_dir"])
+        inbox.wait_for(lambda m: m.get("type") == "event"
+                       and m["event"]["event"] == "FrameCaptured")
+        flag.touch()
+        inbox.wait_for(lambda m: m.get("type") == "state" and _worker(m).get("state") == "hung",
+                       timeout=120)
+        flag.unlink()  # the new worker's camera works
+        watcher.abort()
+        finished = inbox.wait_for(lambda m: m.get("type") == "event"
+                                  and m["event"]["event"] == "ScanFinished", timeout=120)
+        assert finished["event"]["status"] == "aborted"
+        assert "did not end its scan within 3 s of the abort" in finished["event"]["reason"]
+        state = inbox.wait_for(lambda m: m.get("type") == "state"
+                               and _worker(m).get("restarts") == 1
+                               and _worker(m).get("state") == "running"
+                               and m["state"]["profile"] is not None, timeout=120)["state"]
+        assert state["session"] == "idle" and state["run"]["status"] == "aborted"
+        assert not _pid_alive(first_pid) and session.pid != first_pid
+        assert json.loads((run_dir / "manifest.json").read_text())["status"] == "aborted"
+        controller.connect()
+        assert controller.snap()["width"] > 0
