@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 import tomllib
 from pathlib import Path
 
@@ -105,6 +106,20 @@ def _pid_alive(pid: int) -> bool:
     return True
 
 
+def _frames_on_disk(run_dir: Path) -> int:
+    try:
+        return RunStore.open(run_dir).frames(0).count()
+    except Exception:  # the stack is not there yet
+        return 0
+
+
+def _wait_until(condition, timeout_s: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "the condition never came true"
+        time.sleep(0.05)
+
+
 def _worker(m):
     return (m.get("state") or {}).get("worker") or {}
 
@@ -119,8 +134,7 @@ def test_a_driver_hung_in_c_leaves_the_server_answering_and_stop_abort_ends_the_
         watcher = attach(server, "watcher", control=False)
         inbox = Inbox(watcher)
         run_dir = Path(controller.scan()["run_dir"])
-        inbox.wait_for(lambda m: m.get("type") == "event"
-                       and m["event"]["event"] == "FrameCaptured")
+        _wait_until(lambda: _frames_on_disk(run_dir) >= 1)  # (frames are written behind)
         flag.touch()  # the next capture() hangs in C with the GIL held
         hung = inbox.wait_for(lambda m: m.get("type") == "state"
                               and _worker(m).get("state") == "hung", timeout=120)
@@ -155,8 +169,9 @@ def test_a_driver_hung_in_c_leaves_the_server_answering_and_stop_abort_ends_the_
         in manifest["reason"]
     store = RunStore.open(run_dir)
     on_disk = sum(store.frames(v["index"]).count() for v in manifest["views"])
-    written = [m for m in inbox.of("event") if m["event"]["event"] == "FrameCaptured"]
-    assert sum(v["frames"] for v in manifest["views"]) == on_disk >= len(written) >= 1
+    captured = [m for m in inbox.of("event") if m["event"]["event"] == "FrameCaptured"]
+    assert sum(v["frames"] for v in manifest["views"]) == on_disk >= 1
+    assert on_disk <= len(captured)  # a frame captured but still queued for writing is not
     assert store.events()[-1]["event"] == "ScanFinished"
     assert RunStore.open(run_dir).status()[0] == "aborted"
 
@@ -233,3 +248,56 @@ def test_an_abort_ends_a_hung_worker_within_its_bound_and_a_new_one_takes_over(h
         assert json.loads((run_dir / "manifest.json").read_text())["status"] == "aborted"
         controller.connect()
         assert controller.snap()["width"] > 0
+
+
+def test_the_console_runs_in_the_worker(tmp_path, user_dirs):
+    """input(), interrupts, completion and the history file, served from the worker; the
+    console's namespace is the worker's session (its pid is not the server's)."""
+    from dotshell.server.paths import history_path
+    from dotshell.server.repl import read_history
+
+    session = WorkerSession(write_test_profile(tmp_path, views=2), out_dir=tmp_path / "runs",
+                            history_file=history_path())
+    with served(session, name="console") as server:
+        tui = attach(server)
+        inbox = Inbox(tui)
+        tui.console_run("import os\nanswer = input('angle? ')\nconnect(); "
+                        "print(os.getpid(), move_to(float(answer)))")
+        assert inbox.wait_for(lambda m: m.get("type") == "console_input")["prompt"] == "angle? "
+        assert tui.console_reply("45")["delivered"]
+        assert inbox.wait_for(lambda m: m.get("type") == "console_done")["ok"]
+        out = "".join(m["text"] for m in inbox.of("console") if m["kind"] == "out")
+        assert f"angle? 45\n{session.pid} 45.0\n" in out and session.pid != os.getpid()
+        tui.console_run("input('more? ')")
+        inbox.wait_for(lambda m: m.get("type") == "console_input" and m["prompt"] == "more? ")
+        assert tui.console_interrupt()["interrupted"]
+        assert not inbox.wait_for(lambda m: m.get("type") == "console_done"
+                                  and len(inbox.of("console_done")) == 2)["ok"]
+        assert "move_to(" in tui.complete("x = mov")["matches"]
+        assert tui.refresh()["state"]["connected"] is True
+    assert read_history(history_path())[-1] == "input('more? ')"
+
+
+def test_a_worker_that_dies_mid_scan_is_replaced_and_its_run_marked(tmp_path, user_dirs):
+    """A driver's crash (the worker killed) fails nothing in the server: the run is marked
+    ``aborted`` with the exit named, and a new worker serves the profile."""
+    session = WorkerSession(write_test_profile(tmp_path, views=3), out_dir=tmp_path / "runs")
+    first_pid = session.pid
+    with served(session, name="dies", poll_s=0.1) as server:
+        tui = attach(server)
+        inbox = Inbox(tui)
+        run_dir = Path(tui.scan()["run_dir"])
+        _wait_until(lambda: _frames_on_disk(run_dir) >= 1)
+        os.kill(first_pid, 9)
+        finished = inbox.wait_for(lambda m: m.get("type") == "event"
+                                  and m["event"]["event"] == "ScanFinished", timeout=120)
+        assert finished["event"]["status"] == "aborted"
+        assert "exited unexpectedly (exit code -9)" in finished["event"]["reason"]
+        inbox.wait_for(lambda m: m.get("type") == "state" and _worker(m).get("restarts") == 1
+                       and _worker(m).get("state") == "running", timeout=120)
+        manifest = json.loads((run_dir / "manifest.json").read_text())
+        store = RunStore.open(run_dir)
+        assert manifest["status"] == "aborted" and sum(v["frames"] for v in manifest["views"]) \
+            == sum(store.frames(v["index"]).count() for v in manifest["views"]) >= 1
+        tui.connect()
+        assert tui.snap()["width"] > 0 and session.pid != first_pid

@@ -118,6 +118,7 @@ class WorkerSession:
         self._ids = itertools.count(1)
         self._send_lock = threading.Lock()
         self._life = threading.RLock()  # one end or start of the worker at a time
+        self._ready = threading.Event()  # a worker is up and has loaded its profile
         self._pinged = 0.0  # when the last ping went out (monotonic s)
         self._pending: dict[Any, _Pending] = {}
         self._lock = threading.RLock()
@@ -176,7 +177,8 @@ class WorkerSession:
     def describe(self) -> dict[str, Any]:
         """The ``worker`` entry of the server's state."""
         silent = int(time.monotonic() - self._last_heard) if self.hung else 0
-        return {"pid": self.pid, "state": "hung" if self.hung else "running",
+        state = "hung" if self.hung else "running" if self._ready.is_set() else "starting"
+        return {"pid": self.pid, "state": state,
                 "hung": self.hung, "silent_s": silent, "restarts": self.restarts,
                 "ended": self.ended,
                 "hang_s": self.hang_s, "abort_bound_s": self.abort_bound_s}
@@ -201,6 +203,9 @@ class WorkerSession:
         if cmd in ("abort", "stop"):
             getattr(self, cmd)()
             return None
+        if not self._closing and not self._ready.wait(START_TIMEOUT_S):
+            raise WorkerGone("the session worker is not running (it could not be restarted: "
+                             "see the server log); stop the server and start it again.")
         rid = next(self._ids)
         pending = _Pending()
         with self._lock:
@@ -315,6 +320,7 @@ class WorkerSession:
             proc.wait(10)
             self._release()
             raise_remote(ready.reply)
+        self._ready.set()
 
     def _read(self, sock: socket.socket, proc: subprocess.Popen[bytes]) -> None:
         try:
@@ -426,6 +432,7 @@ class WorkerSession:
         if proc is None:
             return
         calls = board.describe() if board is not None else ""
+        self._ready.clear()
         reason = (f"the session worker (pid {proc.pid}) was ended: {why}"
                   + (f"; it was inside {calls}" if calls else ""))
         self._gone(proc, reason)  # its requests fail with the reason, not just "ended"
