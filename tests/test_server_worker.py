@@ -5,6 +5,7 @@ a scan is aborted (run ``aborted``, every written frame kept) and restarts it on
 import ctypes
 import json
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -16,6 +17,8 @@ import pytest
 import tomli_w
 
 from conftest import make_dist, write_test_profile
+from dotshell.server.client import RemoteSession
+from dotshell.server.paths import server_name, socket_path
 from dotshell.server.supervisor import WorkerGone, WorkerSession
 from dotshell.store import RunStore
 from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
@@ -301,3 +304,38 @@ def test_a_worker_that_dies_mid_scan_is_replaced_and_its_run_marked(tmp_path, us
             == sum(store.frames(v["index"]).count() for v in manifest["views"]) >= 1
         tui.connect()
         assert tui.snap()["width"] > 0 and session.pid != first_pid
+
+
+def test_the_tui_keeps_drawing_the_server_while_the_driver_hangs(hung_rig, tmp_path):
+    """``dotshell tui`` on a pseudo-terminal, its server started by it (the worker loads the
+    hung camera): the scan starts from the TUI's Scan tab, the camera hangs in C, and the TUI
+    goes on drawing what the server pushes — the hung call named in its Log tab, then the
+    scan ``aborted`` after ``dotshell stop --abort`` (the worker ended after its bound)."""
+    from test_tui_pty import PtyScreen, stop_server, tui_command
+
+    prof, flag = hung_rig
+    sock = socket_path(server_name(prof))
+    term = PtyScreen(tui_command(prof, tmp_path), tmp_path)
+    try:
+        term.wait_for("hung-camera")
+        term.child.send("2")
+        term.wait_for("s start")
+        term.child.send("s")
+        term.wait_for(re.compile(r"frames.* [1-9]\d*/\d+"))
+        run_dir = Path(RemoteSession(sock, "test").refresh()["tracker"]["run_dir"])
+        _wait_until(lambda: _frames_on_disk(run_dir) >= 1)
+        flag.touch()
+        term.child.send("4")  # the Log tab: the server's lines as they come
+        term.wait_for("has not answered", timeout_s=120)
+        term.wait_for("capture()", timeout_s=30)
+        stopped = subprocess.run([sys.executable, "-m", "dotshell.cli", "stop", str(prof),
+                                  "--abort"], capture_output=True, text=True, timeout=300)
+        assert stopped.returncode == 0, stopped.stdout + stopped.stderr
+        term.wait_exit(timeout_s=120)  # the server said bye: the TUI leaves
+    finally:
+        if term.child.isalive():
+            term.child.terminate(force=True)
+        stop_server(sock)
+    manifest = json.loads((run_dir / "manifest.json").read_text())
+    assert manifest["status"] == "aborted" and "camera (hung-camera) capture()" in \
+        manifest["reason"]
