@@ -53,7 +53,8 @@ GRACE_S = 2.0
 REOPEN_POLL_S = 0.1
 #: Calls whose last arguments are replayed after a reconnect (settings a device forgets).
 REPLAYED = ("set_exposure",)
-#: Told of every device call as it starts (``enter(label, method)``) and ends (``leave(label)``):
+#: Told of every device call as it starts (``enter(label, method, thread_id)``, the native id
+#: of the device's thread) and ends (``leave(label)``):
 #: the rig server's session worker writes them where the server can read them even when a
 #: driver hangs holding the GIL (:mod:`dotshell.server.callboard`). None: nobody listens.
 call_watcher: Any = None
@@ -228,7 +229,7 @@ class DeviceHandle:
         watcher = call_watcher
         if watcher is None:
             return self._run_watched(method, args, kwargs)
-        watcher.enter(self._label, method)
+        watcher.enter(self._label, method, self._ensure_worker().thread.native_id)
         try:
             return self._run_watched(method, args, kwargs)
         finally:

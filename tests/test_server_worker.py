@@ -19,7 +19,7 @@ import tomli_w
 from conftest import make_dist, write_test_profile
 from dotshell.server.client import RemoteSession
 from dotshell.server.paths import server_name, socket_path
-from dotshell.server.supervisor import WorkerGone, WorkerSession
+from dotshell.server.supervisor import WorkerSession
 from dotshell.store import RunStore
 from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
 from test_server import Inbox
@@ -101,6 +101,41 @@ def test_pydll_holds_the_gil_where_cdll_releases_it():
     assert held * 4 < released, (held, released)
 
 
+def test_the_call_board_names_the_call_that_holds_up_the_others():
+    """Two calls in progress: one thread blocked on a lock (as a call waiting for the GIL is),
+    one running (this thread); the board, read through its own mapping, names the running one
+    and lists the other as waiting behind it."""
+    from dotshell.server.callboard import CallBoard, _on_futex
+
+    board, reader = CallBoard(), None
+    lock, tids = threading.Lock(), {}
+    lock.acquire()
+
+    def blocked():
+        tids["blocked"] = threading.get_native_id()
+        lock.acquire()
+
+    threading.Thread(target=blocked, daemon=True).start()
+    try:
+        _wait_until(lambda: "blocked" in tids and _on_futex(os.getpid(), tids["blocked"]))
+        board.enter("stage (sim-turntable)", "status", tids["blocked"])
+        reader = CallBoard(os.dup(board.fd))  # the server's side: its own mapping of the page
+        assert reader.describe(os.getpid()).startswith("stage (sim-turntable) status() for ")
+        # a lone call on a lock is named (nothing tells it apart from a culprit)
+        board.enter("camera (hung-camera)", "capture", threading.get_native_id())
+        text = reader.describe(os.getpid())  # this thread reads: not on a futex
+        assert text.startswith("camera (hung-camera) capture() for ")
+        assert "(waiting behind it: stage (sim-turntable) status() for " in text
+        board.leave("camera (hung-camera)")
+        board.leave("stage (sim-turntable)")
+        assert reader.read() == {} and reader.describe(os.getpid()) == ""
+    finally:
+        lock.release()
+        board.close()
+        if reader is not None:
+            reader.close()
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -169,7 +204,7 @@ def test_a_driver_hung_in_c_leaves_the_server_answering_and_stop_abort_ends_the_
     manifest = json.loads((run_dir / "manifest.json").read_text())
     assert manifest["status"] == "aborted"
     assert "within 3 s of the stop; it was inside camera (hung-camera) capture() for" \
-        in manifest["reason"]
+        in manifest["reason"]  # first: a poll's status() call waits behind it, for the GIL
     store = RunStore.open(run_dir)
     on_disk = sum(store.frames(v["index"]).count() for v in manifest["views"])
     captured = [m for m in inbox.of("event") if m["event"]["event"] == "FrameCaptured"]

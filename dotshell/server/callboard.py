@@ -41,10 +41,11 @@ class CallBoard:
 
     # ---- the worker's side ------------------------------------------------------------------
 
-    def enter(self, label: str, method: str) -> None:
-        """A call of ``label``'s ``method`` starts (label: ``camera (sim-camera)``)."""
+    def enter(self, label: str, method: str, thread_id: int | None = None) -> None:
+        """A call of ``label``'s ``method`` starts (label: ``camera (sim-camera)``) on the
+        thread ``thread_id`` (native id)."""
         with self._lock:
-            self._calls[label] = {"method": method, "since": time.time()}
+            self._calls[label] = {"method": method, "since": time.time(), "tid": thread_id}
             self._publish()
 
     def leave(self, label: str) -> None:
@@ -78,14 +79,37 @@ class CallBoard:
                     continue
         return {}
 
-    def describe(self, now_s: float | None = None) -> str:
+    def describe(self, pid: int | None = None, now_s: float | None = None) -> str:
         """The calls in progress as people read them, longest first ("" when none):
-        ``camera (sim-camera) capture() for 12.3 s``."""
+        ``camera (sim-camera) capture() for 12.3 s``. With the worker's ``pid``, a call whose
+        thread sleeps on a futex while another's does not is only waiting (for the GIL the
+        other holds, most likely) and is listed after it as such."""
         now_s = time.time() if now_s is None else now_s
         calls = sorted(self.read().items(), key=lambda kv: kv[1].get("since", now_s))
-        return "; ".join(f"{label} {c.get('method', '?')}() for "
-                         f"{max(0.0, now_s - c.get('since', now_s)):.1f} s" for label, c in calls)
+        waiting = {label for label, c in calls if pid and _on_futex(pid, c.get("tid"))}
+        if len(waiting) == len(calls):
+            waiting = set()  # nothing tells the culprit from the others: name them all
+
+        def text(label: str, c: dict[str, Any]) -> str:
+            return (f"{label} {c.get('method', '?')}() for "
+                    f"{max(0.0, now_s - c.get('since', now_s)):.1f} s")
+
+        shown = "; ".join(text(label, c) for label, c in calls if label not in waiting)
+        others = ", ".join(text(label, c) for label, c in calls if label in waiting)
+        return shown + (f" (waiting behind it: {others})" if others else "")
 
     def close(self) -> None:
         self._map.close()
         os.close(self.fd)
+
+
+def _on_futex(pid: int, tid: Any) -> bool:
+    """True when thread ``tid`` of ``pid`` sleeps in the kernel on a futex (a lock: the GIL, or
+    a driver's own); False when not, or unknown (no /proc, the thread gone)."""
+    if not isinstance(tid, int):
+        return False
+    try:
+        with open(f"/proc/{pid}/task/{tid}/wchan", encoding="ascii") as f:
+            return "futex" in f.read()
+    except OSError:
+        return False

@@ -410,7 +410,7 @@ class WorkerSession:
 
     def _hangs(self, silent_s: float) -> None:
         board = self._board
-        calls = board.describe() if board is not None else ""
+        calls = board.describe(self.pid) if board is not None else ""
         self.hung = calls or "no device call (Python or C code of its own)"
         self.bus.emit(Message(level="error", text=(
             f"the session worker (pid {self.pid}) has not answered for {silent_s:.0f} s; it is "
@@ -431,7 +431,7 @@ class WorkerSession:
             proc, run_dir, board = self._proc, self._scan_run, self._board
         if proc is None:
             return
-        calls = board.describe() if board is not None else ""
+        calls = board.describe(proc.pid) if board is not None else ""
         self._ready.clear()
         reason = (f"the session worker (pid {proc.pid}) was ended: {why}"
                   + (f"; it was inside {calls}" if calls else ""))
