@@ -267,13 +267,14 @@ class WorkerSession:
                     return
         except WorkerGone:
             pass
-        proc = self._proc
-        if proc is not None:
-            try:
-                proc.wait(10)
-            except subprocess.TimeoutExpired:
-                self._end("it did not exit after closing the rig")
-        self._release()
+        with self._life:  # the watch may be ending it: its run is marked and said before bye
+            proc = self._proc
+            if proc is not None:
+                try:
+                    proc.wait(10)
+                except subprocess.TimeoutExpired:
+                    self._end("it did not exit after closing the rig")
+            self._release()
 
     def restart(self, reason: str = "restart requested") -> int:
         """End the worker (its scan aborted and its run marked) and start a new one on the
@@ -427,10 +428,14 @@ class WorkerSession:
     def _end(self, why: str) -> None:
         """End the worker by force (when it is alive), mark the run of its scan, fail its
         requests; the caller starts a new one if wanted."""
+        with self._life:
+            self._end_now(why)
+
+    def _end_now(self, why: str) -> None:
         with self._lock:
             proc, run_dir, board = self._proc, self._scan_run, self._board
-        if proc is None:
-            return
+        if proc is None or (self._sock is None and proc.poll() is not None):
+            return  # ended already
         calls = board.describe(proc.pid) if board is not None else ""
         self._ready.clear()
         reason = (f"the session worker (pid {proc.pid}) was ended: {why}"
