@@ -11,6 +11,7 @@ import sys
 import threading
 import time
 import tomllib
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -162,12 +163,14 @@ def _worker(m):
     return (m.get("state") or {}).get("worker") or {}
 
 
-def test_a_driver_hung_in_c_leaves_the_server_answering_and_stop_abort_ends_the_scan(hung_rig,
-                                                                                      tmp_path):
+@contextmanager
+def _hung_scan(hung_rig, tmp_path, name):
+    """A server on the hung camera (hang_s 2 s, abort_bound_s 3 s), a controller that starts
+    a scan and a watcher; yields once a frame is on disk and the camera then hung the worker:
+    (session, server, watcher, its inbox, run_dir, the first state message saying hung)."""
     prof, flag = hung_rig
     session = WorkerSession(prof, out_dir=tmp_path / "runs", hang_s=2.0, abort_bound_s=3.0)
-    first_pid = session.pid
-    with served(session, name="hung", poll_s=0.1) as server:
+    with served(session, name=name, poll_s=0.1) as server:
         controller = attach(server)
         watcher = attach(server, "watcher", control=False)
         inbox = Inbox(watcher)
@@ -176,6 +179,14 @@ def test_a_driver_hung_in_c_leaves_the_server_answering_and_stop_abort_ends_the_
         flag.touch()  # the next capture() hangs in C with the GIL held
         hung = inbox.wait_for(lambda m: m.get("type") == "state"
                               and _worker(m).get("state") == "hung", timeout=120)
+        yield session, server, watcher, inbox, run_dir, hung
+
+
+def test_a_driver_hung_in_c_leaves_the_server_answering_and_stop_abort_ends_the_scan(hung_rig,
+                                                                                      tmp_path):
+    with _hung_scan(hung_rig, tmp_path, "hung") as (session, server, watcher, inbox, run_dir,
+                                                    hung):
+        first_pid = session.pid
         assert "camera (hung-camera) capture() for" in _worker(hung)["hung"]
         assert _pid_alive(first_pid)
         # the server answers every client while the worker is stuck: replies and pushes
@@ -258,20 +269,10 @@ def test_an_abort_ends_a_hung_worker_within_its_bound_and_a_new_one_takes_over(h
                                                                                tmp_path):
     """A watcher's abort (any client may abort): the hung worker is ended ``abort_bound_s``
     after it, the run is marked, and a new worker serves the same profile; the server goes on."""
-    prof, flag = hung_rig
-    session = WorkerSession(prof, out_dir=tmp_path / "runs", hang_s=2.0, abort_bound_s=3.0)
-    first_pid = session.pid
-    with served(session, name="hung3", poll_s=0.1) as server:
-        controller = attach(server)
-        watcher = attach(server, "watcher", control=False)
-        inbox = Inbox(watcher)
-        run_dir = Path(controller.scan()["run_dir"])
-        inbox.wait_for(lambda m: m.get("type") == "event"
-                       and m["event"]["event"] == "FrameCaptured")
-        flag.touch()
-        inbox.wait_for(lambda m: m.get("type") == "state" and _worker(m).get("state") == "hung",
-                       timeout=120)
-        flag.unlink()  # the new worker's camera works
+    with _hung_scan(hung_rig, tmp_path, "hung3") as (session, server, watcher, inbox, run_dir,
+                                                     _):
+        first_pid = session.pid
+        hung_rig[1].unlink()  # the new worker's camera works
         watcher.abort()
         finished = inbox.wait_for(lambda m: m.get("type") == "event"
                                   and m["event"]["event"] == "ScanFinished", timeout=120)
@@ -284,8 +285,9 @@ def test_an_abort_ends_a_hung_worker_within_its_bound_and_a_new_one_takes_over(h
         assert state["session"] == "idle" and state["run"]["status"] == "aborted"
         assert not _pid_alive(first_pid) and session.pid != first_pid
         assert json.loads((run_dir / "manifest.json").read_text())["status"] == "aborted"
-        controller.connect()
-        assert controller.snap()["width"] > 0
+        watcher.take_control()
+        watcher.connect()
+        assert watcher.snap()["width"] > 0
 
 
 def test_the_console_runs_in_the_worker(tmp_path, user_dirs):

@@ -1,4 +1,6 @@
-"""The rig server process: one :class:`~dotshell.console.Session` on a Unix-domain socket.
+"""The rig server process: one session on a Unix-domain socket — held by a session worker
+process (:mod:`dotshell.server.supervisor`, what ``dotshell serve`` runs) or, for tests and
+embedding, a :class:`~dotshell.console.Session` in this process.
 
 Threads: the caller's (accepts clients, takes signals), one poller (device status and session
 state for attached clients, idle exit), and per client a reader (requests in; urgent ones such
