@@ -199,6 +199,12 @@ def _print_status(info: dict[str, Any]) -> None:
     rig = "connected" if s["connected"] else "not connected"
     out.print(f"  profile    {escape(shown)}")
     out.print(f"  session    {s['session']}, rig {rig}")
+    w = s.get("worker")  # None: a server holding its session in its own process
+    if w:
+        health = (f"[red]hung[/] in {escape(w['hung'])} (silent {w['silent_s']} s)"
+                  if w["state"] == "hung" else w["state"])
+        again = f"; restarted {w['restarts']}×" if w["restarts"] else ""
+        out.print(f"  worker     pid {w['pid']}, {health}{again}")
     if t.status != "idle":
         out.print(f"  scan       {t.shown_status}: {_describe_progress(t, time.time())}")
         out.print(f"  run        {escape(t.run_dir)}")

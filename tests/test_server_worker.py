@@ -202,6 +202,11 @@ def test_a_driver_hung_in_c_leaves_the_server_answering_and_stop_abort_ends_the_
                              and "has not answered" in m["event"].get("text", ""))
         assert "camera (hung-camera) capture()" in log["event"]["text"]
 
+        status = subprocess.run([sys.executable, "-m", "dotshell.cli", "status", "--server",
+                                 "hung"], capture_output=True, text=True, timeout=300)
+        assert re.search(rf"worker +pid {first_pid}, hung in camera \(hung-camera\) capture\(\) "
+                         r"for [\d.]+ s.*\(silent \d+ s\)", " ".join(status.stdout.split())), \
+            status.stdout
         stopped = subprocess.run([sys.executable, "-m", "dotshell.cli", "stop", "--server",
                                   "hung", "--abort"], capture_output=True, text=True,
                                  timeout=300)
