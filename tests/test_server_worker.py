@@ -381,3 +381,18 @@ def test_the_tui_keeps_drawing_the_server_while_the_driver_hangs(hung_rig, tmp_p
     manifest = json.loads((run_dir / "manifest.json").read_text())
     assert manifest["status"] == "aborted" and "camera (hung-camera) capture()" in \
         manifest["reason"]
+
+
+def test_serve_reports_the_workers_profile_error_as_its_own(tmp_path, user_dirs):
+    """The profile is loaded in the worker; a bad one still fails ``dotshell serve`` with the
+    profile's own message and exit code 2, no traceback (the worker's reply came before its
+    exit, and its end must not replace it)."""
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[scan]\nviews = "x"\n')
+    served_bad = subprocess.run([sys.executable, "-m", "dotshell.cli", "serve", str(bad), "--out",
+                                 str(tmp_path / "runs"), "--socket",
+                                 str(socket_path("bad"))], capture_output=True, text=True,
+                                timeout=300)
+    assert served_bad.returncode == 2
+    assert f"{bad}: missing required key [profile]" in served_bad.stderr
+    assert "Traceback" not in served_bad.stderr + served_bad.stdout

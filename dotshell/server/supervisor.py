@@ -353,7 +353,7 @@ class WorkerSession:
         elif kind in ("reply", "ready"):
             rid = "ready" if kind == "ready" else m.get("id")
             with self._lock:
-                pending = self._pending.get(rid)
+                pending = self._pending.pop(rid, None)
             if pending is not None:
                 pending.reply = m
                 pending.done.set()
@@ -365,8 +365,9 @@ class WorkerSession:
                 return
             pending, self._pending = list(self._pending.values()), {}
         for p in pending:
-            p.reply = {"type": "gone", "error": f"{why}; the request did not finish."}
-            p.done.set()
+            if not p.done.is_set():  # a reply that came before the end stands
+                p.reply = {"type": "gone", "error": f"{why}; the request did not finish."}
+                p.done.set()
 
     def _release(self) -> None:
         with self._lock:
