@@ -237,6 +237,9 @@ def test_a_hung_worker_is_restarted_and_the_new_one_works(hung_rig, tmp_path):
     with served(session, name="hung2", poll_s=0.1) as server:
         controller = attach(server)
         inbox = Inbox(controller)
+        loaded = tmp_path / "q.toml"  # a profile loaded later is what the new worker loads
+        loaded.write_text(prof.read_text().replace("views = 3", "views = 2"))
+        assert controller.load(loaded)["views"] == 2
         controller.connect()
         flag.touch()
         failed: list[BaseException] = []
@@ -257,6 +260,7 @@ def test_a_hung_worker_is_restarted_and_the_new_one_works(hung_rig, tmp_path):
         state = controller.refresh()["state"]
         assert state["worker"]["restarts"] == 1 and state["worker"]["state"] == "running"
         assert state["connected"] is False and state["profile"]["roles"]["camera"] == "hung-camera"
+        assert state["profile"]["path"] == str(loaded) and state["profile"]["views"] == 2
         controller.connect()
         snap = controller.snap()  # the new worker drives the (no longer hanging) camera
         assert snap["width"] > 0 and Path(snap["path"]).is_file()

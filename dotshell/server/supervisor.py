@@ -289,6 +289,9 @@ class WorkerSession:
     # ---- the process --------------------------------------------------------------------------
 
     def _start(self) -> None:
+        loaded = self.mirror.get("profile_path")  # the profile the last worker had loaded
+        if loaded and (self.profile_path is None or Path(loaded) != self.profile_path):
+            self.profile_path, self.overrides = Path(loaded), []
         board = CallBoard()
         mine, theirs = socket.socketpair()
         spec = {"sock_fd": theirs.fileno(), "board_fd": board.fd,
