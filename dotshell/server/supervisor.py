@@ -127,6 +127,7 @@ class WorkerSession:
         self._last_heard = time.monotonic()
         self._closing = False
         self._abort_at: float | None = None
+        self._abort_request = "abort"  # the request that armed _abort_at: abort or stop
         self._proc: subprocess.Popen[bytes] | None = None
         self._sock: socket.socket | None = None
         self._board: CallBoard | None = None
@@ -227,12 +228,12 @@ class WorkerSession:
 
     def abort(self) -> None:
         """Ask the worker to abort its scan; a hung worker is ended after ``abort_bound_s``."""
-        self._arm_abort()
+        self._arm_abort("abort")
         self._send_quietly("abort")
 
     def stop(self) -> None:
         """Stop every moving device and abort the scan; as :meth:`abort` when hung."""
-        self._arm_abort()
+        self._arm_abort("stop")
         self._send_quietly("stop")
 
     def _send_quietly(self, cmd: str) -> None:
@@ -241,9 +242,10 @@ class WorkerSession:
         except WorkerGone:
             pass  # nothing runs in a worker that is being replaced
 
-    def _arm_abort(self) -> None:
+    def _arm_abort(self, request: str) -> None:
         if self.scanning and self._abort_at is None:
             self._abort_at = time.monotonic() + self.abort_bound_s
+            self._abort_request = request
 
     def close(self) -> None:
         """Abort a scan, close the rig and end the worker: by force when it does not answer
@@ -259,8 +261,8 @@ class WorkerSession:
             while not pending.done.wait(PING_S):
                 waited = time.monotonic() - t0
                 if self.hung and waited >= self.abort_bound_s:
-                    self._end(f"it did not end its scan and close the rig within "
-                              f"{self.abort_bound_s:g} s of the stop")
+                    self._end(f"it did not end its scan within {self.abort_bound_s:g} s of the "
+                              "stop")
                     return
                 if waited > CLOSE_BOUND_S:
                     self._end(f"it did not close the rig within {CLOSE_BOUND_S:g} s")
@@ -404,7 +406,7 @@ class WorkerSession:
                 if self._abort_at is not None and time.monotonic() >= self._abort_at:
                     if self.hung:
                         self._end(f"it did not end its scan within {self.abort_bound_s:g} s of "
-                                  "the abort")
+                                  f"the {self._abort_request}")
                         if not self._closing:
                             self._start_again()
                         continue
