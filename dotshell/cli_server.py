@@ -151,6 +151,8 @@ def cmd_attach(args: argparse.Namespace) -> int:
                      + (f"; {_describe_progress(t, time.time())}" if t.active else "")))
     if not t.active and not args.follow:
         run = session.state.get("run")
+        if run is None and t.run_dir:  # the scan just ended: the state may not say so yet
+            run = {"dir": t.run_dir, "status": t.shown_status}
         out.print(escape(f"no scan is running; last run: {run['dir']} ({run['status']})") if run
                   else "no scan is running.")
         session.close()

@@ -105,6 +105,10 @@ class SessionWorker:
         if isinstance(ev, LIFECYCLE):
             self.push_mirror()  # the server's state is current when its clients get the event
         self.send({"type": "event", "event": ev.to_dict()})
+        job = self.session.job
+        if isinstance(ev, ScanFinished) and job is not None:  # idle (and its run set) once
+            threading.Thread(target=lambda: (job.thread.join(), self.push_mirror()),  # scan()
+                             daemon=True, name="dotshell-scan-end").start()  # has returned
 
     # ---- requests -------------------------------------------------------------------------------
 
