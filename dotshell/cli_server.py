@@ -72,15 +72,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
                            strict_plugins=args.strict_plugins)
         out.print(escape(f"rig server {sock.stem} started (pid {pid}) on {sock}"))
         return 0
-    from dotshell.console import Session
-    from dotshell.plugins import get_plugin_manager
     from dotshell.server.paths import history_path, server_log_dir
     from dotshell.server.server import RigServer
+    from dotshell.server.supervisor import WorkerSession
 
-    pm = get_plugin_manager(strict=args.strict_plugins)
-    session = Session(args.profile, pm=pm, out_dir=args.out, overrides=args.set)
-    for e in pm.load_errors:
-        session.bus.warn(f"plugin failed to load: {e}")
+    # the session (plugins, profile, rig, console) lives in a worker process (docs/server.md)
+    session = WorkerSession(args.profile, out_dir=args.out, overrides=args.set,
+                            strict_plugins=args.strict_plugins, history_file=history_path())
     server = RigServer(session, sock, name=sock.stem, log_dir=server_log_dir(sock.stem),
                        on_hangup=on_hangup, exit_when_idle=args.exit_when_idle,
                        history_file=history_path(), echo=True)
@@ -169,6 +167,8 @@ def cmd_attach(args: argparse.Namespace) -> int:
                      + (f"; {_describe_progress(t, time.time())}" if t.active else "")))
     if not t.active and not args.follow:
         run = session.state.get("run")
+        if run is None and t.run_dir:  # the scan just ended: the state may not say so yet
+            run = {"dir": t.run_dir, "status": t.shown_status}
         out.print(escape(f"no scan is running; last run: {run['dir']} ({run['status']})") if run
                   else "no scan is running.")
         session.close()
@@ -217,6 +217,12 @@ def _print_status(info: dict[str, Any]) -> None:
     rig = "connected" if s["connected"] else "not connected"
     out.print(f"  profile    {escape(shown)}")
     out.print(f"  session    {s['session']}, rig {rig}")
+    w = s.get("worker")  # None: a server holding its session in its own process
+    if w:
+        health = (f"[red]hung[/] in {escape(w['hung'])} (silent {w['silent_s']} s)"
+                  if w["state"] == "hung" else w["state"])
+        again = f"; restarted {w['restarts']}×" if w["restarts"] else ""
+        out.print(f"  worker     pid {w['pid']}, {health}{again}")
     if t.status != "idle":
         out.print(f"  scan       {t.shown_status}: {_describe_progress(t, time.time())}")
         out.print(f"  run        {escape(t.run_dir)}")
@@ -270,6 +276,14 @@ def cmd_stop(args: argparse.Namespace) -> int:
         out.print("no rig server is running there." if sock else "no rig server is running.")
         return 0
     session = RemoteSession(sock, client="stop")
+    if args.restart_worker:
+        try:
+            pid = session.call("restart_worker")["pid"]
+        finally:
+            session.close()
+        out.print(f"rig server {sock.stem}: session worker restarted (pid {pid}); the rig is "
+                  "not connected.")
+        return 0
     try:
         session.shutdown(abort=args.abort)
         if session.scanning:
@@ -359,6 +373,9 @@ def add_server_parsers(sub: Any) -> None:
     which_args(sp, "profile whose server to stop (omit: the only running one)")
     sp.add_argument("--abort", action="store_true",
                     help="also when a scan runs: abort it cleanly (frames kept) first")
+    sp.add_argument("--restart-worker", action="store_true",
+                    help="keep the server: end its session worker (a scan aborted, frames kept) "
+                    "and start a new one on the same profile, e.g. after a driver hung")
     sp.set_defaults(func=cmd_stop)
 
     sub.choices["scan"].add_argument(

@@ -67,6 +67,11 @@ MOTIONS = ("move_to", "set_angle", "home")
 #: device, so SIGTERM ends the process within ``STOP_WAIT_S`` per hung device plus the time
 #: to save the frames already captured.
 STOP_WAIT_S = 2.0
+#: Told of every device call as it starts (``enter(label, method, thread_id)``, the native id
+#: of the device's thread) and ends (``leave(label)``):
+#: the rig server's session worker writes them where the server can read them even when a
+#: driver hangs holding the GIL (:mod:`dotshell.server.callboard`). None: nobody listens.
+call_watcher: Any = None
 
 
 @dataclass
@@ -250,6 +255,16 @@ class DeviceHandle:
             return result
 
     def _run(self, method: str, args: tuple, kwargs: dict) -> Any:
+        watcher = call_watcher
+        if watcher is None:
+            return self._run_watched(method, args, kwargs)
+        watcher.enter(self._label, method, self._ensure_worker().thread.native_id)
+        try:
+            return self._run_watched(method, args, kwargs)
+        finally:
+            watcher.leave(self._label)
+
+    def _run_watched(self, method: str, args: tuple, kwargs: dict) -> Any:
         timeout, default = self._policy.timeout(method)
         fn = getattr(self._device, method)
         job = _Job(fn, args, kwargs, timeout, self._context)

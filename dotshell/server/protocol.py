@@ -27,7 +27,8 @@ MAX_LINE = 4 * 1024 * 1024
 
 #: Requests any attached client may send.
 OPEN_COMMANDS = frozenset({"hello", "state", "devices", "patterns", "plugins", "history",
-                           "control", "release", "abort", "stop", "shutdown", "bye"})
+                           "control", "release", "abort", "stop", "shutdown", "bye",
+                           "restart_worker"})
 #: Requests that change the rig or the session: only the client in control may send them.
 CONTROL_COMMANDS = frozenset({"load", "set", "connect", "disconnect", "move", "jog", "home",
                               "analyzer",
@@ -36,7 +37,8 @@ CONTROL_COMMANDS = frozenset({"load", "set", "connect", "disconnect", "move", "j
                               "complete"})
 #: Requests answered at once by the connection's reader, never queued behind a slow one.
 URGENT_COMMANDS = frozenset({"hello", "state", "control", "release", "abort", "stop", "pause",
-                             "resume", "console_reply", "console_interrupt", "shutdown", "bye"})
+                             "resume", "console_reply", "console_interrupt", "shutdown", "bye",
+                             "restart_worker"})
 
 
 class ServerError(DotshellError):

@@ -79,6 +79,7 @@ class ServerConsole:
     def _run(self, source: str) -> None:
         ok = self.interpreter.run(source)
         self._flush()
+        self._thread = None  # idle before console_done: a client may send its next input at once
         self.send({"type": "console_done", "ok": ok})
 
     def _remember(self, source: str) -> None:

@@ -1,4 +1,6 @@
-"""The rig server process: one :class:`~dotshell.console.Session` on a Unix-domain socket.
+"""The rig server process: one session on a Unix-domain socket — held by a session worker
+process (:mod:`dotshell.server.supervisor`, what ``dotshell serve`` runs) or, for tests and
+embedding, a :class:`~dotshell.console.Session` in this process.
 
 Threads: the caller's (accepts clients, takes signals), one poller (device status and session
 state for attached clients, idle exit), and per client a reader (requests in; urgent ones such
@@ -39,6 +41,7 @@ from dotshell.server.protocol import (CONTROL_COMMANDS, PROTOCOL_VERSION, URGENT
                                       ServerError, decode, encode, error_reply, peer_uid,
                                       read_lines)
 from dotshell.server.repl import ServerConsole
+from dotshell.server.supervisor import WorkerSession
 
 #: Messages waiting for one client before it is dropped as stalled.
 OUTBOX_SIZE = 50000
@@ -46,7 +49,7 @@ OUTBOX_SIZE = 50000
 BACKLOG_SIZE = 1000
 #: With ``exit_when_idle``: seconds without a client and without a scan before the server exits.
 IDLE_GRACE_S = 10.0
-SERVER_COMMANDS = ("hello", "state", "control", "release", "shutdown", "bye")
+SERVER_COMMANDS = ("hello", "state", "control", "release", "shutdown", "bye", "restart_worker")
 LIFECYCLE = (ScanStarted, ScanFinished, ScanPaused, ScanResumed)
 
 
@@ -176,7 +179,10 @@ class RigServer:
     """Serves ``session`` on ``socket_path``.
 
     Args:
-        session: the session every client shares (the server closes it when it stops).
+        session: the session every client shares (the server closes it when it stops): a
+            :class:`~dotshell.server.supervisor.WorkerSession` (what ``dotshell serve`` runs: the
+            session in a worker process, so a driver hung in C stops only that process) or a
+            :class:`Session` in this process (tests, embedding).
         socket_path: where to listen (its directory must be private to the user).
         name: shown by ``dotshell status``.
         log_dir: where ``server.log`` goes.
@@ -188,7 +194,7 @@ class RigServer:
         echo: also write log lines to stderr (a server in the foreground).
     """
 
-    def __init__(self, session: Session, socket_path: Path, *, name: str, log_dir: Path,
+    def __init__(self, session: Session | WorkerSession, socket_path: Path, *, name: str, log_dir: Path,
                  on_hangup: str = "abort", exit_when_idle: bool = False,
                  history_file: Path | None = None, poll_s: float = 0.5,
                  echo: bool = False) -> None:
@@ -207,8 +213,10 @@ class RigServer:
         self.backlog: deque[dict[str, Any]] = deque(maxlen=BACKLOG_SIZE)
         self.clients: list[Connection] = []
         self.controller: Connection | None = None
-        self.console = ServerConsole(session, self.broadcast, history_file)
-        self.context = Context(session, self.console)
+        self.worker = session if isinstance(session, WorkerSession) else None
+        self.console: Any = (self.worker.console if self.worker is not None
+                             else ServerConsole(session, self.broadcast, history_file))
+        self.context = Context(session, self.console)  # type: ignore[arg-type]
         self._clients_lock = threading.RLock()
         # held while a client is greeted and while events, states and device rows are pushed: an
         # attaching client gets each of them exactly once, and never after a newer one
@@ -227,6 +235,9 @@ class RigServer:
         self._wake_r, self._wake_w = os.pipe()
         self._listener: socket.socket | None = None
         self._unsubscribe = session.bus.subscribe(self._on_event)
+        if self.worker is not None:
+            self.worker.on_push = self.broadcast
+            self.worker.on_change = self._on_worker_change
 
     # ---- lifetime ----------------------------------------------------------------------------
 
@@ -332,11 +343,14 @@ class RigServer:
     def _shutdown(self, reason: str) -> None:
         self.exit_reason = reason
         try:
-            self.session.stop()
-            self.console.interrupt()
-            while self.session.scanning:  # the scan saves what it has (also one run by the console)
-                time.sleep(0.05)
-            self.session.close()
+            if self.worker is not None:  # the scan aborted, the rig closed; a hung worker ended
+                self.worker.close()
+            else:
+                self.session.stop()
+                self.console.interrupt()
+                while self.session.scanning:  # the scan saves what it has (also a console's)
+                    time.sleep(0.05)
+                self.session.close()
         except Exception as exc:  # closing must go on whatever a device does
             self.log(f"while stopping: {type(exc).__name__}: {exc}", "error")
         self.log(f"server stopped ({reason})")
@@ -425,6 +439,11 @@ class RigServer:
             elif cmd in SERVER_COMMANDS:
                 result = getattr(self, f"_cmd_{cmd}")(conn, args)
                 conn.send({"type": "reply", "id": rid, "ok": True, "result": result})
+            elif self.worker is not None:  # what the mirror holds is answered while it hangs
+                result = (self.worker.devices() if cmd == "devices" else
+                          self.console.history if cmd == "history" else
+                          self.worker.request(cmd, args))
+                conn.send({"type": "reply", "id": rid, "ok": True, "result": result})
             else:
                 result = COMMANDS[cmd](self.context, args)
                 conn.send({"type": "reply", "id": rid, "ok": True, "result": result})
@@ -498,6 +517,15 @@ class RigServer:
     def _cmd_bye(self, conn: Connection, args: dict[str, Any]) -> None:
         conn.close("said bye")
 
+    def _cmd_restart_worker(self, conn: Connection, args: dict[str, Any]) -> dict[str, Any]:
+        """End the session worker (a scan aborted, its run marked) and start a new one."""
+        if self.worker is None:
+            raise ServerError("this server holds its session in its own process (no worker to "
+                              "restart); stop it with dotshell stop --abort and start it again.")
+        self.log(f"{conn.describe()} restarts the session worker (pid {self.worker.pid})",
+                 "warning")
+        return {"pid": self.worker.restart(f"restart requested by {conn.describe()}")}
+
     # ---- state, events, polling ---------------------------------------------------------------------
 
     def state(self) -> dict[str, Any]:
@@ -512,11 +540,13 @@ class RigServer:
                            "version": __version__, "protocol": PROTOCOL_VERSION,
                            "on_hangup": self.on_hangup, "exit_when_idle": self.exit_when_idle,
                            "stopping": self._stopping.is_set()},
-                "profile": profile_summary(s), "out_dir": str(s.out_dir.resolve()),
+                "profile": self.worker.summary if self.worker else profile_summary(s),
+                "out_dir": str(s.out_dir.resolve()),
                 "session": s.state, "connected": s.connected, "projected": s.projected,
                 "run": {"dir": str(run.root), "status": run.status} if run else None,
                 "controller": controller, "clients": clients,
-                "console": {"busy": self.console.busy, "prompt": self.console.waiting_prompt}}
+                "console": {"busy": self.console.busy, "prompt": self.console.waiting_prompt},
+                "worker": self.worker.describe() if self.worker else None}
 
     def push_state(self) -> None:
         """Send the state to every client if it changed since the last time."""
@@ -548,6 +578,14 @@ class RigServer:
             job = self.session.job  # the session turns idle once scan() has returned
             threading.Thread(target=lambda: (job.thread.join(), self.push_state()),
                              daemon=True).start()
+
+    def _on_worker_change(self) -> None:
+        """The worker's mirror (or its health) changed: clients see it at once."""
+        with self._clients_lock:
+            watched = bool(self.clients)
+        if watched:
+            self._push_devices()
+            self.push_state()
 
     def _poll(self) -> None:
         while not self._stopping.wait(self.poll_s):
