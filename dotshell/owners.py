@@ -189,15 +189,26 @@ def lock_name(identity: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", identity.strip("/")) + ".lock"
 
 
-def held_devices(profile: Any) -> list[tuple[str, str, dict[str, Any]]]:
-    """(role, device, holder) of each device ``profile`` (a :class:`~dotshell.profile.Profile`)
-    names that another process holds now."""
+def profile_device_ids(profile: Any) -> dict[str, list[str]]:
+    """What hardware each device role of ``profile`` (a :class:`~dotshell.profile.Profile`)
+    names (:func:`device_identities`), by role; roles that name none are left out."""
     from dotshell.profile import DEVICE_ROLES
 
-    out = []
+    out = {}
     for role in DEVICE_ROLES:
         section = profile.role(role)
-        for ident in device_identities(section["settings"]) if section else []:
+        ids = device_identities(section["settings"]) if section else []
+        if ids:
+            out[role] = ids
+    return out
+
+
+def held_devices(device_ids: dict[str, list[str]]) -> list[tuple[str, str, dict[str, Any]]]:
+    """(role, device, holder) of each device in ``device_ids`` (role: identities, as
+    :func:`profile_device_ids` gives them) that another process holds now."""
+    out = []
+    for role, ids in device_ids.items():
+        for ident in ids:
             info = holder(device_lock_dir() / lock_name(ident))
             if info is not None:
                 out.append((role, ident, info))

@@ -159,3 +159,16 @@ def test_status_finds_a_server_from_any_directory(tmp_path, dotshell_pm, user_di
             assert name in capsys.readouterr().out
     finally:
         session.close()
+
+
+def test_a_second_served_worker_on_a_held_stage_is_refused_naming_the_holder(tmp_path, held,
+                                                                            capsys):
+    """``dotshell serve`` runs its session in a worker process: the server refuses the held
+    stage from the profile summary the worker sent, before it listens."""
+    emu, first, second, holder = held
+    sock = tmp_path / "second.sock"
+    code = main(["serve", str(second), "--socket", str(sock)])
+    err = " ".join(capsys.readouterr().err.split())
+    assert code == 2 and "Traceback" not in err
+    assert f"is held by pid {os.getpid()}" in err and str(first) in err
+    assert not sock.exists() and holder_free(sock)

@@ -41,9 +41,10 @@ def profile_summary(session: Session) -> dict[str, Any] | None:
     p = session.profile
     if p is None:
         return None
+    from dotshell.owners import profile_device_ids
     from dotshell.profile import DEVICE_ROLES
 
-    return {"name": p.name, "source": str(p.source),
+    return {"name": p.name, "source": str(p.source), "device_ids": profile_device_ids(p),
             "path": str(session.profile_path.resolve()) if session.profile_path else None,
             "views": len(p.angles_deg()), "exposure_ms": p.data["scan"]["exposure_ms"],
             "coding": p.role("coding")["backend"],

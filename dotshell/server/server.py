@@ -262,8 +262,8 @@ class RigServer:
     def _claim(self, path: Path) -> None:
         """Hold the server lock of ``path`` (one server per socket, so per profile, even while
         a server is momentarily unresponsive); refused naming the holder."""
-        from dotshell.owners import (OwnerLock, describe, held_devices, profile_identity,
-                                     server_lock_path)
+        from dotshell.owners import (OwnerLock, describe, held_devices, profile_device_ids,
+                                     profile_identity, server_lock_path)
 
         profile = self.session.profile
         self._owner = OwnerLock(server_lock_path(path))
@@ -272,7 +272,10 @@ class RigServer:
         if other is not None:
             raise ServerError(f"a rig server already runs on {path}: {describe(other)}; see "
                               "dotshell status, or stop it with dotshell stop.")
-        held = held_devices(profile) if profile is not None else []
+        # In-process, the session's Profile; behind a worker, the summary it sent (device_ids)
+        ids = (profile_device_ids(profile) if hasattr(profile, "role")
+               else getattr(profile, "device_ids", None) or {})
+        held = held_devices(ids)
         if held:
             self._owner.release()
             role, ident, info = held[0]
