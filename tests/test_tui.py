@@ -532,7 +532,9 @@ async def test_pause_resume_then_abort_midway_keeps_frames(tmp_path, pm, monkeyp
             second.opened.set()
             await wait_until(pilot, lambda: app.tracker.status == "paused")
             await wait_until(pilot, lambda: app.session.session_state == "paused")
-            await pilot.press("x")  # younger than a minute: no question
+            await pilot.press("x")  # abort always asks
+            await wait_until(pilot, lambda: isinstance(app.screen, ConfirmScreen))
+            await pilot.press("y")
             await wait_until(pilot, lambda: not session.scanning)
             await wait_until(pilot, lambda: app.tracker.status == "aborted")
             run = session.run
@@ -567,7 +569,10 @@ async def test_aborting_a_long_scan_asks_first(server):
         await pilot.press("n")
         await pilot.pause()
         assert session.state == "running"
-        await pilot.press("escape")  # the stop key asks too during a scan
+        await pilot.press("escape")  # the stop key never aborts: it pauses the scan
+        await wait_until(pilot, lambda: session.state == "paused")
+        assert not isinstance(app.screen, ConfirmScreen)
+        await pilot.press("x")
         await pilot.pause()
         assert isinstance(app.screen, ConfirmScreen)
         await pilot.press("y")

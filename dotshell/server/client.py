@@ -301,6 +301,11 @@ class RemoteSession(ServerClient):
     def stop(self) -> None:
         self.call("stop")
 
+    def halt(self) -> str:
+        """The stop key: pause a running scan before its next frame, else stop every device
+        that can move; never aborts (open to watchers too)."""
+        return self.call("halt")
+
     def devices(self) -> list[dict[str, Any]]:
         return self.call("devices")
 

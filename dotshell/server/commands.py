@@ -148,6 +148,7 @@ COMMANDS: dict[str, Handler] = {
     "resume": lambda c, a: c.session.resume(),
     "abort": lambda c, a: c.session.abort(),
     "stop": lambda c, a: c.session.stop(),
+    "halt": lambda c, a: c.session.halt(),
     "normalize": _normalize,
     "devices": lambda c, a: c.session.devices(),
     "plugins": _plugins,

@@ -64,6 +64,8 @@ class DotshellApp(App):
         Binding("ctrl+q", "quit", "Quit", priority=True),
         Binding("question_mark,f1", "keys", "Keys", key_display="?"),
         Binding("escape", "stop", "Stop", key_display="esc"),
+        Binding("p", "pause", "Pause/resume", show=False),
+        Binding("x", "abort", "Abort", show=False),
         Binding("ctrl+o", "pick_profile", "Profile"),
         Binding("ctrl+g", "plugins", "Plugins", show=False),
         Binding("ctrl+t", "take_control", "Take control", show=False),
@@ -269,12 +271,18 @@ class DotshellApp(App):
             self.panel(LogPanel).add(level, text)
 
     def action_stop(self) -> None:
-        """The stop key: a scan is aborted (asking first when older than a minute) and every
-        moving device stopped; otherwise moving devices stop and pending jogs are dropped."""
-        if self.session.scanning:
-            self.panel(ScanPanel).action_abort(stop_devices=True)
-        else:
-            self.panel(RigPanel).stop()
+        """The stop key (any client, any tab): stop motion, never abort. Pending jogs are
+        dropped; during a scan the scan pauses before its next frame (``p`` resumes, ``x``
+        aborts), otherwise every device that can move stops now."""
+        self.panel(RigPanel).stop()
+
+    def action_pause(self) -> None:
+        """``p`` on any tab but the Console: pause the scan, or resume a paused one."""
+        self.panel(ScanPanel).action_pause()
+
+    def action_abort(self) -> None:
+        """``x`` on any tab but the Console: abort the scan after a yes."""
+        self.panel(ScanPanel).action_abort()
 
     def action_take_control(self) -> None:
         self.run_session_action("take control", self.session.take_control)
@@ -330,9 +338,8 @@ class DotshellApp(App):
             ("Disconnect the rig", "close every device", rig.action_disconnect),
             ("Start scan", "scan with the loaded profile (Scan: s)", scan.action_start),
             ("Pause or resume the scan", "between frames (Scan: p)", scan.action_pause),
-            ("Abort the scan", "frames are kept, run aborted (Scan: x)", scan.action_abort),
-            ("Stop devices now", "abort a scan and stop every moving device (esc)",
-             self.action_stop),
+            ("Stop motion", "pause a scan before its next frame, else stop every moving "
+             "device; never aborts (esc)", self.action_stop),
             ("Go to stage angle", "absolute, degrees (Rig: g)", rig.action_goto),
             ("Home the stage", "find its reference position (Rig: h)", rig.action_home),
             ("Jog stage +", "by the jog step (Rig: ])", lambda: rig.action_jog(1)),
@@ -340,7 +347,7 @@ class DotshellApp(App):
             ("Set analyzer angle", "degrees (Rig: a)", rig.action_analyzer),
             ("Set camera exposure", "ms (Rig: e)", rig.action_exposure),
             ("Snap a frame", "with the current pattern (Rig: space)", rig.action_snap),
-            ("Project a pattern", "from the coding's sequence (Rig: p)", rig.action_project),
+            ("Project a pattern", "from the coding's sequence (Rig: t)", rig.action_project),
             ("Decode map", "project, capture and decode here (Rig: m)", rig.action_decode),
             ("Load profile", "pick a profile (ctrl+o)", self.action_pick_profile),
             ("Plugins", "backends and load errors (ctrl+g)", self.action_plugins),
@@ -353,6 +360,10 @@ class DotshellApp(App):
         ]
         for title, help_text, callback in commands:
             yield SystemCommand(title, help_text, callback)
+        # found only when searched for, never the entry Enter picks in an empty palette, and
+        # it asks first like x
+        yield SystemCommand("Abort the scan", "asks first; frames are kept, run aborted "
+                            "(Scan: x)", scan.action_abort, discover=False)
         yield from super().get_system_commands(screen)
 
     # ---- quitting -----------------------------------------------------------------------------

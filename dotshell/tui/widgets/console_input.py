@@ -68,6 +68,9 @@ class ConsoleInput(TextArea):
             event.stop()
             event.prevent_default()
             return
+        if event.key == "escape":  # the app's stop key, as on every tab: TextArea would move
+            event.prevent_default()  # the focus away; the event goes on to the app
+            return
         await super()._on_key(event)
 
     def _enter(self) -> bool:

@@ -1,5 +1,6 @@
 """The keys overlay (``?`` or F1): every key of the app, where it works and what it does,
-read from the bindings themselves so it cannot go stale; escape, ``?`` or F1 close it."""
+read from the bindings themselves so it cannot go stale; it scrolls with the arrows and page
+keys from the start; escape, ``?`` or F1 close it."""
 
 from __future__ import annotations
 
@@ -42,6 +43,10 @@ class KeysScreen(ModalScreen[None]):
             yield Static("[b]Keys[/] — escape closes; ^p searches every command",
                          classes="question")
             yield Static(table)
+
+    def on_mount(self) -> None:
+        """The table scrolls at once (↑ ↓ pgup pgdn home end): it holds the focus."""
+        self.query_one("#keys", VerticalScroll).focus()
 
     def action_close(self) -> None:
         self.dismiss(None)

@@ -31,7 +31,7 @@ from dotshell.tui.widgets.prompt import PromptScreen
 ROLES = ("camera", "projector", "stage", "analyzer", "light_source")
 HELP = ("[b]c[/] connect  [b]d[/] disconnect  [b][ ][/] jog ∓step  [b]+ -[/] step  "
         "[b]g[/] go to  [b]h[/] home  [b]a[/] analyzer  [b]e[/] exposure  [b]space[/] snap  "
-        "[b]p[/] project  "
+        "[b]t[/] pattern  "
         "[b]m[/] decode map  [b]esc[/] stop")
 #: Below this width the device table is stacked: one device per two lines.
 STACK_BELOW = 80
@@ -54,7 +54,7 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
         Binding("a", "analyzer", "Analyzer", show=False),
         Binding("e", "exposure", "Exposure", show=False),
         Binding("space", "snap", "Snap"),
-        Binding("p", "project", "Project"),
+        Binding("t", "project", "Pattern"),
         Binding("m", "decode", "Decode", show=False),
     ]
 
@@ -168,6 +168,9 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
             pct = 100.0 * result["decoded_pixels"] / max(result["total_pixels"], 1)
             return (f"decoded {result['decoded_pixels']} of {result['total_pixels']} pixels "
                     f"({pct:.1f} %) → {short_path(result['preview'])}")
+        if label == "stop":
+            return ("scan paused by the stop key: p resumes it (Scan tab), x aborts it"
+                    if result == "paused" else "stopped: every device that can move")
         if label in ("jog", "go to", "home") and isinstance(result, (int, float)):
             return f"stage at {result:.2f}°"
         if label == "connect" and isinstance(result, dict):
@@ -197,9 +200,10 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
         self.jogs.press(direction * self.step_deg)
 
     def stop(self) -> None:
-        """The stop key: forget pending jogs, stop every moving device (and a scan)."""
+        """The stop key: forget pending jogs and halt — a scan pauses before its next frame,
+        otherwise every moving device stops (never an abort)."""
         self.jogs.cancel()
-        self._do("stop", self.session.stop)
+        self._do("stop", self.session.halt)
 
     def action_step(self, factor: float) -> None:
         self.step_deg = min(180.0, max(0.125, self.step_deg * factor))

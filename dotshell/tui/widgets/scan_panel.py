@@ -1,6 +1,6 @@
 """The Scan panel: the profile's scan, start / pause / resume / abort, progress per view and
 frame with ETA, the current pipeline step, the result, and errors in place. View numbers are
-1-based, as on the progress bar. Aborting a scan that has run for more than a minute asks first.
+1-based, as on the progress bar. Aborting always asks first; the stop key (esc) only pauses a scan.
 """
 
 from __future__ import annotations
@@ -20,11 +20,10 @@ from dotshell.tui.redraw import DrawnWhileShown, show
 from dotshell.tui.text import shown_path
 from dotshell.tui.widgets.confirm import ConfirmScreen
 
-HELP = "[b]s[/] start  [b]p[/] pause / resume  [b]x[/] abort (frames are kept)  [b]esc[/] stop"
+HELP = ("[b]s[/] start  [b]p[/] pause / resume  [b]x[/] abort (asks; frames are kept)  "
+        "[b]esc[/] stop motion (pauses a scan)")
 STATE_STYLE = {"running": "green", "paused": "yellow", "stopping": "yellow", "completed": "green",
                "aborted": "yellow", "failed": "red"}
-#: A scan older than this (seconds, pauses excluded) is only aborted after a confirmation.
-CONFIRM_ABORT_AFTER_S = 60.0
 
 
 class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
@@ -33,8 +32,8 @@ class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
 
     BINDINGS = [
         Binding("s", "start", "Start scan"),
-        Binding("p", "pause", "Pause/resume"),
-        Binding("x", "abort", "Abort"),
+        Binding("p", "app.pause", "Pause/resume"),  # p and x are the app's (every tab): shown
+        Binding("x", "app.abort", "Abort"),  # here in the footer too
     ]
 
     def __init__(self, **kwargs: Any) -> None:
@@ -127,26 +126,30 @@ class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
         self._do("scan", self.session.scan)
 
     def action_pause(self) -> None:
+        if not self.session.scanning:
+            return
         if self.session.session_state == "paused":
             self._do("resume", self.session.resume)
         else:
             self._do("pause", self.session.pause)
 
-    def action_abort(self, stop_devices: bool = False) -> None:
-        """Abort the scan (and with ``stop_devices``, the stop key, stop every moving device
-        at once); a scan older than a minute is only aborted after a yes."""
+    def action_abort(self) -> None:
+        """Abort the scan, after a yes (from any tab, the palette or ``x``); a watcher is told
+        that only the client in control may abort."""
         tracker: ScanTracker = self.app.tracker  # type: ignore[attr-defined]
         if not self.session.scanning:
             return
-        label, fn = ("stop", self.session.stop) if stop_devices else ("abort", self.session.abort)
-        running_s = tracker.active_seconds(time.time())
-        if running_s <= CONFIRM_ABORT_AFTER_S:
-            self._do(label, fn)
+        if not self.session.in_control:
+            self.failure = ("abort: only the front end in control may abort the scan (ctrl+t "
+                            "takes control); esc pauses it")
+            self.app.notify(self.failure, severity="warning")
+            self.app.show_scan()  # type: ignore[attr-defined]
             return
+        running_s = tracker.active_seconds(time.time())
 
         def answer(yes: bool | None) -> None:
             if yes:
-                self._do(label, fn)
+                self._do("abort", self.session.abort)
 
         self.app.push_screen(ConfirmScreen(
             f"The scan has run for {format_seconds(running_s)}. Abort it?\nFrames captured so "
