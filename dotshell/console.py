@@ -61,6 +61,9 @@ class PreviewSaved(Event):
     stats: dict[str, Any] = field(default_factory=dict)
 
 
+#: The run's folder for what a session shows while a scan runs (``latest_frame.png``): part
+#: of the capture, not of a generation.
+LIVE_DIR = "live"
 #: Bins of the histogram in :func:`frame_stats`.
 HISTOGRAM_BINS = 32
 
@@ -573,8 +576,10 @@ class Session:
                 self._state = "idle"
             self._refresh_namespaces()
         run = self.run = Run(result.run_dir)
+        products = run.root / "current"  # the published generation the report belongs to
+        base = products.resolve() if products.is_symlink() else run.root
         for kind, rel in (result.report.get("previews") or {}).items():
-            self.bus.emit(PreviewSaved(kind=kind, path=str(run.root / rel)))
+            self.bus.emit(PreviewSaved(kind=kind, path=str(base / rel)))
         self._refresh_namespaces()
         return run
 
@@ -626,7 +631,9 @@ class Session:
 
     def _live_preview(self, ev: Event) -> None:
         """During a scan, render the first frame of each captured view to
-        ``<run>/previews/latest_frame.png``."""
+        ``<run>/live/latest_frame.png`` (capture-time, like the frames: ``<run>/previews``
+        is the link to the current generation's previews, made when the products are
+        published; a real folder there kept the link from ever being made)."""
         if isinstance(ev, ScanStarted):
             self._live = {"run_dir": ev.run_dir}
         elif isinstance(ev, ScanFinished):
@@ -640,8 +647,8 @@ class Session:
                 frame = store.frames(ev.view).read_one(0)
             except RunError:
                 return
-            store.path("previews").mkdir(exist_ok=True)
-            path = frame_preview(frame, store.path("previews", "latest_frame.png"))
+            store.path(LIVE_DIR).mkdir(exist_ok=True)
+            path = frame_preview(frame, store.path(LIVE_DIR, "latest_frame.png"))
             bits = getattr(self.rig.camera, "bit_depth", None) if self.rig else None
             self.bus.emit(PreviewSaved(kind="frame", path=str(path), view=ev.view,
                                        stats=frame_stats(frame, bits)))

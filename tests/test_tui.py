@@ -497,7 +497,7 @@ async def test_short_scan_runs_to_the_end(server):
         preview = app.panel(PreviewPanel)
         assert [i.view for i in preview.items if i.kind == "frame"] == [0, 1]
         assert "latest frame (view 2)" in static_text(app, "#preview-title")  # 1-based
-        assert (run.root / "previews" / "latest_frame.png").is_file()
+        assert (run.root / "live" / "latest_frame.png").is_file()
         texts = [e.text for e in app.panel(LogPanel).entries]
         assert any(t.startswith("scan completed") for t in texts)
         assert "view 1 captured at 0.0°" in " ".join(texts)

@@ -3,10 +3,18 @@ controller's, the end-of-scan previews show, a reattached console tells its true
 Scan tab's settings are the scan's, and the smaller things an operator trips over. Driven with
 Textual's Pilot against a real rig server on the simulated rig, like tests/test_tui.py."""
 
+import os
+from pathlib import Path
+
+import numpy as np
 import pytest
+from PIL import Image
 from textual.command import CommandPalette
 
+from conftest import write_test_profile
+from dotshell.console import Session
 from dotshell.tui.widgets.confirm import ConfirmScreen
+from dotshell.tui.widgets.preview_panel import PreviewPanel
 from dotshell.tui.widgets.scan_panel import ScanPanel
 from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
 from test_tui import (Gate, app_for, running, server, settle, show_tab,  # noqa: F401
@@ -112,3 +120,41 @@ async def test_abort_asks_then_ends_the_scan_with_frames_kept(server):
         assert session.run.status == "aborted" and session.run.frame_count() == 2
         await wait_until(pilot, lambda: "aborted" in static_text(app, "#scan-state"))
         assert isinstance(app.panel(ScanPanel), ScanPanel)
+
+
+async def test_the_preview_after_a_server_scan_shows_the_cloud(tmp_path, pm, monkeypatch,
+                                                               truecolor, user_dirs):
+    """The bug: the live frame preview made RUN/previews a real folder, so the link to the
+    current generation's previews was never made and the Preview tab said "cannot read preview
+    …/previews/cloud.png" after every server scan."""
+    monkeypatch.chdir(tmp_path)
+    session = Session(write_test_profile(tmp_path, previews=True), pm=pm, out_dir="runs")
+    with served(session, poll_s=0.1) as server:
+        await preview_after_scan(server, session)
+    session.close()
+
+
+async def preview_after_scan(server, session):
+    app = app_for(server)
+    async with running(app, (100, 30)) as pilot:
+        await show_tab(pilot, "scan")
+        await pilot.press("s")
+        await wait_until(pilot, lambda: app.tracker.status in ("completed", "aborted", "failed"),
+                         timeout_s=120)
+        await wait_until(pilot, lambda: any(i.kind == "cloud" for i in app.panel(
+            PreviewPanel).items) or "cannot read" in static_text(app, "#preview-title"))
+        await show_tab(pilot, "preview")
+        assert "cannot read" not in static_text(app, "#preview-title")
+        run = session.run
+        assert run.status == "completed"
+        link = run.root / "previews"
+        assert link.is_symlink() and os.readlink(link) == "current/previews"
+        cloud = next(i for i in app.panel(PreviewPanel).items if i.kind == "cloud")
+        assert Path(cloud.path) == (run.root / "current").resolve() / "previews" / "cloud.png"
+        with Image.open(link / "cloud.png") as im:
+            assert cloud.size == im.size
+            pixels = np.asarray(im.convert("L"))
+        assert pixels.std() > 5  # a rendering of the cloud, not a blank image
+        assert np.asarray(cloud.image.convert("L")).std() > 5
+        assert "cloud" in static_text(app, "#preview-title")
+        assert (run.root / "live" / "latest_frame.png").is_file()
