@@ -4,6 +4,7 @@ Scan tab's settings are the scan's, and the smaller things an operator trips ove
 Textual's Pilot against a real rig server on the simulated rig, like tests/test_tui.py."""
 
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,9 @@ from textual.command import CommandPalette
 
 from conftest import write_test_profile
 from dotshell.console import Session
+from dotshell.server import repl
+from dotshell.tui.widgets.console_input import ConsoleInput
+from dotshell.tui.widgets.console_panel import ConsolePanel
 from dotshell.tui.widgets.confirm import ConfirmScreen
 from dotshell.tui.widgets.preview_panel import PreviewPanel
 from dotshell.tui.widgets.scan_panel import ScanPanel
@@ -158,3 +162,63 @@ async def preview_after_scan(server, session):
         assert np.asarray(cloud.image.convert("L")).std() > 5
         assert "cloud" in static_text(app, "#preview-title")
         assert (run.root / "live" / "latest_frame.png").is_file()
+
+
+async def test_a_reattached_console_shows_its_transcript_and_that_it_is_busy(server):
+    """The bug: a console reattached while its scan() ran said "ready", showed nothing of what
+    came before, and threw away what was typed."""
+    session = server.session
+    gate = Gate(session, 0, 1)
+    first = attach(server)
+    first.console_run("print('before the scan', 6 * 7)")
+    wait_for_idle_console(server)
+    first.console_run("connect(); r = scan()")
+    assert gate.reached.wait(60)
+    first.close()  # the terminal that started it is gone; the scan goes on
+    try:
+        app = app_for(server)
+        async with running(app, (100, 30)) as pilot:
+            await show_tab(pilot, "console")
+            panel = app.panel(ConsolePanel)
+            shown = panel.output_text
+            assert "before the scan 42" in shown and "connect(); r = scan()\n" in shown
+            assert panel.busy
+            assert "running" in static_text(app, "#console-status")
+            box = app.panel(ConsoleInput)
+            box.text = "1 + 1"
+            box.move_cursor(box.document.end)
+            await pilot.press("enter")
+            await settle(pilot)
+            assert box.text == "1 + 1"  # kept, not sent, and said so
+            assert "not run" in static_text(app, "#console-status")
+            assert session.state == "running"
+            gate.opened.set()
+            await wait_until(pilot, lambda: not panel.busy, timeout_s=120)
+            assert session.run.status == "completed"
+            assert "ready" in static_text(app, "#console-status")
+            await pilot.press("enter")
+            await wait_until(pilot, lambda: panel.output_text.rstrip().endswith("2"))
+    finally:
+        gate.opened.set()
+
+
+def wait_for_idle_console(server, timeout_s=60.0):
+    t0 = time.monotonic()
+    while server.console.busy:
+        assert time.monotonic() - t0 < timeout_s
+        time.sleep(0.02)
+
+
+async def test_the_console_transcript_is_bounded(server, monkeypatch):
+    monkeypatch.setattr(repl, "TRANSCRIPT_CHARS", 1000)
+    client = attach(server)
+    client.console_run("for i in range(300): print(f'line {i:04d}')")
+    wait_for_idle_console(server)
+    client.close()
+    late = attach(server, "late", control=False)
+    try:
+        text = "".join(m.get("text", "") for m in late.console_transcript)
+        assert len(text) <= 1000 and "line 0299" in text and "line 0000" not in text
+        assert late.console_transcript[-1]["type"] == "console_done"
+    finally:
+        late.close()

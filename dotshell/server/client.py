@@ -192,6 +192,8 @@ class RemoteSession(ServerClient):
         self.tracker = ScanTracker.from_dict(welcome["tracker"])
         self.backlog: list[Event] = [event_from_wire(e) for e in welcome["backlog"]]
         self.history: list[str] = list(welcome["history"])
+        #: the console's last messages before this client attached (bounded), oldest first
+        self.console_transcript: list[dict[str, Any]] = list(welcome.get("console") or [])
 
     def _greeted(self, welcome: dict[str, Any]) -> None:
         """The hello's state and device rows, taken on the reader thread: a state or rows

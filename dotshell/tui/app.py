@@ -118,6 +118,8 @@ class DotshellApp(App):
         for ev in previews[-REPLAYED_PREVIEWS:]:
             self.panel(PreviewPanel).handle_session_event(ev)
         self.panel(ConsoleInput).set_history(self.session.history)
+        self.panel(ConsolePanel).replay(self.session.console_transcript,
+                                        self.session.state.get("console") or {})
         self._unsubscribe = self.session.subscribe(lambda m: self.post_message(ServerMessage(m)))
         if self.notice:
             log.add("info", self.notice)

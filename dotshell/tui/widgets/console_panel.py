@@ -36,6 +36,7 @@ class ConsolePanel(Vertical):
         super().__init__(**kwargs)
         self.transcript: list[tuple[str, str]] = []
         self._partial = {"out": "", "err": ""}
+        self._sent = ""  # the last input sent to the server
 
     def compose(self) -> ComposeResult:
         output = ReflowLog(id="console-out")
@@ -117,6 +118,26 @@ class ConsolePanel(Vertical):
     def busy(self) -> bool:
         return self.box.busy
 
+    def replay(self, transcript: list[dict[str, Any]], console: dict[str, Any]) -> None:
+        """A front end attaching: show what the console showed before (the server's bounded
+        transcript), then its true state — busy while an input (a ``scan()``) still runs,
+        waiting when it asks with ``input()``."""
+        if transcript:
+            self.write("note", "— the console so far (from the server) —\n")
+        for message in transcript:
+            self.handle(message)
+        busy = bool(console.get("busy"))
+        prompt = console.get("prompt")
+        if prompt is not None and busy:
+            self.handle({"type": "console_input", "prompt": prompt})
+            self.box.busy = True
+        elif busy:
+            self.box.waiting_prompt = None
+            self._set_busy(True)
+        elif self.box.busy:  # the transcript ended inside an input that has finished since
+            self.box.busy = False
+            self._status(READY)
+
     # ---- input --------------------------------------------------------------------------------
 
     def _request(self, label: str, fn: Any, *args: Any) -> None:
@@ -124,11 +145,19 @@ class ConsolePanel(Vertical):
 
     def on_console_input_submitted(self, message: ConsoleInput.Submitted) -> None:
         if self.box.busy:
-            self._status("[yellow]still running the previous input — ctrl+c interrupts it[/]")
-            self.box.text = message.source
+            self._refused(message.source, "still running the previous input — it was not "
+                          "sent; Enter again when it ends, ctrl+c interrupts it")
             return
         self.box.busy = True
+        self._sent = message.source
         self._request("console", self.session.console_run, message.source)
+
+    def _refused(self, source: str, why: str) -> None:
+        """Input that did not run stays in the box (never lost), and the status says why."""
+        if not self.box.text.strip():
+            self.box.text = source
+            self.box.move_cursor(self.box.document.end)
+        self._status(f"[b reverse] not run [/] [yellow]{escape(why)}[/]")
 
     def on_console_input_reply(self, message: ConsoleInput.Reply) -> None:
         self.box.waiting_prompt = None
@@ -149,7 +178,11 @@ class ConsolePanel(Vertical):
     def on_action_done(self, message: ActionDone) -> None:
         if message.error:
             if message.label == "console":
-                self.box.busy = False
+                # refused by the server (another input runs, another front end controls):
+                # the input is put back; busy stays what the server says
+                self.box.busy = bool((self.session.state.get("console") or {}).get("busy"))
+                self._refused(self._sent, message.error)
+                return
             self._status(f"[red]{escape(message.label)}: {escape(message.error)}[/]")
         elif message.label == "complete":
             token, matches = message.result["token"], message.result["matches"]
