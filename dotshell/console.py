@@ -25,6 +25,7 @@ import re
 import sys
 import threading
 import time
+import types
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -686,6 +687,10 @@ class Session:
             "scan": self.scan, "pause": self.pause, "resume": self.resume,
             "abort": self.abort, "stop": self.stop, "wait": self.wait,
             "normalize": self.normalize,
+            "run_script": lambda path, *args: run_script(path, self, [str(a) for a in args]),
+            # as in Python's own REPL and in dotshell script: code pasted from a script that
+            # ends with ``if __name__ == "__main__": main()`` runs its main()
+            "__name__": "__main__",
         }
         self._bind(ns)
         return ns
@@ -749,10 +754,33 @@ def split_script_args(rest: Sequence[str]) -> tuple[dict[str, Any], list[str]]:
     return vars(ns), unknown + rest[cut + 1:]
 
 
-def run_script(path: Path | str, session: Session, argv: Sequence[str] = ()) -> dict[str, Any]:
-    """Run a Python file with the session's namespace (as ``__main__``, ``sys.argv`` =
-    ``[path, *argv]``); returns the namespace it left."""
-    path = Path(path)
+class ScriptResult:
+    """What :func:`run_script` left: the script's global names as attributes (``.names`` the
+    whole namespace), shown in the console as one line rather than the whole namespace."""
+
+    def __init__(self, path: Path, names: dict[str, Any], given: set[str]) -> None:
+        self.path = path
+        self.names = names
+        self.given = given  # the names the namespace had before the script ran
+
+    def __getattr__(self, name: str) -> Any:
+        names = self.__dict__.get("names") or {}  # (empty before __init__: copy, pickle)
+        if name in names:
+            return names[name]
+        raise AttributeError(f"the script defined no {name!r}")
+
+    def __repr__(self) -> str:
+        own = [k for k, v in self.names.items() if not k.startswith("_")
+               and k not in self.given and not isinstance(v, types.ModuleType)]
+        return f"<script {self.path} ran: defined {', '.join(own) or 'nothing'}>"
+
+
+def run_script(path: Path | str, session: Session, argv: Sequence[str] = ()) -> ScriptResult:
+    """Run a Python file in a fresh namespace of the session (as ``__main__``, ``sys.argv`` =
+    ``[path, *argv]`` while it runs, restored after); what ``dotshell script`` does, and, as
+    ``run_script(path, *args)``, what the console offers. A ``SystemExit`` with code 0 or None
+    (``sys.exit()`` after argparse's ``--help``) ends the script quietly."""
+    path = Path(path).expanduser()
     try:
         source = path.read_text(encoding="utf-8")
     except OSError as exc:
@@ -760,11 +788,15 @@ def run_script(path: Path | str, session: Session, argv: Sequence[str] = ()) -> 
                             "of a Python file.") from None
     ns = session.namespace()
     ns.update(__name__="__main__", __file__=str(path))
+    given = set(ns)
     code = compile(source, str(path), "exec")
     old_argv = sys.argv
     sys.argv = [str(path), *argv]
     try:
         exec(code, ns)
+    except SystemExit as exc:
+        if exc.code not in (None, 0):
+            raise
     finally:
         sys.argv = old_argv
-    return ns
+    return ScriptResult(path, ns, given)

@@ -358,3 +358,88 @@ def test_a_run_nobody_writes_any_more_reads_interrupted(small_scan, tmp_path):
     assert status == "interrupted" and "ended without finishing" in reason
     (copy / "manifest.json").write_text("{}")
     assert Run(copy).status_and_reason()[0] == "unknown"  # damaged: said, not raised
+
+
+# ---- one namespace for the console and scripts (issue 29) ----------------------------------
+
+SCRIPT_WITH_MAIN = (
+    "import argparse, sys\n"
+    "def main():\n"
+    "    p = argparse.ArgumentParser()\n"
+    "    p.add_argument('step', type=float)\n"
+    "    p.add_argument('--times', type=int, default=1)\n"
+    "    a = p.parse_args()\n"
+    "    global angles, argv\n"
+    "    argv = list(sys.argv)\n"
+    "    connect()\n"
+    "    angles = [jog(a.step) for _ in range(a.times)]\n"
+    "if __name__ == '__main__':\n"
+    "    main()\n")
+
+
+def console_of(session):
+    from dotshell.server.repl import ServerConsole
+
+    messages = []
+    console = ServerConsole(session, messages.append)
+
+    def run(source):
+        n = sum(m["type"] == "console_done" for m in messages)
+        console.run(source)
+        t0 = time.monotonic()
+        while sum(m["type"] == "console_done" for m in messages) == n:
+            assert time.monotonic() - t0 < 120
+            time.sleep(0.02)
+
+    return console, messages, run
+
+
+def test_run_script_in_the_console_is_main_with_its_own_argv(session, tmp_path):
+    """The bug: in the console __name__ was 'builtins' and sys.argv the server's, so a script's
+    `if __name__ == "__main__": main()` silently did nothing and argument parsing failed."""
+    import sys
+
+    script = tmp_path / "sweep.py"
+    script.write_text(SCRIPT_WITH_MAIN)
+    console, messages, run = console_of(session)
+    argv_before = list(sys.argv)
+    run(f"r = run_script({str(script)!r}, 2.5, '--times', 3)\nprint(r.angles, r.argv)\nr")
+    out = "".join(m.get("text", "") for m in messages if m.get("kind") == "out")
+    assert out == f"[2.5, 5.0, 7.5] [{str(script)!r}, '2.5', '--times', '3']\n"
+    result = [m["text"] for m in messages if m.get("kind") == "result"][-1]
+    assert result == f"<script {script} ran: defined main, argv, angles>"  # not its imports
+    assert sys.argv == argv_before  # restored
+    assert session.rig.stage.position == pytest.approx(7.5)
+    # the console itself is __main__ too: the same code pasted runs its main()
+    run("import sys; sys.argv[1:] = ['1', '--times', '2']\n" + SCRIPT_WITH_MAIN
+        + "sys.argv[1:] = []\nangles")
+    assert [m["text"] for m in messages if m.get("kind") == "result"][-1] == "[8.5, 9.5]"
+    # argparse's exit status 2 is an error; a clean sys.exit() ends a script quietly
+    run(f"run_script({str(script)!r})")
+    assert "SystemExit: 2" in [m["text"] for m in messages if m.get("kind") == "error"][-1]
+    script.write_text("import sys\nsys.exit()\n")
+    run(f"run_script({str(script)!r}) is not None")
+    assert [m["text"] for m in messages if m.get("kind") == "result"][-1] == "True"
+
+
+def test_console_scan_prints_progress_not_per_frame_lines(session):
+    """scan() in the console shows the session's progress from the info level on: a line per
+    view captured and reconstructed, the steps and the end — not one per frame."""
+    console, messages, run = console_of(session)
+    run("connect(); r = scan()")
+    lines = "".join(m["text"] for m in messages if m.get("kind") == "log").splitlines()
+    frames = session.run.frame_count()
+    assert frames == 2 * len(session.run.manifest["frame_names"]) > 20
+    assert not any("frame" in line and "captured" in line and "view" in line
+                   and "frames)" not in line for line in lines)
+    assert sum(line.startswith("view ") and "captured at" in line for line in lines) == 2
+    assert sum("reconstructed" in line for line in lines) == 2
+    assert sum(line.startswith("scan started") for line in lines) == 1
+    assert lines[-1].startswith("scan completed")
+    assert len(lines) < 30  # was ≈ 190 lines for 4 views
+    run("log_level('debug'); r = scan()")
+    debug = "".join(m["text"] for m in messages if m.get("kind") == "log").splitlines()
+    assert sum("debug: view" in line and ") captured" in line for line in debug) == frames
+    run("log_level('loud')")
+    assert "choose one of debug, info, warning, error or off" in [
+        m["text"] for m in messages if m.get("kind") == "error"][-1]

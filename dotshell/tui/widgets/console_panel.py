@@ -25,7 +25,7 @@ BANNER = ("Python console on the live session: rig, profile, run, session, np, d
           "block, "
           "↑/↓ history, Tab completes, ctrl+c interrupts; input() and help() ask here.")
 STYLES = {"out": "", "err": "yellow", "result": "cyan", "error": "red", "input": "bold",
-          "note": "dim"}
+          "note": "dim", "log": "italic"}
 READY = "ready"
 
 
@@ -35,7 +35,7 @@ class ConsolePanel(Vertical):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.transcript: list[tuple[str, str]] = []
-        self._partial = {"out": "", "err": ""}
+        self._partial = {"out": "", "err": "", "log": ""}
         self._sent = ""  # the last input sent to the server
 
     def compose(self) -> ComposeResult:
