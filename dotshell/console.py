@@ -301,6 +301,47 @@ class Session:
             self.connect()
         return self.profile  # type: ignore[return-value]
 
+    def configure(self, *, views: int | None = None, exposure_ms: float | None = None,
+                  pdi_angles_deg: Sequence[float] | None = None,
+                  out_dir: Path | str | None = None) -> Profile | None:
+        """Change the next scan's settings — ``views`` (equally spaced; explicit angles are
+        dropped), camera exposure (ms), the PDI analyzer angles (parallel, perpendicular;
+        degrees) and the output directory — without rebuilding or reconnecting the rig. The
+        profile the scan runs with (and records in the run) carries them. The profile's keys
+        wait until no scan runs; the output directory applies to the next scan at once."""
+        overrides, said = [], []
+        if views is not None:
+            overrides += [f"scan.views={int(views)}", "scan.angles_deg=[]"]
+            said.append(f"{int(views)} views")
+        if exposure_ms is not None:
+            overrides.append(f"scan.exposure_ms={float(exposure_ms)!r}")
+            said.append(f"exposure {float(exposure_ms):g} ms")
+        if pdi_angles_deg is not None:
+            angles = [float(a) for a in pdi_angles_deg]
+            overrides.append(f"scan.pdi_angles_deg={angles!r}")
+            said.append(f"analyzer angles {', '.join(f'{a:g}°' for a in angles)}")
+        if overrides:
+            self._retune(overrides)
+        if out_dir is not None:
+            self.out_dir = Path(out_dir).expanduser()
+            said.append(f"output directory {self.out_dir}")
+        if said:
+            self.bus.info(f"scan settings: {'; '.join(said)}")
+        return self.profile
+
+    def _retune(self, overrides: list[str]) -> None:
+        """The profile with ``scan.*`` keys changed, the rig kept (its devices are the same)."""
+        from dotshell.profile import apply_overrides, validate_profile
+
+        with self._lock:
+            prof = self._require_profile()
+            self._require_idle("change the scan's settings")
+            new = validate_profile(apply_overrides(prof.raw(), overrides, prof.source),
+                                   self.pm, prof.source, prof.base_dir)
+            self.profile = new
+            self.rig.profile = new  # type: ignore[union-attr]
+        self._refresh_namespaces()
+
     def _require_profile(self) -> Profile:
         if self.profile is None or self.rig is None:
             raise ProfileError("no profile is loaded: load one with session.load(PATH) (in the "
@@ -416,16 +457,22 @@ class Session:
         return float(degrees)
 
     def set_exposure(self, ms: float) -> float:
-        """Set the camera exposure (ms), for cameras with exposure control."""
+        """Set the camera exposure (ms), for cameras with exposure control — now, when the
+        camera is connected, and for the scans that follow (``scan.exposure_ms``)."""
         from dotshell.devices import ExposureControl
 
         with self._lock:
-            cam = self._device("camera", "set the exposure")
-            if not isinstance(cam, ExposureControl):
-                raise DeviceError(f"the camera ({self.profile.role('camera')['backend']}) has "  # type: ignore[union-attr]
-                                  "no exposure control.")
-            cam.set_exposure(float(ms))
-        self.bus.info(f"camera exposure set to {float(ms):g} ms")
+            prof = self._require_profile()
+            self._require_idle("set the exposure")
+            cam = self.rig.devices.get("camera") if "camera" in self.rig.connected else None  # type: ignore[union-attr]
+            if cam is not None:
+                if not isinstance(cam, ExposureControl):
+                    raise DeviceError(f"the camera ({prof.role('camera')['backend']}) has no "
+                                      "exposure control.")
+                cam.set_exposure(float(ms))
+            self._retune([f"scan.exposure_ms={float(ms)!r}"])
+        self.bus.info(f"camera exposure set to {float(ms):g} ms" + (
+            "" if cam is not None else " for the scans (the camera is not connected)"))
         return float(ms)
 
     def stop(self) -> None:
@@ -679,7 +726,8 @@ class Session:
 
         ns: dict[str, Any] = {
             "session": self, "np": np, "dotshell": dotshell, "Run": Run,
-            "load": self.load, "set": self.set, "connect": self.connect,
+            "load": self.load, "set": self.set, "configure": self.configure,
+            "connect": self.connect,
             "disconnect": self.disconnect, "status": self.status, "move_to": self.move_to,
             "jog": self.jog, "home": self.home, "set_analyzer": self.set_analyzer,
             "set_exposure": self.set_exposure, "patterns": self.patterns,

@@ -5,20 +5,24 @@ Textual's Pilot against a real rig server on the simulated rig, like tests/test_
 
 import os
 import time
+import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 from textual.command import CommandPalette
+from textual.widgets import Input
 
 from conftest import write_test_profile
+from dotshell.cli_server import apply_out_dir
 from dotshell.console import Session
 from dotshell.server import repl
 from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.console_panel import ConsolePanel
 from dotshell.tui.widgets.confirm import ConfirmScreen
 from dotshell.tui.widgets.preview_panel import PreviewPanel
+from dotshell.tui.widgets.prompt import PromptScreen
 from dotshell.tui.widgets.scan_panel import ScanPanel
 from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
 from test_tui import (Gate, app_for, running, server, settle, show_tab,  # noqa: F401
@@ -222,3 +226,75 @@ async def test_the_console_transcript_is_bounded(server, monkeypatch):
         assert late.console_transcript[-1]["type"] == "console_done"
     finally:
         late.close()
+
+
+async def test_the_scan_tab_edits_the_settings_the_scan_uses(server, tmp_path):
+    """The bug: exposure set with e was not what the scan used (it used the profile's), and
+    views, exposure and the output folder could only be changed with set(...)."""
+    session = server.session
+    app = app_for(server)
+    async with running(app, (100, 30)) as pilot:
+        await show_tab(pilot, "scan")
+        for key, value in (("v", "3"), ("e", "7.5"), ("n", "10, 100"), ("o", "elsewhere")):
+            await pilot.press(key)
+            await wait_until(pilot, lambda: isinstance(app.screen, PromptScreen))
+            app.screen.query_one(Input).value = value
+            await pilot.press("enter")
+            await settle(pilot)
+        await pilot.press("v")
+        await wait_until(pilot, lambda: isinstance(app.screen, PromptScreen))
+        app.screen.query_one(Input).value = "three"
+        await pilot.press("enter")
+        await settle(pilot)
+        assert "views: 'three' is not a whole number" in static_text(app, "#scan-error")
+        await wait_until(pilot, lambda: "3 views, exposure 7.5 ms" in static_text(
+            app, "#scan-plan") and "elsewhere/" in static_text(app, "#scan-plan"))
+        await pilot.press("s")
+        await wait_until(pilot, lambda: app.tracker.status in ("completed", "aborted", "failed"),
+                         timeout_s=120)
+        await wait_until(pilot, lambda: not session.scanning)
+    run = session.run
+    assert run.status == "completed" and run.root.parent == tmp_path / "elsewhere"
+    assert len(run.manifest["views"]) == 3
+    recorded = tomllib.loads((run.root / "profile.toml").read_text())["scan"]
+    assert recorded["exposure_ms"] == 7.5 and recorded["pdi_angles_deg"] == [10.0, 100.0]
+    assert session.rig.camera.status()["exposure_ms"] == 7.5  # what the camera took
+
+
+async def test_e_on_the_rig_tab_is_the_exposure_the_scan_uses(server):
+    session = server.session
+    app = app_for(server)
+    async with running(app, (80, 24)) as pilot:
+        await pilot.press("c")
+        await settle(pilot)
+        await pilot.press("e")
+        await wait_until(pilot, lambda: isinstance(app.screen, PromptScreen))
+        app.screen.query_one(Input).value = "3.25"
+        await pilot.press("enter")
+        await settle(pilot)
+        assert session.rig.camera.status()["exposure_ms"] == 3.25
+        assert session.profile.data["scan"]["exposure_ms"] == 3.25
+        assert session.connected  # the rig was kept, not rebuilt
+        await show_tab(pilot, "scan")
+        await pilot.press("s")
+        await wait_until(pilot, lambda: app.tracker.status in ("completed", "aborted", "failed"),
+                         timeout_s=120)
+        await wait_until(pilot, lambda: not session.scanning)
+    recorded = tomllib.loads((session.run.root / "profile.toml").read_text())["scan"]
+    assert recorded["exposure_ms"] == 3.25
+
+
+async def test_out_for_a_running_server_is_applied_or_said(server, tmp_path):
+    """`dotshell tui PROFILE --out DIR` attaching to a running server ignored --out silently."""
+    first = attach(server)
+    watcher = attach(server, "tui", control=True)  # first controls: this one watches
+    try:
+        said = apply_out_dir(watcher, str(tmp_path / "mine"))
+        assert "NOT applied" in said and "controls the rig" in said
+        assert Path(server.session.out_dir).resolve() != tmp_path / "mine"
+        said = apply_out_dir(first, str(tmp_path / "mine"))
+        assert said == f"output folder changed to {tmp_path / 'mine'} as asked with --out"
+        assert server.session.out_dir.resolve() == tmp_path / "mine"
+    finally:
+        watcher.close()
+        first.close()

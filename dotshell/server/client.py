@@ -252,6 +252,13 @@ class RemoteSession(ServerClient):
     def set(self, *overrides: str) -> Any:
         return self.call("set", overrides=list(overrides))
 
+    def configure(self, **settings: Any) -> Any:
+        """The next scan's settings: ``views``, ``exposure_ms``, ``pdi_angles_deg``,
+        ``out_dir`` (see :meth:`dotshell.console.Session.configure`)."""
+        if settings.get("out_dir") is not None:
+            settings["out_dir"] = str(Path(settings["out_dir"]).expanduser().resolve())
+        return self.call("configure", **settings)
+
     def connect(self) -> Any:
         return self.call("connect")
 

@@ -30,10 +30,10 @@ MAX_LINE = 4 * 1024 * 1024
 OPEN_COMMANDS = frozenset({"hello", "state", "devices", "patterns", "plugins", "history",
                            "control", "release", "halt", "shutdown", "bye"})
 #: Requests that change the rig or the session: only the client in control may send them.
-CONTROL_COMMANDS = frozenset({"load", "set", "connect", "disconnect", "move", "jog", "home",
-                              "analyzer", "exposure", "project", "snap", "decode", "scan",
-                              "pause", "resume", "abort", "stop", "normalize", "console",
-                              "console_reply", "console_interrupt", "complete"})
+CONTROL_COMMANDS = frozenset({"load", "set", "configure", "connect", "disconnect", "move",
+                              "jog", "home", "analyzer", "exposure", "project", "snap",
+                              "decode", "scan", "pause", "resume", "abort", "stop", "normalize",
+                              "console", "console_reply", "console_interrupt", "complete"})
 #: Requests answered at once by the connection's reader, never queued behind a slow one.
 URGENT_COMMANDS = frozenset({"hello", "state", "control", "release", "abort", "stop", "halt",
                              "pause", "resume", "console_reply", "console_interrupt",

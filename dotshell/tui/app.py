@@ -123,7 +123,8 @@ class DotshellApp(App):
         self._unsubscribe = self.session.subscribe(lambda m: self.post_message(ServerMessage(m)))
         if self.notice:
             log.add("info", self.notice)
-            self.notify(self.notice, timeout=8)
+            self.notify(self.notice, timeout=8,
+                        severity="warning" if "NOT applied" in self.notice else "information")
         if self.console.color_system != "truecolor":
             log.add("warning", f"this terminal shows {self.console.color_system or 'no'} colours: "
                     "previews are approximate (a truecolor terminal, COLORTERM=truecolor, shows "
