@@ -50,7 +50,7 @@ def _describe_progress(t: ScanTracker, now_s: float) -> str:
     if t.active:
         view = f", view {t.current_view + 1}" if t.current_view >= 0 else ""
         text += (f"{view}, step {t.step or '…'}, elapsed {format_seconds(t.active_seconds(now_s))}"
-                 f", ETA {format_seconds(t.eta_s(now_s))}")
+                 f", ETA {t.eta_text(now_s)}")
     return text
 
 

@@ -277,11 +277,12 @@ def test_eta_ignores_the_warm_up():
     """Ten minutes of connecting, calibration and flat field before the first frame, then a
     frame a second: the ETA is a second a frame, not the warm-up spread over the frames."""
     t = ScanTracker()
-    t.update(ScanStarted(run_dir="r", profile="p", n_views=2, frames_per_view=10), 0.0)
+    t.update(ScanStarted(run_dir="r", profile="p", n_views=4, frames_per_view=5), 0.0)
     t.update(FrameCaptured(view=0, index=0, name="f0"), 600.0)
     assert t.eta_s(600.5) is None  # one frame says nothing about the rate yet
     for i in range(1, 5):
         t.update(FrameCaptured(view=0, index=i, name=f"f{i}"), 600.0 + i)
+    t.update(ViewCaptured(view=0, angle_deg=0.0, n_frames=5), 604.0)
     assert t.eta_s(604.0) == pytest.approx(15.0)  # 15 frames left at 1 s
     t.update(ScanPaused(view=0, index=5), 604.0)
     t.update(ScanResumed(view=0, index=5), 700.0)
@@ -443,3 +444,28 @@ def test_console_scan_prints_progress_not_per_frame_lines(session):
     run("log_level('loud')")
     assert "choose one of debug, info, warning, error or off" in [
         m["text"] for m in messages if m.get("kind") == "error"][-1]
+
+
+def test_the_eta_says_estimating_until_a_view_is_captured():
+    """The bug: the first frames of a view come in a burst, so at 0:03 of a 25 s scan the ETA
+    said 0:00:02 (the rate without the moves and the reconstruction between views). Now it
+    says estimating until a whole view has been captured, and finishing after the last frame."""
+    t = ScanTracker()
+    t.update(ScanStarted(run_dir="r", profile="p", n_views=4, frames_per_view=10), 0.0)
+    assert t.eta_text(0.5) == "estimating"
+    for i in range(10):  # a burst: 0.1 s a frame
+        t.update(FrameCaptured(view=0, index=i, name=f"f{i}"), 2.0 + 0.1 * i)
+        assert t.eta_text(2.0 + 0.1 * i) == "estimating"
+    t.update(ViewCaptured(view=0, angle_deg=0.0, n_frames=10), 3.0)
+    # 5 s of move and reconstruction, then the next view's burst: the rate includes them
+    for i in range(10):
+        t.update(FrameCaptured(view=1, index=i, name=f"f{i}"), 8.0 + 0.1 * i)
+    t.update(ViewCaptured(view=1, angle_deg=90.0, n_frames=10), 9.0)
+    eta = t.eta_s(9.0)
+    assert eta == pytest.approx((9.0 - 2.0) / 19 * 20)  # 7.4 s for the last 2 views, not 2 s
+    for v in (2, 3):
+        for i in range(10):
+            t.update(FrameCaptured(view=v, index=i, name=f"f{i}"), 9.0 + v + 0.1 * i)
+    assert t.eta_text(14.0) == "finishing"  # merge, validate, previews: not timed
+    t.update(ScanFinished(status="completed", run_dir="r", summary={"points": 9}), 20.0)
+    assert t.eta_text(20.0) == "--:--"

@@ -205,14 +205,14 @@ async def test_prompts_start_from_current_values_and_project_highlights_the_patt
         await settle(pilot)
         assert session.rig.camera.status()["exposure_ms"] == 7.5
 
-        await pilot.press("p")
+        await pilot.press("t")  # t: project a pattern (p is pause on every tab)
         await settle(pilot)
         await wait_until(pilot, lambda: isinstance(app.screen, ChoiceScreen))
         await pilot.press("enter")  # the first pattern: "white"
         await settle(pilot)
         assert session.projected == "white"
         await wait_until(pilot, lambda: app.session.projected == "white")
-        await pilot.press("p")
+        await pilot.press("t")
         await wait_until(pilot, lambda: isinstance(app.screen, ChoiceScreen))
         assert app.screen.query_one("OptionList").highlighted == 0  # the pattern shown now
         await pilot.press("escape")

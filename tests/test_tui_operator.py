@@ -10,16 +10,30 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import textual.constants
 from PIL import Image
+from rich.color import Color as RichColor
+from rich.color import ColorSystem
+from textual import events
+from textual.color import Color
 from textual.command import CommandPalette
+from textual.filter import Monochrome, NoColor
+from textual.keys import _character_to_key
 from textual.widgets import Input
+from textual.widgets._footer import FooterKey
+from textual.widgets._toast import Toast
 
 from conftest import write_test_profile
 from dotshell.cli_server import apply_out_dir
 from dotshell.console import Session
 from dotshell.server import repl
 from dotshell.tui.widgets.console_input import ConsoleInput
+from dotshell.tui.widgets.console_panel import STYLES as CONSOLE_STYLES
 from dotshell.tui.widgets.console_panel import ConsolePanel
+from dotshell.tui.widgets.keys_footer import KeyRow
+from dotshell.tui.widgets.keys_screen import KeysScreen
+from dotshell.tui.widgets.log_panel import LEVEL_STYLE as LOG_STYLES
+from dotshell.tui.widgets.log_panel import LogPanel
 from dotshell.tui.widgets.confirm import ConfirmScreen
 from dotshell.tui.widgets.preview_panel import PreviewPanel
 from dotshell.tui.widgets.prompt import PromptScreen
@@ -298,3 +312,139 @@ async def test_out_for_a_running_server_is_applied_or_said(server, tmp_path):
     finally:
         watcher.close()
         first.close()
+
+
+# ---- the smaller things ----------------------------------------------------------------------
+
+async def test_keys_overlay_scrolls_at_once_and_keys_mean_one_thing(server):
+    app = app_for(server)
+    async with running(app, (80, 24)) as pilot:
+        await pilot.press("question_mark")
+        await wait_until(pilot, lambda: isinstance(app.screen, KeysScreen))
+        box = app.screen.query_one("#keys")
+        await wait_until(pilot, lambda: box.max_scroll_y > 0)  # more keys than lines
+        await pilot.press("pagedown")  # the bug: nothing scrolled until Tab
+        await wait_until(pilot, lambda: box.scroll_y > 0)
+        meaning = {}
+        for where, rows in app.key_sections():
+            if where == "Console":  # keys typed into the console's input box
+                continue
+            for keys, what in rows:
+                for key in keys.split():
+                    assert meaning.setdefault(key, what) == what, \
+                        f"{key} is {meaning[key]!r} and {what!r} ({where})"
+
+
+async def test_the_footer_keeps_the_stop_key_at_80x24(server):
+    app = app_for(server)
+    async with running(app, (80, 24)) as pilot:
+        for tab in TABS:
+            await show_tab(pilot, tab)
+            await pilot.pause()
+            keys = [k for row in app.query(KeyRow) if row.display for k in row.query(FooterKey)]
+            stop = next(k for k in keys if k.action == "stop")
+            palette = next(k for k in keys if "-command-palette" in k.classes)
+            assert stop.region.right <= palette.region.x and stop.region.width > 0, tab
+
+
+async def test_notifications_leave_the_console_input_visible(server):
+    app = app_for(server)
+    async with app.run_test(size=(80, 24), notifications=True) as pilot:
+        await wait_until(pilot, lambda: app.focused is not None)
+        await show_tab(pilot, "console")
+        app.notify("a notice that would have covered the input " * 3, timeout=30)
+        await wait_until(pilot, lambda: len(app.screen.query(Toast)) > 0)
+        await pilot.pause()
+        box = app.panel(ConsoleInput).region
+        for toast in app.screen.query(Toast):
+            assert not toast.region.overlaps(box), (toast.region, box)
+
+
+async def test_empty_enter_adds_nothing_and_a_paste_keeps_its_indentation(server):
+    app = app_for(server)
+    async with running(app, (80, 24)) as pilot:
+        await show_tab(pilot, "console")
+        box, panel = app.panel(ConsoleInput), app.panel(ConsolePanel)
+        before = len(panel.transcript)
+        await pilot.press("enter", "enter", "enter")
+        await settle(pilot)
+        assert box.text == "" and len(panel.transcript) == before  # nothing sent, no newline
+        # a paste without bracketed paste: keys in one burst (as a terminal sends them)
+        source = ("total = 0\nfor i in range(3):\n    if i:\n        total += i\n"
+                  "    total += 10\nprint('total', total)\n")
+        for ch in source:
+            key = "enter" if ch == "\n" else _character_to_key(ch)
+            box.post_message(events.Key(key, None if ch == "\n" else ch))
+        await wait_until(pilot, lambda: box.text == source)  # not run midway, not re-indented
+        await pilot.press("enter")
+        await wait_until(pilot, lambda: "total 33" in panel.output_text)
+        assert "Error" not in panel.output_text
+
+
+async def test_no_color_marks_errors_without_greying_them(server, monkeypatch):
+    monkeypatch.setenv("NO_COLOR", "1")
+    app = app_for(server)
+    async with running(app, (80, 24)) as pilot:
+        assert any(isinstance(f, NoColor) for f in app._filters)
+        assert not any(isinstance(f, Monochrome) for f in app._filters)  # red became dark grey
+        for selector in ("#rig-error", "#scan-error"):
+            assert app.screen_stack[0].query_one(selector).styles.text_style.bold
+        assert "bold" in LOG_STYLES["error"] and "bold" in CONSOLE_STYLES["error"]
+        await pilot.pause()
+
+
+async def test_sixteen_colours_keep_headings_apart_from_errors(server, monkeypatch):
+    monkeypatch.setattr(textual.constants, "COLOR_SYSTEM", "standard")
+    app = app_for(server)
+    async with running(app, (120, 40)) as pilot:
+        await pilot.pause()
+        assert app.theme == "dotshell-16"
+
+        def ansi(color):
+            return RichColor.parse(color.hex[:7]).downgrade(ColorSystem.STANDARD).number
+
+        title = app.screen_stack[0].query(".summary-title").first()
+        error = app.screen_stack[0].query_one("#rig-error")
+        numbers = {"heading": ansi(title.styles.color), "error": ansi(error.styles.color),
+                   "warning": ansi(Color.parse(app.theme_variables["warning"])),
+                   "footer key": ansi(Color.parse(app.theme_variables["footer-key-foreground"]))}
+        assert len({numbers["heading"], numbers["error"], numbers["warning"]}) == 3, numbers
+        assert numbers["footer key"] != numbers["error"], numbers
+
+
+async def test_a_dark_snap_says_why_and_lines_and_output_can_be_copied(server):
+    session = server.session
+    app = app_for(server)
+    async with running(app, (100, 30)) as pilot:
+        await pilot.press("c")
+        await settle(pilot)
+        await pilot.press("space")
+        await settle(pilot)
+        await wait_until(pilot, lambda: "snap at" in static_text(app, "#rig-result"))
+        assert "shows no pattern" in static_text(app, "#rig-result")
+        session.project("white")
+        await wait_until(pilot, lambda: app.session.projected == "white")
+        await pilot.press("space")
+        await settle(pilot)
+        await wait_until(pilot, lambda: "snap at" in static_text(app, "#rig-result"))
+        assert "no pattern" not in static_text(app, "#rig-result")
+        # the Log tab: y copies the newest line shown, Y every line shown
+        await show_tab(pilot, "log")
+        log = app.panel(LogPanel)
+        await pilot.press("y")
+        await pilot.pause()
+        assert app.clipboard == log.plain(log.visible()[-1]) + "\n"
+        await pilot.press("Y")
+        await pilot.pause()
+        assert app.clipboard.splitlines() == [log.plain(e) for e in log.visible()]
+        # the console: ctrl+y copies the last input's output
+        await show_tab(pilot, "console")
+        box = app.panel(ConsoleInput)
+        box.text = "print('copy me'); 6 * 7"
+        box.move_cursor(box.document.end)
+        await pilot.press("enter")
+        await wait_until(pilot, lambda: "42" in app.panel(ConsolePanel).output_text)
+        await wait_until(pilot, lambda: not app.panel(ConsolePanel).busy)
+        await pilot.press("ctrl+y")
+        await pilot.pause()
+        assert app.clipboard == "copy me\n42\n"

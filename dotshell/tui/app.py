@@ -32,6 +32,7 @@ from dotshell.server.progress import ScanTracker
 from dotshell.server.protocol import event_from_wire
 from dotshell.tui.messages import ActionDone, ServerMessage
 from dotshell.tui.redraw import DrawnWhileShown
+from dotshell.tui.themes import FEW_COLOURS, FEW_COLOURS_THEME, few_colours_theme, no_color_ansi
 from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.console_panel import ConsolePanel
 from dotshell.tui.widgets.keys_footer import KeysFooter
@@ -74,7 +75,7 @@ class DotshellApp(App):
     ]
 
     def __init__(self, session: RemoteSession, notice: str = "") -> None:
-        super().__init__()
+        super().__init__(ansi_color=no_color_ansi())
         if "TEXTUAL_ANIMATIONS" not in os.environ:
             # No animations unless asked for: the tab bar's sliding underline alone redraws
             # the screen some 15 times a tab switch — over SSH each is a screen update sent.
@@ -125,6 +126,9 @@ class DotshellApp(App):
             log.add("info", self.notice)
             self.notify(self.notice, timeout=8,
                         severity="warning" if "NOT applied" in self.notice else "information")
+        if self.console.color_system in FEW_COLOURS:  # else headings read red like errors
+            self.register_theme(few_colours_theme())
+            self.theme = FEW_COLOURS_THEME
         if self.console.color_system != "truecolor":
             log.add("warning", f"this terminal shows {self.console.color_system or 'no'} colours: "
                     "previews are approximate (a truecolor terminal, COLORTERM=truecolor, shows "

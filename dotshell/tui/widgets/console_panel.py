@@ -16,6 +16,7 @@ from textual.widgets import Static
 
 from dotshell.tui.messages import ActionDone
 from dotshell.tui.redraw import show
+from dotshell.tui.text import copy_text
 from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.reflow_log import ReflowLog
 
@@ -24,7 +25,7 @@ BANNER = ("Python console on the live session: rig, profile, run, session, np, d
           "decode(), scan(), pause(), resume(), abort(), stop(). Enter runs, a blank line ends a "
           "block, "
           "↑/↓ history, Tab completes, ctrl+c interrupts; input() and help() ask here.")
-STYLES = {"out": "", "err": "yellow", "result": "cyan", "error": "red", "input": "bold",
+STYLES = {"out": "", "err": "yellow", "result": "cyan", "error": "bold red", "input": "bold",
           "note": "dim", "log": "italic"}
 READY = "ready"
 
@@ -86,8 +87,10 @@ class ConsolePanel(Vertical):
     @property
     def output_text(self) -> str:
         """Everything shown in the pane so far (for tests and copy)."""
-        return "".join(t if k in self._partial else t.rstrip("\n") + "\n"
-                       for k, t in self.transcript)
+        return self._joined(self.transcript)
+
+    def _joined(self, entries: list[tuple[str, str]]) -> str:
+        return "".join(t if k in self._partial else t.rstrip("\n") + "\n" for k, t in entries)
 
     # ---- what the server says -----------------------------------------------------------------
 
@@ -107,7 +110,7 @@ class ConsolePanel(Vertical):
             self.box.waiting_prompt = None
             self._set_busy(False)
             self._status(READY if message.get("ok") else
-                         "[red]the input raised an error (traceback above)[/]")
+                         "[bold red]the input raised an error (traceback above)[/]")
 
     def _set_busy(self, busy: bool) -> None:
         self.box.busy = busy
@@ -168,6 +171,18 @@ class ConsolePanel(Vertical):
         self._status("[yellow]interrupting…[/]")
         self._request("interrupt", self.session.console_interrupt)
 
+    def last_output(self) -> str:
+        """What the last input printed and returned (its echo excluded)."""
+        cut = max((i for i, (k, _) in enumerate(self.transcript) if k == "input"), default=-1)
+        return self._joined([(k, t) for k, t in self.transcript[cut + 1:] if k != "note"])
+
+    def on_console_input_copy_output(self, message: ConsoleInput.CopyOutput) -> None:
+        text = self.last_output()
+        if not text.strip():
+            self._status("[yellow]nothing to copy: the last input printed nothing[/]")
+            return
+        copy_text(self.app, text, "the last input's output")
+
     def on_console_input_page(self, message: ConsoleInput.Page) -> None:
         output = self.query_one(ReflowLog)
         (output.scroll_page_up if message.up else output.scroll_page_down)(animate=False)
@@ -183,7 +198,7 @@ class ConsolePanel(Vertical):
                 self.box.busy = bool((self.session.state.get("console") or {}).get("busy"))
                 self._refused(self._sent, message.error)
                 return
-            self._status(f"[red]{escape(message.label)}: {escape(message.error)}[/]")
+            self._status(f"[bold red]{escape(message.label)}: {escape(message.error)}[/]")
         elif message.label == "complete":
             token, matches = message.result["token"], message.result["matches"]
             self.box.apply_completion(token, matches)

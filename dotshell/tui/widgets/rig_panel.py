@@ -54,7 +54,7 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
         Binding("a", "analyzer", "Analyzer", show=False),
         Binding("e", "exposure", "Exposure", show=False),
         Binding("space", "snap", "Snap"),
-        Binding("t", "project", "Pattern"),
+        Binding("t", "project", "Pattern", show=False),
         Binding("m", "decode", "Decode", show=False),
     ]
 
@@ -115,7 +115,7 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
             state = Text("connected", "green") if row["connected"] else Text("closed", "dim")
             status = describe_status(row["role"], row["status"], projected)
             table.add_row(row["role"], row["backend"], state,
-                          Text(status, "red" if status.startswith("error") else ""))
+                          Text(status, "bold red" if status.startswith("error") else ""))
         absent = self._absent(rows)
         note = Text(f"not in profile: {', '.join(absent)}" if rows and absent else "", "dim")
         update(self.query_one("#rig-table", Static), Group(table, note))
@@ -129,7 +129,7 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
             out.append(f"{row['backend']}\n", "dim")
             status = describe_status(row["role"], row["status"], projected)
             out.append(f"  {status}\n" if status else "",
-                       "red" if status.startswith("error") else "")
+                       "bold red" if status.startswith("error") else "")
         absent = self._absent(rows)
         if rows and absent:
             out.append(f"not in profile: {', '.join(absent)}", "dim")
@@ -156,7 +156,11 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
         if message.error:
             self.show_result("", f"{message.label}: {message.error}")
         else:
-            self.show_result(self._describe(message.label, message.result))
+            text = self._describe(message.label, message.result)
+            if message.label == "snap" and not self.session.projected:
+                text += ("\nthe projector shows no pattern, so the frame is dark: t projects "
+                         "one (white lights the sample)")
+            self.show_result(text)
 
     @staticmethod
     def _describe(label: str, result: Any) -> str:

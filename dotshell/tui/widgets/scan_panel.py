@@ -25,7 +25,7 @@ HELP = ("[b]s[/] start  [b]p[/] pause / resume  [b]x[/] abort (asks; frames are 
         "[b]esc[/] stop motion (pauses a scan)   settings: [b]v[/] views  [b]e[/] exposure  "
         "[b]n[/] analyzer angles  [b]o[/] output folder")
 STATE_STYLE = {"running": "green", "paused": "yellow", "stopping": "yellow", "completed": "green",
-               "aborted": "yellow", "failed": "red"}
+               "aborted": "yellow", "failed": "bold red"}
 
 
 class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
@@ -82,7 +82,7 @@ class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
             view = f"{t.current_view + 1}/{t.n_views}" if t.current_view >= 0 else "…"
             line += (f"   step [b]{escape(t.step or '…')}[/]   view {view}"
                      f"   elapsed {format_seconds(t.active_seconds(now_s))}"
-                     f"   ETA {format_seconds(t.eta_s(now_s))}")
+                     f"   ETA {t.eta_text(now_s)}")
         show(self.query_one("#scan-state", Static), line)
         self.query_one("#views-bar", ProgressBar).update(total=max(t.n_views, 1),
                                                          progress=t.views_done)
