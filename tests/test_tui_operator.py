@@ -4,6 +4,7 @@ Scan tab's settings are the scan's, and the smaller things an operator trips ove
 Textual's Pilot against a real rig server on the simulated rig, like tests/test_tui.py."""
 
 import os
+import re
 import time
 import tomllib
 from pathlib import Path
@@ -448,3 +449,34 @@ async def test_a_dark_snap_says_why_and_lines_and_output_can_be_copied(server):
         await pilot.press("ctrl+y")
         await pilot.pause()
         assert app.clipboard == "copy me\n42\n"
+
+
+# ---- docs/tui.md ---------------------------------------------------------------------------------
+
+def documented_keys() -> set[tuple[str, str]]:
+    """(where, key) of every row of docs/tui.md's keys table (keys: the backticked words of its
+    first column, ``ctrl+x`` written as the app shows it, ``^x``)."""
+    text = (Path(__file__).parent.parent / "docs" / "tui.md").read_text(encoding="utf-8")
+    table = text[text.index("| key | where | what |"):]
+    table = table[:table.index("\n\n")]
+    rows = set()
+    for line in table.splitlines()[2:]:
+        key_cell, where, what = [c.strip() for c in line.strip("|").split("|")][:3]
+        for key in re.findall(r"`([^`]+)`", key_cell):
+            rows.add((where, re.sub(r"^ctrl\+", "^", key), what.lower()))
+    return rows
+
+
+async def test_the_docs_keys_table_matches_the_app(server):
+    app = app_for(server)
+    async with running(app, (80, 24)) as pilot:
+        await pilot.pause()
+        in_app = {(where, key, what) for where, rows in app.key_sections()
+                  for keys, what in rows for key in keys.split()}
+    docs = documented_keys()
+    assert {(w, k) for w, k, _ in in_app} == {(w, k) for w, k, _ in docs}
+    # and each row says what the key does in the app's own first word
+    said = {(w, k): what for w, k, what in docs}
+    for where, key, what in in_app:
+        word = re.split(r"[ /]", what.lower())[0]
+        assert word in said[where, key], f"{where} {key}: {what!r} vs docs {said[where, key]!r}"

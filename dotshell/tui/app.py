@@ -324,8 +324,8 @@ class DotshellApp(App):
 
         def rows(bindings: Iterable[Binding | tuple]) -> list[tuple[str, str]]:
             out = []
-            for b in bindings:
-                if isinstance(b, Binding):
+            for b in bindings:  # a panel's app.* bindings only show the app's in its footer
+                if isinstance(b, Binding) and not b.action.startswith("app."):
                     keys = " ".join(re.sub(r"^f(\d+)$", r"F\1", self.get_key_display(
                         Binding(k, b.action, key_display=b.key_display if "," not in b.key
                                 else None))) for k in b.key.split(","))
