@@ -453,7 +453,7 @@ async def test_keys_overlay_and_the_command_palette(server):
             assert isinstance(app.screen, KeysScreen)
             shown = {(where, keys, what) for where, rows in app.screen.sections
                      for keys, what in rows}
-            assert ("Rig", "]", "Jog +") in shown and ("Scan", "x", "Abort") in shown
+            assert ("Rig", "]", "Jog +") in shown and ("anywhere", "x", "Abort") in shown
             assert ("anywhere", "1 F2", "Rig") in shown and ("anywhere", "? F1", "Keys") in shown
             await pilot.press("escape")
             await pilot.pause()
