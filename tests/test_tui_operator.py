@@ -125,26 +125,6 @@ async def test_escape_from_any_tab_and_any_client_never_aborts(server):
         gate.opened.set()
 
 
-async def test_abort_asks_then_ends_the_scan_with_frames_kept(server):
-    session = server.session
-    gate = Gate(session, 0, 1)
-    app = app_for(server)
-    async with running(app, (80, 24)) as pilot:
-        await show_tab(pilot, "scan")
-        await pilot.press("s")
-        await gate.wait(pilot)
-        await wait_until(pilot, lambda: app.session.scanning)
-        await pilot.press("x")
-        await wait_until(pilot, lambda: isinstance(app.screen, ConfirmScreen))
-        await pilot.press("y")
-        await wait_until(pilot, lambda: session.state in ("stopping", "idle"))
-        gate.opened.set()
-        await wait_until(pilot, lambda: not session.scanning, timeout_s=120)
-        assert session.run.status == "aborted" and session.run.frame_count() == 2
-        await wait_until(pilot, lambda: "aborted" in static_text(app, "#scan-state"))
-        assert isinstance(app.panel(ScanPanel), ScanPanel)
-
-
 async def test_the_preview_after_a_server_scan_shows_the_cloud(tmp_path, pm, monkeypatch,
                                                                truecolor, user_dirs):
     """The bug: the live frame preview made RUN/previews a real folder, so the link to the
@@ -161,9 +141,7 @@ async def preview_after_scan(server, session):
     app = app_for(server)
     async with running(app, (100, 30)) as pilot:
         await show_tab(pilot, "scan")
-        await pilot.press("s")
-        await wait_until(pilot, lambda: app.tracker.status in ("completed", "aborted", "failed"),
-                         timeout_s=120)
+        await scan_to_the_end(pilot, session)
         await wait_until(pilot, lambda: any(i.kind == "cloud" for i in app.panel(
             PreviewPanel).items) or "cannot read" in static_text(app, "#preview-title"))
         await show_tab(pilot, "preview")
@@ -243,6 +221,23 @@ async def test_the_console_transcript_is_bounded(server, monkeypatch):
         late.close()
 
 
+async def answer(pilot, key, value):
+    """Press ``key`` and answer its prompt with ``value``."""
+    await pilot.press(key)
+    await wait_until(pilot, lambda: isinstance(pilot.app.screen, PromptScreen))
+    pilot.app.screen.query_one(Input).value = value
+    await pilot.press("enter")
+    await settle(pilot)
+
+
+async def scan_to_the_end(pilot, session):
+    """``s`` on the Scan tab, then wait until the scan has ended."""
+    await pilot.press("s")
+    await wait_until(pilot, lambda: pilot.app.tracker.status in ("completed", "aborted",
+                                                                  "failed"), timeout_s=120)
+    await wait_until(pilot, lambda: not session.scanning)
+
+
 async def test_the_scan_tab_edits_the_settings_the_scan_uses(server, tmp_path):
     """The bug: exposure set with e was not what the scan used (it used the profile's), and
     views, exposure and the output folder could only be changed with set(...)."""
@@ -251,23 +246,12 @@ async def test_the_scan_tab_edits_the_settings_the_scan_uses(server, tmp_path):
     async with running(app, (100, 30)) as pilot:
         await show_tab(pilot, "scan")
         for key, value in (("v", "3"), ("e", "7.5"), ("n", "10, 100"), ("o", "elsewhere")):
-            await pilot.press(key)
-            await wait_until(pilot, lambda: isinstance(app.screen, PromptScreen))
-            app.screen.query_one(Input).value = value
-            await pilot.press("enter")
-            await settle(pilot)
-        await pilot.press("v")
-        await wait_until(pilot, lambda: isinstance(app.screen, PromptScreen))
-        app.screen.query_one(Input).value = "three"
-        await pilot.press("enter")
-        await settle(pilot)
+            await answer(pilot, key, value)
+        await answer(pilot, "v", "three")
         assert "views: 'three' is not a whole number" in static_text(app, "#scan-error")
         await wait_until(pilot, lambda: "3 views, exposure 7.5 ms" in static_text(
             app, "#scan-plan") and "elsewhere/" in static_text(app, "#scan-plan"))
-        await pilot.press("s")
-        await wait_until(pilot, lambda: app.tracker.status in ("completed", "aborted", "failed"),
-                         timeout_s=120)
-        await wait_until(pilot, lambda: not session.scanning)
+        await scan_to_the_end(pilot, session)
     run = session.run
     assert run.status == "completed" and run.root.parent == tmp_path / "elsewhere"
     assert len(run.manifest["views"]) == 3
@@ -282,19 +266,12 @@ async def test_e_on_the_rig_tab_is_the_exposure_the_scan_uses(server):
     async with running(app, (80, 24)) as pilot:
         await pilot.press("c")
         await settle(pilot)
-        await pilot.press("e")
-        await wait_until(pilot, lambda: isinstance(app.screen, PromptScreen))
-        app.screen.query_one(Input).value = "3.25"
-        await pilot.press("enter")
-        await settle(pilot)
+        await answer(pilot, "e", "3.25")
         assert session.rig.camera.status()["exposure_ms"] == 3.25
         assert session.profile.data["scan"]["exposure_ms"] == 3.25
         assert session.connected  # the rig was kept, not rebuilt
         await show_tab(pilot, "scan")
-        await pilot.press("s")
-        await wait_until(pilot, lambda: app.tracker.status in ("completed", "aborted", "failed"),
-                         timeout_s=120)
-        await wait_until(pilot, lambda: not session.scanning)
+        await scan_to_the_end(pilot, session)
     recorded = tomllib.loads((session.run.root / "profile.toml").read_text())["scan"]
     assert recorded["exposure_ms"] == 3.25
 
