@@ -489,14 +489,15 @@ class Session:
         """The stop key: stop motion, never abort. During a scan the scan is paused before its
         next frame (the move under way ends where the run says it does, so every frame is
         taken where it is recorded; ``resume()`` goes on, ``abort()`` ends it); otherwise every
-        device that can move is stopped now. Returns ``"paused"`` or ``"stopped"``."""
+        device that can move is stopped now. Returns ``"paused"`` (or ``"stopping"`` for a scan
+        being aborted already) or ``"stopped"``."""
         if self._transition(("running",), "paused"):
             self._running.clear()
             self.bus.warn("stop key: the scan pauses before its next frame (resume goes on, "
                           "abort ends it)")
             return "paused"
         if self.scanning:
-            return "paused"  # paused or stopping already: nothing moves after this frame
+            return self._state  # paused or stopping already: nothing moves after this frame
         rig = self.rig
         if rig is not None and rig.connected:
             rig.stop()

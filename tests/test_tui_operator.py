@@ -101,6 +101,14 @@ async def test_escape_from_any_tab_and_any_client_never_aborts(server):
                 await pilot.press(answer)
                 await settle(pilot)
                 assert session.state == "running"
+            # under a dialog (the keys overlay) x and p do nothing
+            await pilot.press("question_mark")
+            await wait_until(pilot, lambda: isinstance(mine.screen, KeysScreen))
+            await pilot.press("x", "p")
+            await settle(pilot)
+            assert isinstance(mine.screen, KeysScreen) and session.state == "running"
+            await pilot.press("escape")
+            await wait_until(pilot, lambda: not isinstance(mine.screen, KeysScreen))
             # the palette: Enter on the opened palette never aborts; searched for, it asks
             await pilot.press("ctrl+p")
             await wait_until(pilot, lambda: isinstance(mine.screen, CommandPalette))

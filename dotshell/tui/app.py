@@ -283,6 +283,13 @@ class DotshellApp(App):
         aborts), otherwise every device that can move stops now."""
         self.panel(RigPanel).stop()
 
+    def check_action(self, action: str, parameters: tuple[object, ...]) -> bool | None:
+        """``p`` and ``x`` act on the main screen only: not under a dialog, where the app's
+        keys would otherwise still reach them (x in a confirmation asked again)."""
+        if action in ("pause", "abort") and len(self.screen_stack) > 1:
+            return False
+        return super().check_action(action, parameters)
+
     def action_pause(self) -> None:
         """``p`` on any tab but the Console: pause the scan, or resume a paused one."""
         self.panel(ScanPanel).action_pause()

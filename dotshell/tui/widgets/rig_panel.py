@@ -173,8 +173,9 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
             return (f"decoded {result['decoded_pixels']} of {result['total_pixels']} pixels "
                     f"({pct:.1f} %) → {short_path(result['preview'])}")
         if label == "stop":
-            return ("scan paused by the stop key: p resumes it (Scan tab), x aborts it"
-                    if result == "paused" else "stopped: every device that can move")
+            return {"paused": "scan paused by the stop key: p resumes it, x aborts it",
+                    "stopping": "the scan is stopping already (aborted)"}.get(
+                        result, "stopped: every device that can move")
         if label in ("jog", "go to", "home") and isinstance(result, (int, float)):
             return f"stage at {result:.2f}°"
         if label == "connect" and isinstance(result, dict):
