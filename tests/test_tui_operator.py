@@ -27,6 +27,7 @@ from textual.widgets._toast import Toast
 from conftest import write_test_profile
 from dotshell.cli_server import apply_out_dir
 from dotshell.console import Session
+from dotshell.pipeline.generations import link_top_level, point_current
 from dotshell.server import repl
 from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.console_panel import STYLES as CONSOLE_STYLES
@@ -465,3 +466,26 @@ async def test_the_docs_keys_table_matches_the_app(server):
     for where, key, what in in_app:
         word = re.split(r"[ /]", what.lower())[0]
         assert word in said[where, key], f"{where} {key}: {what!r} vs docs {said[where, key]!r}"
+
+
+async def test_a_run_with_the_old_live_preview_folder_gets_its_previews_link(tmp_path):
+    """Runs served before RUN/live/ hold latest_frame.png in a real previews/ folder: the next
+    publication moves it to live/ and makes the link."""
+    root = tmp_path / "run"
+    (root / "previews").mkdir(parents=True)
+    (root / "previews" / "latest_frame.png").write_bytes(b"frame")
+    gen = root / "gen" / "002"
+    (gen / "previews").mkdir(parents=True)
+    (gen / "previews" / "cloud.png").write_bytes(b"cloud")
+    point_current(root, 2)
+    link_top_level(root, gen)
+    assert os.readlink(root / "previews") == "current/previews"
+    assert (root / "previews" / "cloud.png").read_bytes() == b"cloud"
+    assert (root / "live" / "latest_frame.png").read_bytes() == b"frame"
+    # a previews/ folder with someone's own files is left alone
+    other = tmp_path / "other"
+    (other / "previews").mkdir(parents=True)
+    (other / "previews" / "notes.txt").write_text("mine")
+    link_top_level(other, gen)
+    assert not (other / "previews").is_symlink()
+    assert (other / "previews" / "notes.txt").read_text() == "mine"
