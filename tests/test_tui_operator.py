@@ -345,6 +345,12 @@ async def test_notifications_leave_the_console_input_visible(server):
         box = app.panel(ConsoleInput).region
         for toast in app.screen.query(Toast):
             assert not toast.region.overlaps(box), (toast.region, box)
+        await show_tab(pilot, "scan")  # elsewhere they keep off the scan's counts
+        await pilot.pause()
+        counts = [app.screen.query_one(s).region for s in ("#views-count", "#frames-count",
+                                                           "#scan-state")]
+        for toast in app.screen.query(Toast):
+            assert not any(toast.region.overlaps(r) for r in counts), (toast.region, counts)
 
 
 async def test_empty_enter_adds_nothing_and_a_paste_keeps_its_indentation(server):

@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import os
 import re
+import threading
 import time
 import traceback
+from collections import deque
 from typing import Any, Callable, Iterable, TypeVar
 
 from textual.app import App, ComposeResult, SystemCommand
@@ -30,7 +32,7 @@ from dotshell.server.client import RemoteSession
 from dotshell.server.paths import user_config
 from dotshell.server.progress import ScanTracker
 from dotshell.server.protocol import event_from_wire
-from dotshell.tui.messages import ActionDone, ServerMessage
+from dotshell.tui.messages import ActionDone, ServerBatch, ServerMessage
 from dotshell.tui.redraw import DrawnWhileShown
 from dotshell.tui.themes import FEW_COLOURS, FEW_COLOURS_THEME, few_colours_theme, no_color_ansi
 from dotshell.tui.widgets.console_input import ConsoleInput
@@ -52,6 +54,8 @@ TABS = ("rig", "scan", "preview", "log", "console")
 TAB_FOCUS = {"console": "#console-in", "log": "#log-view"}
 #: Previews replayed from the server's backlog when attaching.
 REPLAYED_PREVIEWS = 5
+#: Server messages handled at most in one go (keys pressed meanwhile come between batches).
+BATCH_MAX = 200
 
 
 class DotshellApp(App):
@@ -86,6 +90,11 @@ class DotshellApp(App):
         self._unsubscribe: Callable[[], None] | None = None
         self._quitting = False
         self._main_up = False
+        self._inbox: deque[dict[str, Any]] = deque()
+        self._inbox_lock = threading.Lock()
+        self._batch_queued = False
+        self._scan_changed = False
+        self._batching = False
 
     # ---- layout -------------------------------------------------------------------------------
 
@@ -121,7 +130,7 @@ class DotshellApp(App):
         self.panel(ConsoleInput).set_history(self.session.history)
         self.panel(ConsolePanel).replay(self.session.console_transcript,
                                         self.session.state.get("console") or {})
-        self._unsubscribe = self.session.subscribe(lambda m: self.post_message(ServerMessage(m)))
+        self._unsubscribe = self.session.subscribe(self._from_server)
         if self.notice:
             log.add("info", self.notice)
             self.notify(self.notice, timeout=8,
@@ -179,6 +188,7 @@ class DotshellApp(App):
         before the screen is laid out and painted with the pane, so no frame is stale."""
         if not (pane_id and self.main_ready):
             return
+        self.screen_stack[0].set_class(pane_id == "console", "-console-shown")
         for widget in self.screen_stack[0].query_one(f"TabPane#{pane_id}").walk_children():
             if isinstance(widget, DrawnWhileShown):
                 widget.catch_up()
@@ -197,6 +207,34 @@ class DotshellApp(App):
                 target.focus(scroll_visible=False)
 
     # ---- what the server says -----------------------------------------------------------------
+
+    def _from_server(self, message: dict[str, Any]) -> None:
+        """On the client's reader thread: keep the message, and queue one batch for the UI
+        thread unless one is queued already."""
+        with self._inbox_lock:
+            self._inbox.append(message)
+            if self._batch_queued:
+                return
+            self._batch_queued = True
+        self.post_message(ServerBatch())
+
+    def on_server_batch(self, _: ServerBatch) -> None:
+        """Handle the waiting server messages (at most :data:`BATCH_MAX`; the rest after any
+        key pressed meanwhile), and redraw the scan's progress once for all of them."""
+        with self._inbox_lock:
+            batch = [self._inbox.popleft() for _ in range(min(len(self._inbox), BATCH_MAX))]
+            more = self._batch_queued = bool(self._inbox)
+        self._batching = True
+        try:
+            for m in batch:
+                self.on_server_message(ServerMessage(m))
+        finally:
+            self._batching = False
+        if self._scan_changed and self.main_ready:
+            self._scan_changed = False
+            self.show_scan()
+        if more:
+            self.post_message(ServerBatch())
 
     def on_server_message(self, message: ServerMessage) -> None:
         if not self.main_ready:
@@ -241,6 +279,9 @@ class DotshellApp(App):
             self.show_scan()
 
     def show_scan(self) -> None:
+        if self._batching:  # drawn once when the batch is done
+            self._scan_changed = True
+            return
         now = time.time()
         self.panel(ScanPanel).show_tracker(self.tracker, now)
         self.panel(Summary).show_scan(self.tracker, self.session, now)
