@@ -29,6 +29,7 @@ from dotshell.cli_server import apply_out_dir
 from dotshell.console import Session
 from dotshell.pipeline.generations import link_top_level, point_current
 from dotshell.server import repl
+from dotshell.tui.widgets.confirm import ConfirmScreen
 from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.console_panel import STYLES as CONSOLE_STYLES
 from dotshell.tui.widgets.console_panel import ConsolePanel
@@ -36,10 +37,8 @@ from dotshell.tui.widgets.keys_footer import KeyRow
 from dotshell.tui.widgets.keys_screen import KeysScreen
 from dotshell.tui.widgets.log_panel import LEVEL_STYLE as LOG_STYLES
 from dotshell.tui.widgets.log_panel import LogPanel
-from dotshell.tui.widgets.confirm import ConfirmScreen
 from dotshell.tui.widgets.preview_panel import PreviewPanel
 from dotshell.tui.widgets.prompt import PromptScreen
-from dotshell.tui.widgets.scan_panel import ScanPanel
 from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
 from test_tui import (Gate, app_for, running, server, settle, show_tab,  # noqa: F401
                       static_text, truecolor, wait_until)
