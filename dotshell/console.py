@@ -329,8 +329,9 @@ class Session:
             self.bus.info(f"scan settings: {'; '.join(said)}")
         return self.profile
 
-    def _retune(self, overrides: list[str]) -> None:
-        """The profile with ``scan.*`` keys changed, the rig kept (its devices are the same)."""
+    def _retune(self, overrides: list[str], then: Callable[[], None] | None = None) -> None:
+        """Use the profile with ``scan.*`` keys changed, the rig kept (its devices are the
+        same); ``then()`` runs once the new keys are valid, before they are used."""
         from dotshell.profile import apply_overrides, validate_profile
 
         with self._lock:
@@ -338,6 +339,8 @@ class Session:
             self._require_idle("change the scan's settings")
             new = validate_profile(apply_overrides(prof.raw(), overrides, prof.source),
                                    self.pm, prof.source, prof.base_dir)
+            if then is not None:
+                then()
             self.profile = new
             self.rig.profile = new  # type: ignore[union-attr]
         self._refresh_namespaces()
@@ -465,12 +468,12 @@ class Session:
             prof = self._require_profile()
             self._require_idle("set the exposure")
             cam = self.rig.devices.get("camera") if "camera" in self.rig.connected else None  # type: ignore[union-attr]
-            if cam is not None:
-                if not isinstance(cam, ExposureControl):
-                    raise DeviceError(f"the camera ({prof.role('camera')['backend']}) has no "
-                                      "exposure control.")
-                cam.set_exposure(float(ms))
-            self._retune([f"scan.exposure_ms={float(ms)!r}"])
+            if cam is not None and not isinstance(cam, ExposureControl):
+                raise DeviceError(f"the camera ({prof.role('camera')['backend']}) has no "
+                                  "exposure control.")
+            # the value is checked as a profile key first: a refused one never reaches the camera
+            self._retune([f"scan.exposure_ms={float(ms)!r}"],
+                         then=(lambda: cam.set_exposure(float(ms))) if cam is not None else None)
         self.bus.info(f"camera exposure set to {float(ms):g} ms" + (
             "" if cam is not None else " for the scans (the camera is not connected)"))
         return float(ms)

@@ -469,3 +469,21 @@ def test_the_eta_says_estimating_until_a_view_is_captured():
     assert t.eta_text(14.0) == "finishing"  # merge, validate, previews: not timed
     t.update(ScanFinished(status="completed", run_dir="r", summary={"points": 9}), 20.0)
     assert t.eta_text(20.0) == "--:--"
+
+
+def test_exposure_is_the_scans_and_a_refused_one_never_reaches_the_camera(session):
+    """set_exposure sets the camera and scan.exposure_ms (the scan used the profile's value);
+    configure changes the next scan's keys without reconnecting the rig."""
+    session.connect()
+    rig = session.rig
+    assert session.set_exposure(7.5) == 7.5
+    assert session.profile.data["scan"]["exposure_ms"] == 7.5
+    assert rig.camera.status()["exposure_ms"] == 7.5
+    with pytest.raises(ProfileError, match="exposure_ms"):
+        session.set_exposure(0.0)  # below the profile's minimum
+    assert rig.camera.status()["exposure_ms"] == 7.5 and session.rig is rig
+    session.configure(views=3, pdi_angles_deg=[5, 95], out_dir=session.out_dir / "next")
+    assert session.rig is rig and session.connected  # kept, not rebuilt
+    run = session.scan()
+    assert len(run.manifest["views"]) == 3 and run.root.parent.name == "next"
+    assert run.manifest["camera"] and "exposure_ms = 7.5" in (run.root / "profile.toml").read_text()
