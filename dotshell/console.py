@@ -65,6 +65,10 @@ class PreviewSaved(Event):
 #: The run's folder for what a session shows while a scan runs (``latest_frame.png``): part
 #: of the capture, not of a generation.
 LIVE_DIR = "live"
+#: The lowest level of the session's log lines a console or script shows while it runs
+#: (``debug`` adds a line per frame; ``off`` shows none); :meth:`Session.log_level`.
+LOG_LEVEL = "info"
+LOG_LEVELS = ("debug", "info", "warning", "error", "off")
 #: Bins of the histogram in :func:`frame_stats`.
 HISTOGRAM_BINS = 32
 
@@ -255,6 +259,7 @@ class Session:
         self._patterns: dict[str, np.ndarray] | None = None
         self._live: dict[str, Any] = {}
         self._namespaces: list[weakref.ref] = []
+        self._log_level = LOG_LEVEL
         self.bus.subscribe(self._live_preview)
         if profile is not None:
             self.load(profile, overrides)
@@ -487,6 +492,24 @@ class Session:
             rig.stop()
             self.bus.warn("stop: every device that can move was told to stop")
         self.abort()
+
+    def log_level(self, level: str | None = None) -> str:
+        """The lowest level of the session's log lines shown in the console (while an input
+        runs) and by ``dotshell script``: ``debug``, ``info`` (default: progress, not a line
+        per frame), ``warning``, ``error`` or ``off``; without an argument, the level now."""
+        if level is not None:
+            if level not in LOG_LEVELS:
+                raise DotshellError(f"log_level({level!r}): choose one of "
+                                    f"{', '.join(LOG_LEVELS[:-1])} or off.")
+            self._log_level = level
+        return self._log_level
+
+    def shows(self, level: str) -> bool:
+        """Whether a log line of ``level`` is shown at :meth:`log_level`."""
+        if self._log_level == "off":
+            return False
+        rank = LOG_LEVELS.index(level) if level in LOG_LEVELS[:-1] else 1
+        return rank >= LOG_LEVELS.index(self._log_level)
 
     def halt(self) -> str:
         """The stop key: stop motion, never abort. During a scan the scan is paused before its
@@ -740,6 +763,7 @@ class Session:
             "abort": self.abort, "stop": self.stop, "wait": self.wait,
             "normalize": self.normalize,
             "run_script": lambda path, *args: run_script(path, self, [str(a) for a in args]),
+            "log_level": self.log_level,
             # as in Python's own REPL and in dotshell script: code pasted from a script that
             # ends with ``if __name__ == "__main__": main()`` runs its main()
             "__name__": "__main__",

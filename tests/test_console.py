@@ -487,3 +487,22 @@ def test_exposure_is_the_scans_and_a_refused_one_never_reaches_the_camera(sessio
     run = session.scan()
     assert len(run.manifest["views"]) == 3 and run.root.parent.name == "next"
     assert run.manifest["camera"] and "exposure_ms = 7.5" in (run.root / "profile.toml").read_text()
+
+
+def test_a_script_has_the_consoles_names_and_log_level(tmp_path, capsys):
+    """dotshell script and the console share one namespace: __main__, run_script, log_level;
+    the script's log lines follow log_level() as the console's do."""
+    script = tmp_path / "levels.py"
+    script.write_text(
+        "from dotshell.events import Message\n"
+        "print(__name__, log_level(), callable(run_script))\n"
+        "session.bus.emit(Message('debug', 'a debug line'))\n"
+        "session.bus.emit(Message('info', 'an info line'))\n"
+        "log_level('warning')\n"
+        "session.bus.emit(Message('info', 'a hidden info line'))\n"
+        "session.bus.emit(Message('warning', 'a warning line'))\n")
+    assert main(["script", str(script)]) == 0
+    out, err = capsys.readouterr()
+    assert out == "__main__ info True\n"
+    assert "an info line" in err and "a warning line" in err
+    assert "a debug line" not in err and "a hidden info line" not in err

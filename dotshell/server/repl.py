@@ -14,9 +14,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from dotshell.console import Session, SessionBusy, readable_repr
-from dotshell.errors import DotshellError
 from dotshell.events import Event
-from dotshell.server.describe import LEVELS, describe_event
+from dotshell.server.describe import describe_event
 from dotshell.server.interpreter import Interpreter
 
 #: Inputs kept in the history file and offered to ↑/↓.
@@ -27,10 +26,6 @@ FLUSH_CHARS = 64 * 1024
 #: The console's last messages a newly attached front end is shown (at most this many
 #: characters of text: older ones are dropped first).
 TRANSCRIPT_CHARS = 200_000
-#: The lowest level of the session's log lines shown in the console while an input runs:
-#: progress (scan started, views captured and reconstructed, steps, the end), not the
-#: per-frame ``debug`` lines. ``log_level("debug")`` in the console shows those too.
-CONSOLE_LEVEL = "info"
 
 
 def read_history(path: Path | None) -> list[str]:
@@ -66,8 +61,6 @@ class ServerConsole:
         self.interpreter = Interpreter(session.namespace(), self._write,
                                        on_interrupt=self._abort_scan, on_input=self._ask,
                                        display=readable_repr)
-        self.level = CONSOLE_LEVEL
-        self.interpreter.namespace["log_level"] = self.log_level
         session.bus.subscribe(self._on_event)
         self._pending: list[tuple[str, str]] = []
         self._pending_lock = threading.Lock()
@@ -129,22 +122,14 @@ class ServerConsole:
                 with open(self.history_file, "a", encoding="utf-8") as f:
                     f.write(json.dumps({"time": time.time(), "source": source}) + "\n")
 
-    def log_level(self, level: str | None = None) -> str:
-        """The lowest level of the session's log lines shown while an input runs (``debug``,
-        ``info``, ``warning``, ``error`` or ``off``); without an argument, the level now."""
-        if level is not None:
-            if level not in (*LEVELS, "off"):
-                raise DotshellError(f"log_level({level!r}): choose one of "
-                                    f"{', '.join(LEVELS)} or off.")
-            self.level = level
-        return self.level
-
     def _on_event(self, ev: Event) -> None:
-        """A line for the session's events while an input runs, from the console's level on."""
-        if not self.interpreter.busy or self.level == "off":
+        """A line for the session's events while an input runs, from the session's
+        :meth:`~dotshell.console.Session.log_level` on (progress by default, not a line per
+        frame)."""
+        if not self.interpreter.busy:
             return
         level, text = describe_event(ev)
-        if LEVELS.index(level if level in LEVELS else "info") >= LEVELS.index(self.level):
+        if self.session.shows(level):
             self._write("log", f"{level}: {text}\n" if level != "info" else f"{text}\n")
 
     # ---- output, batched ----------------------------------------------------------------------
