@@ -122,8 +122,10 @@ def test_clients_watch_one_controls_and_everyone_sees_the_scan(session):
         assert refused["ok"] is False and "first request must be hello" in refused["error"]
         stalled.sendall(protocol.encode({"id": 2, "cmd": "hello", "protocol": 99}))
         refused = protocol.decode(stalled.makefile("rb").readline())
-        assert "speaks protocol 1" in refused["error"] and "99" in refused["error"]
-        stalled.sendall(protocol.encode({"id": 3, "cmd": "hello", "protocol": 1,
+        assert f"speaks protocol {protocol.PROTOCOL_VERSION}" in refused["error"]
+        assert "99" in refused["error"]
+        stalled.sendall(protocol.encode({"id": 3, "cmd": "hello",
+                                         "protocol": protocol.PROTOCOL_VERSION,
                                          "client": "stalled"}))
         run_dir = tui.scan()["run_dir"]
         done = theirs.wait_for(lambda m: m.get("type") == "event"

@@ -21,7 +21,8 @@ from dotshell.errors import DotshellError
 from dotshell.events import Event
 
 #: Bumped on any incompatible change; the server refuses a client that speaks another one.
-PROTOCOL_VERSION = 1
+#: 2: ``halt`` (the stop key) and ``configure``; ``abort`` and ``stop`` need control.
+PROTOCOL_VERSION = 2
 #: Longest line either side accepts (bytes): a console input, a status reply.
 MAX_LINE = 4 * 1024 * 1024
 
