@@ -335,7 +335,9 @@ def cmd_script(args: argparse.Namespace) -> int:
     session = Session(opts["profile"] or args.profile, pm=_pm(args),
                       out_dir=opts["out"] or args.out, overrides=args.set + opts["set"])
     view = ScanProgress(err)
-    session.bus.subscribe(view)
+    # log lines from the session's log_level() on, as in the console; progress bars always
+    session.bus.subscribe(lambda ev: view(ev) if not isinstance(ev, Message)
+                          or session.shows(ev.level) else None)
     with session, view.progress:
         run_script(args.file, session, script_argv)
     return 0

@@ -50,7 +50,7 @@ def _describe_progress(t: ScanTracker, now_s: float) -> str:
     if t.active:
         view = f", view {t.current_view + 1}" if t.current_view >= 0 else ""
         text += (f"{view}, step {t.step or '…'}, elapsed {format_seconds(t.active_seconds(now_s))}"
-                 f", ETA {format_seconds(t.eta_s(now_s))}")
+                 f", ETA {t.eta_text(now_s)}")
     return text
 
 
@@ -67,7 +67,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     on_hangup = args.on_hangup or user_config()["server"]["on_hangup"]
     _refuse_a_second_server(sock)
     if args.detach:
-        pid = start_server(args.profile, sock=sock, out=args.out, overrides=args.set,
+        pid = start_server(args.profile, sock=sock, out=args.out or "runs", overrides=args.set,
                            exit_when_idle=args.exit_when_idle,
                            strict_plugins=args.strict_plugins)
         out.print(escape(f"rig server {sock.stem} started (pid {pid}) on {sock}"))
@@ -77,7 +77,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from dotshell.server.supervisor import WorkerSession
 
     # the session (plugins, profile, rig, console) lives in a worker process (docs/server.md)
-    session = WorkerSession(args.profile, out_dir=args.out, overrides=args.set,
+    session = WorkerSession(args.profile, out_dir=args.out or "runs", overrides=args.set,
                             strict_plugins=args.strict_plugins, history_file=history_path())
     server = RigServer(session, sock, name=sock.stem, log_dir=server_log_dir(sock.stem),
                        on_hangup=on_hangup, exit_when_idle=args.exit_when_idle,
@@ -117,7 +117,8 @@ def cmd_tui(args: argparse.Namespace) -> int:
             notice += f" (--set {' '.join(args.set)} ignored: change keys with set(...) in the console)"
     else:
         err.print(f"starting a rig server for {args.profile or 'no profile'} …")
-        starting = spawn_server(args.profile, sock=sock, out=args.out, overrides=args.set,
+        starting = spawn_server(args.profile, sock=sock, out=args.out or "runs",
+                                overrides=args.set,
                                 strict_plugins=args.strict_plugins)
     # Imported before the app starts (it probes the terminal) and while a new server starts:
     # the server's imports, profile and rig and these imports overlap on two cores.
@@ -128,7 +129,24 @@ def cmd_tui(args: argparse.Namespace) -> int:
         notice = (f"started the rig server {sock.stem} (pid {pid}); it keeps running a scan "
                   "when this terminal closes and exits when idle with nobody attached")
     session = RemoteSession(sock, client="tui", control=True)
+    if starting is None and args.out:
+        notice += "; " + apply_out_dir(session, args.out)
     return run_tui(session, notice)
+
+
+def apply_out_dir(session: Any, out_dir: str) -> str:
+    """``--out`` for a server that runs already: its output folder is changed (the next scan
+    and snapshots go there), or the notice says why not — never ignored."""
+    wanted = Path(out_dir).expanduser().resolve()
+    if Path(session.state.get("out_dir", "")) == wanted:
+        return f"output folder {wanted}"
+    try:
+        session.configure(out_dir=str(wanted))
+    except DotshellError as exc:
+        return (f"--out {out_dir} NOT applied, runs still go to {session.state.get('out_dir')}: "
+                f"{exc}")
+    later = " (the running scan keeps its folder)" if session.scanning else ""
+    return f"output folder changed to {wanted} as asked with --out{later}"
 
 
 # ---- attach -----------------------------------------------------------------------------------
@@ -337,7 +355,8 @@ def add_server_parsers(sub: Any) -> None:
     def session_args(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a profile key (TOML value), e.g. --set scan.views=24")
-        sp.add_argument("--out", default="runs", help="parent directory of runs (default: runs)")
+        sp.add_argument("--out", help="parent directory of runs (default: runs; for a server "
+                        "that runs already, its output folder is changed, or why not is said)")
 
     sp = sub.add_parser("serve", help="run a rig server: one session (rig, scans, console) "
                         "that the TUI and CLI attach to over a Unix socket")

@@ -25,6 +25,7 @@ import re
 import sys
 import threading
 import time
+import types
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,6 +62,13 @@ class PreviewSaved(Event):
     stats: dict[str, Any] = field(default_factory=dict)
 
 
+#: The run's folder for what a session shows while a scan runs (``latest_frame.png``): part
+#: of the capture, not of a generation.
+LIVE_DIR = "live"
+#: The lowest level of the session's log lines a console or script shows while it runs
+#: (``debug`` adds a line per frame; ``off`` shows none); :meth:`Session.log_level`.
+LOG_LEVEL = "info"
+LOG_LEVELS = ("debug", "info", "warning", "error", "off")
 #: Bins of the histogram in :func:`frame_stats`.
 HISTOGRAM_BINS = 32
 
@@ -251,6 +259,7 @@ class Session:
         self._patterns: dict[str, np.ndarray] | None = None
         self._live: dict[str, Any] = {}
         self._namespaces: list[weakref.ref] = []
+        self._log_level = LOG_LEVEL
         self.bus.subscribe(self._live_preview)
         if profile is not None:
             self.load(profile, overrides)
@@ -296,6 +305,50 @@ class Session:
         if was_connected:
             self.connect()
         return self.profile  # type: ignore[return-value]
+
+    def configure(self, *, views: int | None = None, exposure_ms: float | None = None,
+                  pdi_angles_deg: Sequence[float] | None = None,
+                  out_dir: Path | str | None = None) -> Profile | None:
+        """Change the next scan's settings — ``views`` (equally spaced; explicit angles are
+        dropped), camera exposure (ms), the PDI analyzer angles (parallel, perpendicular;
+        degrees) and the output directory — without rebuilding or reconnecting the rig. The
+        profile the scan runs with (and records in the run) carries them. The profile's keys
+        wait until no scan runs; the output directory applies to the next scan at once."""
+        overrides, said = [], []
+        if views is not None:
+            overrides += [f"scan.views={int(views)}", "scan.angles_deg=[]"]
+            said.append(f"{int(views)} views")
+        if exposure_ms is not None:
+            overrides.append(f"scan.exposure_ms={float(exposure_ms)!r}")
+            said.append(f"exposure {float(exposure_ms):g} ms")
+        if pdi_angles_deg is not None:
+            angles = [float(a) for a in pdi_angles_deg]
+            overrides.append(f"scan.pdi_angles_deg={angles!r}")
+            said.append(f"analyzer angles {', '.join(f'{a:g}°' for a in angles)}")
+        if overrides:
+            self._retune(overrides)
+        if out_dir is not None:
+            self.out_dir = Path(out_dir).expanduser()
+            said.append(f"output directory {self.out_dir}")
+        if said:
+            self.bus.info(f"scan settings: {'; '.join(said)}")
+        return self.profile
+
+    def _retune(self, overrides: list[str], then: Callable[[], None] | None = None) -> None:
+        """Use the profile with ``scan.*`` keys changed, the rig kept (its devices are the
+        same); ``then()`` runs once the new keys are valid, before they are used."""
+        from dotshell.profile import apply_overrides, validate_profile
+
+        with self._lock:
+            prof = self._require_profile()
+            self._require_idle("change the scan's settings")
+            new = validate_profile(apply_overrides(prof.raw(), overrides, prof.source),
+                                   self.pm, prof.source, prof.base_dir)
+            if then is not None:
+                then()
+            self.profile = new
+            self.rig.profile = new  # type: ignore[union-attr]
+        self._refresh_namespaces()
 
     def _require_profile(self) -> Profile:
         if self.profile is None or self.rig is None:
@@ -412,16 +465,22 @@ class Session:
         return float(degrees)
 
     def set_exposure(self, ms: float) -> float:
-        """Set the camera exposure (ms), for cameras with exposure control."""
+        """Set the camera exposure (ms), for cameras with exposure control — now, when the
+        camera is connected, and for the scans that follow (``scan.exposure_ms``)."""
         from dotshell.devices import ExposureControl
 
         with self._lock:
-            cam = self._device("camera", "set the exposure")
-            if not isinstance(cam, ExposureControl):
-                raise DeviceError(f"the camera ({self.profile.role('camera')['backend']}) has "  # type: ignore[union-attr]
-                                  "no exposure control.")
-            cam.set_exposure(float(ms))
-        self.bus.info(f"camera exposure set to {float(ms):g} ms")
+            prof = self._require_profile()
+            self._require_idle("set the exposure")
+            cam = self.rig.devices.get("camera") if "camera" in self.rig.connected else None  # type: ignore[union-attr]
+            if cam is not None and not isinstance(cam, ExposureControl):
+                raise DeviceError(f"the camera ({prof.role('camera')['backend']}) has no "
+                                  "exposure control.")
+            # the value is checked as a profile key first: a refused one never reaches the camera
+            self._retune([f"scan.exposure_ms={float(ms)!r}"],
+                         then=(lambda: cam.set_exposure(float(ms))) if cam is not None else None)
+        self.bus.info(f"camera exposure set to {float(ms):g} ms" + (
+            "" if cam is not None else " for the scans (the camera is not connected)"))
         return float(ms)
 
     def stop(self) -> None:
@@ -433,6 +492,43 @@ class Session:
             rig.stop()
             self.bus.warn("stop: every device that can move was told to stop")
         self.abort()
+
+    def log_level(self, level: str | None = None) -> str:
+        """The lowest level of the session's log lines shown in the console (while an input
+        runs) and by ``dotshell script``: ``debug``, ``info`` (default: progress, not a line
+        per frame), ``warning``, ``error`` or ``off``; without an argument, the level now."""
+        if level is not None:
+            if level not in LOG_LEVELS:
+                raise DotshellError(f"log_level({level!r}): choose one of "
+                                    f"{', '.join(LOG_LEVELS[:-1])} or off.")
+            self._log_level = level
+        return self._log_level
+
+    def shows(self, level: str) -> bool:
+        """Whether a log line of ``level`` is shown at :meth:`log_level`."""
+        if self._log_level == "off":
+            return False
+        rank = LOG_LEVELS.index(level) if level in LOG_LEVELS[:-1] else 1
+        return rank >= LOG_LEVELS.index(self._log_level)
+
+    def halt(self) -> str:
+        """The stop key: stop motion, never abort. During a scan the scan is paused before its
+        next frame (the move under way ends where the run says it does, so every frame is
+        taken where it is recorded; ``resume()`` goes on, ``abort()`` ends it); otherwise every
+        device that can move is stopped now. Returns ``"paused"`` (or ``"stopping"`` for a scan
+        being aborted already) or ``"stopped"``."""
+        if self._transition(("running",), "paused"):
+            self._running.clear()
+            self.bus.warn("stop key: the scan pauses before its next frame (resume goes on, "
+                          "abort ends it)")
+            return "paused"
+        if self.scanning:
+            return self._state  # paused or stopping already: nothing moves after this frame
+        rig = self.rig
+        if rig is not None and rig.connected:
+            rig.stop()
+            self.bus.warn("stop: every device that can move was told to stop")
+        return "stopped"
 
     # ---- patterns, frames, decoding -------------------------------------------------------------
 
@@ -555,8 +651,10 @@ class Session:
                 self._state = "idle"
             self._refresh_namespaces()
         run = self.run = Run(result.run_dir)
+        products = run.root / "current"  # the published generation the report belongs to
+        base = products.resolve() if products.is_symlink() else run.root
         for kind, rel in (result.report.get("previews") or {}).items():
-            self.bus.emit(PreviewSaved(kind=kind, path=str(run.root / rel)))
+            self.bus.emit(PreviewSaved(kind=kind, path=str(base / rel)))
         self._refresh_namespaces()
         return run
 
@@ -608,7 +706,9 @@ class Session:
 
     def _live_preview(self, ev: Event) -> None:
         """During a scan, render the first frame of each captured view to
-        ``<run>/previews/latest_frame.png``."""
+        ``<run>/live/latest_frame.png`` (capture-time, like the frames: ``<run>/previews``
+        is the link to the current generation's previews, made when the products are
+        published; a real folder there kept the link from ever being made)."""
         if isinstance(ev, ScanStarted):
             self._live = {"run_dir": ev.run_dir}
         elif isinstance(ev, ScanFinished):
@@ -622,8 +722,8 @@ class Session:
                 frame = store.frames(ev.view).read_one(0)
             except RunError:
                 return
-            store.path("previews").mkdir(exist_ok=True)
-            path = frame_preview(frame, store.path("previews", "latest_frame.png"))
+            store.path(LIVE_DIR).mkdir(exist_ok=True)
+            path = frame_preview(frame, store.path(LIVE_DIR, "latest_frame.png"))
             bits = getattr(self.rig.camera, "bit_depth", None) if self.rig else None
             self.bus.emit(PreviewSaved(kind="frame", path=str(path), view=ev.view,
                                        stats=frame_stats(frame, bits)))
@@ -653,7 +753,8 @@ class Session:
 
         ns: dict[str, Any] = {
             "session": self, "np": np, "dotshell": dotshell, "Run": Run,
-            "load": self.load, "set": self.set, "connect": self.connect,
+            "load": self.load, "set": self.set, "configure": self.configure,
+            "connect": self.connect,
             "disconnect": self.disconnect, "status": self.status, "move_to": self.move_to,
             "jog": self.jog, "home": self.home, "set_analyzer": self.set_analyzer,
             "set_exposure": self.set_exposure, "patterns": self.patterns,
@@ -661,6 +762,11 @@ class Session:
             "scan": self.scan, "pause": self.pause, "resume": self.resume,
             "abort": self.abort, "stop": self.stop, "wait": self.wait,
             "normalize": self.normalize,
+            "run_script": lambda path, *args: run_script(path, self, [str(a) for a in args]),
+            "log_level": self.log_level,
+            # as in Python's own REPL and in dotshell script: code pasted from a script that
+            # ends with ``if __name__ == "__main__": main()`` runs its main()
+            "__name__": "__main__",
         }
         self._bind(ns)
         return ns
@@ -724,10 +830,33 @@ def split_script_args(rest: Sequence[str]) -> tuple[dict[str, Any], list[str]]:
     return vars(ns), unknown + rest[cut + 1:]
 
 
-def run_script(path: Path | str, session: Session, argv: Sequence[str] = ()) -> dict[str, Any]:
-    """Run a Python file with the session's namespace (as ``__main__``, ``sys.argv`` =
-    ``[path, *argv]``); returns the namespace it left."""
-    path = Path(path)
+class ScriptResult:
+    """What :func:`run_script` left: the script's global names as attributes (``.names`` the
+    whole namespace), shown in the console as one line rather than the whole namespace."""
+
+    def __init__(self, path: Path, names: dict[str, Any], given: set[str]) -> None:
+        self.path = path
+        self.names = names
+        self.given = given  # the names the namespace had before the script ran
+
+    def __getattr__(self, name: str) -> Any:
+        names = self.__dict__.get("names") or {}  # (empty before __init__: copy, pickle)
+        if name in names:
+            return names[name]
+        raise AttributeError(f"the script defined no {name!r}")
+
+    def __repr__(self) -> str:
+        own = [k for k, v in self.names.items() if not k.startswith("_")
+               and k not in self.given and not isinstance(v, types.ModuleType)]
+        return f"<script {self.path} ran: defined {', '.join(own) or 'nothing'}>"
+
+
+def run_script(path: Path | str, session: Session, argv: Sequence[str] = ()) -> ScriptResult:
+    """Run a Python file in a fresh namespace of the session (as ``__main__``, ``sys.argv`` =
+    ``[path, *argv]`` while it runs, restored after); what ``dotshell script`` does, and, as
+    ``run_script(path, *args)``, what the console offers. A ``SystemExit`` with code 0 or None
+    (``sys.exit()`` after argparse's ``--help``) ends the script quietly."""
+    path = Path(path).expanduser()
     try:
         source = path.read_text(encoding="utf-8")
     except OSError as exc:
@@ -735,17 +864,21 @@ def run_script(path: Path | str, session: Session, argv: Sequence[str] = ()) -> 
                             "of a Python file.") from None
     ns = session.namespace()
     ns.update(__name__="__main__", __file__=str(path))
+    given = set(ns)
     old_argv = sys.argv
     sys.argv = [str(path), *argv]
     try:
         exec(compile(source, str(path), "exec"), ns)
+    except SystemExit as exc:
+        if exc.code not in (None, 0):
+            raise
     except DotshellError:
         raise
     except Exception as exc:  # the script's own error: its traceback, not "a bug in dotshell"
         raise ScriptError(f"script {path} failed:\n{script_traceback(exc, path)}") from None
     finally:
         sys.argv = old_argv
-    return ns
+    return ScriptResult(path, ns, given)
 
 
 class ScriptError(DotshellError):

@@ -277,11 +277,12 @@ def test_eta_ignores_the_warm_up():
     """Ten minutes of connecting, calibration and flat field before the first frame, then a
     frame a second: the ETA is a second a frame, not the warm-up spread over the frames."""
     t = ScanTracker()
-    t.update(ScanStarted(run_dir="r", profile="p", n_views=2, frames_per_view=10), 0.0)
+    t.update(ScanStarted(run_dir="r", profile="p", n_views=4, frames_per_view=5), 0.0)
     t.update(FrameCaptured(view=0, index=0, name="f0"), 600.0)
     assert t.eta_s(600.5) is None  # one frame says nothing about the rate yet
     for i in range(1, 5):
         t.update(FrameCaptured(view=0, index=i, name=f"f{i}"), 600.0 + i)
+    t.update(ViewCaptured(view=0, angle_deg=0.0, n_frames=5), 604.0)
     assert t.eta_s(604.0) == pytest.approx(15.0)  # 15 frames left at 1 s
     t.update(ScanPaused(view=0, index=5), 604.0)
     t.update(ScanResumed(view=0, index=5), 700.0)
@@ -358,3 +359,150 @@ def test_a_run_nobody_writes_any_more_reads_interrupted(small_scan, tmp_path):
     assert status == "interrupted" and "ended without finishing" in reason
     (copy / "manifest.json").write_text("{}")
     assert Run(copy).status_and_reason()[0] == "unknown"  # damaged: said, not raised
+
+
+# ---- one namespace for the console and scripts (issue 29) ----------------------------------
+
+SCRIPT_WITH_MAIN = (
+    "import argparse, sys\n"
+    "def main():\n"
+    "    p = argparse.ArgumentParser()\n"
+    "    p.add_argument('step', type=float)\n"
+    "    p.add_argument('--times', type=int, default=1)\n"
+    "    a = p.parse_args()\n"
+    "    global angles, argv\n"
+    "    argv = list(sys.argv)\n"
+    "    connect()\n"
+    "    angles = [jog(a.step) for _ in range(a.times)]\n"
+    "if __name__ == '__main__':\n"
+    "    main()\n")
+
+
+def console_of(session):
+    from dotshell.server.repl import ServerConsole
+
+    messages = []
+    console = ServerConsole(session, messages.append)
+
+    def run(source):
+        n = sum(m["type"] == "console_done" for m in messages)
+        console.run(source)
+        t0 = time.monotonic()
+        while sum(m["type"] == "console_done" for m in messages) == n:
+            assert time.monotonic() - t0 < 120
+            time.sleep(0.02)
+
+    return console, messages, run
+
+
+def test_run_script_in_the_console_is_main_with_its_own_argv(session, tmp_path):
+    """The bug: in the console __name__ was 'builtins' and sys.argv the server's, so a script's
+    `if __name__ == "__main__": main()` silently did nothing and argument parsing failed."""
+    import sys
+
+    script = tmp_path / "sweep.py"
+    script.write_text(SCRIPT_WITH_MAIN)
+    console, messages, run = console_of(session)
+    argv_before = list(sys.argv)
+    run(f"r = run_script({str(script)!r}, 2.5, '--times', 3)\nprint(r.angles, r.argv)\nr")
+    out = "".join(m.get("text", "") for m in messages if m.get("kind") == "out")
+    assert out == f"[2.5, 5.0, 7.5] [{str(script)!r}, '2.5', '--times', '3']\n"
+    result = [m["text"] for m in messages if m.get("kind") == "result"][-1]
+    assert result == f"<script {script} ran: defined main, argv, angles>"  # not its imports
+    assert sys.argv == argv_before  # restored
+    assert session.rig.stage.position == pytest.approx(7.5)
+    # the console itself is __main__ too: the same code pasted runs its main()
+    run("import sys; sys.argv[1:] = ['1', '--times', '2']\n" + SCRIPT_WITH_MAIN
+        + "sys.argv[1:] = []\nangles")
+    assert [m["text"] for m in messages if m.get("kind") == "result"][-1] == "[8.5, 9.5]"
+    # argparse's exit status 2 is an error; a clean sys.exit() ends a script quietly
+    run(f"run_script({str(script)!r})")
+    assert "SystemExit: 2" in [m["text"] for m in messages if m.get("kind") == "error"][-1]
+    script.write_text("import sys\nsys.exit()\n")
+    run(f"run_script({str(script)!r}) is not None")
+    assert [m["text"] for m in messages if m.get("kind") == "result"][-1] == "True"
+
+
+def test_console_scan_prints_progress_not_per_frame_lines(session):
+    """scan() in the console shows the session's progress from the info level on: a line per
+    view captured and reconstructed, the steps and the end — not one per frame."""
+    console, messages, run = console_of(session)
+    run("connect(); r = scan()")
+    lines = "".join(m["text"] for m in messages if m.get("kind") == "log").splitlines()
+    frames = session.run.frame_count()
+    assert frames == 2 * len(session.run.manifest["frame_names"]) > 20
+    assert not any("frame" in line and "captured" in line and "view" in line
+                   and "frames)" not in line for line in lines)
+    assert sum(line.startswith("view ") and "captured at" in line for line in lines) == 2
+    assert sum("reconstructed" in line for line in lines) == 2
+    assert sum(line.startswith("scan started") for line in lines) == 1
+    assert lines[-1].startswith("scan completed")
+    assert len(lines) < 30  # was ≈ 190 lines for 4 views
+    run("log_level('debug'); r = scan()")
+    debug = "".join(m["text"] for m in messages if m.get("kind") == "log").splitlines()
+    assert sum("debug: view" in line and ") captured" in line for line in debug) == frames
+    run("log_level('loud')")
+    assert "choose one of debug, info, warning, error or off" in [
+        m["text"] for m in messages if m.get("kind") == "error"][-1]
+
+
+def test_the_eta_says_estimating_until_a_view_is_captured():
+    """The bug: the first frames of a view come in a burst, so at 0:03 of a 25 s scan the ETA
+    said 0:00:02 (the rate without the moves and the reconstruction between views). Now it
+    says estimating until a whole view has been captured, and finishing after the last frame."""
+    t = ScanTracker()
+    t.update(ScanStarted(run_dir="r", profile="p", n_views=4, frames_per_view=10), 0.0)
+    assert t.eta_text(0.5) == "estimating"
+    for i in range(10):  # a burst: 0.1 s a frame
+        t.update(FrameCaptured(view=0, index=i, name=f"f{i}"), 2.0 + 0.1 * i)
+        assert t.eta_text(2.0 + 0.1 * i) == "estimating"
+    t.update(ViewCaptured(view=0, angle_deg=0.0, n_frames=10), 3.0)
+    # 5 s of move and reconstruction, then the next view's burst: the rate includes them
+    for i in range(10):
+        t.update(FrameCaptured(view=1, index=i, name=f"f{i}"), 8.0 + 0.1 * i)
+    t.update(ViewCaptured(view=1, angle_deg=90.0, n_frames=10), 9.0)
+    eta = t.eta_s(9.0)
+    assert eta == pytest.approx((9.0 - 2.0) / 19 * 20)  # 7.4 s for the last 2 views, not 2 s
+    for v in (2, 3):
+        for i in range(10):
+            t.update(FrameCaptured(view=v, index=i, name=f"f{i}"), 9.0 + v + 0.1 * i)
+    assert t.eta_text(14.0) == "finishing"  # merge, validate, previews: not timed
+    t.update(ScanFinished(status="completed", run_dir="r", summary={"points": 9}), 20.0)
+    assert t.eta_text(20.0) == "--:--"
+
+
+def test_exposure_is_the_scans_and_a_refused_one_never_reaches_the_camera(session):
+    """set_exposure sets the camera and scan.exposure_ms (the scan used the profile's value);
+    configure changes the next scan's keys without reconnecting the rig."""
+    session.connect()
+    rig = session.rig
+    assert session.set_exposure(7.5) == 7.5
+    assert session.profile.data["scan"]["exposure_ms"] == 7.5
+    assert rig.camera.status()["exposure_ms"] == 7.5
+    with pytest.raises(ProfileError, match="exposure_ms"):
+        session.set_exposure(0.0)  # below the profile's minimum
+    assert rig.camera.status()["exposure_ms"] == 7.5 and session.rig is rig
+    session.configure(views=3, pdi_angles_deg=[5, 95], out_dir=session.out_dir / "next")
+    assert session.rig is rig and session.connected  # kept, not rebuilt
+    run = session.scan()
+    assert len(run.manifest["views"]) == 3 and run.root.parent.name == "next"
+    assert run.manifest["camera"] and "exposure_ms = 7.5" in (run.root / "profile.toml").read_text()
+
+
+def test_a_script_has_the_consoles_names_and_log_level(tmp_path, capsys):
+    """dotshell script and the console share one namespace: __main__, run_script, log_level;
+    the script's log lines follow log_level() as the console's do."""
+    script = tmp_path / "levels.py"
+    script.write_text(
+        "from dotshell.events import Message\n"
+        "print(__name__, log_level(), callable(run_script))\n"
+        "session.bus.emit(Message('debug', 'a debug line'))\n"
+        "session.bus.emit(Message('info', 'an info line'))\n"
+        "log_level('warning')\n"
+        "session.bus.emit(Message('info', 'a hidden info line'))\n"
+        "session.bus.emit(Message('warning', 'a warning line'))\n")
+    assert main(["script", str(script)]) == 0
+    out, err = capsys.readouterr()
+    assert out == "__main__ info True\n"
+    assert "an info line" in err and "a warning line" in err
+    assert "a debug line" not in err and "a hidden info line" not in err

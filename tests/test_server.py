@@ -122,8 +122,10 @@ def test_clients_watch_one_controls_and_everyone_sees_the_scan(session):
         assert refused["ok"] is False and "first request must be hello" in refused["error"]
         stalled.sendall(protocol.encode({"id": 2, "cmd": "hello", "protocol": 99}))
         refused = protocol.decode(stalled.makefile("rb").readline())
-        assert "speaks protocol 1" in refused["error"] and "99" in refused["error"]
-        stalled.sendall(protocol.encode({"id": 3, "cmd": "hello", "protocol": 1,
+        assert f"speaks protocol {protocol.PROTOCOL_VERSION}" in refused["error"]
+        assert "99" in refused["error"]
+        stalled.sendall(protocol.encode({"id": 3, "cmd": "hello",
+                                         "protocol": protocol.PROTOCOL_VERSION,
                                          "client": "stalled"}))
         run_dir = tui.scan()["run_dir"]
         done = theirs.wait_for(lambda m: m.get("type") == "event"
@@ -200,7 +202,7 @@ def test_rows_and_state_pushed_while_a_client_is_greeted_reach_it_after_its_repl
             client.close()
 
 
-def test_a_watcher_may_abort_and_the_server_exits_when_idle(session, monkeypatch):
+def test_a_watcher_may_halt_not_abort_and_the_server_exits_when_idle(session, monkeypatch):
     monkeypatch.setattr(server_module, "IDLE_GRACE_S", 0.5)
     gate = threading.Event()
     session.bus.subscribe(lambda ev: gate.wait(60) if isinstance(ev, FrameCaptured)
@@ -208,7 +210,11 @@ def test_a_watcher_may_abort_and_the_server_exits_when_idle(session, monkeypatch
     with served(session, exit_when_idle=True, poll_s=0.1) as server:
         tui, watcher = attach(server), attach(server, "watcher", control=False)
         run_dir = tui.scan()["run_dir"]
-        watcher.abort()  # stopping is open to anyone who sees the rig
+        with pytest.raises(ServerError, match="tui#1 .*controls the rig"):
+            watcher.abort()  # aborting is the controller's
+        assert watcher.halt() == "paused"  # the stop key is anyone's: it pauses, never aborts
+        assert session.state == "paused"
+        tui.abort()
         gate.set()
         tui.close()
         watcher.close()  # nobody attached: the server waits for the scan, then goes

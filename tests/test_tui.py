@@ -205,14 +205,14 @@ async def test_prompts_start_from_current_values_and_project_highlights_the_patt
         await settle(pilot)
         assert session.rig.camera.status()["exposure_ms"] == 7.5
 
-        await pilot.press("p")
+        await pilot.press("t")  # t: project a pattern (p is pause on every tab)
         await settle(pilot)
         await wait_until(pilot, lambda: isinstance(app.screen, ChoiceScreen))
         await pilot.press("enter")  # the first pattern: "white"
         await settle(pilot)
         assert session.projected == "white"
         await wait_until(pilot, lambda: app.session.projected == "white")
-        await pilot.press("p")
+        await pilot.press("t")
         await wait_until(pilot, lambda: isinstance(app.screen, ChoiceScreen))
         assert app.screen.query_one("OptionList").highlighted == 0  # the pattern shown now
         await pilot.press("escape")
@@ -453,7 +453,7 @@ async def test_keys_overlay_and_the_command_palette(server):
             assert isinstance(app.screen, KeysScreen)
             shown = {(where, keys, what) for where, rows in app.screen.sections
                      for keys, what in rows}
-            assert ("Rig", "]", "Jog +") in shown and ("Scan", "x", "Abort") in shown
+            assert ("Rig", "]", "Jog +") in shown and ("anywhere", "x", "Abort") in shown
             assert ("anywhere", "1 F2", "Rig") in shown and ("anywhere", "? F1", "Keys") in shown
             await pilot.press("escape")
             await pilot.pause()
@@ -497,7 +497,7 @@ async def test_short_scan_runs_to_the_end(server):
         preview = app.panel(PreviewPanel)
         assert [i.view for i in preview.items if i.kind == "frame"] == [0, 1]
         assert "latest frame (view 2)" in static_text(app, "#preview-title")  # 1-based
-        assert (run.root / "previews" / "latest_frame.png").is_file()
+        assert (run.root / "live" / "latest_frame.png").is_file()
         texts = [e.text for e in app.panel(LogPanel).entries]
         assert any(t.startswith("scan completed") for t in texts)
         assert "view 1 captured at 0.0°" in " ".join(texts)
@@ -532,7 +532,9 @@ async def test_pause_resume_then_abort_midway_keeps_frames(tmp_path, pm, monkeyp
             second.opened.set()
             await wait_until(pilot, lambda: app.tracker.status == "paused")
             await wait_until(pilot, lambda: app.session.session_state == "paused")
-            await pilot.press("x")  # younger than a minute: no question
+            await pilot.press("x")  # abort always asks
+            await wait_until(pilot, lambda: isinstance(app.screen, ConfirmScreen))
+            await pilot.press("y")
             await wait_until(pilot, lambda: not session.scanning)
             await wait_until(pilot, lambda: app.tracker.status == "aborted")
             run = session.run
@@ -567,7 +569,10 @@ async def test_aborting_a_long_scan_asks_first(server):
         await pilot.press("n")
         await pilot.pause()
         assert session.state == "running"
-        await pilot.press("escape")  # the stop key asks too during a scan
+        await pilot.press("escape")  # the stop key never aborts: it pauses the scan
+        await wait_until(pilot, lambda: session.state == "paused")
+        assert not isinstance(app.screen, ConfirmScreen)
+        await pilot.press("x")
         await pilot.pause()
         assert isinstance(app.screen, ConfirmScreen)
         await pilot.press("y")

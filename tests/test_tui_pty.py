@@ -265,3 +265,49 @@ def test_tui_inside_tmux(profile, tmp_path):
         assert (tmp_path / "status").read_text().strip() == "exit=0"
     finally:
         tmux("kill-server", check=False)
+
+
+def test_escape_pauses_a_scan_and_a_paste_without_bracketed_paste_runs(profile, tmp_path):
+    """In a real terminal (issue 29): esc on the Scan tab pauses the scan — it aborted it — and
+    x asks; a multi-line paste sent as plain keys (a terminal without bracketed paste) lands in
+    the console as it was, neither run line by line nor re-indented into an IndentationError.
+    12 views (about 20 s of frames): the escape lands mid-scan however late the screen is."""
+    raw = tomllib.loads(profile.read_text())
+    raw["scan"]["views"] = 12
+    write_profile(profile, raw)
+    term = PtyScreen(tui_command(profile, tmp_path), tmp_path)
+    sock = socket_path(server_name(profile))
+    try:
+        term.wait_for("sim-turntable")
+        term.child.send("2")
+        term.wait_for("s start")
+        term.child.send("s")
+        term.wait_for(re.compile(r"frames.* [2-9]\d*/\d+"))
+        term.child.send("\x1b")  # esc, alone
+        term.wait_for("state paused")
+        watcher = RemoteSession(sock, "test")
+        assert watcher.refresh()["state"]["session"] == "paused"  # not stopping: no abort
+        term.child.send("x")
+        term.wait_for("Abort it?")
+        term.child.send("n")
+        term.settle(0.5)
+        assert watcher.refresh()["state"]["session"] == "paused"
+        term.child.send("x")
+        term.wait_for("Abort it?")
+        term.child.send("y")
+        term.wait_for("state aborted")
+        watcher.close()
+        term.child.send("5")
+        term.wait_for("Python console on the live session")
+        source = ("total = 0\rfor i in range(3):\r    if i:\r        total += i\r"
+                  "    total += 10\rprint('total', total)\r")
+        term.child.send(source)  # one write: the keys arrive in one burst
+        term.wait_for("print('total', total)")
+        term.child.send("\r")
+        term.wait_for("total 33")
+        assert "Error" not in term.text()
+        term.child.send("\x11")
+        term.wait_exit()
+    finally:
+        if term.child.isalive():
+            term.child.terminate(force=True)

@@ -34,7 +34,7 @@ PRODUCTS_FILE = "products.json"
 #: Top-level names that are the capture (or bookkeeping), never products.
 CAPTURE_ITEMS = frozenset({"manifest.json", "profile.toml", "calibration.json", "events.jsonl",
                            ".lock", "frames", "transillumination", GEN_DIR, CURRENT,
-                           "server.log", "snapshots"})
+                           "server.log", "snapshots", "live"})
 #: Where products of runs made before generations existed (format dotshell-run/1) are found.
 LEGACY_PRODUCTS = {"views": "views", "cloud.ply": "cloud", "report.json": "report",
                    "surface.ply": "mesh", "volume.vtu": "mesh", "optodes.json": "mesh",
@@ -208,8 +208,25 @@ def link_top_level(root: Path, gen_dir: Path) -> None:
         if name in CAPTURE_ITEMS or name.startswith(".") or name == PRODUCTS_FILE:
             continue
         top = Path(root) / name
+        if name == "previews":
+            _move_live_frame(Path(root), top)
         if not os.path.lexists(top):
             os.symlink(f"{CURRENT}/{name}", top)
+
+
+def _move_live_frame(root: Path, top: Path) -> None:
+    """Runs scanned from a session before ``live/`` existed hold the live frame in a real
+    ``previews/`` folder, which kept the ``previews`` link from being made: a folder holding
+    nothing else is moved to ``live/`` so the link is made now."""
+    if top.is_symlink() or not top.is_dir():
+        return
+    entries = list(top.iterdir())
+    if any(p.name != "latest_frame.png" for p in entries):
+        return  # someone's own files: left where they are
+    (root / "live").mkdir(exist_ok=True)
+    for p in entries:
+        os.replace(p, root / "live" / p.name)
+    top.rmdir()
 
 
 def adopt_legacy_products(run: RunStore) -> None:

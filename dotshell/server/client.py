@@ -199,6 +199,8 @@ class RemoteSession(ServerClient):
         self.tracker = ScanTracker.from_dict(welcome["tracker"])
         self.backlog: list[Event] = [event_from_wire(e) for e in welcome["backlog"]]
         self.history: list[str] = list(welcome["history"])
+        #: the console's last messages before this client attached (bounded), oldest first
+        self.console_transcript: list[dict[str, Any]] = list(welcome.get("console") or [])
 
     def _greeted(self, welcome: dict[str, Any]) -> None:
         """The hello's state and device rows, taken on the reader thread: a state or rows
@@ -257,6 +259,13 @@ class RemoteSession(ServerClient):
     def set(self, *overrides: str) -> Any:
         return self.call("set", overrides=list(overrides))
 
+    def configure(self, **settings: Any) -> Any:
+        """The next scan's settings: ``views``, ``exposure_ms``, ``pdi_angles_deg``,
+        ``out_dir`` (see :meth:`dotshell.console.Session.configure`)."""
+        if settings.get("out_dir") is not None:
+            settings["out_dir"] = str(Path(settings["out_dir"]).expanduser().resolve())
+        return self.call("configure", **settings)
+
     def connect(self) -> Any:
         return self.call("connect")
 
@@ -307,6 +316,11 @@ class RemoteSession(ServerClient):
 
     def stop(self) -> None:
         self.call("stop")
+
+    def halt(self) -> str:
+        """The stop key: pause a running scan before its next frame, else stop every device
+        that can move; never aborts (open to watchers too)."""
+        return self.call("halt")
 
     def devices(self) -> list[dict[str, Any]]:
         return self.call("devices")

@@ -47,6 +47,7 @@ def profile_summary(session: Session) -> dict[str, Any] | None:
     return {"name": p.name, "source": str(p.source), "device_ids": profile_device_ids(p),
             "path": str(session.profile_path.resolve()) if session.profile_path else None,
             "views": len(p.angles_deg()), "exposure_ms": p.data["scan"]["exposure_ms"],
+            "pdi": p.data["scan"]["pdi"], "pdi_angles_deg": list(p.data["scan"]["pdi_angles_deg"]),
             "coding": p.role("coding")["backend"],
             "roles": {r: p.role(r)["backend"] for r in DEVICE_ROLES if p.role(r) is not None}}
 
@@ -58,6 +59,19 @@ def _load(ctx: Context, args: dict[str, Any]) -> Any:
 
 def _set(ctx: Context, args: dict[str, Any]) -> Any:
     ctx.session.set(*list(args.get("overrides") or []))
+    return profile_summary(ctx.session)
+
+
+def _configure(ctx: Context, args: dict[str, Any]) -> Any:
+    """The next scan's settings (views, exposure_ms, pdi_angles_deg, out_dir; each optional)."""
+    angles = args.get("pdi_angles_deg")
+    if angles is not None and (not isinstance(angles, list) or len(angles) != 2):
+        raise DotshellError(f"pdi_angles_deg needs two angles (parallel, perpendicular; "
+                            f"degrees), got {angles!r}.")
+    ctx.session.configure(
+        views=int(_number(args, "views")) if args.get("views") is not None else None,
+        exposure_ms=_number(args, "exposure_ms") if args.get("exposure_ms") is not None else None,
+        pdi_angles_deg=angles, out_dir=args.get("out_dir"))
     return profile_summary(ctx.session)
 
 
@@ -133,6 +147,7 @@ Handler = Callable[[Context, dict[str, Any]], Any]
 COMMANDS: dict[str, Handler] = {
     "load": _load,
     "set": _set,
+    "configure": _configure,
     "connect": lambda c, a: c.session.connect(),
     "disconnect": lambda c, a: c.session.disconnect(),
     "move": lambda c, a: c.session.move_to(_number(a, "degrees")),
@@ -149,6 +164,7 @@ COMMANDS: dict[str, Handler] = {
     "resume": lambda c, a: c.session.resume(),
     "abort": lambda c, a: c.session.abort(),
     "stop": lambda c, a: c.session.stop(),
+    "halt": lambda c, a: c.session.halt(),
     "normalize": _normalize,
     "devices": lambda c, a: c.session.devices(),
     "plugins": _plugins,

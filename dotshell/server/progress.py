@@ -105,13 +105,28 @@ class ScanTracker:
 
     def eta_s(self, now_s: float) -> float | None:
         """Seconds left: the mean time per frame since the first frame (so the warm-up —
-        connecting, calibration, flat field — does not count; reconstruction between views
-        does) times the frames left. None before the second frame or when not running."""
-        if not self.active or self.frames_done < 2 or self.first_frame_s is None:
+        connecting, calibration, flat field — does not count; moves and reconstruction
+        between views do) times the frames left. None until a whole view has been captured
+        (the frames of one view come in a burst: their rate, without the move and the
+        reconstruction between views, promised 0:00:02 at 0:03 of a 25 s scan), after the
+        last frame (the steps after the acquisition are not timed) and when not running."""
+        if (not self.active or self.views_done < 1 or self.first_frame_s is None
+                or self.frames_done < 2 or self.frames_done >= self.frames_total):
             return None
         paused = self._paused_total(now_s) - self.paused_before_first_frame_s
         per_frame = max(0.0, now_s - self.first_frame_s - paused) / (self.frames_done - 1)
         return per_frame * max(self.frames_total - self.frames_done, 0)
+
+    def eta_text(self, now_s: float) -> str:
+        """The ETA as people read it: ``H:MM:SS``, ``estimating`` until it has the data (a
+        whole view), ``finishing`` once every frame is taken, ``--:--`` when no scan runs."""
+        eta = self.eta_s(now_s)
+        if eta is not None:
+            return format_seconds(eta)
+        if not self.active:
+            return "--:--"
+        return "finishing" if self.frames_total and self.frames_done >= self.frames_total \
+            else "estimating"
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

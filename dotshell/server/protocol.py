@@ -21,22 +21,23 @@ from dotshell.errors import DotshellError
 from dotshell.events import Event
 
 #: Bumped on any incompatible change; the server refuses a client that speaks another one.
-PROTOCOL_VERSION = 1
+#: 2: ``halt`` (the stop key) and ``configure``; ``abort`` and ``stop`` need control.
+PROTOCOL_VERSION = 2
 #: Longest line either side accepts (bytes): a console input, a status reply.
 MAX_LINE = 4 * 1024 * 1024
 
-#: Requests any attached client may send.
+#: Requests any attached client may send (``halt``, the stop key, stops motion and never
+#: aborts: whoever sees the rig may stop it; aborting a scan is the controller's).
 OPEN_COMMANDS = frozenset({"hello", "state", "devices", "patterns", "plugins", "history",
-                           "control", "release", "abort", "stop", "shutdown", "bye",
+                           "control", "release", "halt", "shutdown", "bye",
                            "restart_worker"})
 #: Requests that change the rig or the session: only the client in control may send them.
-CONTROL_COMMANDS = frozenset({"load", "set", "connect", "disconnect", "move", "jog", "home",
-                              "analyzer",
-                              "exposure", "project", "snap", "decode", "scan", "pause", "resume",
-                              "normalize", "console", "console_reply", "console_interrupt",
-                              "complete"})
+CONTROL_COMMANDS = frozenset({"load", "set", "configure", "connect", "disconnect", "move",
+                              "jog", "home", "analyzer", "exposure", "project", "snap",
+                              "decode", "scan", "pause", "resume", "abort", "stop", "normalize",
+                              "console", "console_reply", "console_interrupt", "complete"})
 #: Requests answered at once by the connection's reader, never queued behind a slow one.
-URGENT_COMMANDS = frozenset({"hello", "state", "control", "release", "abort", "stop", "pause",
+URGENT_COMMANDS = frozenset({"hello", "state", "control", "release", "abort", "stop", "halt", "pause",
                              "resume", "console_reply", "console_interrupt", "shutdown", "bye",
                              "restart_worker"})
 

@@ -9,10 +9,13 @@ from __future__ import annotations
 import json
 import threading
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any, Callable
 
 from dotshell.console import Session, SessionBusy, readable_repr
+from dotshell.events import Event
+from dotshell.server.describe import describe_event
 from dotshell.server.interpreter import Interpreter
 from dotshell.server.paths import open_private
 
@@ -21,6 +24,9 @@ HISTORY_SIZE = 1000
 #: Output is sent at most this often (seconds) and in pieces of at most this many characters.
 FLUSH_S = 0.05
 FLUSH_CHARS = 64 * 1024
+#: The console's last messages a newly attached front end is shown (at most this many
+#: characters of text: older ones are dropped first).
+TRANSCRIPT_CHARS = 200_000
 
 
 def read_history(path: Path | None) -> list[str]:
@@ -45,16 +51,44 @@ class ServerConsole:
     def __init__(self, session: Session, send: Callable[[dict[str, Any]], None],
                  history_file: Path | None = None) -> None:
         self.session = session
-        self.send = send
+        self._broadcast = send
+        #: held while a message is kept and sent: a front end greeted under it gets each
+        #: console message once, in the transcript or pushed after it
+        self.lock = threading.RLock()
+        self._transcript: deque[dict[str, Any]] = deque()
+        self._transcript_chars = 0
         self.history_file = history_file
         self.history = read_history(history_file)
         self.interpreter = Interpreter(session.namespace(), self._write,
                                        on_interrupt=self._abort_scan, on_input=self._ask,
                                        display=readable_repr)
+        session.bus.subscribe(self._on_event)
         self._pending: list[tuple[str, str]] = []
         self._pending_lock = threading.Lock()
         self._timer: threading.Timer | None = None
         self._thread: threading.Thread | None = None
+
+    def send(self, message: dict[str, Any]) -> None:
+        """Keep ``message`` in the bounded transcript and send it to every front end."""
+        with self.lock:
+            self._transcript.append(message)
+            self._transcript_chars += len(message.get("text") or "")
+            while self._transcript_chars > TRANSCRIPT_CHARS:
+                oldest = self._transcript[0]
+                text, excess = oldest.get("text") or "", self._transcript_chars - TRANSCRIPT_CHARS
+                if len(text) > excess:  # keep the end of a long output
+                    self._transcript[0] = {**oldest, "text": text[excess:]}
+                    self._transcript_chars -= excess
+                else:
+                    self._transcript.popleft()
+                    self._transcript_chars -= len(text)
+            self._broadcast(message)
+
+    def transcript(self) -> list[dict[str, Any]]:
+        """The console's last messages (about :data:`TRANSCRIPT_CHARS` characters), oldest
+        first, as they were pushed; call it holding :attr:`lock` to add nothing meanwhile."""
+        with self.lock:
+            return list(self._transcript)
 
     @property
     def busy(self) -> bool:
@@ -89,6 +123,16 @@ class ServerConsole:
             if self.history_file is not None:
                 with open_private(self.history_file) as f:
                     f.write(json.dumps({"time": time.time(), "source": source}) + "\n")
+
+    def _on_event(self, ev: Event) -> None:
+        """A line for the session's events while an input runs, from the session's
+        :meth:`~dotshell.console.Session.log_level` on (progress by default, not a line per
+        frame)."""
+        if not self.interpreter.busy:
+            return
+        level, text = describe_event(ev)
+        if self.session.shows(level):
+            self._write("log", f"{level}: {text}\n" if level != "info" else f"{text}\n")
 
     # ---- output, batched ----------------------------------------------------------------------
 

@@ -482,12 +482,12 @@ class RigServer:
         with self._clients_lock:
             if args.get("control") and self.controller is None:
                 self.controller = conn
-        with self._event_lock:
+        with self.console.lock, self._event_lock:  # the console's transcript is whole too
             conn.greeted = True
             conn.send({"type": "reply", "id": rid, "ok": True, "result": {
                 "you": conn.id, "state": self.state(), "tracker": self.tracker.to_dict(),
                 "backlog": list(self.backlog), "history": self.console.history[-500:],
-                "rows": self._last_rows}})
+                "rows": self._last_rows, "console": self.console.transcript()}})
 
     def _cmd_state(self, conn: Connection, args: dict[str, Any]) -> dict[str, Any]:
         return {"state": self.state(), "tracker": self.tracker.to_dict()}

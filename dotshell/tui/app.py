@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import os
 import re
+import threading
 import time
 import traceback
+from collections import deque
 from typing import Any, Callable, Iterable, TypeVar
 
 from textual.app import App, ComposeResult, SystemCommand
@@ -30,8 +32,9 @@ from dotshell.server.client import RemoteSession
 from dotshell.server.paths import user_config
 from dotshell.server.progress import ScanTracker
 from dotshell.server.protocol import event_from_wire
-from dotshell.tui.messages import ActionDone, ServerMessage
+from dotshell.tui.messages import ActionDone, ServerBatch, ServerMessage
 from dotshell.tui.redraw import DrawnWhileShown
+from dotshell.tui.themes import FEW_COLOURS, FEW_COLOURS_THEME, few_colours_theme, no_color_ansi
 from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.console_panel import ConsolePanel
 from dotshell.tui.widgets.keys_footer import KeysFooter
@@ -51,6 +54,8 @@ TABS = ("rig", "scan", "preview", "log", "console")
 TAB_FOCUS = {"console": "#console-in", "log": "#log-view"}
 #: Previews replayed from the server's backlog when attaching.
 REPLAYED_PREVIEWS = 5
+#: Server messages handled at most in one go (keys pressed meanwhile come between batches).
+BATCH_MAX = 200
 
 
 class DotshellApp(App):
@@ -64,6 +69,8 @@ class DotshellApp(App):
         Binding("ctrl+q", "quit", "Quit", priority=True),
         Binding("question_mark,f1", "keys", "Keys", key_display="?"),
         Binding("escape", "stop", "Stop", key_display="esc"),
+        Binding("p", "pause", "Pause/resume", show=False),
+        Binding("x", "abort", "Abort", show=False),
         Binding("ctrl+o", "pick_profile", "Profile"),
         Binding("ctrl+g", "plugins", "Plugins", show=False),
         Binding("ctrl+t", "take_control", "Take control", show=False),
@@ -72,7 +79,7 @@ class DotshellApp(App):
     ]
 
     def __init__(self, session: RemoteSession, notice: str = "") -> None:
-        super().__init__()
+        super().__init__(ansi_color=no_color_ansi())
         if "TEXTUAL_ANIMATIONS" not in os.environ:
             # No animations unless asked for: the tab bar's sliding underline alone redraws
             # the screen some 15 times a tab switch — over SSH each is a screen update sent.
@@ -83,6 +90,11 @@ class DotshellApp(App):
         self._unsubscribe: Callable[[], None] | None = None
         self._quitting = False
         self._main_up = False
+        self._inbox: deque[dict[str, Any]] = deque()
+        self._inbox_lock = threading.Lock()
+        self._batch_queued = False
+        self._scan_changed = False
+        self._batching = False
 
     # ---- layout -------------------------------------------------------------------------------
 
@@ -116,10 +128,16 @@ class DotshellApp(App):
         for ev in previews[-REPLAYED_PREVIEWS:]:
             self.panel(PreviewPanel).handle_session_event(ev)
         self.panel(ConsoleInput).set_history(self.session.history)
-        self._unsubscribe = self.session.subscribe(lambda m: self.post_message(ServerMessage(m)))
+        self.panel(ConsolePanel).replay(self.session.console_transcript,
+                                        self.session.state.get("console") or {})
+        self._unsubscribe = self.session.subscribe(self._from_server)
         if self.notice:
             log.add("info", self.notice)
-            self.notify(self.notice, timeout=8)
+            self.notify(self.notice, timeout=8,
+                        severity="warning" if "NOT applied" in self.notice else "information")
+        if self.console.color_system in FEW_COLOURS:  # else headings read red like errors
+            self.register_theme(few_colours_theme())
+            self.theme = FEW_COLOURS_THEME
         if self.console.color_system != "truecolor":
             log.add("warning", f"this terminal shows {self.console.color_system or 'no'} colours: "
                     "previews are approximate (a truecolor terminal, COLORTERM=truecolor, shows "
@@ -170,6 +188,7 @@ class DotshellApp(App):
         before the screen is laid out and painted with the pane, so no frame is stale."""
         if not (pane_id and self.main_ready):
             return
+        self.screen_stack[0].set_class(pane_id == "console", "-console-shown")
         for widget in self.screen_stack[0].query_one(f"TabPane#{pane_id}").walk_children():
             if isinstance(widget, DrawnWhileShown):
                 widget.catch_up()
@@ -188,6 +207,34 @@ class DotshellApp(App):
                 target.focus(scroll_visible=False)
 
     # ---- what the server says -----------------------------------------------------------------
+
+    def _from_server(self, message: dict[str, Any]) -> None:
+        """On the client's reader thread: keep the message, and queue one batch for the UI
+        thread unless one is queued already."""
+        with self._inbox_lock:
+            self._inbox.append(message)
+            if self._batch_queued:
+                return
+            self._batch_queued = True
+        self.post_message(ServerBatch())
+
+    def on_server_batch(self, _: ServerBatch) -> None:
+        """Handle the waiting server messages (at most :data:`BATCH_MAX`; the rest after any
+        key pressed meanwhile), and redraw the scan's progress once for all of them."""
+        with self._inbox_lock:
+            batch = [self._inbox.popleft() for _ in range(min(len(self._inbox), BATCH_MAX))]
+            more = self._batch_queued = bool(self._inbox)
+        self._batching = True
+        try:
+            for m in batch:
+                self.on_server_message(ServerMessage(m))
+        finally:
+            self._batching = False
+        if self._scan_changed and self.main_ready:
+            self._scan_changed = False
+            self.show_scan()
+        if more:
+            self.post_message(ServerBatch())
 
     def on_server_message(self, message: ServerMessage) -> None:
         if not self.main_ready:
@@ -232,6 +279,9 @@ class DotshellApp(App):
             self.show_scan()
 
     def show_scan(self) -> None:
+        if self._batching:  # drawn once when the batch is done
+            self._scan_changed = True
+            return
         now = time.time()
         self.panel(ScanPanel).show_tracker(self.tracker, now)
         self.panel(Summary).show_scan(self.tracker, self.session, now)
@@ -269,12 +319,25 @@ class DotshellApp(App):
             self.panel(LogPanel).add(level, text)
 
     def action_stop(self) -> None:
-        """The stop key: a scan is aborted (asking first when older than a minute) and every
-        moving device stopped; otherwise moving devices stop and pending jogs are dropped."""
-        if self.session.scanning:
-            self.panel(ScanPanel).action_abort(stop_devices=True)
-        else:
-            self.panel(RigPanel).stop()
+        """The stop key (any client, any tab): stop motion, never abort. Pending jogs are
+        dropped; during a scan the scan pauses before its next frame (``p`` resumes, ``x``
+        aborts), otherwise every device that can move stops now."""
+        self.panel(RigPanel).stop()
+
+    def check_action(self, action: str, parameters: tuple[object, ...]) -> bool | None:
+        """``p`` and ``x`` act on the main screen only: not under a dialog, where the app's
+        keys would otherwise still reach them (x in a confirmation asked again)."""
+        if action in ("pause", "abort") and len(self.screen_stack) > 1:
+            return False
+        return super().check_action(action, parameters)
+
+    def action_pause(self) -> None:
+        """``p`` on any tab but the Console: pause the scan, or resume a paused one."""
+        self.panel(ScanPanel).action_pause()
+
+    def action_abort(self) -> None:
+        """``x`` on any tab but the Console: abort the scan after a yes."""
+        self.panel(ScanPanel).action_abort()
 
     def action_take_control(self) -> None:
         self.run_session_action("take control", self.session.take_control)
@@ -309,8 +372,8 @@ class DotshellApp(App):
 
         def rows(bindings: Iterable[Binding | tuple]) -> list[tuple[str, str]]:
             out = []
-            for b in bindings:
-                if isinstance(b, Binding):
+            for b in bindings:  # a panel's app.* bindings only show the app's in its footer
+                if isinstance(b, Binding) and not b.action.startswith("app."):
                     keys = " ".join(re.sub(r"^f(\d+)$", r"F\1", self.get_key_display(
                         Binding(k, b.action, key_display=b.key_display if "," not in b.key
                                 else None))) for k in b.key.split(","))
@@ -330,9 +393,8 @@ class DotshellApp(App):
             ("Disconnect the rig", "close every device", rig.action_disconnect),
             ("Start scan", "scan with the loaded profile (Scan: s)", scan.action_start),
             ("Pause or resume the scan", "between frames (Scan: p)", scan.action_pause),
-            ("Abort the scan", "frames are kept, run aborted (Scan: x)", scan.action_abort),
-            ("Stop devices now", "abort a scan and stop every moving device (esc)",
-             self.action_stop),
+            ("Stop motion", "pause a scan before its next frame, else stop every moving "
+             "device; never aborts (esc)", self.action_stop),
             ("Go to stage angle", "absolute, degrees (Rig: g)", rig.action_goto),
             ("Home the stage", "find its reference position (Rig: h)", rig.action_home),
             ("Jog stage +", "by the jog step (Rig: ])", lambda: rig.action_jog(1)),
@@ -340,7 +402,7 @@ class DotshellApp(App):
             ("Set analyzer angle", "degrees (Rig: a)", rig.action_analyzer),
             ("Set camera exposure", "ms (Rig: e)", rig.action_exposure),
             ("Snap a frame", "with the current pattern (Rig: space)", rig.action_snap),
-            ("Project a pattern", "from the coding's sequence (Rig: p)", rig.action_project),
+            ("Project a pattern", "from the coding's sequence (Rig: t)", rig.action_project),
             ("Decode map", "project, capture and decode here (Rig: m)", rig.action_decode),
             ("Load profile", "pick a profile (ctrl+o)", self.action_pick_profile),
             ("Plugins", "backends and load errors (ctrl+g)", self.action_plugins),
@@ -353,6 +415,10 @@ class DotshellApp(App):
         ]
         for title, help_text, callback in commands:
             yield SystemCommand(title, help_text, callback)
+        # found only when searched for, never the entry Enter picks in an empty palette, and
+        # it asks first like x
+        yield SystemCommand("Abort the scan", "asks first; frames are kept, run aborted "
+                            "(Scan: x)", scan.action_abort, discover=False)
         yield from super().get_system_commands(screen)
 
     # ---- quitting -----------------------------------------------------------------------------

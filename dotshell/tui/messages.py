@@ -16,6 +16,12 @@ class ServerMessage(Message):
         self.message = message
 
 
+class ServerBatch(Message):
+    """Messages of the server wait in the app's inbox. At most one of these is queued at a
+    time, so a key pressed during a busy scan is handled after one batch, not after every
+    message the server pushed before it (the stop key came seconds late in a real terminal)."""
+
+
 class ActionDone(Message):
     """A session request run in a worker finished: ``error`` is its message or ``""``."""
 

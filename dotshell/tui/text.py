@@ -40,3 +40,12 @@ def shown_path(path: str | Path) -> str:
     interpreter lock), and the panels draw the same few paths — the run, the output directory,
     the profile — on every progress message. The TUI never changes its working directory."""
     return short_path(path)
+
+
+def copy_text(app: Any, text: str, what: str) -> None:
+    """Put ``text`` on the clipboard with Textual's :meth:`~textual.app.App.copy_to_clipboard`
+    (OSC 52: the terminal's clipboard where the terminal allows it; tmux needs
+    ``set -g set-clipboard on``) and say what was copied."""
+    app.copy_to_clipboard(text)
+    app.notify(f"copied {what} ({len(text)} characters; OSC 52: the terminal must allow it)",
+               timeout=4)

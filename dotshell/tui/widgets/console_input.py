@@ -18,6 +18,10 @@ from textual.widgets import TextArea
 from dotshell.server.interpreter import wants_more
 
 _TOKEN_END = re.compile(r"[A-Za-z_][\w.]*$")
+#: An Enter this soon after the key before it (seconds) is part of a paste arriving as keys
+#: (a terminal without bracketed paste sends them in one burst, microseconds apart; typing
+#: is tens of milliseconds apart, Textual's Pilot too).
+PASTE_GAP_S = 0.01
 
 
 class ConsoleInput(TextArea):
@@ -45,6 +49,9 @@ class ConsoleInput(TextArea):
             super().__init__()
             self.up = up
 
+    class CopyOutput(Message):
+        """ctrl+y: copy the output of the last input."""
+
     class CompleteRequest(Message):
         def __init__(self, text: str) -> None:
             super().__init__()
@@ -58,15 +65,27 @@ class ConsoleInput(TextArea):
         self.busy = False
         self.waiting_prompt: str | None = None
         self._draft = ""
+        self._last_key_s = 0.0  # when the last key came (monotonic seconds)
 
     async def _on_key(self, event: events.Key) -> None:
+        gap_s, self._last_key_s = event.time - self._last_key_s, event.time
+        if event.key == "enter" and gap_s < PASTE_GAP_S and self.waiting_prompt is None:
+            # a paste without bracketed paste (keys in one burst): its newlines are text — no
+            # auto-indent on top of the pasted indentation, no run in the middle of it
+            self.insert("\n")
+            event.stop()
+            event.prevent_default()
+            return
         handler = {"enter": self._enter, "up": self._history_up, "down": self._history_down,
                    "ctrl+c": self._interrupt, "ctrl+d": self._end_of_file,
-                   "tab": self._complete, "pageup": lambda: self._page(True),
+                   "tab": self._complete, "ctrl+y": self._copy_output, "pageup": lambda: self._page(True),
                    "pagedown": lambda: self._page(False)}.get(event.key)
         if handler is not None and handler():
             event.stop()
             event.prevent_default()
+            return
+        if event.key == "escape":  # the app's stop key, as on every tab: TextArea would move
+            event.prevent_default()  # the focus away; the event goes on to the app
             return
         await super()._on_key(event)
 
@@ -74,6 +93,9 @@ class ConsoleInput(TextArea):
         if self.waiting_prompt is not None:
             line, self.text = self.text, ""
             self.post_message(self.Reply(line))
+            return True
+        if not self.text.strip():
+            self.text = ""  # an empty Enter adds nothing (it added an invisible newline)
             return True
         row, _ = self.cursor_location
         single_line = "\n" not in self.text
@@ -128,6 +150,10 @@ class ConsoleInput(TextArea):
         if not self.busy:
             return False  # TextArea copies the selection
         self.post_message(self.Interrupt())
+        return True
+
+    def _copy_output(self) -> bool:
+        self.post_message(self.CopyOutput())
         return True
 
     def _page(self, up: bool) -> bool:

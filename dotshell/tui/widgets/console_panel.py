@@ -16,6 +16,7 @@ from textual.widgets import Static
 
 from dotshell.tui.messages import ActionDone
 from dotshell.tui.redraw import show
+from dotshell.tui.text import copy_text
 from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.reflow_log import ReflowLog
 
@@ -24,8 +25,8 @@ BANNER = ("Python console on the live session: rig, profile, run, session, np, d
           "decode(), scan(), pause(), resume(), abort(), stop(). Enter runs, a blank line ends a "
           "block, "
           "↑/↓ history, Tab completes, ctrl+c interrupts; input() and help() ask here.")
-STYLES = {"out": "", "err": "yellow", "result": "cyan", "error": "red", "input": "bold",
-          "note": "dim"}
+STYLES = {"out": "", "err": "yellow", "result": "cyan", "error": "bold red", "input": "bold",
+          "note": "dim", "log": "italic"}
 READY = "ready"
 
 
@@ -35,7 +36,8 @@ class ConsolePanel(Vertical):
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
         self.transcript: list[tuple[str, str]] = []
-        self._partial = {"out": "", "err": ""}
+        self._partial = {"out": "", "err": "", "log": ""}
+        self._sent = ""  # the last input sent to the server
 
     def compose(self) -> ComposeResult:
         output = ReflowLog(id="console-out")
@@ -85,8 +87,10 @@ class ConsolePanel(Vertical):
     @property
     def output_text(self) -> str:
         """Everything shown in the pane so far (for tests and copy)."""
-        return "".join(t if k in self._partial else t.rstrip("\n") + "\n"
-                       for k, t in self.transcript)
+        return self._joined(self.transcript)
+
+    def _joined(self, entries: list[tuple[str, str]]) -> str:
+        return "".join(t if k in self._partial else t.rstrip("\n") + "\n" for k, t in entries)
 
     # ---- what the server says -----------------------------------------------------------------
 
@@ -106,7 +110,7 @@ class ConsolePanel(Vertical):
             self.box.waiting_prompt = None
             self._set_busy(False)
             self._status(READY if message.get("ok") else
-                         "[red]the input raised an error (traceback above)[/]")
+                         "[bold red]the input raised an error (traceback above)[/]")
 
     def _set_busy(self, busy: bool) -> None:
         self.box.busy = busy
@@ -117,6 +121,26 @@ class ConsolePanel(Vertical):
     def busy(self) -> bool:
         return self.box.busy
 
+    def replay(self, transcript: list[dict[str, Any]], console: dict[str, Any]) -> None:
+        """A front end attaching: show what the console showed before (the server's bounded
+        transcript), then its true state — busy while an input (a ``scan()``) still runs,
+        waiting when it asks with ``input()``."""
+        if transcript:
+            self.write("note", "— the console so far (from the server) —\n")
+        for message in transcript:
+            self.handle(message)
+        busy = bool(console.get("busy"))
+        prompt = console.get("prompt")
+        if prompt is not None and busy:
+            self.handle({"type": "console_input", "prompt": prompt})
+            self.box.busy = True
+        elif busy:
+            self.box.waiting_prompt = None
+            self._set_busy(True)
+        elif self.box.busy:  # the transcript ended inside an input that has finished since
+            self.box.busy = False
+            self._status(READY)
+
     # ---- input --------------------------------------------------------------------------------
 
     def _request(self, label: str, fn: Any, *args: Any) -> None:
@@ -124,11 +148,19 @@ class ConsolePanel(Vertical):
 
     def on_console_input_submitted(self, message: ConsoleInput.Submitted) -> None:
         if self.box.busy:
-            self._status("[yellow]still running the previous input — ctrl+c interrupts it[/]")
-            self.box.text = message.source
+            self._refused(message.source, "still running the previous input — it was not "
+                          "sent; Enter again when it ends, ctrl+c interrupts it")
             return
         self.box.busy = True
+        self._sent = message.source
         self._request("console", self.session.console_run, message.source)
+
+    def _refused(self, source: str, why: str) -> None:
+        """Input that did not run stays in the box (never lost), and the status says why."""
+        if not self.box.text.strip():
+            self.box.text = source
+            self.box.move_cursor(self.box.document.end)
+        self._status(f"[b reverse] not run [/] [yellow]{escape(why)}[/]")
 
     def on_console_input_reply(self, message: ConsoleInput.Reply) -> None:
         self.box.waiting_prompt = None
@@ -138,6 +170,18 @@ class ConsolePanel(Vertical):
     def on_console_input_interrupt(self, message: ConsoleInput.Interrupt) -> None:
         self._status("[yellow]interrupting…[/]")
         self._request("interrupt", self.session.console_interrupt)
+
+    def last_output(self) -> str:
+        """What the last input printed and returned (its echo excluded)."""
+        cut = max((i for i, (k, _) in enumerate(self.transcript) if k == "input"), default=-1)
+        return self._joined([(k, t) for k, t in self.transcript[cut + 1:] if k != "note"])
+
+    def on_console_input_copy_output(self, message: ConsoleInput.CopyOutput) -> None:
+        text = self.last_output()
+        if not text.strip():
+            self._status("[yellow]nothing to copy: the last input printed nothing[/]")
+            return
+        copy_text(self.app, text, "the last input's output")
 
     def on_console_input_page(self, message: ConsoleInput.Page) -> None:
         output = self.query_one(ReflowLog)
@@ -149,8 +193,12 @@ class ConsolePanel(Vertical):
     def on_action_done(self, message: ActionDone) -> None:
         if message.error:
             if message.label == "console":
-                self.box.busy = False
-            self._status(f"[red]{escape(message.label)}: {escape(message.error)}[/]")
+                # refused by the server (another input runs, another front end controls):
+                # the input is put back; busy stays what the server says
+                self.box.busy = bool((self.session.state.get("console") or {}).get("busy"))
+                self._refused(self._sent, message.error)
+                return
+            self._status(f"[bold red]{escape(message.label)}: {escape(message.error)}[/]")
         elif message.label == "complete":
             token, matches = message.result["token"], message.result["matches"]
             self.box.apply_completion(token, matches)

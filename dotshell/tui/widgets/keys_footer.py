@@ -17,9 +17,19 @@ from textual.app import ComposeResult
 from textual.compose import compose
 from textual.containers import Horizontal
 from textual.widgets import Footer
+from textual.widgets._footer import FooterKey
 
 #: Rows of key widgets kept for sets of keys not shown now (the least recently shown go first).
 KEPT_ROWS = 12
+#: Keys shown first, whatever the tab adds after them: at 80 columns the keys that do not fit
+#: are cut at the right (the stop key was, on the Rig tab, under the palette's key).
+FIRST_ACTIONS = ("stop",)
+
+
+def stop_key_first(widgets: list[Any]) -> list[Any]:
+    """The footer's key widgets with those of :data:`FIRST_ACTIONS` moved to the front."""
+    first = [w for w in widgets if isinstance(w, FooterKey) and w.action in FIRST_ACTIONS]
+    return first + [w for w in widgets if w not in first]
 
 
 class KeyRow(Horizontal):
@@ -55,7 +65,7 @@ class KeysFooter(Footer):
         if not self._bindings_ready:
             return
         self._shown = self.shown_keys()
-        yield KeyRow(*compose(self, super().compose()), keys=self._shown)
+        yield KeyRow(*stop_key_first(compose(self, super().compose())), keys=self._shown)
 
     async def recompose(self) -> None:
         if not self.is_attached or self._shown is None:
@@ -73,7 +83,7 @@ class KeysFooter(Footer):
             if len(hidden) >= KEPT_ROWS:
                 rows.remove(hidden[0])
                 await hidden[0].remove()
-            row = KeyRow(*compose(self, super().compose()), keys=keys)
+            row = KeyRow(*stop_key_first(compose(self, super().compose())), keys=keys)
             row.display = False
             await self.mount(row)
         row.shown_at = self._changes

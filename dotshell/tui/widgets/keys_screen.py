@@ -1,5 +1,6 @@
 """The keys overlay (``?`` or F1): every key of the app, where it works and what it does,
-read from the bindings themselves so it cannot go stale; escape, ``?`` or F1 close it."""
+read from the bindings themselves so it cannot go stale; it scrolls with the arrows and page
+keys from the start; escape, ``?`` or F1 close it."""
 
 from __future__ import annotations
 
@@ -17,7 +18,10 @@ CONSOLE_KEYS = [("enter", "run a complete input (adds a line to an open block)")
                 ("↑ ↓", "history, on the first / last line"),
                 ("tab", "complete the name before the cursor"),
                 ("pgup pgdn", "scroll the output"),
-                ("^c", "interrupt the running input (a scan is aborted cleanly)"),
+                ("^c", "interrupt the running input (a scan is aborted cleanly); copy the "
+                        "selection in the box when nothing runs"),
+                ("^y", "copy the last input's output to the clipboard (OSC 52)"),
+                ("esc", "stop motion, as on every tab"),
                 ("^d", "end of file for a waiting input()")]
 
 
@@ -42,6 +46,10 @@ class KeysScreen(ModalScreen[None]):
             yield Static("[b]Keys[/] — escape closes; ^p searches every command",
                          classes="question")
             yield Static(table)
+
+    def on_mount(self) -> None:
+        """The table scrolls at once (↑ ↓ pgup pgdn home end): it holds the focus."""
+        self.query_one("#keys", VerticalScroll).focus()
 
     def action_close(self) -> None:
         self.dismiss(None)

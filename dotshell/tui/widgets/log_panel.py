@@ -15,6 +15,7 @@ from textual.widgets import Label, Select
 
 from dotshell.events import Event
 from dotshell.server.describe import LEVELS, describe_event
+from dotshell.tui.text import copy_text
 from dotshell.tui.widgets.reflow_log import ReflowLog
 
 LEVEL_STYLE = {"debug": "dim", "info": "", "warning": "yellow", "error": "bold red"}
@@ -32,7 +33,9 @@ class LogEntry:
 class LogPanel(Vertical):
     """Every event as one line; the selector hides lines below a level (``l`` cycles it)."""
 
-    BINDINGS = [Binding("l", "cycle_level", "Level")]
+    BINDINGS = [Binding("l", "cycle_level", "Level"),
+                Binding("y", "copy(False)", "Copy line", show=False),
+                Binding("Y", "copy(True)", "Copy all", show=False)]
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__(**kwargs)
@@ -63,6 +66,23 @@ class LogPanel(Vertical):
         del self.entries[:-MAX_ENTRIES]
         if LEVELS.index(level) >= LEVELS.index(self.min_level):
             self.query_one(ReflowLog).add(self._line(entry))
+
+    @staticmethod
+    def plain(e: LogEntry) -> str:
+        """A line as copied: ``HH:MM:SS level   text``."""
+        stamp = time.strftime("%H:%M:%S", time.localtime(e.time))
+        return f"{stamp} {e.level:<7} {e.text}"
+
+    def action_copy(self, everything: bool) -> None:
+        """``y``: the newest line shown, ``Y``: every line shown (at the chosen level), to the
+        clipboard — the terminal's (OSC 52) where it allows it."""
+        shown = self.visible()[-SHOWN:]
+        if not shown:
+            self.app.notify("nothing to copy: no line is shown", severity="warning")
+            return
+        lines = shown if everything else shown[-1:]
+        copy_text(self.app, "\n".join(self.plain(e) for e in lines) + "\n",
+                  f"{len(lines)} log line{'s' if len(lines) > 1 else ''}")
 
     @staticmethod
     def _line(e: LogEntry) -> Text:

@@ -44,7 +44,7 @@ def describe_stats(stats: dict[str, Any]) -> str:
     if not stats:
         return ""
     sat = stats["saturated_pct"]
-    style = "red" if sat >= 1.0 else "yellow" if sat > 0 else ""
+    style = "bold red" if sat >= 1.0 else "yellow" if sat > 0 else ""
     sat_text = f"{sat:.2f} % saturated (≥ {stats['full_scale']:g})"
     return (f"min {stats['min']:g} · max {stats['max']:g} · mean {stats['mean']:.0f} DN · "
             + (f"[{style}]{sat_text}[/]" if style else sat_text))
@@ -89,7 +89,7 @@ class PreviewPanel(DrawnWhileShown, Vertical, can_focus=True):
                 image.thumbnail((THUMBNAIL_PX, THUMBNAIL_PX))
         except OSError as exc:
             show(self.query_one("#preview-title", Static),
-                 f"[red]cannot read preview {escape(path)}: {escape(str(exc))}[/]")
+                 f"[bold red]cannot read preview {escape(path)}: {escape(str(exc))}[/]")
             return
         self.items.append(PreviewItem(kind, path, view, image, size, dict(stats or {})))
         del self.items[:-KEEP]

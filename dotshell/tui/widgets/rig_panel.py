@@ -31,7 +31,7 @@ from dotshell.tui.widgets.prompt import PromptScreen
 ROLES = ("camera", "projector", "stage", "analyzer", "light_source")
 HELP = ("[b]c[/] connect  [b]d[/] disconnect  [b][ ][/] jog ∓step  [b]+ -[/] step  "
         "[b]g[/] go to  [b]h[/] home  [b]a[/] analyzer  [b]e[/] exposure  [b]space[/] snap  "
-        "[b]p[/] project  "
+        "[b]t[/] pattern  "
         "[b]m[/] decode map  [b]esc[/] stop")
 #: Below this width the device table is stacked: one device per two lines.
 STACK_BELOW = 80
@@ -54,7 +54,7 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
         Binding("a", "analyzer", "Analyzer", show=False),
         Binding("e", "exposure", "Exposure", show=False),
         Binding("space", "snap", "Snap"),
-        Binding("p", "project", "Project"),
+        Binding("t", "project", "Pattern", show=False),
         Binding("m", "decode", "Decode", show=False),
     ]
 
@@ -115,7 +115,7 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
             state = Text("connected", "green") if row["connected"] else Text("closed", "dim")
             status = describe_status(row["role"], row["status"], projected)
             table.add_row(row["role"], row["backend"], state,
-                          Text(status, "red" if status.startswith("error") else ""))
+                          Text(status, "bold red" if status.startswith("error") else ""))
         absent = self._absent(rows)
         note = Text(f"not in profile: {', '.join(absent)}" if rows and absent else "", "dim")
         update(self.query_one("#rig-table", Static), Group(table, note))
@@ -129,7 +129,7 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
             out.append(f"{row['backend']}\n", "dim")
             status = describe_status(row["role"], row["status"], projected)
             out.append(f"  {status}\n" if status else "",
-                       "red" if status.startswith("error") else "")
+                       "bold red" if status.startswith("error") else "")
         absent = self._absent(rows)
         if rows and absent:
             out.append(f"not in profile: {', '.join(absent)}", "dim")
@@ -156,7 +156,11 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
         if message.error:
             self.show_result("", f"{message.label}: {message.error}")
         else:
-            self.show_result(self._describe(message.label, message.result))
+            text = self._describe(message.label, message.result)
+            if message.label == "snap" and not self.session.projected:
+                text += ("\nthe projector shows no pattern, so the frame is dark: t projects "
+                         "one (white lights the sample)")
+            self.show_result(text)
 
     @staticmethod
     def _describe(label: str, result: Any) -> str:
@@ -168,6 +172,10 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
             pct = 100.0 * result["decoded_pixels"] / max(result["total_pixels"], 1)
             return (f"decoded {result['decoded_pixels']} of {result['total_pixels']} pixels "
                     f"({pct:.1f} %) → {short_path(result['preview'])}")
+        if label == "stop":
+            return {"paused": "scan paused by the stop key: p resumes it, x aborts it",
+                    "stopping": "the scan is stopping already (aborted)"}.get(
+                        result, "stopped: every device that can move")
         if label in ("jog", "go to", "home") and isinstance(result, (int, float)):
             return f"stage at {result:.2f}°"
         if label == "connect" and isinstance(result, dict):
@@ -197,9 +205,10 @@ class RigPanel(DrawnWhileShown, Vertical, can_focus=True):
         self.jogs.press(direction * self.step_deg)
 
     def stop(self) -> None:
-        """The stop key: forget pending jogs, stop every moving device (and a scan)."""
+        """The stop key: forget pending jogs and halt — a scan pauses before its next frame,
+        otherwise every moving device stops (never an abort)."""
         self.jogs.cancel()
-        self._do("stop", self.session.stop)
+        self._do("stop", self.session.halt)
 
     def action_step(self, factor: float) -> None:
         self.step_deg = min(180.0, max(0.125, self.step_deg * factor))

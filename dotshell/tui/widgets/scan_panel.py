@@ -1,6 +1,6 @@
 """The Scan panel: the profile's scan, start / pause / resume / abort, progress per view and
 frame with ETA, the current pipeline step, the result, and errors in place. View numbers are
-1-based, as on the progress bar. Aborting a scan that has run for more than a minute asks first.
+1-based, as on the progress bar. Aborting always asks first; the stop key (esc) only pauses a scan.
 """
 
 from __future__ import annotations
@@ -19,12 +19,13 @@ from dotshell.tui.messages import ActionDone
 from dotshell.tui.redraw import DrawnWhileShown, show
 from dotshell.tui.text import shown_path
 from dotshell.tui.widgets.confirm import ConfirmScreen
+from dotshell.tui.widgets.prompt import PromptScreen
 
-HELP = "[b]s[/] start  [b]p[/] pause / resume  [b]x[/] abort (frames are kept)  [b]esc[/] stop"
+HELP = ("[b]s[/] start  [b]p[/] pause / resume  [b]x[/] abort (asks; frames are kept)  "
+        "[b]esc[/] stop motion (pauses a scan)   settings: [b]v[/] views  [b]e[/] exposure  "
+        "[b]n[/] analyzer angles  [b]o[/] output folder")
 STATE_STYLE = {"running": "green", "paused": "yellow", "stopping": "yellow", "completed": "green",
-               "aborted": "yellow", "failed": "red"}
-#: A scan older than this (seconds, pauses excluded) is only aborted after a confirmation.
-CONFIRM_ABORT_AFTER_S = 60.0
+               "aborted": "yellow", "failed": "bold red"}
 
 
 class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
@@ -33,8 +34,12 @@ class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
 
     BINDINGS = [
         Binding("s", "start", "Start scan"),
-        Binding("p", "pause", "Pause/resume"),
-        Binding("x", "abort", "Abort"),
+        Binding("v", "views", "Views", show=False),
+        Binding("e", "exposure", "Exposure", show=False),
+        Binding("n", "analyzer_angles", "Analyzer angles", show=False),
+        Binding("o", "out_dir", "Output folder", show=False),
+        Binding("p", "app.pause", "Pause/resume"),  # p and x are the app's (every tab): shown
+        Binding("x", "app.abort", "Abort"),  # here in the footer too
     ]
 
     def __init__(self, **kwargs: Any) -> None:
@@ -77,7 +82,7 @@ class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
             view = f"{t.current_view + 1}/{t.n_views}" if t.current_view >= 0 else "…"
             line += (f"   step [b]{escape(t.step or '…')}[/]   view {view}"
                      f"   elapsed {format_seconds(t.active_seconds(now_s))}"
-                     f"   ETA {format_seconds(t.eta_s(now_s))}")
+                     f"   ETA {t.eta_text(now_s)}")
         show(self.query_one("#scan-state", Static), line)
         self.query_one("#views-bar", ProgressBar).update(total=max(t.n_views, 1),
                                                          progress=t.views_done)
@@ -98,8 +103,11 @@ class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
             text = "no profile loaded — ctrl+o"
         else:
             out_dir = shown_path(self.session.state["out_dir"])
+            pdi = (f", PDI analyzer {' / '.join(f'{a:g}°' for a in p['pdi_angles_deg'])}"
+                   if p.get("pdi") else "")
             text = (f"[b]{escape(p['name'])}[/]: {p['views']} views, exposure "
-                    f"{p['exposure_ms']:g} ms, coding {escape(p['coding'])} → {escape(out_dir)}/")
+                    f"{p['exposure_ms']:g} ms{pdi}, coding {escape(p['coding'])} → "
+                    f"{escape(out_dir)}/")
         show(self.query_one("#scan-plan", Static), text)
 
     @staticmethod
@@ -127,31 +135,86 @@ class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
         self._do("scan", self.session.scan)
 
     def action_pause(self) -> None:
+        if not self.session.scanning:
+            return
         if self.session.session_state == "paused":
             self._do("resume", self.session.resume)
         else:
             self._do("pause", self.session.pause)
 
-    def action_abort(self, stop_devices: bool = False) -> None:
-        """Abort the scan (and with ``stop_devices``, the stop key, stop every moving device
-        at once); a scan older than a minute is only aborted after a yes."""
+    def action_abort(self) -> None:
+        """Abort the scan, after a yes (from any tab, the palette or ``x``); a watcher is told
+        that only the client in control may abort."""
         tracker: ScanTracker = self.app.tracker  # type: ignore[attr-defined]
         if not self.session.scanning:
             return
-        label, fn = ("stop", self.session.stop) if stop_devices else ("abort", self.session.abort)
-        running_s = tracker.active_seconds(time.time())
-        if running_s <= CONFIRM_ABORT_AFTER_S:
-            self._do(label, fn)
+        if not self.session.in_control:
+            self.failure = ("abort: only the front end in control may abort the scan (ctrl+t "
+                            "takes control); esc pauses it")
+            self.app.notify(self.failure, severity="warning")
+            self.app.show_scan()  # type: ignore[attr-defined]
             return
+        running_s = tracker.active_seconds(time.time())
 
         def answer(yes: bool | None) -> None:
             if yes:
-                self._do(label, fn)
+                self._do("abort", self.session.abort)
 
         self.app.push_screen(ConfirmScreen(
             f"The scan has run for {format_seconds(running_s)}. Abort it?\nFrames captured so "
             "far are kept and the run is marked aborted.", yes="Abort the scan",
             no="Keep scanning"), answer)
+
+    # ---- the next scan's settings ---------------------------------------------------------------
+
+    def _setting(self, question: str, value: str, parse: Any, label: str,
+                 send: Any) -> None:
+        """Ask for one setting (starting from its value now), parse it and send it; a value
+        that does not parse, or that the server refuses, is said in the error line."""
+        if self.session.profile is None:
+            self.failure = f"{label}: no profile loaded — ctrl+o"
+            self.app.show_scan()  # type: ignore[attr-defined]
+            return
+
+        def answered(text: str | None) -> None:
+            if text is None:
+                return
+            try:
+                parsed = parse(text)
+            except ValueError as exc:
+                self.failure = f"{label}: {text!r} is not {exc}"
+                self.app.show_scan()  # type: ignore[attr-defined]
+                return
+            self.failure = ""
+            self._do(label, lambda: send(parsed))
+
+        self.app.push_screen(PromptScreen(question, value), answered)
+
+    def action_views(self) -> None:
+        p = self.session.profile or {}
+        self._setting("Views (equally spaced over 360°):", str(p.get("views", "")),
+                      _positive_int, "views",
+                      lambda n: self.session.configure(views=n))
+
+    def action_exposure(self) -> None:
+        """The same as the Rig tab's e: the camera now (when connected) and the scans."""
+        p = self.session.profile or {}
+        self._setting("Camera exposure (ms), for the camera now and the scans:",
+                      f"{p.get('exposure_ms', 20.0):g}", _positive_float, "exposure",
+                      self.session.set_exposure)
+
+    def action_analyzer_angles(self) -> None:
+        p = self.session.profile or {}
+        angles = p.get("pdi_angles_deg") or [0.0, 90.0]
+        note = "" if p.get("pdi") else " (used when scan.pdi is on; it is off)"
+        self._setting(f"PDI analyzer angles, parallel and perpendicular (degrees){note}:",
+                      ", ".join(f"{a:g}" for a in angles), _two_angles, "analyzer angles",
+                      lambda a: self.session.configure(pdi_angles_deg=a))
+
+    def action_out_dir(self) -> None:
+        self._setting("Output folder (runs are made inside it):",
+                      shown_path(self.session.state.get("out_dir", "runs")), _folder,
+                      "output folder", lambda d: self.session.configure(out_dir=d))
 
     def on_action_done(self, message: ActionDone) -> None:
         if message.label == "scan":
@@ -159,3 +222,40 @@ class ScanPanel(DrawnWhileShown, Vertical, can_focus=True):
         elif message.error:
             self.failure = f"{message.label}: {message.error}"
         self.app.show_scan()  # type: ignore[attr-defined]
+
+
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise ValueError("a whole number") from None
+    if n < 1:
+        raise ValueError("a number of views (1 or more)")
+    return n
+
+
+def _positive_float(text: str) -> float:
+    try:
+        x = float(text)
+    except ValueError:
+        raise ValueError("a number") from None
+    if x <= 0:
+        raise ValueError("a positive number")
+    return x
+
+
+def _two_angles(text: str) -> list[float]:
+    parts = [t for t in text.replace(",", " ").split() if t]
+    try:
+        angles = [float(t) for t in parts]
+    except ValueError:
+        raise ValueError("two angles in degrees, e.g. 0, 90") from None
+    if len(angles) != 2:
+        raise ValueError("two angles in degrees (parallel, perpendicular), e.g. 0, 90")
+    return angles
+
+
+def _folder(text: str) -> str:
+    if not text.strip():
+        raise ValueError("a folder")
+    return text.strip()

@@ -11,7 +11,7 @@ from textual.app import ComposeResult
 from textual.containers import Vertical
 from textual.widgets import Static
 
-from dotshell.server.progress import ScanTracker, format_seconds
+from dotshell.server.progress import ScanTracker
 from dotshell.tui.redraw import DrawnWhileShown, show
 from dotshell.tui.text import describe_status
 
@@ -69,7 +69,7 @@ class Summary(DrawnWhileShown, Vertical):
             lines.append(f"frames {t.frames_done}/{t.frames_total}")
         if t.active:
             lines.append(f"step {escape(t.step)}")
-            lines.append(f"ETA {format_seconds(t.eta_s(now_s))}")
+            lines.append(f"ETA {t.eta_text(now_s)}")
         if t.points:
             lines.append(f"{t.points} points")
         show(self.query_one("#summary-scan", Static), "\n".join(lines))
