@@ -20,6 +20,7 @@ import tomli_w
 from conftest import make_dist, write_test_profile
 from dotshell.server.client import RemoteSession
 from dotshell.server.paths import server_name, socket_path
+from dotshell.server.protocol import ServerError
 from dotshell.server.supervisor import WorkerSession
 from dotshell.store import RunStore
 from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
@@ -276,12 +277,17 @@ def _catch(fn, into):
 
 def test_an_abort_ends_a_hung_worker_within_its_bound_and_a_new_one_takes_over(hung_rig,
                                                                                tmp_path):
-    """A watcher's abort (any client may abort): the hung worker is ended ``abort_bound_s``
-    after it, the run is marked, and a new worker serves the same profile; the server goes on."""
+    """An abort while the worker hangs (a watcher's is refused: aborting is the controller's;
+    it takes control, as an operator at another terminal would): the hung worker is ended
+    ``abort_bound_s`` after it, the run is marked, and a new worker serves the same profile;
+    the server goes on."""
     with _hung_scan(hung_rig, tmp_path, "hung3") as (session, server, watcher, inbox, run_dir,
                                                      _):
         first_pid = session.pid
         hung_rig[1].unlink()  # the new worker's camera works
+        with pytest.raises(ServerError, match="control"):
+            watcher.abort()
+        watcher.take_control()  # answered by the server while the worker hangs
         watcher.abort()
         finished = inbox.wait_for(lambda m: m.get("type") == "event"
                                   and m["event"]["event"] == "ScanFinished", timeout=120)

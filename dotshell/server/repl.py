@@ -45,6 +45,37 @@ def read_history(path: Path | None) -> list[str]:
     return out[-HISTORY_SIZE:]
 
 
+class Transcript:
+    """A console's last messages as they were pushed, oldest first: at most
+    :data:`TRANSCRIPT_CHARS` characters of text (the oldest dropped first; a long oldest output
+    keeps its end). Shown to a front end that attaches later."""
+
+    def __init__(self, limit: int | None = None) -> None:
+        self._limit = limit  # None: TRANSCRIPT_CHARS as it is when a message is added
+        self.lock = threading.RLock()
+        self._messages: deque[dict[str, Any]] = deque()
+        self._chars = 0
+
+    def add(self, message: dict[str, Any]) -> None:
+        with self.lock:
+            self._messages.append(message)
+            self._chars += len(message.get("text") or "")
+            limit = TRANSCRIPT_CHARS if self._limit is None else self._limit
+            while self._chars > limit:
+                oldest = self._messages[0]
+                text, excess = oldest.get("text") or "", self._chars - limit
+                if len(text) > excess:  # keep the end of a long output
+                    self._messages[0] = {**oldest, "text": text[excess:]}
+                    self._chars -= excess
+                else:
+                    self._messages.popleft()
+                    self._chars -= len(text)
+
+    def messages(self) -> list[dict[str, Any]]:
+        with self.lock:
+            return list(self._messages)
+
+
 class ServerConsole:
     """The console service. ``send(message)`` delivers a message to every client."""
 
@@ -52,11 +83,10 @@ class ServerConsole:
                  history_file: Path | None = None) -> None:
         self.session = session
         self._broadcast = send
+        self.kept = Transcript()
         #: held while a message is kept and sent: a front end greeted under it gets each
         #: console message once, in the transcript or pushed after it
-        self.lock = threading.RLock()
-        self._transcript: deque[dict[str, Any]] = deque()
-        self._transcript_chars = 0
+        self.lock = self.kept.lock
         self.history_file = history_file
         self.history = read_history(history_file)
         self.interpreter = Interpreter(session.namespace(), self._write,
@@ -71,24 +101,13 @@ class ServerConsole:
     def send(self, message: dict[str, Any]) -> None:
         """Keep ``message`` in the bounded transcript and send it to every front end."""
         with self.lock:
-            self._transcript.append(message)
-            self._transcript_chars += len(message.get("text") or "")
-            while self._transcript_chars > TRANSCRIPT_CHARS:
-                oldest = self._transcript[0]
-                text, excess = oldest.get("text") or "", self._transcript_chars - TRANSCRIPT_CHARS
-                if len(text) > excess:  # keep the end of a long output
-                    self._transcript[0] = {**oldest, "text": text[excess:]}
-                    self._transcript_chars -= excess
-                else:
-                    self._transcript.popleft()
-                    self._transcript_chars -= len(text)
+            self.kept.add(message)
             self._broadcast(message)
 
     def transcript(self) -> list[dict[str, Any]]:
-        """The console's last messages (about :data:`TRANSCRIPT_CHARS` characters), oldest
-        first, as they were pushed; call it holding :attr:`lock` to add nothing meanwhile."""
-        with self.lock:
-            return list(self._transcript)
+        """The console's last messages (:class:`Transcript`); call it holding :attr:`lock` to
+        add nothing meanwhile."""
+        return self.kept.messages()
 
     @property
     def busy(self) -> bool:

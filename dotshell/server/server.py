@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import os
 import queue
+import select
 import selectors
 import signal
 import socket
@@ -49,6 +50,11 @@ OUTBOX_SIZE = 50000
 BACKLOG_SIZE = 1000
 #: With ``exit_when_idle``: seconds without a client and without a scan before the server exits.
 IDLE_GRACE_S = 10.0
+#: After a refused (oversized) line: what the server still reads and drops of the rest before it
+#: closes (bytes, seconds), so that the peer can read the error reply: closing a socket with
+#: unread input resets the connection, and the peer's sendall or recv then fails without it.
+DISCARD_BYTES = 64 * 1024 * 1024
+DISCARD_S = 2.0
 SERVER_COMMANDS = ("hello", "state", "control", "release", "shutdown", "bye", "restart_worker")
 LIFECYCLE = (ScanStarted, ScanFinished, ScanPaused, ScanResumed)
 
@@ -132,12 +138,29 @@ class Connection:
                 self._dispatch(line)
         except ServerError as exc:
             self.send(error_reply(None, exc))
+            self._discard_input()
         except OSError:
             pass
         except Exception as exc:  # whatever a line does, the connection ends cleanly
             self.send(error_reply(None, exc))
             reason = f"its request failed ({type(exc).__name__}: {exc})"
         self.close(reason)
+
+    def _discard_input(self) -> None:
+        """Read and drop what the peer still sends, up to :data:`DISCARD_BYTES` or
+        :data:`DISCARD_S` seconds (bounded in time and memory), or until it stops sending."""
+        deadline, left = time.monotonic() + DISCARD_S, DISCARD_BYTES
+        while left > 0:
+            wait = deadline - time.monotonic()
+            if wait <= 0 or not select.select([self.sock], [], [], wait)[0]:
+                return
+            try:
+                data = self.sock.recv(65536)
+            except OSError:
+                return
+            if not data:
+                return
+            left -= len(data)
 
     def _dispatch(self, line: bytes) -> None:
         try:

@@ -64,7 +64,16 @@ class WorkerConsole:
     """What the server reads of the console that runs in the worker."""
 
     def __init__(self, owner: "WorkerSession") -> None:
+        from dotshell.server.repl import Transcript
+
         self._owner = owner
+        #: the worker's console messages, kept here so that a front end attaching later (also
+        #: after the worker was restarted) is shown them; see :class:`ServerConsole`'s lock
+        self.kept = Transcript()
+        self.lock = self.kept.lock
+
+    def transcript(self) -> list[dict[str, Any]]:
+        return self.kept.messages()
 
     @property
     def history(self) -> list[str]:
@@ -354,7 +363,9 @@ class WorkerSession:
                 self._scan_run, self._abort_at = None, None
             self.bus.emit(ev)
         elif kind == "push":
-            self.on_push(m["message"])
+            with self.console.lock:  # kept and sent at once (a greeting sees it once)
+                self.console.kept.add(m["message"])
+                self.on_push(m["message"])
         elif kind in ("reply", "ready"):
             rid = "ready" if kind == "ready" else m.get("id")
             with self._lock:

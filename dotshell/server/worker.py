@@ -35,7 +35,7 @@ from dotshell.server.protocol import decode, encode, error_reply, read_lines
 #: How often the worker looks for a change of what the server mirrors (seconds).
 MIRROR_S = 0.25
 #: Answered by the reading thread, never behind a running request.
-INLINE = frozenset({"ping", "abort", "stop", "pause", "resume", "console_reply",
+INLINE = frozenset({"ping", "abort", "stop", "halt", "pause", "resume", "console_reply",
                     "console_interrupt"})
 LIFECYCLE = (ScanStarted, ScanFinished, ScanPaused, ScanResumed)
 
