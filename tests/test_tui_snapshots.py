@@ -137,6 +137,7 @@ async def test_scan_screen_paused_midway(server, tmp_path):
         await pilot.pause()
         await pilot.press("s")
         await until(pilot, reached.is_set)
+        await until(pilot, lambda: app.session.scanning)  # p pauses a scan the TUI knows of
         await pilot.press("p")
         await until(pilot, lambda: session.state == "paused")
         opened.set()
