@@ -515,6 +515,7 @@ async def test_pause_resume_then_abort_midway_keeps_frames(tmp_path, pm, monkeyp
             await show_tab(pilot, "scan")
             await pilot.press("s")
             await first.wait(pilot)
+            await wait_until(pilot, lambda: app.session.scanning)  # p pauses a known scan
             await pilot.press("p")
             await wait_until(pilot, lambda: session.state == "paused")
             first.opened.set()  # the scan goes on to the next frame boundary and waits there
