@@ -125,3 +125,21 @@ def test_a_sampled_large_view_still_names_the_stale_pair():
     frames[names.index("col_02")] = frames[names.index("col_01")].copy()  # stale by one pair
     problems = check_view(frames, names, 4095.0).problems
     assert len(problems) == 1 and problems[0].startswith("frames 'col_02' and 'col_02_inv'")
+
+
+def test_frames_a_whole_pair_late_are_named_although_every_pair_adds_up(small_scan):
+    """Two frames dropped in the middle of a view: from col_03 on every pair shows the pair
+    before it. Each pair still adds up to white + black (the pair check alone passes it); the
+    order check names the first late pair, and only it."""
+    result, _ = small_scan
+    store = RunStore.open(result.run_dir)
+    names = store.manifest["frame_names"]
+    frames = list(store.read_frames(0))
+    k, end = names.index("col_03"), names.index("row_00")
+    late = frames[:k] + frames[k - 2:end - 2] + frames[end:]
+    checked = check_view(late, names, 4095.0)
+    assert checked.pairs_consistent == checked.pairs - 1 and checked.worst_pair_residual < 0.01
+    assert len(checked.problems) == 1
+    assert checked.problems[0].startswith("frames 'col_03' and 'col_03_inv' show the pattern "
+                                          "of 'col_02' again")
+    assert check_view(frames, names, 4095.0).ok  # the same frames in order pass

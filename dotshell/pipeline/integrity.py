@@ -14,6 +14,13 @@ What is checked (per analyzer angle of a PDI view, else once):
   the sum of its pair wherever the two patterns differ. Measured where white - black is at
   least a tenth of its 99th percentile: the pair's residual is the fraction of those pixels
   where ``|P + P_inv - W - B|`` exceeds half of ``W - B``.
+* **The order of the sequence.** Consecutive pattern pairs of one axis show different bit
+  planes: decoded alike (``P > P_inv``) on at most :data:`MAX_PLANE_AGREEMENT` of the lit
+  pixels (distinct Gray-code planes agree on about half). A pair that decodes like the pair
+  before it shows that pair's pattern again: the frames from there on are a whole pair late (two
+  frames dropped or read late), which the pair sums cannot see, since a late pair still adds up
+  to white + black. Pairs that one value covers almost wholly (the coarse planes of a small
+  lit field) say nothing and are passed over.
 * **Repeated frames.** Two consecutive frames that are identical (a sensor's noise never repeats
   itself) are a duplicated buffer.
 * **Frame ids and timestamps** (cameras with ``last_frame_info()`` or triggered frames): ids rise
@@ -34,6 +41,13 @@ import numpy as np
 #: showing the neighbouring Gray-code pattern 0.37, frames one pattern late 0.63 (measured on
 #: the 1/8-scale metal cylinder).
 MAX_PAIR_RESIDUAL = 0.1
+#: Largest share of the lit pixels on which two consecutive pairs of one axis may decode alike
+#: (distinct Gray-code planes agree on about half; a pair showing the pattern before it, on all
+#: but its noisy pixels).
+MAX_PLANE_AGREEMENT = 0.97
+#: A pair's plane says something of the order only where each value covers at least this share
+#: of the lit pixels.
+MIN_PLANE_MINORITY = 0.05
 #: Half of white - black: a pixel whose pair sum is off by more is inconsistent.
 PIXEL_TOLERANCE = 0.5
 #: Least median (W - B) / full scale over the lit pixels for white to count as above black.
@@ -136,22 +150,46 @@ def _check_group(by_name: dict[str, np.ndarray], full_scale: float, out: ViewInt
                             "another pattern (a late or stale frame)")
         return
     base, scale = (w + b)[lit], contrast[lit]
+    planes: dict[str, tuple[str, np.ndarray]] = {}  # axis prefix: (last pair, its bit plane)
     for name, frame in by_name.items():
         inverse = by_name.get(f"{name}_inv")
         if inverse is None:
             continue
-        total = (frame.ravel()[::step][lit].astype(np.float32)
-                 + inverse.ravel()[::step][lit].astype(np.float32))
-        residual = float(np.mean(np.abs(total - base) > PIXEL_TOLERANCE * scale))
+        p = frame.ravel()[::step][lit].astype(np.float32)
+        q = inverse.ravel()[::step][lit].astype(np.float32)
+        residual = float(np.mean(np.abs(p + q - base) > PIXEL_TOLERANCE * scale))
         out.pairs += 1
         out.worst_pair_residual = max(out.worst_pair_residual, residual)
-        if residual <= MAX_PAIR_RESIDUAL:
-            out.pairs_consistent += 1
-        else:
+        consistent = residual <= MAX_PAIR_RESIDUAL
+        if not consistent:
             out.problems.append(
                 f"frames {name!r} and {name + '_inv'!r} do not add up to white + black "
                 f"({100 * residual:.0f} % of the lit pixels off by more than half of white - "
                 "black): one of them shows another pattern (late, stale or duplicated)")
+        elif not _in_order(name, p > q, planes, out):
+            consistent = False
+        out.pairs_consistent += consistent
+
+
+def _in_order(name: str, plane: np.ndarray, planes: dict[str, tuple[str, np.ndarray]],
+              out: ViewIntegrity) -> bool:
+    """Whether the pair ``name`` (its bit plane on the lit pixels) shows another plane than the
+    pair of its axis before it (see the module docstring); a problem named if not."""
+    axis = name.rsplit("_", 1)[0]
+    before, planes[axis] = planes.get(axis), (name, plane)
+    if before is None or min(plane.mean(), 1 - plane.mean()) < MIN_PLANE_MINORITY:
+        return True
+    last, last_plane = before
+    if min(last_plane.mean(), 1 - last_plane.mean()) < MIN_PLANE_MINORITY:
+        return True
+    alike = float(np.mean(plane == last_plane))
+    if alike <= MAX_PLANE_AGREEMENT:
+        return True
+    out.problems.append(
+        f"frames {name!r} and {name + '_inv'!r} show the pattern of {last!r} again ("
+        f"{100 * alike:.1f} % of the lit pixels decode alike): the frames from there on are a "
+        "pair late (two frames dropped or read late)")
+    return False
 
 
 def _check_ids(infos: Sequence[dict[str, Any]], names: Sequence[str], out: ViewIntegrity) -> None:
