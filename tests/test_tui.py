@@ -324,6 +324,34 @@ async def test_the_device_table_is_as_tall_as_its_rows_whatever_was_drawn_before
         assert all(r["backend"] in shown for r in rows) and "never laid out" not in shown
 
 
+async def test_the_device_table_drawn_again_while_its_layout_is_due_fits_its_rows(server):
+    """The interleaving a loaded machine made (the pty tests' 'sim-turntable never shown', the
+    table two lines tall with three devices): the table is drawn (a layout due), the screen is
+    laid out for another widget's sake before the table's own layout request is sent, which
+    sizes the table by that content, and the device list comes while that request is still
+    due. The layout that follows must size the table by the list it shows now (Textual kept
+    the size it had computed for the older content: 2 lines for the 6 of three devices).
+    The screen layout in between is forced by the calls Textual's own would make."""
+    app = app_for(server)
+    async with running(app, (120, 40)) as pilot:
+        await wait_until(pilot, lambda: "sim-turntable" in static_text(app, "#rig-table"))
+        panel = app.panel(RigPanel)
+        table = app.screen_stack[0].query_one("#rig-table")
+        rows = list(panel.rows)
+        for before in ([], rows[:1]):
+            panel.show_rows(rows)
+            await pilot.pause()
+            panel.show_rows(before)  # fewer lines: the table's layout due
+            panel._clear_arrangement_cache()  # a sibling's layout request, then the screen's
+            app.screen._refresh_layout()  # layout: the table sized by ``before``
+            panel.show_rows(rows)  # the full list, the table's layout still due
+            await pilot.pause()
+            await pilot.pause()
+            assert table.size.height == lines_of(table) >= len(rows) + 2
+            shown = "\n".join(screen_lines(app))
+            assert all(r["backend"] in shown for r in rows)
+
+
 async def test_what_the_server_says_before_the_screen_is_mounted_is_shown(server):
     """The app subscribes to the server in its ``on_mount``, before Textual has mounted the
     main screen; the server's next messages can be handled then (seen in a real terminal on a
