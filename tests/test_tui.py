@@ -299,7 +299,13 @@ async def test_the_device_table_is_as_tall_as_its_rows_whatever_was_drawn_before
     """The device table is repainted without a screen layout only when its rows take exactly
     the lines it was laid out with. A row list that was drawn but never laid out (the server
     pushes a partial list while the profile's devices are made, the full one right after)
-    must not leave the table at the older list's height, clipping devices off the screen."""
+    must not leave the table at the older list's height, clipping devices off the screen.
+    Nor may a list drawn while the table's layout is due (the pty tests' 'sim-turntable
+    never shown' on a loaded machine): the table drawn, the screen laid out for another
+    widget's sake before the table's own layout request went out (sizing the table by that
+    content), then the full list. Textual kept the size computed for the older content, 2
+    lines for the 6 of three devices; the screen layout in between is forced here by the
+    calls Textual's own makes."""
     app = app_for(server)
     async with running(app, (120, 40)) as pilot:
         await wait_until(pilot, lambda: "sim-turntable" in static_text(app, "#rig-table"))
@@ -322,23 +328,7 @@ async def test_the_device_table_is_as_tall_as_its_rows_whatever_was_drawn_before
         assert table.size.height == lines_of(table) == full
         shown = "\n".join(screen_lines(app))
         assert all(r["backend"] in shown for r in rows) and "never laid out" not in shown
-
-
-async def test_the_device_table_drawn_again_while_its_layout_is_due_fits_its_rows(server):
-    """The interleaving a loaded machine made (the pty tests' 'sim-turntable never shown', the
-    table two lines tall with three devices): the table is drawn (a layout due), the screen is
-    laid out for another widget's sake before the table's own layout request is sent, which
-    sizes the table by that content, and the device list comes while that request is still
-    due. The layout that follows must size the table by the list it shows now (Textual kept
-    the size it had computed for the older content: 2 lines for the 6 of three devices).
-    The screen layout in between is forced by the calls Textual's own would make."""
-    app = app_for(server)
-    async with running(app, (120, 40)) as pilot:
-        await wait_until(pilot, lambda: "sim-turntable" in static_text(app, "#rig-table"))
-        panel = app.panel(RigPanel)
-        table = app.screen_stack[0].query_one("#rig-table")
-        rows = list(panel.rows)
-        for before in ([], rows[:1]):
+        for before in ([], rows[:1]):  # the interleaving a loaded machine made, forced:
             panel.show_rows(rows)
             await pilot.pause()
             panel.show_rows(before)  # fewer lines: the table's layout due
