@@ -27,13 +27,24 @@ def update(widget: Static, content: VisualType) -> None:
     ``Static.update`` does. The test is against the laid-out size, not the content shown
     before: that content may never have been laid out (drawn again before the layout ran)."""
     size = widget.content_size
-    if size.width <= 0 or _width_follows_content(widget):
-        widget.update(content)
-        return
     height = widget.styles.height
     widget.update(content, layout=False)
-    if (height is None or height.is_auto) and _content_height(widget, size.width) != size.height:
-        widget.refresh(layout=True)
+    if size.width <= 0 or _width_follows_content(widget) or (
+            (height is None or height.is_auto)
+            and _content_height(widget, size.width) != size.height):
+        lay_out(widget)
+
+
+def lay_out(widget: Widget) -> None:
+    """``widget.refresh(layout=True)``, sizing the widget by the content it has now. Textual
+    keeps the size it computed for a widget (its box model) under a counter that
+    ``refresh(layout=True)`` advances only when no layout of the widget is pending yet. Content
+    changed while one was pending, after a screen layout for another widget's sake had sized
+    this one by its older content, was laid out at the older size: the Rig tab's device table
+    kept an empty list's two lines and showed one device of three (a loaded machine's
+    interleaving, ``Static.update`` alike). Advancing the counter here makes that size stale."""
+    widget._layout_updates += 1
+    widget.refresh(layout=True)
 
 
 def _width_follows_content(widget: Widget) -> bool:
