@@ -184,7 +184,7 @@ def _glob_pattern(files: str) -> re.Pattern:
     return re.compile("^" + r"\d+".join(re.escape(p) for p in parts) + "$")
 
 
-def _read_gray(path: Path) -> tuple[np.ndarray, str]:
+def read_gray(path: Path) -> tuple[np.ndarray, str]:
     """The frame as one grey channel, and what the file held (e.g. ``uint16, 1 channel``)."""
     import cv2
 
@@ -254,7 +254,7 @@ def read_captures(directory: Path, layout: Layout, coding_names: list[str]) -> d
     order = capture_order(layout, coding_names)
     files = sequence_files(directory, layout, order)
     expected = [f.name for f in files]
-    read = {name: _read_gray(f) for name, f in zip(order, files)}
+    read = {name: read_gray(f) for name, f in zip(order, files)}
     _one_kind(directory, {fn: read[name][1] for name, fn in zip(order, expected)})
     frames = {name: img for name, (img, _) in read.items()}
     shapes = {fn: frames[name].shape for name, fn in zip(order, expected)}
