@@ -5,7 +5,7 @@ scaled down: rendering is not part of the clock) is taken by the real runner
 (:class:`dotshell.pipeline.acquire.Acquisition`) twice per display chain:
 
 * show/settle/capture, with ``settle_ms`` measured by the latency check
-  (:func:`dotshell.rig_checks.measure_latency`) on that same display chain;
+  (:func:`dotshell.rig.checks.measure_latency`) on that same display chain;
 * hardware-sequenced: the projector's stored sequence triggers the camera.
 
 Both read the sim clock (:mod:`dotshell_sim.timing`): host time minus the simulator's own
@@ -26,10 +26,10 @@ from typing import Any
 from dotshell.events import EventBus
 from dotshell.pipeline.acquire import Acquisition
 from dotshell.plugins import PluginManager, get_plugin_manager
-from dotshell.profile import validate_profile
-from dotshell.rig import Rig
-from dotshell.rig_checks import measure_latency
-from dotshell.store import RunStore
+from dotshell.profile.loader import validate_profile
+from dotshell.rig.assembly import Rig
+from dotshell.rig.checks import measure_latency
+from dotshell.run.store import RunStore
 from dotshell_sim.bench import scale_settings
 
 ROOT = Path(__file__).resolve().parents[1]

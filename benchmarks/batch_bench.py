@@ -66,7 +66,7 @@ def warm_up() -> float:
     import pyvista  # noqa: F401  (the previews' renderer)
 
     import dotshell.pipeline.validate  # noqa: F401
-    import dotshell.render  # noqa: F401
+    import dotshell.render.previews  # noqa: F401
     from dotshell.plugins import get_plugin_manager
 
     get_plugin_manager()
@@ -76,7 +76,7 @@ def warm_up() -> float:
 def serial_child(result: str, runs: list[str]) -> None:
     from dotshell.pipeline.scan import reconstruct_run
     from dotshell.plugins import get_plugin_manager
-    from dotshell.runtime import configure_process
+    from dotshell.runtime.process import configure_process
 
     configure_process()  # as the dotshell command runs
 

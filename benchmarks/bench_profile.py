@@ -6,7 +6,7 @@ import tomllib
 from pathlib import Path
 
 from dotshell.plugins import PluginManager
-from dotshell.profile import Profile, apply_overrides, validate_profile
+from dotshell.profile.loader import Profile, apply_overrides, validate_profile
 
 ROOT = Path(__file__).resolve().parents[1]
 PROFILE_PATH = ROOT / "profiles" / "sim-metal-cylinder.toml"

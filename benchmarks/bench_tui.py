@@ -126,7 +126,7 @@ def write_profile(quick: bool, path: Path) -> Path:
 def run_tui_bench(quick: bool) -> dict[str, Any]:
     """The figures: the TUI's and the peer's memory and idle CPU, the server's memory, the scan."""
     from dotshell.server.client import RemoteSession
-    from dotshell.server.paths import server_name, socket_path
+    from dotshell.runtime.paths import server_name, socket_path
 
     work = Path(tempfile.mkdtemp(prefix="ds-bench-", dir="/tmp"))
     env = {**os.environ, "TERM": "xterm-256color", "COLORTERM": "truecolor"}
@@ -135,7 +135,7 @@ def run_tui_bench(quick: bool) -> dict[str, Any]:
         (work / sub).mkdir(mode=0o700)
         env[var] = os.environ[var] = str(work / sub)
     profile = write_profile(quick, work / "bench.toml")
-    tui = PtyProcess([sys.executable, "-m", "dotshell.cli", "tui", str(profile), "--out",
+    tui = PtyProcess([sys.executable, "-m", "dotshell.cli.app", "tui", str(profile), "--out",
                       str(work / "runs")], env, work)
     try:
         tui.wait_for(b"sim-turntable")
@@ -159,7 +159,7 @@ def run_tui_bench(quick: bool) -> dict[str, Any]:
         watcher.close()
     finally:
         tui.close()
-        subprocess.run([sys.executable, "-m", "dotshell.cli", "stop", str(profile), "--abort"],
+        subprocess.run([sys.executable, "-m", "dotshell.cli.app", "stop", str(profile), "--abort"],
                        env=env, capture_output=True, timeout=600)
     peer = PtyProcess([sys.executable, "-c", PEER], env, work)
     try:

@@ -24,7 +24,7 @@ CLASSIFICATIONS = ("robust", "adaptive", "contrast")
 def bench_frames(quick: bool):
     """The bench's first view, every gray-code frame, and the projector size."""
     from dotshell.plugins import get_plugin_manager
-    from dotshell.rig import Rig
+    from dotshell.rig.assembly import Rig
     from dotshell_codings.graycode import make_graycode
 
     pm = get_plugin_manager()

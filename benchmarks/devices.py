@@ -1,7 +1,7 @@
 """Device benchmarks (``make bench``): what the rig's device handles cost, and how fast a stop
 reaches a moving stage.
 
-1. Call overhead: a no-op driver method called through a :class:`~dotshell.handles.DeviceHandle`
+1. Call overhead: a no-op driver method called through a :class:`~dotshell.rig.handles.DeviceHandle`
    (lock, worker thread, timeout) against the same method called directly (the peer), in the
    same run.
 2. Stop latency per serial stage/analyzer backend on its emulator (a real pty): from
@@ -29,7 +29,7 @@ from pathlib import Path
 
 from dotshell.backends import RigContext
 from dotshell.errors import DeviceError
-from dotshell.handles import DeviceHandle, DevicePolicy
+from dotshell.rig.handles import DeviceHandle, DevicePolicy
 from dotshell.plugins import PluginManager
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,7 +69,7 @@ def call_overhead(n: int = 5000) -> dict[str, float]:
 
 def stop_latency(pm: PluginManager, name: str, role: str, backend: str, marker: bytes,
                  method: str, repeats: int, via_signal: bool) -> dict[str, float]:
-    from dotshell.cli_devices import emulator_class
+    from dotshell.cli.devices import emulator_class
 
     hold, back = [], []
     with tempfile.TemporaryDirectory() as tmp:
@@ -119,7 +119,7 @@ def signalled_scans() -> dict[str, dict[str, float | None]]:
     sys.path.insert(0, str(ROOT / "tests"))
     from stop_cases import CASES, SIGNALS, signal_scan
 
-    from dotshell.cli_devices import emulator_class
+    from dotshell.cli.devices import emulator_class
 
     out: dict[str, dict[str, float | None]] = {}
     for case in CASES:

@@ -13,11 +13,11 @@ on every run.
 Each repeat, interleaved (the order alternates), from a freshly read ``volume.vtu`` and the
 source at the mesh's centroid (``dotshell forward``'s default without optodes):
 
-* ``dotshell``: :func:`dotshell.forward.solve_cw` — assembly, boundary faces, source element,
+* ``dotshell``: :func:`dotshell.fem.forward.solve_cw` — assembly, boundary faces, source element,
   Jacobi-preconditioned CG (what ``dotshell forward`` times as ``solve_s``);
 * the same steps one by one (boundary faces, source element, assembly, CG), to show where
   ``solve_cw``'s time goes;
-* ``splu``: the same assembly (:func:`dotshell.forward.system_matrix`) and source vector, then
+* ``splu``: the same assembly (:func:`dotshell.fem.forward.system_matrix`) and source vector, then
   ``scipy.sparse.linalg.splu`` with COLAMD ordering and its solve (``dotshell forward``'s solver
   before issue 16). At 1.0 mm it takes tens of seconds, so it runs ``lu_repeats`` times only.
 
@@ -39,9 +39,9 @@ import scipy.sparse.linalg as sla
 
 from bench_profile import ROOT
 from frame_io import min_median
-from dotshell.fem import TetMesh, element_containing
-from dotshell.forward import jacobi_cg, robin_A, solve_cw, system_matrix
-from dotshell.meshfiles import read_volume, write_volume
+from dotshell.fem.meshes import TetMesh, element_containing
+from dotshell.fem.forward import jacobi_cg, robin_A, solve_cw, system_matrix
+from dotshell.fem.meshfiles import read_volume, write_volume
 from dotshell.pipeline.mesh import _default_source
 
 AGAR_PROFILE = ROOT / "profiles" / "sim-agar-cylinder.toml"
@@ -179,7 +179,7 @@ def main() -> None:
     import argparse
     import tempfile
 
-    from dotshell.runtime import configure_process
+    from dotshell.runtime.process import configure_process
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help=f"{QUICK_SPACING_MM} mm mesh")

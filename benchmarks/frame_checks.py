@@ -1,4 +1,4 @@
-"""What the frame-integrity checks (dotshell/pipeline/integrity.py) cost per view: a 44-frame
+"""What the frame-integrity checks (dotshell/run/integrity.py) cost per view: a 44-frame
 Gray-code view (white, black, 21 pattern/inverse pairs) at the reference camera's 1280×1024,
 12 bit, against one pass over the same frames (their sum in float32: the peer, measured in the
 same run). Prints the figures; asserts nothing."""
@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from dotshell.pipeline.integrity import check_view
+from dotshell.run.integrity import check_view
 
 
 def view(height: int = 1024, width: int = 1280, pairs: int = 21, seed: int = 0

@@ -26,7 +26,7 @@ import numpy as np
 import tifffile
 
 from bench_profile import ROOT, load_bench_profile
-from dotshell.runtime import configure_process
+from dotshell.runtime.process import configure_process
 from dotshell.plugins import get_plugin_manager
 from run import render_view
 

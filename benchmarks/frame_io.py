@@ -5,7 +5,7 @@ alternating the formats so that machine load hits both alike:
 
 * PNG write: the old path, per frame PNG level 1 (``cv2.imencode``) + an atomic write with an
   fsync per frame (``RunStore.write_image``);
-* TIFF write: :class:`dotshell.frames.TiffFrameStore` — every frame appended as it would arrive,
+* TIFF write: :class:`dotshell.run.frames.TiffFrameStore` — every frame appended as it would arrive,
   one fsync at the end of the view (``close``);
 * read all (every frame of the view, from the page cache as ``dotshell reconstruct`` does right
   after a scan) and read one (frame 17, a preview);
@@ -22,8 +22,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from dotshell.frames import PngFrameStore, TiffFrameStore
-from dotshell.store import RunStore
+from dotshell.run.frames import PngFrameStore, TiffFrameStore
+from dotshell.run.store import RunStore
 
 
 def _write_png(root: Path, view: int, names: list[str], frames: np.ndarray) -> None:

@@ -56,8 +56,8 @@ def time_command(args: list[str], repeats: int = 5) -> dict[str, float]:
 
 def measure_cli() -> dict[str, Any]:
     """``dotshell plugins`` and ``dotshell --version`` as the console script runs them."""
-    return {"plugins": time_command(["dotshell.cli_entry", "plugins"]),
-            "version": time_command(["dotshell.cli_entry", "--version"])}
+    return {"plugins": time_command(["dotshell.cli.entry", "plugins"]),
+            "version": time_command(["dotshell.cli.entry", "--version"])}
 
 
 def _rows(results: dict[str, Any]) -> list[tuple[str, str]]:

@@ -1,6 +1,6 @@
-"""dotshell.ply.read_ply as it was before issue 30 (commit 04737f4), frozen: the "before" side of
+"""dotshell.run.ply.read_ply as it was before issue 30 (commit 04737f4), frozen: the "before" side of
 benchmarks/ply_read.py. Benchmarks only; nothing in the product imports it. It read binary
-little-endian float PLY only. Its write_ply is left out (unchanged in dotshell.ply).
+little-endian float PLY only. Its write_ply is left out (unchanged in dotshell.run.ply).
 
 The original module docstring follows.
 

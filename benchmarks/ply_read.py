@@ -20,8 +20,8 @@ from typing import Callable
 import numpy as np
 
 import ply_before
-from dotshell.compat import import_open3d
-from dotshell.ply import read_ply, write_ply
+from dotshell.runtime.compat import import_open3d
+from dotshell.run.ply import read_ply, write_ply
 
 
 def _median_s(read: Callable[[], np.ndarray], repeats: int) -> tuple[float, np.ndarray]:
@@ -60,7 +60,7 @@ def main() -> None:
             "open3d ASCII (double)": o3d_txt,
         }
         readers: dict[str, Callable[[Path], np.ndarray]] = {
-            "dotshell.ply.read_ply (plyfile)": lambda p: read_ply(p)[0],
+            "dotshell.run.ply.read_ply (plyfile)": lambda p: read_ply(p)[0],
             "before (own binary parser)": lambda p: ply_before.read_ply(p)[0],
             "plyfile, memory map": lambda p: _plyfile(p, True),
             "plyfile, no memory map": lambda p: _plyfile(p, False),

@@ -35,10 +35,10 @@ os.environ["NUMBA_CACHE_DIR"] = tempfile.mkdtemp(prefix="dotshell-profile-numba-
 from bench_profile import load_bench_profile  # noqa: E402
 from run import render_view  # noqa: E402
 
-from dotshell import parallel  # noqa: E402
+from dotshell.runtime import parallel  # noqa: E402
 from dotshell.pipeline.reconstruct import reconstruct_view  # noqa: E402
 from dotshell.plugins import get_plugin_manager  # noqa: E402
-from dotshell.runtime import configure_process  # noqa: E402
+from dotshell.runtime.process import configure_process  # noqa: E402
 
 _SHT_SYMTAB, _STT_FUNC = 2, 2
 

@@ -54,15 +54,15 @@ import forward_bench
 import frame_io
 import issue32
 from bench_profile import ROOT, load_bench_profile
-from dotshell import parallel
-from dotshell.runtime import configure_process
+from dotshell.runtime import parallel
+from dotshell.runtime.process import configure_process
 from dotshell.coding import PatternCoding
 from dotshell.devices import ExposureControl
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.reconstruct import reconstruct_view
 from dotshell.plugins import PluginManager, get_plugin_manager
-from dotshell.profile import Profile
-from dotshell.rig import Rig
+from dotshell.profile.loader import Profile
+from dotshell.rig.assembly import Rig
 
 BENCH_DIR = Path(__file__).resolve().parent
 CONTRIB_VENV = ROOT / ".venv-bench-contrib"

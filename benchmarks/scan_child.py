@@ -8,7 +8,7 @@ Usage (run by ``run.py``)::
     python benchmarks/scan_child.py mesh RUN_DIR RESULT_JSON
 
 BLAS runs on one thread and the heap is set up as in the ``dotshell`` command
-(:func:`dotshell.runtime.configure_process`).
+(:func:`dotshell.runtime.process.configure_process`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 from bench_profile import load_bench_profile
-from dotshell.runtime import configure_process
+from dotshell.runtime.process import configure_process
 from dotshell.plugins import get_plugin_manager
 from dotshell.pipeline.scan import reconstruct_run, scan
 

@@ -27,8 +27,8 @@ import numpy as np
 from dotshell.events import EventBus
 from dotshell.pipeline.scan import scan
 from dotshell.plugins import get_plugin_manager
-from dotshell.profile import validate_profile
-from dotshell.runtime import configure_process
+from dotshell.profile.loader import validate_profile
+from dotshell.runtime.process import configure_process
 from dotshell_sim import devices
 from dotshell_sim.bench import scale_profile
 from dotshell_sim.render import SensorModel, sensor

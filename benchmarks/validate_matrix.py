@@ -16,8 +16,8 @@ from dotshell.errors import ReconstructionError
 from dotshell.pipeline.compare import run_row
 from dotshell.pipeline.scan import scan
 from dotshell.plugins import PluginManager
-from dotshell.profile import validate_profile
-from dotshell.store import RunStore, atomic_write_text
+from dotshell.profile.loader import validate_profile
+from dotshell.run.store import RunStore, atomic_write_text
 from dotshell_sim.bench import scale_profile
 
 ROOT = Path(__file__).resolve().parents[1]

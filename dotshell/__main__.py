@@ -2,7 +2,7 @@
 
 import sys
 
-from dotshell.cli_entry import main
+from dotshell.cli.entry import main
 
 if __name__ == "__main__":
     sys.exit(main())

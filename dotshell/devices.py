@@ -17,7 +17,7 @@ Contract v2 (documented for driver authors in ``docs/devices.md``):
   reconnects it once before the scan fails), :class:`dotshell.errors.DeviceTimeout` when it did
   not answer in time. Any other exception from a driver is wrapped by the rig as a plugin fault
   naming the plugin, role and backend.
-* Drivers need not lock: the :class:`~dotshell.rig.Rig` serialises calls per device, so a
+* Drivers need not lock: the :class:`~dotshell.rig.assembly.Rig` serialises calls per device, so a
   front end may poll ``status()`` while a scan runs.
 
 Units: angles in degrees, times in milliseconds (``*_ms``) or seconds (``*_s``), images as numpy

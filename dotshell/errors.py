@@ -46,7 +46,7 @@ class DeviceTimeout(DeviceError):
 
 
 class DeviceStopped(DeviceError):
-    """A device call ended because :meth:`dotshell.rig.Rig.stop` stopped the device (abort,
+    """A device call ended because :meth:`dotshell.rig.assembly.Rig.stop` stopped the device (abort,
     Ctrl-C, SIGTERM, SIGHUP). Never retried; the runner ends the scan as ``aborted``."""
 
 
@@ -57,4 +57,4 @@ class PluginFault(DotshellError):
 
 class FrameError(DotshellError):
     """A frame (from the camera or from a run's files) is not what the run's frames are: its
-    size, dtype, bit depth or channels differ (see :mod:`dotshell.framecheck`)."""
+    size, dtype, bit depth or channels differ (see :mod:`dotshell.run.framecheck`)."""

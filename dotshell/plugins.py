@@ -233,7 +233,7 @@ def _distribution_label(dist: md.Distribution) -> tuple[str, str]:
 
 def _user_interrupt(exc: BaseException) -> bool:
     """A real Ctrl-C / stop signal (to be obeyed), not a plugin raising KeyboardInterrupt."""
-    from dotshell.pipeline.lifecycle import Interrupted
+    from dotshell.run.lifecycle import Interrupted
 
     return isinstance(exc, Interrupted)
 

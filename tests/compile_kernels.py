@@ -10,7 +10,7 @@ those tests measure. Compiled here once, every worker and subprocess loads them 
 
 The kernels are reached through the product's own entry points, so the signatures compiled are
 exactly the ones the pipeline asks for, in three groups that share no compiled function and run
-at once (each writes its own functions' cache files: dotshell.numba_cache locks them), each in a
+at once (each writes its own functions' cache files: dotshell.runtime.numba_cache locks them), each in a
 child forked from one process that has imported numba and set its CPU target up (~1.2 s of CPU
 that each group's own process paid before), the longest at a higher priority; split so, a cold
 cache takes about the longest group's time (~11 s of CPU, 12.5 s of wall time on 2 quiet
@@ -64,7 +64,7 @@ def _tiny_scan(tmp_prefix: str = "dotshell-compile-"):
     run, the directory removed at the end."""
     from conftest import small_profile_dict, write_profile
     from dotshell.plugins import PluginManager
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
 
     pm = PluginManager()
     pm.load_entry_points()
@@ -79,7 +79,7 @@ def compile_decode_kernels() -> None:
     """The decoder's kernels: one view of the tiny scan captured on the simulated rig and
     decoded as ``reconstruct_view`` decodes it."""
     from dotshell.pipeline.steps import make_coding
-    from dotshell.rig import Rig
+    from dotshell.rig.assembly import Rig
 
     with _tiny_scan() as (pm, profile, _), Rig(profile, pm) as rig:
         coding = make_coding(profile, pm)
@@ -98,10 +98,10 @@ def compile_triangulate_kernels() -> None:
     time; the two groups share no compiled function)."""
     import numpy as np
 
-    from dotshell import hugepages
+    from dotshell.runtime import hugepages
     from dotshell.coding import Correspondence
     from dotshell.pipeline.reconstruct import reconstruct_view
-    from dotshell.rig import Rig
+    from dotshell.rig.assembly import Rig
 
     class Decoded:
         def decode(self, frames, projector_size):
@@ -133,12 +133,12 @@ def compile_scan_kernels() -> None:
 
 
 def compile_fem_kernels() -> None:
-    """The FEM assembly's kernels (:mod:`dotshell.fem_kernels`) through ``solve_cw`` on one
+    """The FEM assembly's kernels (:mod:`dotshell.fem.kernels`) through ``solve_cw`` on one
     tetrahedron (the forward solve of test_fem, test_sim_transillum and the mesh pipeline)."""
     import numpy as np
 
-    from dotshell.fem import TetMesh, orient_positive
-    from dotshell.forward import solve_cw
+    from dotshell.fem.meshes import TetMesh, orient_positive
+    from dotshell.fem.forward import solve_cw
 
     nodes = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)
     mesh = TetMesh(nodes, orient_positive(nodes, np.array([[0, 1, 2, 3]])))
@@ -154,7 +154,7 @@ def _prepare_for_forks() -> None:
     import numpy  # noqa: F401
 
     import dotshell.plugins  # noqa: F401
-    import dotshell.profile  # noqa: F401
+    import dotshell.profile.loader  # noqa: F401
 
     numba.njit("int64(int64)")(lambda x: x + 1)  # not cached: sets the target up, writes nothing
 

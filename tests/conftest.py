@@ -81,7 +81,7 @@ def small_scan(tmp_path_factory):
     from dotshell.events import EventBus
     from dotshell.pipeline.scan import scan
     from dotshell.plugins import PluginManager
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
 
     tmp = tmp_path_factory.mktemp("scan")
     prof_path = write_profile(tmp / "small.toml", small_profile_dict())
@@ -184,7 +184,7 @@ def _rewrite_asserts_of_test_helpers_only(config) -> None:
 
 def pytest_configure(config):
     """In a process that runs tests: configure it as the ``dotshell`` command configures its
-    own (:func:`dotshell.runtime.configure_process`: BLAS on one thread), so the pipeline the
+    own (:func:`dotshell.runtime.process.configure_process`: BLAS on one thread), so the pipeline the
     tests call in-process runs as a lab runs it, whichever test calls ``main()`` first (with
     OpenBLAS's threads, a reduced sim scan took 11.3 s of CPU against 6.7 s).
 
@@ -201,7 +201,7 @@ def pytest_configure(config):
     if not hasattr(config, "workerinput"):
         _byte_compile_sources()
     if not _is_xdist_controller(config):
-        from dotshell.runtime import configure_process
+        from dotshell.runtime.process import configure_process
 
         configure_process()
     else:

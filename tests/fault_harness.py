@@ -1,5 +1,5 @@
 """Harness of the fault matrix (tests/test_faults.py): a case is a command line made by a setup
-function, run through the real ``dotshell.cli.main``; the harness checks the exit code, the
+function, run through the real ``dotshell.cli.app.main``; the harness checks the exit code, the
 one-paragraph message, and that nothing that existed before was changed or lost.
 
 Faults of the file system are made two ways:
@@ -310,7 +310,7 @@ _INSIDE = r"""
 import json, subprocess, sys
 from pathlib import Path
 sys.path.insert(0, TESTS)
-from dotshell.cli import main
+from dotshell.cli.app import main
 from fault_harness import frames_on_disk
 out, steps = Path(sys.argv[1]), json.loads(sys.argv[2])
 code = None

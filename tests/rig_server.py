@@ -14,9 +14,9 @@ from typing import Iterator
 
 import pytest
 
-from dotshell.console import Session
+from dotshell.session.console import Session
 from dotshell.server.client import RemoteSession
-from dotshell.server.paths import history_path, server_log_dir, socket_path
+from dotshell.runtime.paths import history_path, server_log_dir, socket_path
 from dotshell.server.server import RigServer
 
 

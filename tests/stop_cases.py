@@ -93,7 +93,7 @@ def signal_scan(tmp: Path, emu: Any, case: str, signum: int, command: str = "sca
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     args = (["scan", str(prof), "--out", str(tmp / "runs")] if command == "scan" else
             ["check", str(prof), "--connect"])
-    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", *args],
+    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli.app", *args],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
     t_sig, exit_s, err = signal_when(proc, lambda: ready(emu), signum, case)
     stop = next((t for t, c in emu.commands if t >= t_sig and c.split()[-1] == "stop"), None)
@@ -178,7 +178,7 @@ def hung_driver_scan(tmp: Path, signum: int) -> tuple[float | None, int | None, 
     prof.write_text(tomli_w.dumps(raw))
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         [str(site), *filter(None, [os.environ.get("PYTHONPATH")])])}
-    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", "scan", str(prof), "--out",
+    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli.app", "scan", str(prof), "--out",
                              str(tmp / "runs")], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True, env=env)
     _, exit_s, err = signal_when(proc, marker.exists, signum, "the hung driver")

@@ -14,7 +14,7 @@ from conftest import ROOT, write_profile
 from dotshell.errors import ReconstructionError
 from dotshell.pipeline.captures import reconstruct_captures
 from dotshell.pipeline.scan import scan
-from dotshell.profile import load_profile
+from dotshell.profile.loader import load_profile
 from sim_sequences import connected_rig, render_sequence
 
 

@@ -15,9 +15,9 @@ from dotshell.errors import RunError
 from dotshell.events import EventBus
 from dotshell.pipeline.batch import (BatchError, BatchRunFinished, batch_key,
                                      find_runs, is_finished, run_batch)
-from dotshell.pipeline.lifecycle import effective_status
+from dotshell.run.lifecycle import effective_status
 from dotshell.plugins import PluginManager
-from dotshell.store import RunStore
+from dotshell.run.store import RunStore
 
 N_RUNS = 4
 
@@ -43,7 +43,7 @@ def cluster():
 def study(tmp_path_factory):
     """Four different reduced runs (noise seeds 1-4, two or three views), as captured."""
     from dotshell.pipeline.scan import scan
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
 
     tmp = tmp_path_factory.mktemp("study")
     pm = _pm()
@@ -163,7 +163,7 @@ def damage_page(stack: Path, index: int) -> str:
 
 def test_a_damaged_frame_fails_its_run_alone_with_the_message(study, serial,
                                                               tmp_path, capsys):
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     runs = copy_study(study, tmp_path / "study")
     damaged = runs[2]
@@ -194,7 +194,7 @@ def test_a_damaged_frame_fails_its_run_alone_with_the_message(study, serial,
 
 
 def _batch_process(runs: Path, scheduler: str, out: Path) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "dotshell.cli", "batch", "reconstruct",
+    return subprocess.Popen([sys.executable, "-m", "dotshell.cli.app", "batch", "reconstruct",
                              str(runs), "--scheduler", scheduler, "--out", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
 
@@ -301,7 +301,7 @@ def test_a_truncated_stack_fails_its_run_alone_and_again_alone(study, serial, tm
     runs complete in the same invocation with the single-run command's bytes."""
     import os
 
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     runs = copy_study(study, tmp_path / "study")
     damaged = runs[1]
@@ -331,7 +331,7 @@ def test_a_run_named_with_glob_characters_is_processed_when_named(study, tmp_pat
 
 
 def test_a_negative_worker_count_is_refused_at_once(study, capsys):
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     assert main(["batch", "reconstruct", str(study), "--workers", "-3"]) == 2
     err = capsys.readouterr().err

@@ -21,8 +21,8 @@ from conftest import ROOT
 from dotshell.calibration.board import Board
 from dotshell.calibration.captures import calibrate_captures
 from dotshell.calibration.procedure import compare_to_truth
-from dotshell.calibration.schema import CALIBRATE_SCHEMA
-from dotshell.cli import main
+from dotshell.profile.calibration import CALIBRATE_SCHEMA
+from dotshell.cli.app import main
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.settings import validate_settings
 from sim_sequences import connected_rig, render_board_poses, render_turntable

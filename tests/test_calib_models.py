@@ -107,7 +107,7 @@ def wide_capture(tmp_path_factory):
 
     from dotshell.calibration.procedure import capture
     from dotshell.plugins import PluginManager
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
 
     tmp = tmp_path_factory.mktemp("wide")
     raw = scale_profile(tomllib.loads((ROOT / "profiles" / "sim-wide-angle.toml").read_text()),
@@ -156,7 +156,7 @@ def test_wide_angle_chosen_model_meets_the_bounds_and_k1_fails(wide_capture, tmp
 
 
 def test_wide_angle_report_shows_its_evidence(wide_capture, tmp_path, capsys):
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     _, run, _ = wide_capture
     import shutil
@@ -211,7 +211,7 @@ def test_camera_only_from_plain_board_photos(wide_capture, tmp_path, capsys):
     import json
     import shutil
 
-    from dotshell.cli import main
+    from dotshell.cli.app import main
     from dotshell.geometry.calibration import RigCalibration
 
     _, run, _ = wide_capture
@@ -237,7 +237,7 @@ def test_camera_only_from_plain_board_photos(wide_capture, tmp_path, capsys):
 
 
 def test_camera_only_names_photos_without_the_board(tmp_path, capsys):
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     cv2.imwrite(str(tmp_path / "a.png"), np.full((120, 160), 90, np.uint8))
     assert main(["calibrate", "--camera-only", str(tmp_path), "--board", "8x6",

@@ -20,11 +20,11 @@ import pytest
 
 from conftest import ROOT, small_profile_dict, write_profile
 from dotshell.calibration.procedure import capture, solve
-from dotshell.cli import main
+from dotshell.cli.app import main
 from dotshell.errors import CalibrationError
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.plugins import PluginManager
-from dotshell.profile import load_profile
+from dotshell.profile.loader import load_profile
 
 
 def _pm() -> PluginManager:

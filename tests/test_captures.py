@@ -15,7 +15,7 @@ import pytest
 import opencv_graycode
 from sim_sequences import connected_rig, render_sequence, true_projector_coordinates
 from conftest import ROOT
-from dotshell.cli import main
+from dotshell.cli.app import main
 from dotshell.errors import CalibrationError, RunError
 from dotshell.geometry.opencv_io import read_opencv_calibration, write_opencv_calibration
 from dotshell.pipeline.captures import (capture_order, load_layout, read_captures,

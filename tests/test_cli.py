@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from conftest import ROOT, small_profile_dict, write_profile
-from dotshell.cli import main
+from dotshell.cli.app import main
 
 
 def run_cli(capsys, *args):
@@ -95,7 +95,7 @@ def test_installed_command_scans_with_override_and_prints_table(tmp_path):
     raw = small_profile_dict(factor=0.2, views=3)
     raw["camera"]["settings"]["supersample"] = 1
     p = write_profile(tmp_path / "p.toml", raw)
-    exe = [sys.executable, "-m", "dotshell.cli"]
+    exe = [sys.executable, "-m", "dotshell.cli.app"]
     r = subprocess.run([*exe, "scan", str(p), "--out", str(tmp_path / "runs"),
                         "--set", "outputs.previews=false"],
                        capture_output=True, text=True, cwd=ROOT, timeout=300)
@@ -108,14 +108,14 @@ def test_installed_command_scans_with_override_and_prints_table(tmp_path):
 
 def test_installed_command_reconstructs_a_run_and_exits_with_its_status(small_scan, tmp_path):
     """`dotshell reconstruct` as a user runs it: the process ends without the interpreter's
-    teardown (dotshell.runtime.exit_now), yet everything is there — the published report
+    teardown (dotshell.runtime.process.exit_now), yet everything is there — the published report
     with the same cloud and figures, the previews, the printed table through a pipe — and a
     user error still exits 2. Paths print whole, one per line, as they are: longer than the
     pipe's 80 columns and with brackets (rich markup) in a directory name."""
     before = json.loads((small_scan[0].run_dir / "current" / "report.json").read_text())
     parent = tmp_path / "[agar] phantom, second day, analyzer at 90 degrees [/bold]"
     run = shutil.copytree(small_scan[0].run_dir, parent / "run", symlinks=True)
-    exe = [sys.executable, "-m", "dotshell.cli"]
+    exe = [sys.executable, "-m", "dotshell.cli.app"]
     r = subprocess.run([*exe, "reconstruct", str(run)], capture_output=True, text=True,
                        cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr
@@ -156,23 +156,23 @@ def test_a_users_script_ends_with_pythons_exit_so_what_it_left_open_is_written(t
         f"log = open({str(tmp_path / 'out.txt')!r}, 'w')\nlog.write('kept')\n")
     script = tmp_path / "use_helper.py"
     script.write_text(f"import sys\nsys.path.insert(0, {str(tmp_path)!r})\nimport helper\n")
-    r = subprocess.run([sys.executable, "-m", "dotshell.cli", "script", str(script)],
+    r = subprocess.run([sys.executable, "-m", "dotshell.cli.app", "script", str(script)],
                        capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "out.txt").read_text() == "kept"
 
 
 def test_version_answers_without_heavy_imports():
-    """``dotshell --version`` (the entry point :mod:`dotshell.cli_entry`) prints the version
+    """``dotshell --version`` (the entry point :mod:`dotshell.cli.entry`) prints the version
     without importing rich, pluggy or numpy; any other command goes on to the full CLI."""
     from dotshell import __version__
 
-    probe = ("import sys\nfrom dotshell.cli_entry import main\ncode = main(['--version'])\n"
-             "heavy = sorted(m for m in ('rich', 'pluggy', 'numpy', 'dotshell.cli') "
+    probe = ("import sys\nfrom dotshell.cli.entry import main\ncode = main(['--version'])\n"
+             "heavy = sorted(m for m in ('rich', 'pluggy', 'numpy', 'dotshell.cli.app') "
              "if m in sys.modules)\nprint('heavy', heavy, code)\n")
     r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.splitlines() == [f"dotshell {__version__}", "heavy [] 0"]
-    r = subprocess.run([sys.executable, "-m", "dotshell.cli_entry", "no-such-command"],
+    r = subprocess.run([sys.executable, "-m", "dotshell.cli.entry", "no-such-command"],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "invalid choice" in r.stderr

@@ -118,10 +118,10 @@ def test_camera_pair_commands_end_to_end(tmp_path, capsys):
     from sim_sequences import connected_rig, render_sequence
 
     from dotshell.calibration.board import Board
-    from dotshell.cli import main
+    from dotshell.cli.app import main
     from dotshell.geometry.fit import fit_cylinder, radial_distance
     from dotshell.shipped import shipped_file
-    from dotshell.ply import read_ply
+    from dotshell.run.ply import read_ply
 
     raw = scale_profile(tomllib.loads((ROOT / "profiles" / "sim-metal-cylinder.toml")
                                       .read_text()), 0.25)

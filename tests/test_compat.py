@@ -1,6 +1,6 @@
 import numpy as np
 
-from dotshell.compat import import_open3d
+from dotshell.runtime.compat import import_open3d
 
 
 def test_open3d_imports_with_bundled_libusb_and_mesh_scene_raycasts():

@@ -10,16 +10,16 @@ import numpy as np
 import pytest
 
 from conftest import write_test_profile
-from dotshell.cli import main
-from dotshell.console import PreviewSaved, Run, Session, SessionBusy, frame_stats, readable_repr
+from dotshell.cli.app import main
+from dotshell.session.console import PreviewSaved, Run, Session, SessionBusy, frame_stats, readable_repr
 from dotshell.errors import DeviceError, ProfileError
 from dotshell.events import (EventBus, FrameCaptured, ScanFinished, ScanPaused, ScanResumed,
                              ScanStarted, ViewCaptured, ViewReconstructed)
 from dotshell.pipeline.scan import scan
-from dotshell.profile import load_profile
+from dotshell.profile.loader import load_profile
 from dotshell.server.interpreter import Interpreter, wants_more
 from dotshell.server.progress import ScanTracker, format_seconds
-from dotshell.store import RunStore
+from dotshell.run.store import RunStore
 
 
 @pytest.fixture

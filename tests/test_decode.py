@@ -13,7 +13,7 @@ import pytest
 
 import opencv_graycode
 from conftest import ROOT
-from dotshell.cli import main
+from dotshell.cli.app import main
 from dotshell.pipeline.decode_maps import decode_captures, decode_run, read_map
 
 SKULL = next((p / "shared" / "data" / "slstudio-skull" for p in (ROOT.parent, ROOT.parents[1])

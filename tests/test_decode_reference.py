@@ -91,7 +91,7 @@ def sim_bench_view():
     finally:
         sys.path.remove(str(_BEFORE.parent))
     from dotshell.plugins import get_plugin_manager
-    from dotshell.rig import Rig
+    from dotshell.rig.assembly import Rig
 
     pm = get_plugin_manager()
     profile = load_bench_profile(pm, quick=True)
@@ -128,7 +128,7 @@ def test_the_one_pass_decoder_joins_its_bands_as_one_scan(threads, monkeypatch):
     decoder's result bit for bit however many bands the view is cut into, also when the
     stripes lie the other way across the image than their projector axis suggests (the camera
     turned by 90°: both axes are refined again the other way)."""
-    from dotshell import parallel
+    from dotshell.runtime import parallel
     from dotshell_codings import kernels
 
     redone = []

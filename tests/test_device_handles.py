@@ -8,11 +8,11 @@ import time
 
 import pytest
 
-import dotshell.handles as handles
+import dotshell.rig.handles as handles
 from dotshell.backends import RigContext
 from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, DeviceTimeout,
                              PluginFault)
-from dotshell.handles import DeviceHandle, DevicePolicy
+from dotshell.rig.handles import DeviceHandle, DevicePolicy
 
 
 class Gadget:

@@ -30,13 +30,13 @@ def test_the_guide_driver_conforms_on_the_emulator(dotshell_pm, serial_emulator)
 def test_plugins_settings_show_units_limits_and_choices(capsys, monkeypatch, dotshell_pm):
     from rich.console import Console
 
-    import dotshell.cli
+    import dotshell.cli.app
     import dotshell.plugins
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     dotshell_pm.register(guide_module(), name="mystage")
     monkeypatch.setattr(dotshell.plugins, "_default", dotshell_pm)
-    monkeypatch.setattr(dotshell.cli, "out", Console(width=400, highlight=False))
+    monkeypatch.setattr(dotshell.cli.app, "out", Console(width=400, highlight=False))
     assert main(["plugins", "--settings"]) == 0
     out = " ".join(capsys.readouterr().out.split())
     for row in ("int [baud]", "(choices: 9600, 115200)", "float [1/deg] ≥ 1",
@@ -102,7 +102,7 @@ def test_the_guide_emulator_defines_its_own_fault(tmp_path, dotshell_pm):
 
 
 def test_emulate_refuses_an_unknown_fault_naming_the_emulators_faults(capsys):
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     assert main(["emulate", "zaber", "--fault", "melt", "--seconds", "0.1"]) == 2
     err = " ".join(capsys.readouterr().err.split())

@@ -12,7 +12,7 @@ import pytest
 from dotshell.backends import RigContext
 from dotshell.errors import DeviceError
 from dotshell.events import EventBus
-from dotshell.handles import DeviceHandle, DevicePolicy
+from dotshell.rig.handles import DeviceHandle, DevicePolicy
 from dotshell.pipeline.acquire import with_retries
 from rig_server import user_dirs  # noqa: F401 (a fixture)
 from stop_cases import wait_for
@@ -108,7 +108,7 @@ def test_garbage_never_sends_xon_xoff(serial_emulator, monkeypatch):
 def test_check_connect_names_a_stuck_stage_instead_of_waiting_for_the_home_limit(
         tmp_path, serial_emulator, capsys, user_dirs):
     from stop_cases import zaber_profile
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     emu = serial_emulator("zaber")
     emu.angle = 90.0

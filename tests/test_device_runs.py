@@ -18,14 +18,14 @@ import pytest
 from conftest import ROOT, small_profile_dict, write_profile
 from dotshell import hookimpl
 from dotshell.backends import Backend
-from dotshell.cli import main
+from dotshell.cli.app import main
 from dotshell.devices import FrameInfo
 from dotshell.errors import DeviceLostError
 from dotshell.events import EventBus
 from dotshell.pipeline.scan import scan
 from dotshell.plugins import PluginManager
-from dotshell.profile import load_profile
-from dotshell.store import RunStore
+from dotshell.profile.loader import load_profile
+from dotshell.run.store import RunStore
 from dotshell_sim.bench import scale_profile
 
 BACKEND = {"grbl": "grbl", "zaber": "zaber", "apt": "thorlabs-apt"}
@@ -99,7 +99,7 @@ def wait_for(predicate, timeout=20.0):
 
 def test_abort_during_a_move_stops_the_stage_within_half_a_second(tmp_path, dotshell_pm,
                                                                   serial_emulator):
-    from dotshell.console import Session
+    from dotshell.session.console import Session
 
     emu = serial_emulator("grbl", speed_deg_s=30.0)
     session = Session(emu_profile(tmp_path, "grbl", emu.port, views=4), pm=dotshell_pm,
@@ -121,7 +121,7 @@ def signal_during_a_move(tmp_path, emu, signum):
     """Run `dotshell scan` on the emulator, send ``signum`` mid-move; (latency until the
     emulator got the feed hold or None, exit code, stderr, the run's manifest)."""
     prof = emu_profile(tmp_path, "grbl", emu.port, views=4)
-    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", "scan", str(prof), "--out",
+    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli.app", "scan", str(prof), "--out",
                              str(tmp_path / "runs")], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     try:
@@ -292,7 +292,7 @@ def test_plugin_bug_is_a_named_fault_with_exit_2_and_the_run_kept(tmp_path, caps
 
 def test_session_connect_reopens_a_lost_stage_and_homes_on_request(tmp_path, dotshell_pm,
                                                                    serial_emulator):
-    from dotshell.console import Session
+    from dotshell.session.console import Session
 
     emu = serial_emulator("grbl", speed_deg_s=720.0)
     prof = emu_profile(tmp_path, "grbl", emu.port, views=2)

@@ -2,8 +2,8 @@
 
 from pathlib import Path
 
-from dotshell.cli import build_parser
-from dotshell.profile import SCHEMA
+from dotshell.cli.app import build_parser
+from dotshell.profile.loader import SCHEMA
 
 ROOT = Path(__file__).resolve().parents[1]
 

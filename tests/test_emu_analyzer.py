@@ -9,7 +9,7 @@ import tomllib
 
 from conftest import ROOT, write_profile
 from dotshell.pipeline.scan import scan
-from dotshell.profile import load_profile
+from dotshell.profile.loader import load_profile
 from dotshell_sim.bench import scale_profile
 
 

@@ -5,8 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dotshell.fem import TetMesh, TriangleSurface, signed_volumes_mm3
-from dotshell.meshfiles import (Optodes, read_optodes, read_surface, read_volume, write_optodes,
+from dotshell.fem.meshes import TetMesh, TriangleSurface, signed_volumes_mm3
+from dotshell.fem.meshfiles import (Optodes, read_optodes, read_surface, read_volume, write_optodes,
                                 write_surface, write_volume)
 
 

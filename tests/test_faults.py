@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 
 from conftest import write_profile
-from dotshell.cli import main
+from dotshell.cli.app import main
 from fault_harness import (Env, FullDisk, counts_are_true, digest_tree, edit_json, frames_on_disk,
                            in_tmpfs, manifest, needs_tmpfs, only_run, replace_file,
                            tiny_profile_dict, unchanged)
@@ -73,7 +73,7 @@ def _scan_until(profile: Path, out: Path, stop_at: tuple[int, int] | None) -> Pa
     from dotshell.events import EventBus, FrameCaptured
     from dotshell.pipeline.scan import scan
     from dotshell.plugins import PluginManager
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
 
     pm = PluginManager()
     pm.load_entry_points()
@@ -711,8 +711,8 @@ def _(env):
       ("no measured turntable axis", "dotshell calibrate", "scan.views=1"))
 def _(env):
     from dotshell.plugins import PluginManager
-    from dotshell.profile import load_profile
-    from dotshell.rig import Rig
+    from dotshell.profile.loader import load_profile
+    from dotshell.rig.assembly import Rig
 
     prof = env.profile()
     pm = PluginManager()
@@ -849,7 +849,7 @@ def _nothing_written(env, err):
 @case("reference", "a one-point reference", ("one.ply", "1 point", "at least 12"),
       then=_nothing_written)
 def _(env):
-    from dotshell.ply import write_ply
+    from dotshell.run.ply import write_ply
 
     write_ply(env.tmp / "one.ply", np.array([[0.0, 0.0, 200.0]]))
     return _captures_args(env, reference=str(env.tmp / "one.ply"))
@@ -888,7 +888,7 @@ def _mixed_captures(env: Env, convert) -> list[str]:
     projector columns)."""
     import cv2
 
-    from dotshell.frames import export_png, open_frames
+    from dotshell.run.frames import export_png, open_frames
 
     run = env.shared("base")
     (env.tmp / "caps").mkdir()
@@ -1051,8 +1051,8 @@ def _as_png_run(run: Path) -> Path:
     manifest without ``frame_format`` (what old runs on disk look like)."""
     import json
 
-    from dotshell.frames import export_png
-    from dotshell.store import RunStore
+    from dotshell.run.frames import export_png
+    from dotshell.run.store import RunStore
 
     store = RunStore.open(run)
     for v in store.manifest["views"]:
@@ -1191,7 +1191,7 @@ def _(env):
 
 
 def _events_readable(env, err):
-    from dotshell.store import RunStore
+    from dotshell.run.store import RunStore
 
     run = _the_run(env)
     lines = (run / "events.jsonl").read_bytes().splitlines()
@@ -1321,7 +1321,7 @@ def _(env):
 @case("writers", "reconstruct while another dotshell job holds the run",
       ("being written by `dotshell mesh`", f"pid {os.getpid()}"))
 def _(env):
-    from dotshell.pipeline.lifecycle import RunLock
+    from dotshell.run.lifecycle import RunLock
 
     run = env.run()
     lock = RunLock(run)
@@ -1455,7 +1455,7 @@ def test_debug_shows_the_traceback(tmp_path: Path, capsys) -> None:
 def test_progress_shows_a_stalled_step_as_stalled() -> None:
     from rich.console import Console
 
-    from dotshell.cli import ScanProgress
+    from dotshell.cli.app import ScanProgress
     from dotshell.events import FrameCaptured, ScanStarted
 
     view = ScanProgress(Console(file=open(os.devnull, "w")))
@@ -1474,7 +1474,7 @@ def test_a_stop_signal_never_cuts_a_queue_operation_short() -> None:
     queue operations defer the stop to their end."""
     import signal as sig
 
-    from dotshell.pipeline.lifecycle import Interrupted, interrupts, signals_deferred
+    from dotshell.run.lifecycle import Interrupted, interrupts, signals_deferred
 
     reached_end = False
     with pytest.raises(Interrupted) as stopped:
@@ -1495,7 +1495,7 @@ def test_a_slow_simulator_never_times_out(acquisition: str, tmp_path: Path, monk
     simulator's own compute, so the scan completes. Without ``RigContext.computing`` the
     sequence's ``read_armed()`` (30 renders) and each capture failed with DeviceTimeout. A
     device that really stalls still times out: tests/test_device_handles.py."""
-    import dotshell.handles as handles
+    import dotshell.rig.handles as handles
     from dotshell_sim.render import Renderer
 
     monkeypatch.setattr(handles, "GRACE_S", 0.05)
@@ -1760,7 +1760,7 @@ def test_an_address_space_limit_exits_2_naming_it(tmp_path: Path) -> None:
     def limited() -> None:
         resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 
-    proc = subprocess.run([sys.executable, "-m", "dotshell.cli", "scan", str(prof), "--out",
+    proc = subprocess.run([sys.executable, "-m", "dotshell.cli.app", "scan", str(prof), "--out",
                            str(tmp_path / "runs")], preexec_fn=limited, capture_output=True,
                           text=True, timeout=600)
     assert proc.returncode == 2, proc.stderr

@@ -5,11 +5,11 @@ import math
 import numpy as np
 import pytest
 
-from dotshell.fem import (MeshError, TetMesh, TriangleSurface, boundary_faces,
+from dotshell.fem.meshes import (MeshError, TetMesh, TriangleSurface, boundary_faces,
                           closed_manifold_problems, element_containing, enclosed_volume_mm3,
                           joe_liu_quality, min_dihedral_deg, orient_positive, quality_report,
                           signed_volumes_mm3, unique_rows)
-from dotshell.forward import (move_inside, robin_A, solve_cw, sphere_point_source_fluence,
+from dotshell.fem.forward import (move_inside, robin_A, solve_cw, sphere_point_source_fluence,
                               system_matrix)
 
 REGULAR = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], float)

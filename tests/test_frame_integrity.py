@@ -13,10 +13,10 @@ import pytest
 
 from conftest import small_profile_dict, write_profile
 from dotshell.events import EventBus, Message
-from dotshell.pipeline.integrity import check_view
+from dotshell.run.integrity import check_view
 from dotshell.pipeline.scan import scan
-from dotshell.profile import load_profile
-from dotshell.store import RunStore
+from dotshell.profile.loader import load_profile
+from dotshell.run.store import RunStore
 
 #: 4 views at 0.15 scale, 1 ray per pixel (test_device_runs.py: mean 0.157 %, sd 0.311 %,
 #: radius 7.6966 mm, coverage 99.9 %); the fault hits the second view.

@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 import tifffile
 
-from dotshell.cli import main
+from dotshell.cli.app import main
 from dotshell.errors import FrameError, RunError
-from dotshell.framecheck import FrameSpec
-from dotshell.frames import PngFrameStore, TiffFrameStore, open_frames
+from dotshell.run.framecheck import FrameSpec
+from dotshell.run.frames import PngFrameStore, TiffFrameStore, open_frames
 from dotshell.pipeline.scan import reconstruct_run
 from dotshell.plugins import PluginManager
-from dotshell.ply import read_ply
-from dotshell.store import RunStore
+from dotshell.run.ply import read_ply
+from dotshell.run.store import RunStore
 
 NAMES = ["white", "black", "col_00", "col_00_inv"]
 
@@ -86,7 +86,7 @@ def test_frames_of_a_view_cut_short_stay_readable(tmp_path):
 @pytest.mark.parametrize("byteorder,bigtiff", [("<", False), (">", False), (">", True)])
 def test_page_reader_reads_any_uncompressed_stack_and_stops_where_a_file_is_cut(
         tmp_path, byteorder, bigtiff):
-    """dotshell.tiffpages against tifffile as the independent writer: either byte order,
+    """dotshell.run.tiffpages against tifffile as the independent writer: either byte order,
     classic or BigTIFF, several strips per page; a file cut inside a page keeps the pages
     before it; compressed pages are refused."""
     frames = _frames()
@@ -188,7 +188,7 @@ def test_a_view_is_synced_once_before_it_is_reported_captured(tmp_path, monkeypa
     from conftest import write_test_profile
     from dotshell.events import EventBus, FrameCaptured, ViewCaptured
     from dotshell.pipeline.scan import scan
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
 
     log = []
     real_fsync = os.fsync
@@ -197,7 +197,7 @@ def test_a_view_is_synced_once_before_it_is_reported_captured(tmp_path, monkeypa
         log.append(("fsync", os.readlink(f"/proc/self/fd/{fd}")))
         return real_fsync(fd)
 
-    monkeypatch.setattr("dotshell.frames.os.fsync", fsync)
+    monkeypatch.setattr("dotshell.run.frames.os.fsync", fsync)
     bus = EventBus()
     bus.subscribe(lambda ev: log.append(("frame", ev.view)) if isinstance(ev, FrameCaptured)
                   else log.append(("captured", ev.view)) if isinstance(ev, ViewCaptured)

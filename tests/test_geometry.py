@@ -130,7 +130,7 @@ def test_image_triangulation_equals_per_point_and_the_truth(pdist, threads):
     convergence where a strongly distorting projector needs more steps) gives what
     ``triangulate`` gives per point, and the true surface; on two threads its bands count
     their flags apart."""
-    from dotshell import parallel
+    from dotshell.runtime import parallel
     from dotshell.geometry import triangulate as tr
 
     cam = lens_from_fov(320, 256, 1000.0, (-0.08, 0.04, 0, 0, 0))

@@ -16,10 +16,10 @@ import cv2
 import numpy as np
 
 from conftest import ROOT, small_profile_dict, write_profile
-from dotshell.store import RunStore
+from dotshell.run.store import RunStore
 from dotshell.events import EventBus, Message
 from dotshell.pipeline.scan import scan
-from dotshell.profile import load_profile
+from dotshell.profile.loader import load_profile
 from dotshell_sim.bench import scale_profile
 
 LC_PROFILE = ROOT / "profiles" / "sim-metal-cylinder-lightcrafter.toml"

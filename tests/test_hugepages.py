@@ -1,4 +1,4 @@
-"""dotshell.hugepages: image-sized arrays aligned to huge pages, which the kernel backs with
+"""dotshell.runtime.hugepages: image-sized arrays aligned to huge pages, which the kernel backs with
 one page fault per 2 MiB instead of one per 4 KiB where transparent huge pages are on."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dotshell import hugepages
+from dotshell.runtime import hugepages
 
 
 def _thp_mode() -> str:

@@ -17,13 +17,13 @@ import pytest
 
 from conftest import ROOT, small_profile_dict, write_profile
 from dotshell.errors import RunError
-from dotshell.frames import TiffFrameStore
+from dotshell.run.frames import TiffFrameStore
 from dotshell.pipeline.engine import RunJob
-from dotshell.pipeline.lifecycle import effective_status
-from dotshell.ply import read_ply
-from dotshell.store import RunStore
+from dotshell.run.lifecycle import effective_status
+from dotshell.run.ply import read_ply
+from dotshell.run.store import RunStore
 
-DOTSHELL = [sys.executable, "-m", "dotshell.cli"]
+DOTSHELL = [sys.executable, "-m", "dotshell.cli.app"]
 
 
 def tiny_profile(tmp_path: Path, views: int = 3, name: str = "tiny.toml", **scan) -> Path:
@@ -58,7 +58,7 @@ def reference(tmp_path_factory):
     (made in this process: the command's own process is what the signal and kill tests run)."""
     from dotshell.pipeline.scan import scan
     from dotshell.plugins import PluginManager
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
 
     tmp = tmp_path_factory.mktemp("ref")
     prof = tiny_profile(tmp)
@@ -251,7 +251,7 @@ def test_resume_of_a_scan_killed_before_its_calibration_starts_it_afresh(referen
 
 
 def test_resume_refuses_frames_without_a_calibration(reference, tmp_path):
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     _, ref, _ = reference
     run = tmp_path / "lost"
@@ -266,7 +266,7 @@ def test_resume_refuses_frames_without_a_calibration(reference, tmp_path):
 
 
 def test_resume_refuses_a_completed_run(reference):
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     _, run, _ = reference
     assert main(["resume", str(run)]) == 2
@@ -275,7 +275,7 @@ def test_resume_refuses_a_completed_run(reference):
 # ---- generations --------------------------------------------------------------------------------
 
 def test_reprocessing_with_a_bad_calibration_changes_nothing(reference, tmp_path, capsys):
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     _, run, _ = reference
     copy = tmp_path / "copy"

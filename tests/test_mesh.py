@@ -11,8 +11,8 @@ import pytest
 import tomli_w
 
 from dotshell.errors import DotshellError, ProfileError
-from dotshell.fem import MeshError, TriangleSurface, closed_manifold_problems, signed_volumes_mm3
-from dotshell.meshfiles import read_surface, read_volume
+from dotshell.fem.meshes import MeshError, TriangleSurface, closed_manifold_problems, signed_volumes_mm3
+from dotshell.fem.meshfiles import read_surface, read_volume
 from dotshell.plugins import PluginManager
 
 RUN_FILES = ("profile.toml", "manifest.json", "calibration.json", "cloud.ply", "report.json")
@@ -134,7 +134,7 @@ def test_mesh_after_reprocessing_when_the_profile_asks(small_scan, tmp_path):
 # ---- bad input --------------------------------------------------------------------------
 
 def _cloud_run(tmp_path: Path, small_scan, points: np.ndarray) -> Path:
-    from dotshell.ply import write_ply
+    from dotshell.run.ply import write_ply
 
     run = copy_run(small_scan[0].run_dir, tmp_path / "run", mesh={"previews": False})
     write_ply(run / "cloud.ply", points, view=np.zeros(len(points)))
@@ -179,9 +179,9 @@ def test_open_surface_that_cannot_be_repaired_is_a_clear_error():
 
 
 def test_node_distance_zero_is_a_clear_error(meshed, tmp_path):
-    from dotshell.cli import main
+    from dotshell.cli.app import main
     from dotshell.pipeline.commands import mesh_run
-    from dotshell.profile import validate_profile
+    from dotshell.profile.loader import validate_profile
 
     with pytest.raises(MeshError, match="node distance must be a positive number"):
         mesh_run(meshed.run_dir, _pm(), node_distance_mm=0.0)
@@ -198,7 +198,7 @@ def test_full_resolution_cylinder_mesh(tmp_path):
     """`make validate`: the 1280×1024, 12-view metal cylinder meshed at 1 mm at the end of the
     scan, with NIRFAST and TOAST files."""
     from dotshell.pipeline.scan import scan
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
 
     root = Path(__file__).resolve().parents[1]
     pm = _pm()

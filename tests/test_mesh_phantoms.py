@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dotshell.fem import TriangleSurface, closed_manifold_problems
+from dotshell.fem.meshes import TriangleSurface, closed_manifold_problems
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -48,7 +48,7 @@ def test_phantom_scene_is_ray_cast_with_its_material():
 @pytest.mark.parametrize("name", ["sim-mouse-phantom", "sim-gummy-bear"])
 def test_phantom_profiles_validate(name):
     from dotshell.plugins import PluginManager
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
 
     pm = PluginManager()
     pm.load_entry_points()
@@ -62,7 +62,7 @@ def test_phantom_profiles_validate(name):
 def test_phantom_scanned_and_meshed_at_two_node_distances(name, kind, tmp_path):
     from dotshell.pipeline.scan import scan
     from dotshell.plugins import PluginManager
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
     from dotshell_sim.phantoms import phantom_volume_mm3
 
     pm = PluginManager()

@@ -1,7 +1,7 @@
 """Trans-illumination normalization: mapping onto the surface, normalizers, outputs, errors.
 
 The mapping tests render exact images of spheres analytically (ray–sphere intersection, the
-diffusion-theory exit radiance of dotshell.optics) and map them onto icosphere meshes, so the
+diffusion-theory exit radiance of dotshell.fem.optics) and map them onto icosphere meshes, so the
 true I0 of every node is known independently of the simulator plugin.
 """
 
@@ -15,13 +15,13 @@ import cv2
 import numpy as np
 import pytest
 
-from dotshell.fem import TriangleSurface
+from dotshell.fem.meshes import TriangleSurface
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import lens_from_fov
 from dotshell.geometry.surface_map import (OCCLUDED, OK, SATURATED,
                                            mask_counts, node_intensities, resample_to_image,
                                            view_surface)
-from dotshell.optics import exit_radiance_factor
+from dotshell.fem.optics import exit_radiance_factor
 
 N_TISSUE = 1.4
 LENS = lens_from_fov(320, 256, 1600.0, (-0.05, 0.0, 0.0, 0.0, 0.0))
@@ -181,7 +181,7 @@ def trans_run(tmp_path_factory):
     from dotshell.events import EventBus
     from dotshell.pipeline.scan import scan
     from dotshell.plugins import PluginManager
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
 
     tmp = tmp_path_factory.mktemp("trans")
     pm = PluginManager()
@@ -247,7 +247,7 @@ def test_normalize_outputs_are_complete_and_consistent(trans_run):
 
 
 def test_normalize_command_reruns_with_another_normalizer(trans_run, capsys):
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     result, _ = trans_run
     assert main(["normalize", str(result.run_dir), "--normalizer", "lambertian",
@@ -267,7 +267,7 @@ def _copy_run(trans_run, tmp_path):
 
 
 def test_bad_runs_are_clear_errors(trans_run, small_scan, tmp_path, capsys):
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     assert main(["normalize", str(small_scan[0].run_dir)]) == 2
     assert "has no trans-illumination frames" in capsys.readouterr().err
@@ -294,7 +294,7 @@ def test_saturated_frames_are_named_and_their_nodes_masked(tmp_path):
     from dotshell.events import EventBus, Message
     from dotshell.pipeline.scan import scan
     from dotshell.plugins import PluginManager
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
 
     raw = transillumination_profile(exposure_ms=40.0, views=[0], targets_mm=[[0.0, 10.0]])
     raw["scan"]["views"] = 4

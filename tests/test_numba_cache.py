@@ -1,4 +1,4 @@
-"""dotshell.numba_cache: two processes compiling different signatures of one cached kernel at
+"""dotshell.runtime.numba_cache: two processes compiling different signatures of one cached kernel at
 the same moment leave a cache that gives every later process the right code for each."""
 
 import subprocess
@@ -18,7 +18,7 @@ CHILD = """
 import os, sys, time
 from pathlib import Path
 from numba.core import caching
-from dotshell import numba_cache
+from dotshell.runtime import numba_cache
 
 numba_cache.install()
 here, value, late = Path(sys.argv[1]), eval(sys.argv[2]), sys.argv[3] == "1"

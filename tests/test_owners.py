@@ -14,13 +14,13 @@ import pytest
 from conftest import write_test_profile
 from rig_server import served, user_dirs  # noqa: F401 (a fixture)
 from stop_cases import zaber_profile
-from dotshell.cli import main
-from dotshell.console import Session
-from dotshell.owners import DeviceInUse, OwnerLock, device_identities, server_lock_path
-from dotshell.profile import load_profile
-from dotshell.rig import Rig
+from dotshell.cli.app import main
+from dotshell.session.console import Session
+from dotshell.rig.owners import DeviceInUse, OwnerLock, device_identities, server_lock_path
+from dotshell.profile.loader import load_profile
+from dotshell.rig.assembly import Rig
 from dotshell.server.launch import locate
-from dotshell.server.paths import history_path, server_log_dir, server_name, socket_path
+from dotshell.runtime.paths import history_path, server_log_dir, server_name, socket_path
 from dotshell.server.protocol import ServerError
 from dotshell.server.server import RigServer
 
@@ -88,7 +88,7 @@ def test_a_second_server_on_a_held_stage_is_refused_naming_the_holder(tmp_path, 
 
 
 def holder_free(sock: Path) -> bool:
-    from dotshell.owners import holder as lock_holder
+    from dotshell.rig.owners import holder as lock_holder
 
     return lock_holder(server_lock_path(sock)) is None
 

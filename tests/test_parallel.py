@@ -1,4 +1,4 @@
-"""dotshell.parallel: a pass split across threads covers its range once, errors reach the
+"""dotshell.runtime.parallel: a pass split across threads covers its range once, errors reach the
 caller, and a forked child (a process-based batch worker) gets a pool of its own."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import threading
 import numpy as np
 import pytest
 
-from dotshell import parallel
+from dotshell.runtime import parallel
 
 
 def _mark(out: np.ndarray, seen: list, start: int, stop: int) -> None:

@@ -11,8 +11,8 @@ from dotshell.coding import PatternFrame
 from dotshell.pipeline.pdi import Shot, combine, plan_shots
 from dotshell.pipeline.scan import reconstruct_run, scan
 from dotshell.plugins import PluginManager
-from dotshell.profile import load_profile
-from dotshell.store import RunStore
+from dotshell.profile.loader import load_profile
+from dotshell.run.store import RunStore
 from dotshell_sim.bench import build_rig, scale_profile
 from dotshell_sim.subsurface import Scattering, dipole_profile, gaussian_mixture
 

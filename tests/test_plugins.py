@@ -94,7 +94,7 @@ def dotshell_cameras():
 
 def test_a_third_party_duplicate_never_takes_over_and_is_reported_at_start(
         tmp_path, monkeypatch, capsys):
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     _install(tmp_path, monkeypatch, "dotshell-twin", "dotshell_twin_mod", SIM_CAMERA_TWIN, "twin")
     pm = PluginManager()
@@ -122,7 +122,7 @@ def test_an_entry_point_named_like_a_first_party_one_does_not_hide_it(tmp_path, 
     ("raise KeyboardInterrupt\n", "KeyboardInterrupt"),
 ])
 def test_exiting_at_import_is_contained(tmp_path, monkeypatch, source, why):
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     _install(tmp_path, monkeypatch, "dotshell-exit", "dotshell_exit_mod", source, "exits")
     pm = PluginManager()
@@ -149,7 +149,7 @@ def test_a_backend_hook_returning_the_wrong_type_is_that_plugins_load_error(
 def test_a_factory_raising_is_named_with_plugin_role_backend_and_exit_2(
         tmp_path, monkeypatch, capsys):
     from conftest import small_profile_dict, write_profile
-    from dotshell.cli import main
+    from dotshell.cli.app import main
 
     src = ("from dotshell import hookimpl\nfrom dotshell.backends import Backend\n"
            "def boom(settings, context):\n    raise ZeroDivisionError('driver bug')\n"

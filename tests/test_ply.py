@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from plyfile import PlyData, PlyElement
 
-from dotshell.cli import main
-from dotshell.compat import import_open3d
+from dotshell.cli.app import main
+from dotshell.runtime.compat import import_open3d
 from dotshell.errors import RunError
-from dotshell.ply import read_ply, write_ply
+from dotshell.run.ply import read_ply, write_ply
 from test_captures import SKULL, needs_skull
 
 

@@ -11,9 +11,9 @@ import pytest
 from rich.console import Console
 
 from rig_server import user_dirs  # noqa: F401 (a fixture)
-import dotshell.cli_devices as cli_devices
-import dotshell.ports as ports
-from dotshell.cli import main
+import dotshell.cli.devices as cli_devices
+import dotshell.rig.ports as ports
+from dotshell.cli.app import main
 from dotshell.errors import DeviceError
 
 
@@ -69,7 +69,7 @@ def test_profiles_name_ports_by_usb_serial_number_and_by_id(monkeypatch, tmp_pat
 
 def test_emulate_prints_its_port_and_a_driver_talks_to_it(tmp_path, dotshell_pm):
     link = tmp_path / "zaber-link"
-    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", "emulate", "zaber", "--link",
+    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli.app", "emulate", "zaber", "--link",
                              str(link), "--seconds", "30"], stdout=subprocess.PIPE, text=True)
     try:
         first = proc.stdout.readline()
@@ -96,7 +96,7 @@ def test_ports_lists_running_emulators_and_vanish_after_counts_from_connect(
     from stop_cases import wait_for
 
     link = tmp_path / "zaber-link"
-    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", "emulate", "zaber", "--link",
+    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli.app", "emulate", "zaber", "--link",
                              str(link), "--vanish-after", "0.3", "--seconds", "60"],
                             stdout=subprocess.PIPE, text=True)
     try:
@@ -121,8 +121,8 @@ def test_ports_lists_running_emulators_and_vanish_after_counts_from_connect(
 def test_ports_names_who_holds_an_emulators_port(tmp_path, dotshell_pm, serial_emulator, capsys,
                                                  monkeypatch, user_dirs):
     from stop_cases import zaber_profile
-    from dotshell.profile import load_profile
-    from dotshell.rig import Rig
+    from dotshell.profile.loader import load_profile
+    from dotshell.rig.assembly import Rig
 
     emu = serial_emulator("zaber")
     fake_comports(monkeypatch, [(emu.pty_path, 0x2939, 0x495A, "33938", "Zaber X-MCB1")])

@@ -158,7 +158,7 @@ def test_framebuffer_geometry_errors_name_the_fix(tmp_path):
 
 def test_the_lightcrafter_profile_flash_holds_its_coding(pm, tmp_path):
     from conftest import ROOT
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
     from dotshell_projectors.lc4500_pack import main
 
     profile = ROOT / "profiles" / "sim-metal-cylinder-lightcrafter.toml"

@@ -111,7 +111,7 @@ def refused_or(read: Callable[[], Any], check: Callable[[Any], None] | None = No
 # ---- point clouds -------------------------------------------------------------------------------
 
 def _valid_ply() -> bytes:
-    from dotshell.ply import write_ply
+    from dotshell.run.ply import write_ply
 
     p = in_file(b"", "seed.ply")
     write_ply(p, np.arange(30, dtype=float).reshape(10, 3), view=np.arange(10))
@@ -130,7 +130,7 @@ def _cloud_ok(value) -> None:
 @FAST
 @given(st.data())
 def test_ply_reader_on_damaged_clouds(data):
-    from dotshell.ply import read_ply
+    from dotshell.run.ply import read_ply
 
     head_end = PLY.index(b"end_header\n") + 11
     blob = data.draw(st.sampled_from(["header", "anywhere"]))
@@ -142,7 +142,7 @@ def test_ply_reader_on_damaged_clouds(data):
 @FAST
 @given(st.binary(max_size=300) | st.text(max_size=200).map(lambda t: ("ply\n" + t).encode()))
 def test_ply_reader_on_random_bytes(blob):
-    from dotshell.ply import read_ply
+    from dotshell.run.ply import read_ply
 
     refused_or(lambda: read_ply(in_file(blob, "c.ply")), _cloud_ok)
 
@@ -205,7 +205,7 @@ def test_opencv_calibration_reader(data, suffix):
 # ---- run manifests ------------------------------------------------------------------------------
 
 def _valid_manifest() -> dict:
-    from dotshell.store import RunStore
+    from dotshell.run.store import RunStore
 
     store = RunStore(Path(tempfile.mkdtemp(prefix="dotshell-readers-")))
     store.init_manifest("seed", [0.0, 180.0], ["white", "black", "col_00", "col_00_inv"])
@@ -226,7 +226,7 @@ MANIFEST = _valid_manifest()
 
 def _manifest_ok(m) -> None:
     """What the commands do with a manifest that passed the check, they can do."""
-    from dotshell.framecheck import FrameSpec
+    from dotshell.run.framecheck import FrameSpec
     from dotshell.pipeline.pdi import shots_from_manifest
     from dotshell.pipeline.steps import view_angle
 
@@ -246,7 +246,7 @@ def _manifest_ok(m) -> None:
 @FAST
 @given(st.data())
 def test_manifest_check(data):
-    from dotshell.store import check_manifest
+    from dotshell.run.store import check_manifest
 
     doc = data.draw(st.sampled_from(["mutated", "mutated", "random"]))
     m = mutate_tree(data, MANIFEST) if doc == "mutated" else data.draw(json_values)
@@ -257,7 +257,7 @@ def test_manifest_check(data):
 @FAST
 @given(st.data())
 def test_manifest_file_damage(tmp_path_factory, data):
-    from dotshell.store import RunStore
+    from dotshell.run.store import RunStore
 
     run = tmp_path_factory.mktemp("run")
     (run / "manifest.json").write_bytes(mutate_bytes(data, json.dumps(MANIFEST).encode()))
@@ -297,7 +297,7 @@ def _profile_ok(profile) -> None:
 @FAST
 @given(st.data())
 def test_profile_validation_of_damaged_values(pm, data):
-    from dotshell.profile import validate_profile
+    from dotshell.profile.loader import validate_profile
 
     raw = mutate_tree(data, PROFILE, toml_values)
     assume(isinstance(raw, dict))
@@ -307,7 +307,7 @@ def test_profile_validation_of_damaged_values(pm, data):
 @FAST
 @given(st.data())
 def test_profile_file_damage(pm, data):
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
 
     text = mutate_bytes(data, tomli_w.dumps(PROFILE).encode(), max_changes=3)
     refused_or(lambda: load_profile(in_file(text, "p.toml"), pm), _profile_ok)
@@ -319,7 +319,7 @@ def test_profile_file_damage(pm, data):
      "scan.exposure_ms=inf", "a.b.c.d=1", "scan.views=1e999", "profile.name={x=1}"]),
     max_size=3))
 def test_set_overrides(pm, overrides):
-    from dotshell.profile import apply_overrides, validate_profile
+    from dotshell.profile.loader import apply_overrides, validate_profile
 
     refused_or(lambda: validate_profile(apply_overrides(PROFILE, overrides, "p.toml"), pm,
                                         "p.toml"), _profile_ok)
@@ -357,7 +357,7 @@ def test_layout_reader(data):
 @FAST
 @given(st.data())
 def test_event_log_reader_never_fails(tmp_path_factory, data):
-    from dotshell.store import RunStore
+    from dotshell.run.store import RunStore
 
     run = tmp_path_factory.mktemp("run")
     good = b"".join(json.dumps({"event": "FrameCaptured", "view": i}).encode() + b"\n"
@@ -378,8 +378,8 @@ def mesh_files() -> tuple[bytes, bytes]:
     """A valid surface (PLY) and volume (VTU) file's bytes, made at first use, not at
     collection: writing the volume computes its boundary (a numba kernel, in the workers of
     ``make test`` compiled only once the controller has compiled it, tests/conftest.py)."""
-    from dotshell.fem import TetMesh, TriangleSurface
-    from dotshell.meshfiles import write_surface, write_volume
+    from dotshell.fem.meshes import TetMesh, TriangleSurface
+    from dotshell.fem.meshfiles import write_surface, write_volume
 
     nodes = 10.0 * np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
     d = Path(tempfile.mkdtemp(prefix="dotshell-readers-"))
@@ -403,7 +403,7 @@ def _volume_ok(m) -> None:
 @SLOW
 @given(st.data())
 def test_surface_reader(data):
-    from dotshell.meshfiles import read_surface
+    from dotshell.fem.meshfiles import read_surface
 
     refused_or(lambda: read_surface(in_file(mutate_bytes(data, mesh_files()[0]), "surface.ply")),
                _surface_ok)
@@ -412,7 +412,7 @@ def test_surface_reader(data):
 @SLOW
 @given(st.data())
 def test_volume_reader(data):
-    from dotshell.meshfiles import read_volume
+    from dotshell.fem.meshfiles import read_volume
 
     refused_or(lambda: read_volume(in_file(mutate_bytes(data, mesh_files()[1]), "volume.vtu")),
                _volume_ok)
@@ -426,7 +426,7 @@ OPTODES = {"units": "mm", "sources_mm": [[0.0, 0.0, 5.0]], "detectors_mm": [[5.0
 @FAST
 @given(st.data())
 def test_optodes_reader(data):
-    from dotshell.meshfiles import read_optodes
+    from dotshell.fem.meshfiles import read_optodes
 
     doc = data.draw(st.sampled_from(["mutated", "random", "text"]))
     if doc == "text":
@@ -458,7 +458,7 @@ arrays = st.one_of(
 @FAST
 @given(arrays, st.sampled_from([8, 10, 12, 16]))
 def test_frame_check(frame, bits):
-    from dotshell.framecheck import FrameSpec, dtype_for
+    from dotshell.run.framecheck import FrameSpec, dtype_for
 
     spec = FrameSpec(5, 4, bits)
 
@@ -471,7 +471,7 @@ def test_frame_check(frame, bits):
 
 def test_optodes_with_a_link_past_any_integer_are_refused(tmp_path):
     """Found by test_optodes_reader: a link of 9.2e18 overflowed the int64 conversion."""
-    from dotshell.meshfiles import read_optodes
+    from dotshell.fem.meshfiles import read_optodes
 
     path = tmp_path / "optodes.json"
     path.write_text(json.dumps({**OPTODES, "links": 9.223372036854776e18}))

@@ -15,9 +15,9 @@ from dotshell.errors import DeviceError
 from dotshell.events import EventBus, FrameCaptured
 from dotshell.pipeline.scan import reconstruct_run, scan
 from dotshell.plugins import PluginManager
-from dotshell.profile import load_profile
-from dotshell.ply import read_ply
-from dotshell.store import RunStore
+from dotshell.profile.loader import load_profile
+from dotshell.run.ply import read_ply
+from dotshell.run.store import RunStore
 
 
 class FlakyCameraPlugin:
@@ -160,7 +160,7 @@ def test_third_party_plugin_installed_with_pip_is_discovered_and_used(tmp_path, 
 
 def test_disk_write_failure_stops_scan_with_clear_error(tmp_path, monkeypatch):
     from dotshell.errors import RunError
-    from dotshell.frames import TiffFrameStore
+    from dotshell.run.frames import TiffFrameStore
 
     real = TiffFrameStore.append
     count = {"n": 0}

@@ -9,9 +9,9 @@ import tifffile
 
 from dotshell.events import FrameCaptured, ScanFinished, ScanStarted, ViewReconstructed
 from dotshell.pipeline.scan import reconstruct_run
-from dotshell import hugepages
+from dotshell.runtime import hugepages
 from dotshell.plugins import PluginManager
-from dotshell.ply import read_ply
+from dotshell.run.ply import read_ply
 
 
 def test_scan_writes_complete_run_directory(small_scan):
@@ -57,7 +57,7 @@ def test_report_times_acquisition_and_last_frame_to_cloud(small_scan, tmp_path):
     to ``cloud.ply`` (which holds the merge, but not the validation or previews that follow
     it); the command prints them. A reconstruction of the run keeps the scan's figures (as it
     keeps its acquisition time) and times its own merge."""
-    from dotshell.cli import timing_line
+    from dotshell.cli.app import timing_line
     from dotshell.pipeline.scan import reconstruct_run
     from dotshell.plugins import PluginManager
 

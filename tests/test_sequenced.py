@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from conftest import small_profile_dict, write_profile, write_test_profile
-from dotshell.store import RunStore
+from dotshell.run.store import RunStore
 from dotshell.devices import SequencePattern
 from dotshell.errors import CalibrationError, DeviceTimeout, ProfileError
 from dotshell.events import EventBus
@@ -19,9 +19,9 @@ from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.scan import scan
 from dotshell.pipeline.sequenced import pattern_period_ms, plan_runs
 from dotshell.pipeline.pdi import Shot
-from dotshell.profile import load_profile
-from dotshell.rig import Rig
-from dotshell.rig_checks import check_resolutions, measure_latency
+from dotshell.profile.loader import load_profile
+from dotshell.rig.assembly import Rig
+from dotshell.rig.checks import check_resolutions, measure_latency
 
 
 def _rig(tmp_path, pm, camera=None, projector=None, **scan_keys):
@@ -150,7 +150,7 @@ def test_check_latency_prints_a_settle_ms_covering_the_display(tmp_path):
     raw["projector"]["settings"].update(display_latency_ms=40.0, refresh_hz=60.0)
     raw["camera"]["settings"]["readout_ms"] = 10.0
     write_profile(path, raw)
-    r = subprocess.run([sys.executable, "-m", "dotshell.cli", "check", str(path), "--connect",
+    r = subprocess.run([sys.executable, "-m", "dotshell.cli.app", "check", str(path), "--connect",
                         "--latency"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     settle = float(r.stdout.split("settle_ms = ")[1].split()[0])

@@ -6,7 +6,7 @@ import pytest
 
 from dotshell.backends import RigContext
 from dotshell.errors import DeviceError, DeviceLostError, DeviceTimeout
-from dotshell.handles import DeviceHandle, DevicePolicy
+from dotshell.rig.handles import DeviceHandle, DevicePolicy
 
 #: emulator, role, backend, the call, what its message names, per fault: (error, text)
 BACKENDS = {

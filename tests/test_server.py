@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 
 from conftest import write_test_profile
-from dotshell.store import RunStore
-from dotshell.console import PreviewSaved, Session
+from dotshell.run.store import RunStore
+from dotshell.session.console import PreviewSaved, Session
 from dotshell.errors import DeviceError
 from dotshell.events import FrameCaptured, ScanFinished, ScanStarted, ViewCaptured
 from dotshell.server import protocol, server as server_module
 from dotshell.server.client import RemoteSession
-from dotshell.server.paths import server_log_dir, server_name, socket_path
+from dotshell.runtime.paths import server_log_dir, server_name, socket_path
 from dotshell.server.protocol import ServerError, UnknownEvent, event_from_wire
 from dotshell.server.repl import read_history
 from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
@@ -276,14 +276,14 @@ def test_console_input_help_completion_and_history(session, dirs):
 # ---- signals and the command-line clients, in real processes ---------------------------------------
 
 def dotshell(*args, **kw):
-    return subprocess.run([sys.executable, "-m", "dotshell.cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "dotshell.cli.app", *args], capture_output=True,
                           text=True, timeout=300, **kw)
 
 
 def test_sigterm_aborts_the_scan_cleanly_and_sighup_can_be_kept(tmp_path, dirs):
     prof = write_test_profile(tmp_path, views=3)
     sock = socket_path("sig")
-    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli", "serve", str(prof), "--out",
+    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli.app", "serve", str(prof), "--out",
                              str(tmp_path / "runs"), "--socket", str(sock), "--on-hangup",
                              "keep"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     try:

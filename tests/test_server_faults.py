@@ -14,9 +14,9 @@ import threading
 import pytest
 
 from conftest import write_test_profile
-from dotshell.console import Session
+from dotshell.session.console import Session
 from dotshell.server.client import RemoteSession, ServerClient
-from dotshell.server.paths import history_path, server_log_dir, state_dir
+from dotshell.runtime.paths import history_path, server_log_dir, state_dir
 from dotshell.server.protocol import MAX_LINE, ServerError, decode
 from dotshell.server.repl import ServerConsole
 from rig_server import served, user_dirs  # noqa: F401 (a fixture)

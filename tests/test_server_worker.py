@@ -19,10 +19,10 @@ import tomli_w
 
 from conftest import make_dist, write_test_profile
 from dotshell.server.client import RemoteSession
-from dotshell.server.paths import server_name, socket_path
+from dotshell.runtime.paths import server_name, socket_path
 from dotshell.server.protocol import ServerError
 from dotshell.server.supervisor import WorkerSession
-from dotshell.store import RunStore
+from dotshell.run.store import RunStore
 from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
 from test_server import Inbox
 
@@ -203,12 +203,12 @@ def test_a_driver_hung_in_c_leaves_the_server_answering_and_stop_abort_ends_the_
                              and "has not answered" in m["event"].get("text", ""))
         assert "camera (hung-camera) capture()" in log["event"]["text"]
 
-        status = subprocess.run([sys.executable, "-m", "dotshell.cli", "status", "--server",
+        status = subprocess.run([sys.executable, "-m", "dotshell.cli.app", "status", "--server",
                                  "hung"], capture_output=True, text=True, timeout=300)
         assert re.search(rf"worker +pid {first_pid}, hung in camera \(hung-camera\) capture\(\) "
                          r"for [\d.]+ s.*\(silent \d+ s\)", " ".join(status.stdout.split())), \
             status.stdout
-        stopped = subprocess.run([sys.executable, "-m", "dotshell.cli", "stop", "--server",
+        stopped = subprocess.run([sys.executable, "-m", "dotshell.cli.app", "stop", "--server",
                                   "hung", "--abort"], capture_output=True, text=True,
                                  timeout=300)
         assert stopped.returncode == 0, stopped.stdout + stopped.stderr
@@ -249,7 +249,7 @@ def test_a_hung_worker_is_restarted_and_the_new_one_works(hung_rig, tmp_path):
         inbox.wait_for(lambda m: m.get("type") == "state" and _worker(m).get("state") == "hung",
                        timeout=120)
         flag.unlink()
-        restarted = subprocess.run([sys.executable, "-m", "dotshell.cli", "stop", "--server",
+        restarted = subprocess.run([sys.executable, "-m", "dotshell.cli.app", "stop", "--server",
                                     "hung2", "--restart-worker"], capture_output=True, text=True,
                                    timeout=300)
         assert restarted.returncode == 0, restarted.stdout + restarted.stderr
@@ -308,7 +308,7 @@ def test_an_abort_ends_a_hung_worker_within_its_bound_and_a_new_one_takes_over(h
 def test_the_console_runs_in_the_worker(tmp_path, user_dirs):
     """input(), interrupts, completion and the history file, served from the worker; the
     console's namespace is the worker's session (its pid is not the server's)."""
-    from dotshell.server.paths import history_path
+    from dotshell.runtime.paths import history_path
     from dotshell.server.repl import read_history
 
     session = WorkerSession(write_test_profile(tmp_path, views=2), out_dir=tmp_path / "runs",
@@ -380,7 +380,7 @@ def test_the_tui_keeps_drawing_the_server_while_the_driver_hangs(hung_rig, tmp_p
         term.child.send("4")  # the Log tab: the server's lines as they come
         term.wait_for("has not answered", timeout_s=120)
         term.wait_for("capture()", timeout_s=30)
-        stopped = subprocess.run([sys.executable, "-m", "dotshell.cli", "stop", str(prof),
+        stopped = subprocess.run([sys.executable, "-m", "dotshell.cli.app", "stop", str(prof),
                                   "--abort"], capture_output=True, text=True, timeout=300)
         assert stopped.returncode == 0, stopped.stdout + stopped.stderr
         term.wait_exit(timeout_s=120)  # the server said bye: the TUI leaves
@@ -399,7 +399,7 @@ def test_serve_reports_the_workers_profile_error_as_its_own(tmp_path, user_dirs)
     exit, and its end must not replace it)."""
     bad = tmp_path / "bad.toml"
     bad.write_text('[scan]\nviews = "x"\n')
-    served_bad = subprocess.run([sys.executable, "-m", "dotshell.cli", "serve", str(bad), "--out",
+    served_bad = subprocess.run([sys.executable, "-m", "dotshell.cli.app", "serve", str(bad), "--out",
                                  str(tmp_path / "runs"), "--socket",
                                  str(socket_path("bad"))], capture_output=True, text=True,
                                 timeout=300)

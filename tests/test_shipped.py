@@ -15,11 +15,11 @@ from pathlib import Path
 import pytest
 
 from conftest import ROOT
-from dotshell.cli import _parser, main
-from dotshell.cli_completion import completion_script
-from dotshell.cli_logging import chosen_level
+from dotshell.cli.app import _parser, main
+from dotshell.cli.completion import completion_script
+from dotshell.cli.log_setup import chosen_level
 from dotshell.pipeline.captures import resolve_layout_path
-from dotshell.profile import load_profile
+from dotshell.profile.loader import load_profile
 from dotshell.shipped import resolve, shipped_dir, shipped_names
 
 
@@ -114,7 +114,7 @@ def test_library_warnings_reach_the_terminal_only_with_verbose(tmp_path):
 def test_open3d_import_error_speaks_to_a_pip_user(monkeypatch):
     import builtins
 
-    from dotshell import compat
+    from dotshell.runtime import compat
     from dotshell.errors import DotshellError
 
     real = builtins.__import__
@@ -202,7 +202,7 @@ def test_user_directories_are_platformdirs_at_todays_places(monkeypatch, tmp_pat
 
 
 def test_argparse_namespace_without_log_flags_keeps_warning_level():
-    from dotshell.cli_logging import configure_logging
+    from dotshell.cli.log_setup import configure_logging
 
     assert configure_logging(argparse.Namespace()) == 30
 
@@ -210,7 +210,7 @@ def test_argparse_namespace_without_log_flags_keeps_warning_level():
 def test_cli_reference_lists_every_command_and_option():
     """The docs site's cli.md is generated from the parser: every command (and sub-command) has
     its heading, every option its row."""
-    from dotshell.cli_reference import markdown
+    from dotshell.cli.reference import markdown
 
     parser = _parser()
     text = markdown(parser)
@@ -232,7 +232,7 @@ def test_log_records_reach_stderr_by_level_and_device_lines_only_when_verbose(ca
     show as events) only with -v; -q keeps errors only."""
     import logging
 
-    from dotshell.cli_logging import configure_logging
+    from dotshell.cli.log_setup import configure_logging
 
     lib, dev = logging.getLogger("somelib"), logging.getLogger("dotshell.devices")
     try:

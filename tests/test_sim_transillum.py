@@ -12,9 +12,9 @@ import pytest
 from scipy.ndimage import binary_erosion
 
 from dotshell.errors import DeviceError
-from dotshell.fem import closed_manifold_problems
-from dotshell.forward import solve_cw, sphere_point_source_fluence
-from dotshell.optics import exit_radiance_factor
+from dotshell.fem.meshes import closed_manifold_problems
+from dotshell.fem.forward import solve_cw, sphere_point_source_fluence
+from dotshell.fem.optics import exit_radiance_factor
 from dotshell_sim import transillum as T
 from dotshell_sim.bench import build_rig, scale_profile
 from dotshell_sim.scene import Cylinder
@@ -112,7 +112,7 @@ def _flat_fielded(agar) -> tuple[np.ndarray, np.ndarray]:
 def test_fem_truth_matches_the_analytic_sphere_and_the_lu_solve():
     """Point source at the centre of a sphere (r 10 mm) meshed at 1.5 mm: φ read on the surface
     (snapped, interpolated) against the exact Robin solution — measured median 0.35 %, 95th
-    percentile 2.5 %; the model's φ is dotshell.forward.solve_cw's for the same source."""
+    percentile 2.5 %; the model's φ is dotshell.fem.forward.solve_cw's for the same source."""
     import pyvista as pv
 
     ico = pv.Icosphere(radius=10.0, nsub=5)

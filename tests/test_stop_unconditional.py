@@ -14,7 +14,7 @@ import pytest
 from stop_cases import EXIT_BOUND_S, SIGNALS, signal_scan, wait_for
 from dotshell.backends import RigContext
 from dotshell.errors import DeviceError, DeviceLostError
-from dotshell.handles import DeviceHandle, DevicePolicy
+from dotshell.rig.handles import DeviceHandle, DevicePolicy
 
 
 @pytest.mark.parametrize("case,signame", [("homing", "SIGINT"), ("homing", "SIGTERM"),

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from dotshell.errors import RunError
-from dotshell.ply import read_ply, write_ply
-from dotshell.store import RunStore
+from dotshell.run.ply import read_ply, write_ply
+from dotshell.run.store import RunStore
 
 
 def test_frames_roundtrip_losslessly_and_manifest_tracks_views(tmp_path):

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from dotshell.cli import main
-from dotshell.cli_decode import loss_notes
+from dotshell.cli.app import main
+from dotshell.cli.decode import loss_notes
 
 
 def test_layout_files_matching_nothing_points_at_files_and_first_index(tmp_path, capsys):

@@ -20,10 +20,10 @@ from textual.widgets._footer import FooterKey
 
 import dotshell.tui.app
 from conftest import write_test_profile
-from dotshell.console import Session
+from dotshell.session.console import Session
 from dotshell.events import FrameCaptured, Message, ScanFinished, ScanStarted
-from dotshell.server.paths import config_path
-from dotshell.store import RunStore
+from dotshell.runtime.paths import config_path
+from dotshell.run.store import RunStore
 from dotshell.tui.app import DotshellApp
 from dotshell.tui.messages import ServerMessage
 from dotshell.tui.widgets.choice import ChoiceScreen

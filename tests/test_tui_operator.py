@@ -25,9 +25,9 @@ from textual.widgets._footer import FooterKey
 from textual.widgets._toast import Toast
 
 from conftest import write_test_profile
-from dotshell.cli_server import apply_out_dir
-from dotshell.console import Session
-from dotshell.pipeline.generations import link_top_level, point_current
+from dotshell.cli.server import apply_out_dir
+from dotshell.session.console import Session
+from dotshell.run.generations import link_top_level, point_current
 from dotshell.server import repl
 from dotshell.tui.widgets.confirm import ConfirmScreen
 from dotshell.tui.widgets.console_input import ConsoleInput

@@ -22,7 +22,7 @@ import pytest
 
 from conftest import write_profile, write_test_profile
 from dotshell.server.client import RemoteSession
-from dotshell.server.paths import alive, server_name, socket_path
+from dotshell.runtime.paths import alive, server_name, socket_path
 from rig_server import user_dirs  # noqa: F401 (a fixture)
 
 COLS, ROWS = 80, 24
@@ -56,7 +56,7 @@ def stop_server(sock):
 
 
 def tui_command(profile, tmp_path):
-    return [sys.executable, "-m", "dotshell.cli", "tui", str(profile), "--out",
+    return [sys.executable, "-m", "dotshell.cli.app", "tui", str(profile), "--out",
             str(tmp_path / "runs")]
 
 
@@ -210,7 +210,7 @@ def test_a_scan_survives_the_terminal_that_started_it(profile, tmp_path):
     run_dir = state["tracker"]["run_dir"]
     assert json.loads(open(os.path.join(run_dir, "manifest.json")).read())["status"] == "running"
 
-    watcher = subprocess.Popen([sys.executable, "-m", "dotshell.cli", "attach", str(profile)],
+    watcher = subprocess.Popen([sys.executable, "-m", "dotshell.cli.app", "attach", str(profile)],
                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     first_line = watcher.stdout.readline()
     assert "paused" in first_line and "frames" in first_line, first_line

@@ -22,7 +22,7 @@ import textual.constants
 from conftest import write_test_profile
 from dotshell import hookimpl
 from dotshell.backends import Backend
-from dotshell.console import Session
+from dotshell.session.console import Session
 from dotshell.events import FrameCaptured
 from dotshell.plugins import PluginLoadError, PluginManager
 from dotshell.tui.app import DotshellApp

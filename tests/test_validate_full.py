@@ -13,8 +13,8 @@ import pytest
 from conftest import ROOT
 from dotshell.pipeline.scan import reconstruct_run, scan
 from dotshell.plugins import PluginManager
-from dotshell.ply import read_ply
-from dotshell.profile import load_profile
+from dotshell.run.ply import read_ply
+from dotshell.profile.loader import load_profile
 
 pytestmark = pytest.mark.slow
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dotshell.geometry.triangulate import ImageSolve
-from dotshell import parallel
+from dotshell.runtime import parallel
 from dotshell.pipeline.reconstruct import in_roi, keep_points, speckle_mask, view_points
 
 

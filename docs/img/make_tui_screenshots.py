@@ -80,10 +80,10 @@ async def main() -> None:
     import textual.constants
 
     textual.constants.COLOR_SYSTEM = "truecolor"
-    from dotshell.console import Session
+    from dotshell.session.console import Session
     from dotshell.events import FrameCaptured
     from dotshell.server.client import RemoteSession
-    from dotshell.server.paths import history_path, server_log_dir, socket_path
+    from dotshell.runtime.paths import history_path, server_log_dir, socket_path
     from dotshell.server.server import RigServer
     from dotshell.tui.app import DotshellApp
     from dotshell.tui.widgets.console_input import ConsoleInput

@@ -110,7 +110,7 @@ def calibrate_camera(paths: list[Path | str], board: Board, settings: dict[str, 
         lens_warnings,
         write_residual_pictures,
     )
-    from dotshell.store import RunStore
+    from dotshell.run.store import RunStore
 
     images = board_images(paths)
     poses, left_out, poses_report, size = _detect_all(images, board, settings["max_blur_px"])
@@ -225,7 +225,7 @@ def calibrate_camera_pair(dir1: Path | str, dir2: Path | str, board: Board,
     pose each, paired in name order. Each lens is solved alone (model by held-out poses), then
     both with their pose (:func:`calibrate_pair`); writes ``camera-pair.json`` (format
     ``dotshell-camera-pair/1``) into a new run directory and returns (solve, directory)."""
-    from dotshell.store import RunStore
+    from dotshell.run.store import RunStore
 
     images = [board_images([d]) for d in (dir1, dir2)]
     if len(images[0]) != len(images[1]):

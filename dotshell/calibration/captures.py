@@ -18,7 +18,7 @@ from dotshell.errors import CalibrationError
 from dotshell.events import EventBus
 from dotshell.pipeline.captures import (capture_order, coding_frame_names, layout_coding,
                                         load_layout, sequence_files)
-from dotshell.store import RunStore
+from dotshell.run.store import RunStore
 
 
 @dataclass(frozen=True)

@@ -91,7 +91,7 @@ def _coding_spec(profile) -> tuple[str, dict[str, Any]]:
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
-    from dotshell.store import atomic_write_bytes
+    from dotshell.run.store import atomic_write_bytes
 
     ok, buf = cv2.imencode(".png", image)
     if not ok:
@@ -107,8 +107,8 @@ def capture(profile, pm, out_dir: Path | str = "runs", bus: EventBus | None = No
     ``ask(message)`` is called before each pose (the CLI waits for Enter).
     """
     from dotshell.devices import ExposureControl, GroundTruth
-    from dotshell.rig import Rig
-    from dotshell.store import RunStore
+    from dotshell.rig.assembly import Rig
+    from dotshell.run.store import RunStore
 
     bus = bus or EventBus()
     settings = profile.data["calibrate"]
@@ -482,7 +482,7 @@ def _publish(run: Path, calib: RigCalibration, report: dict[str, Any], refused: 
     """Write the calibration and its report, or — when refused — only calibration-refused.json
     with the figures, and raise."""
     from dotshell.geometry.opencv_io import write_opencv_calibration
-    from dotshell.store import atomic_write_text, dumps
+    from dotshell.run.store import atomic_write_text, dumps
 
     if refused:
         report["refused"] = refused

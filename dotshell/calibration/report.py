@@ -108,7 +108,7 @@ def write_residual_pictures(out_dir: Path, residuals: dict[str, dict[str, tuple]
                             sizes: dict[str, tuple[int, int]]) -> dict[str, str]:
     """One PNG per pose under ``out_dir``: camera and projector residual vectors side by side,
     all poses at one arrow scale (printed on the picture). Returns pose name → file name."""
-    from dotshell.store import atomic_write_bytes
+    from dotshell.run.store import atomic_write_bytes
 
     lengths = [np.hypot(*v.T) for r in residuals.values() for _, v in r.values() if len(v)]
     top = float(np.percentile(np.concatenate(lengths), 99)) if lengths else 0.0

@@ -170,7 +170,7 @@ class RigCalibration:
         return ""
 
     def save(self, path: Path) -> None:
-        from dotshell.store import atomic_write_text
+        from dotshell.run.store import atomic_write_text
 
         atomic_write_text(Path(path), json.dumps(self.to_dict(), indent=2))
 

@@ -36,7 +36,7 @@ def load_reference_cloud(path: Path | str, key: str = "xyz") -> np.ndarray:
     if not path.is_file():
         raise ReconstructionError(f"reference cloud {path} does not exist.")
     if path.suffix.lower() == ".ply":
-        from dotshell.ply import read_ply
+        from dotshell.run.ply import read_ply
 
         pts, _ = read_ply(path, finite=False)  # clouds made elsewhere mark holes with NaN
     elif path.suffix.lower() == ".mat":

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dotshell.compat import import_open3d
+from dotshell.runtime.compat import import_open3d
 
 
 class TriangleScene:

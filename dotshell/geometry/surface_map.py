@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dotshell.fem import TriangleSurface, enclosed_volume_mm3
+from dotshell.fem.meshes import TriangleSurface, enclosed_volume_mm3
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.raycast import TriangleScene, barycentric_weights
 

@@ -26,7 +26,7 @@ The point lies on the camera ray through the pixel.
   above or below the camera: decode rows then).
 
 Speed (docs/performance.md): the point solves are compiled loops (numba) over the pixels, split
-across the cores (:mod:`dotshell.parallel`); camera rays come from a grid computed once per
+across the cores (:mod:`dotshell.runtime.parallel`); camera rays come from a grid computed once per
 camera (a lookup table of every pixel's undistorted ray), the projector's distortion is undone
 per point by OpenCV's fixed-point iteration run to convergence (measured faster than a lookup
 table of the projector's pixels, whose scattered reads miss the cache), and
@@ -47,10 +47,10 @@ from functools import lru_cache
 import numba
 import numpy as np
 
-from dotshell import hugepages, numba_cache
+from dotshell.runtime import hugepages, numba_cache
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens
-from dotshell.parallel import balanced_bands, split, split_bands
+from dotshell.runtime.parallel import balanced_bands, split, split_bands
 
 numba_cache.install()  # cache files safe for processes compiling at once
 

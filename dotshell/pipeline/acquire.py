@@ -31,15 +31,15 @@ from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, FrameE
                              ProfileError, RunError)
 from dotshell.events import (EventBus, FrameCaptured, Message, ScanPaused, ScanResumed,
                              ViewCaptured)
-from dotshell.frames import FrameStore
-from dotshell.framecheck import FrameSpec
-from dotshell.pipeline.integrity import ViewIntegrity, check_view
-from dotshell.pipeline.lifecycle import signals_deferred
+from dotshell.run.frames import FrameStore
+from dotshell.run.framecheck import FrameSpec
+from dotshell.run.integrity import ViewIntegrity, check_view
+from dotshell.run.lifecycle import signals_deferred
 from dotshell.pipeline.pdi import Shot, plan_shots
 from dotshell.pipeline.sequenced import SequencedCapture, uses_sequenced
-from dotshell.rig import Rig
-from dotshell.rig_checks import refused_controls
-from dotshell.store import RunStore
+from dotshell.rig.assembly import Rig
+from dotshell.rig.checks import refused_controls
+from dotshell.run.store import RunStore
 
 T = TypeVar("T")
 
@@ -63,7 +63,7 @@ def with_retries(action: Callable[[], T], retries: int, what: str, bus: EventBus
 
 
 def check_frame(rig: Rig, spec: FrameSpec, frame: object, what: str) -> np.ndarray:
-    """A frame just captured, checked against the run's frames (:mod:`dotshell.framecheck`)."""
+    """A frame just captured, checked against the run's frames (:mod:`dotshell.run.framecheck`)."""
     backend = rig.profile.role("camera")["backend"]
     return spec.check(frame, f"{what} from the camera ({backend})",
                       "Fix the camera's settings or its plugin; frames already written are "
@@ -81,7 +81,7 @@ class _NotAsProjected(Exception):
 class FrameWriter:
     """Writes captured images to a :class:`RunStore` on a background thread, in order.
 
-    Fringe frames are appended to their view's frame store (:mod:`dotshell.frames`) as they
+    Fringe frames are appended to their view's frame store (:mod:`dotshell.run.frames`) as they
     arrive and synced to the disk once per view, by :meth:`end_view`; other images
     (:meth:`put_path`) are written atomically one by one.
     """
@@ -283,7 +283,7 @@ class Acquisition:
     def run_view(self, view: int, angle_deg: float) -> list[np.ndarray] | None:
         """Capture all frames of one view; None if the scan was stopped midway (frames taken
         so far stay on disk and the view is marked incomplete). A view whose frames are not
-        what was projected (:mod:`dotshell.pipeline.integrity`) is named, its frames set aside
+        what was projected (:mod:`dotshell.run.integrity`) is named, its frames set aside
         (``frames/view_NNN.partial-K``, kept) and captured again, up to ``scan.retries`` times;
         a FrameError names the faults if it never passes."""
         attempts = self.scan["retries"] + 1

@@ -35,10 +35,10 @@ from dotshell.pipeline.batch_tasks import (TaskOutcome, executing_keys, head_tas
                                            missing_runs, tail_task, view_task)
 from dotshell.pipeline.commands import check_calibration_for_run
 from dotshell.pipeline.engine import JobWork, RunJob, outcome_of, prepare, publish
-from dotshell.pipeline.generations import current_number
+from dotshell.run.generations import current_number
 from dotshell.pipeline.steps import view_angle
 from dotshell.plugins import PluginManager
-from dotshell.store import RunStore
+from dotshell.run.store import RunStore
 
 
 #: seconds to wait for tasks that run on after their batch stopped (a view's decode and

@@ -28,11 +28,11 @@ from dotshell.errors import RunError
 from dotshell.events import Event, EventBus
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.engine import JobWork, StepsDone, outcome_of, run_steps
-from dotshell.pipeline.generations import ProductStore
+from dotshell.run.generations import ProductStore
 from dotshell.pipeline.steps import make_coding, reconstruct_one_view
 from dotshell.plugins import get_plugin_manager
-from dotshell.profile import Profile
-from dotshell.store import RunStore, versions
+from dotshell.profile.loader import Profile
+from dotshell.run.store import RunStore, versions
 
 
 @dataclass
@@ -80,7 +80,7 @@ def executing_keys(dask_worker: Any) -> list[str]:
 def _configure_worker() -> None:
     """The ``dotshell`` command's process settings (BLAS on one thread, the heap's mmap
     threshold), once per worker process."""
-    from dotshell.runtime import configure_process
+    from dotshell.runtime.process import configure_process
 
     configure_process()
 

@@ -28,8 +28,8 @@ def reconstruct_camera_pair(captures1: Path | str, captures2: Path | str,
     camera 2; ``layout2`` defaults to ``layout1``."""
     from dotshell.calibration.camera_only import load_camera_pair
     from dotshell.geometry.code_stereo import match_by_codes, triangulate_pair
-    from dotshell.ply import write_ply
-    from dotshell.store import RunStore
+    from dotshell.run.ply import write_ply
+    from dotshell.run.store import RunStore
 
     pair = load_camera_pair(pair_file)
     t0 = time.perf_counter()

@@ -335,8 +335,8 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
                          coverage_radius_mm: float = 1.0) -> CapturesResult:
     """Decode and triangulate one foreign capture sequence; see the module docstring."""
     from dotshell.geometry.opencv_io import load_any_calibration
-    from dotshell.ply import write_ply
-    from dotshell.store import RunStore
+    from dotshell.run.ply import write_ply
+    from dotshell.run.store import RunStore
 
     layout = load_layout(layout_file)
     calib = load_any_calibration(calibration)
@@ -397,7 +397,7 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
 
 def _previews(store, white: np.ndarray, corr, calib: RigCalibration, points: np.ndarray,
               name: str, report: dict[str, Any]) -> dict[str, str]:
-    from dotshell.render import column_map_preview, frame_preview
+    from dotshell.render.previews import column_map_preview, frame_preview
 
     pdir = store.path("previews")
     pdir.mkdir(exist_ok=True)
@@ -417,7 +417,7 @@ def camera_view_preview(points: np.ndarray, path: Path, title: str) -> Path:
     depth (2nd–98th percentile), off-screen with pyvista."""
     import numpy as np
 
-    from dotshell.render import cloud_preview
+    from dotshell.render.previews import cloud_preview
 
     pts = np.asarray(points, np.float32)
     lo, hi = np.percentile(pts[:, 2], [2, 98])

@@ -16,7 +16,7 @@ from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.steps import require_turntable_axis
 from dotshell.plugins import PluginManager
-from dotshell.store import RunStore
+from dotshell.run.store import RunStore
 
 
 def reprocess(run_dir: Path | str, pm: PluginManager, command: str, targets: Iterable[str],

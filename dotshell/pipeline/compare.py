@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 
 from dotshell.errors import RunError
-from dotshell.ply import read_ply
-from dotshell.store import RunStore, atomic_write_bytes, atomic_write_text
+from dotshell.run.ply import read_ply
+from dotshell.run.store import RunStore, atomic_write_bytes, atomic_write_text
 
 COLUMNS = ("run", "profile", "pdi", "coding", "mean_rel_error_pct", "std_rel_error_pct",
            "rms_radius_error_mm", "points", "coverage_pct", "decoded_pct", "rejected_pct")

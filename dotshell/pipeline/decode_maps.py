@@ -46,7 +46,7 @@ class DecodeResult:
 
 
 def _write_bytes(path: Path, data: bytes) -> None:
-    from dotshell.store import atomic_write_bytes
+    from dotshell.run.store import atomic_write_bytes
 
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(path, data)
@@ -82,7 +82,7 @@ def read_map(path: Path | str) -> np.ndarray:
 
 def mask_preview(reason: np.ndarray, names: tuple[str, ...], path: Path) -> Path:
     """The reason map in colours (:data:`REASON_COLOURS`)."""
-    from dotshell.render import _write_png
+    from dotshell.render.previews import _write_png
 
     lut = np.array([REASON_COLOURS.get(n, (255, 0, 255)) for n in names], np.uint8)
     return _write_png(path, lut[np.minimum(reason, len(names) - 1)])
@@ -131,7 +131,7 @@ def write_maps(directory: Path, corr: Correspondence, projector_size: tuple[int,
     """Write one view's maps, mask and previews into ``directory``; returns its report entry
     (files relative to ``directory``, reason codes, counts)."""
     from dotshell.coding import label_reasons
-    from dotshell.render import _write_png, column_map_preview, frame_preview
+    from dotshell.render.previews import _write_png, column_map_preview, frame_preview
 
     if fmt not in MAP_FORMATS:
         raise RunError(f"map format {fmt!r} is not one of {', '.join(MAP_FORMATS)}.")
@@ -164,7 +164,7 @@ def decode_captures(captures: Path | str, layout_file: Path | str, pm,
                     out_dir: Path | str = "runs", fmt: str = "tiff") -> DecodeResult:
     """Decode a capture directory through its layout (no calibration needed)."""
     from dotshell.pipeline.captures import load_layout, read_sequence
-    from dotshell.store import RunStore
+    from dotshell.run.store import RunStore
 
     layout = load_layout(layout_file)
     t0 = time.perf_counter()
@@ -188,7 +188,7 @@ def decode_run(run_dir: Path | str, pm, out_dir: Path | str = "runs",
     ``report.json``. The run is only read."""
     from dotshell.pipeline.pdi import combine, shots_from_manifest
     from dotshell.pipeline.scan import load_run_profile
-    from dotshell.store import RunStore
+    from dotshell.run.store import RunStore
 
     run = RunStore.open(Path(run_dir))
     profile = load_run_profile(run, pm)

@@ -8,7 +8,7 @@ history. The run's ``status`` is then what is true of the run: a scan's or resum
 after a re-processing job the state it had before (a failed re-processing publishes nothing),
 except that a successful one makes a fully captured run ``completed``. :func:`process` runs the steps of
 :mod:`dotshell.pipeline.steps` that the targets need into a new generation and publishes it
-(:mod:`dotshell.pipeline.generations`); products the job does not change are carried over,
+(:mod:`dotshell.run.generations`); products the job does not change are carried over,
 products that would be stale are dropped, so a published generation is always consistent.
 :func:`process` is three parts that may run in different processes: :func:`prepare` (plan and
 carry over, under the job's lock), :func:`run_steps` (the steps, e.g. on a batch's workers, which
@@ -27,13 +27,13 @@ from typing import Any, Callable, Iterable
 from dotshell import __version__
 from dotshell.errors import DotshellError, RunError
 from dotshell.events import EventBus, StepStarted
-from dotshell.pipeline.generations import (Generation, ProductStore, current_number,
+from dotshell.run.generations import (Generation, ProductStore, current_number,
                                            published, remove_unpublished)
-from dotshell.pipeline.lifecycle import Interrupted, RunLock, effective_status
+from dotshell.run.lifecycle import Interrupted, RunLock, effective_status
 from dotshell.pipeline.steps import STEP_BY_NAME, STEPS, StepContext, import_ahead
 from dotshell.plugins import PluginManager
-from dotshell.profile import Profile
-from dotshell.store import FULL, RESERVE_BYTES, RunStore
+from dotshell.profile.loader import Profile
+from dotshell.run.store import FULL, RESERVE_BYTES, RunStore
 
 
 class RunJob:

@@ -21,15 +21,15 @@ import numpy as np
 
 from dotshell.errors import RunError
 from dotshell.events import EventBus, StepStarted
-from dotshell.fem import MeshError, TetMesh, quality_report
+from dotshell.fem.meshes import MeshError, TetMesh, quality_report
 from dotshell.geometry.calibration import RigCalibration
-from dotshell.mesh_schema import MESH_SCHEMA
-from dotshell.meshfiles import (optodes_from_settings, read_optodes, read_volume, write_optodes,
+from dotshell.profile.mesh import MESH_SCHEMA
+from dotshell.fem.meshfiles import (optodes_from_settings, read_optodes, read_volume, write_optodes,
                                 write_surface, write_volume)
 from dotshell.plugins import PluginManager
-from dotshell.ply import read_ply
-from dotshell.profile import Profile
-from dotshell.store import RunStore
+from dotshell.run.ply import read_ply
+from dotshell.profile.loader import Profile
+from dotshell.run.store import RunStore
 
 DEFAULT_BACKENDS = {"surface_mesher": "open3d-poisson", "volume_mesher": "tetgen"}
 #: Largest volume mesh made (nodes, estimated before meshing): at 1 mm a 30 mm phantom has
@@ -165,7 +165,7 @@ def _validate_volume(entry: dict[str, Any], profile: Profile) -> None:
 
 
 def _previews(store: RunStore, target: Path, node_distance_mm: float, bus: EventBus) -> dict:
-    from dotshell.meshpreview import render_mesh_previews
+    from dotshell.render.mesh_previews import render_mesh_previews
 
     try:
         files = render_mesh_previews(target, store.path("previews"),
@@ -182,8 +182,8 @@ def forward_stage(store: RunStore, source_mm: list[float] | None = None,
     """CW fluence for a point source on the volume mesh in ``mesh_dir`` of the run's
     products, written as ``forward.vtu`` (point data ``fluence``) beside it; returns figures
     for the report (``file`` relative to the run)."""
-    from dotshell.forward import move_inside, solve_cw
-    from dotshell.meshfiles import _atomic_meshio
+    from dotshell.fem.forward import move_inside, solve_cw
+    from dotshell.fem.meshfiles import _atomic_meshio
 
     d = store.path(mesh_dir)
     mesh = read_volume(d / "volume.vtu")
@@ -219,7 +219,7 @@ def forward_stage(store: RunStore, source_mm: list[float] | None = None,
 
 
 def _inside(mesh: TetMesh, point: np.ndarray) -> bool:
-    from dotshell.fem import element_containing
+    from dotshell.fem.meshes import element_containing
 
     try:
         element_containing(mesh, point)
@@ -233,7 +233,7 @@ def _default_source(mesh: TetMesh, d: Path) -> np.ndarray:
     optodes = read_optodes(d / "optodes.json")
     if len(optodes.sources_mm):
         return optodes.sources_mm[0]
-    from dotshell.fem import signed_volumes_mm3
+    from dotshell.fem.meshes import signed_volumes_mm3
 
     vol = signed_volumes_mm3(mesh.nodes, mesh.tets)
     return (mesh.nodes[mesh.tets].mean(axis=1) * vol[:, None]).sum(axis=0) / vol.sum()

@@ -24,18 +24,18 @@ import numpy as np
 from dotshell.devices import TransilluminationTruth
 from dotshell.errors import CalibrationError, DotshellError, RunError
 from dotshell.events import EventBus, StepProgress, StepStarted
-from dotshell.fem import TriangleSurface
-from dotshell.framecheck import FrameSpec
+from dotshell.fem.meshes import TriangleSurface
+from dotshell.run.framecheck import FrameSpec
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.surface_map import (OK, NodeLight, SurfaceView, mask_counts,
                                            node_intensities, normal_spread_deg, view_surface)
 from dotshell.normalizer import Normalizer
 from dotshell.plugins import PluginManager
 from dotshell.pipeline.transillum import source_names
-from dotshell.profile import Profile
+from dotshell.profile.loader import Profile
 from dotshell.settings import validate_settings
-from dotshell.transillum_schema import NORMALIZE_SCHEMA
-from dotshell.store import RunStore
+from dotshell.profile.transillum import NORMALIZE_SCHEMA
+from dotshell.run.store import RunStore
 
 DEFAULT_NORMALIZER = "diffuse-fresnel"
 ViewCallback = Callable[[SurfaceView, list[tuple["SourceResult", np.ndarray]]], None]
@@ -84,7 +84,7 @@ def _required(store: RunStore, name: str, error: type[DotshellError], why: str) 
 
 
 def _load_surface(store: RunStore) -> TriangleSurface:
-    from dotshell.meshfiles import read_surface
+    from dotshell.fem.meshfiles import read_surface
 
     return read_surface(_required(
         store, "surface.ply", RunError, "normalization maps the images onto the scanned "
@@ -97,7 +97,7 @@ def unscanned_nodes(store: RunStore, surface: TriangleSurface,
     mesher made up (the closed bottom, filled holes), whose orientation is a guess."""
     from scipy.spatial import cKDTree
 
-    from dotshell.ply import read_ply
+    from dotshell.run.ply import read_ply
 
     points, _ = read_ply(_required(
         store, "cloud.ply", RunError, "the surface's nodes cannot be checked against the "
@@ -170,7 +170,7 @@ def _truth_source(profile: Profile, pm: PluginManager) -> TransilluminationTruth
     not connected."""
     if profile.role("light_source") is None:
         return None
-    from dotshell.rig import Rig
+    from dotshell.rig.assembly import Rig
 
     try:
         rig = Rig(profile, pm)

@@ -22,8 +22,8 @@ import numpy as np
 
 from dotshell.geometry.raycast import TriangleScene
 from dotshell.geometry.surface_map import MASK_REASONS, SurfaceView, resample_to_image
-from dotshell.profile import Profile
-from dotshell.store import RunStore, atomic_write_bytes, atomic_write_text
+from dotshell.profile.loader import Profile
+from dotshell.run.store import RunStore, atomic_write_bytes, atomic_write_text
 
 if TYPE_CHECKING:
     from dotshell.pipeline.normalize import Normalization, SourceResult
@@ -61,7 +61,7 @@ def _g(x: float) -> str:
 def write_vtu(store: RunStore, job: "Normalization", results: list["SourceResult"]) -> str:
     import meshio
 
-    from dotshell.meshfiles import _atomic_meshio
+    from dotshell.fem.meshfiles import _atomic_meshio
 
     data: dict[str, np.ndarray] = {}
     for r in results:

@@ -9,12 +9,12 @@ from typing import Any, Sequence
 import numba
 import numpy as np
 
-from dotshell import hugepages, numba_cache
+from dotshell.runtime import hugepages, numba_cache
 from dotshell.coding import Correspondence, PatternCoding
 from dotshell.errors import CalibrationError, ReconstructionError
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.triangulate import ImageSolve, select, solve_image
-from dotshell.parallel import bands, split, split_bands
+from dotshell.runtime.parallel import bands, split, split_bands
 
 numba_cache.install()  # cache files safe for processes compiling at once
 

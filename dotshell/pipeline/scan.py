@@ -20,25 +20,25 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from dotshell import hugepages
+from dotshell.runtime import hugepages
 from dotshell.errors import CalibrationError, FrameError, RunError
-from dotshell.framecheck import FrameSpec
+from dotshell.run.framecheck import FrameSpec
 from dotshell.events import EventBus, ScanFinished, ScanStarted, StepStarted, ViewCaptured, \
     ViewReconstructed
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.acquire import Acquisition
 from dotshell.pipeline.engine import RunJob, process
-from dotshell.pipeline.generations import Generation, ProductStore
-from dotshell.pipeline.lifecycle import connected, describe_holder, lock_holder
+from dotshell.run.generations import Generation, ProductStore
+from dotshell.run.lifecycle import connected, describe_holder, lock_holder
 from dotshell.pipeline.pdi import plan_shots
 from dotshell.pipeline.steps import (make_coding, reconstruct_one_view,
                                      require_turntable_axis, view_angle)
 from dotshell.pipeline.transillum import TransilluminationCapture
 from dotshell.plugins import PluginManager
-from dotshell.profile import Profile, validate_profile
-from dotshell.rig import Rig
-from dotshell.store import RunStore
+from dotshell.profile.loader import Profile, validate_profile
+from dotshell.rig.assembly import Rig
+from dotshell.run.store import RunStore
 
 #: What a scan makes: everything downstream of the calibration.
 SCAN_TARGETS = ("calibration",)
@@ -103,7 +103,7 @@ class ViewPipeline:
 
     def _reconstruct(self, view: int, angle_deg: float, frames: list[np.ndarray]
                      ) -> dict[str, Any]:
-        """One view, its maps' memory then given back (:func:`dotshell.hugepages.release`):
+        """One view, its maps' memory then given back (:func:`dotshell.runtime.hugepages.release`):
         a scan's reconstruction hides behind the capture, and until the next view the
         capture needs the memory more than the next decode needs it lent."""
         profile, coding, calib, bus = self.args
@@ -205,7 +205,7 @@ def _views_asked(store: RunStore, views: list[int]) -> frozenset[int]:
 def _refuse_damaged_views(store: RunStore, recapture: frozenset[int]) -> None:
     """A view recorded complete whose frames were cut or deleted since is named, with the way
     out, unless it is to be captured again."""
-    from dotshell.frames import damaged_views
+    from dotshell.run.frames import damaged_views
 
     damaged = [d for d in damaged_views(store.root, store.manifest) if d[0] not in recapture]
     if damaged:

@@ -10,7 +10,7 @@ products it reads, and ``run(ctx)`` returning its ``report.json`` sections.
                                              └─► forward
 
 Steps read the run's capture (frames, manifest) and earlier products through a
-:class:`~dotshell.pipeline.generations.ProductStore` and write into the job's generation;
+:class:`~dotshell.run.generations.ProductStore` and write into the job's generation;
 :mod:`dotshell.pipeline.engine` decides which run, in this order, and publishes the result.
 The per-view reconstruction (:func:`reconstruct_one_view`) is the unit a scan runs while the
 next view is captured and a batch schedules on its workers.
@@ -27,17 +27,17 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
-from dotshell import hugepages
+from dotshell.runtime import hugepages
 from dotshell.errors import CalibrationError, ReconstructionError, RunError
 from dotshell.events import EventBus, StepProgress, StepStarted, ViewReconstructed
-from dotshell.framecheck import FrameSpec
+from dotshell.run.framecheck import FrameSpec
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.pdi import combine, shots_from_manifest
 from dotshell.plugins import PluginManager
-from dotshell.ply import read_ply, write_ply
-from dotshell.profile import Profile
-from dotshell.store import RunStore, atomic_write_text, dumps
+from dotshell.run.ply import read_ply, write_ply
+from dotshell.profile.loader import Profile
+from dotshell.run.store import RunStore, atomic_write_text, dumps
 
 if TYPE_CHECKING:
     from dotshell.pipeline.reconstruct import ViewCloud
@@ -121,11 +121,11 @@ def store_view(store: RunStore, vc: ViewCloud, first_frame: np.ndarray | None,
     write_ply(store.path("views", f"{view_stem(vc.view)}.ply"), vc.points)
     record: dict[str, Any] = {"view": vc.view, "angle_deg": vc.angle_deg, **vc.stats}
     integrity = getattr(store, "run", store).manifest["views"][vc.view].get("integrity")
-    if integrity is not None:  # the capture's frame checks (dotshell.pipeline.integrity)
+    if integrity is not None:  # the capture's frame checks (dotshell.run.integrity)
         record["integrity"] = integrity
     out = profile.data["outputs"]
     if out["previews"] and vc.view == out["preview_view"] and vc.correspondence is not None:
-        from dotshell.render import column_map_preview, frame_preview
+        from dotshell.render.previews import column_map_preview, frame_preview
 
         pdir = store.path("previews")
         pdir.mkdir(parents=True, exist_ok=True)
@@ -166,7 +166,7 @@ def stored_frames(store: RunStore, view: int, calib: RigCalibration,
     """A view's frames from the run's files, each checked against the run's frames (the
     manifest's ``camera``; for runs made before it was recorded, the calibration's camera size
     and the depth of the view's first frame). ``out``: the previous view's frames, read over
-    when the same size (:meth:`~dotshell.frames.FrameStore.read_all`)."""
+    when the same size (:meth:`~dotshell.run.frames.FrameStore.read_all`)."""
     recorded = store.manifest.get("camera")
     if recorded is not None:
         spec = FrameSpec.from_dict(recorded)
@@ -299,7 +299,7 @@ def validation_step(ctx: StepContext) -> dict[str, Any]:
 
 
 def previews_step(ctx: StepContext) -> dict[str, Any]:
-    from dotshell.render import cloud_previews
+    from dotshell.render.previews import cloud_previews
 
     ctx.bus.emit(StepStarted(step="previews"))
     out = {}
@@ -357,7 +357,7 @@ def _import_fit() -> None:
 
 
 def _import_renderer() -> None:
-    from dotshell.render import import_renderer
+    from dotshell.render.previews import import_renderer
 
     import_renderer()
 

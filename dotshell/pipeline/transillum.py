@@ -20,10 +20,10 @@ import numpy as np
 from dotshell.devices import ExposureControl, FlatFieldReference, Targetable
 from dotshell.errors import ProfileError
 from dotshell.events import EventBus, StepStarted
-from dotshell.framecheck import FrameSpec
+from dotshell.run.framecheck import FrameSpec
 from dotshell.pipeline.acquire import FrameWriter, check_frame, with_retries
-from dotshell.rig import Rig
-from dotshell.store import RunStore
+from dotshell.rig.assembly import Rig
+from dotshell.run.store import RunStore
 
 
 def source_names(n_targets: int) -> list[str]:

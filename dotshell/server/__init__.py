@@ -1,4 +1,4 @@
-"""The rig server: one :class:`~dotshell.console.Session` (rig, scans, console namespace, event
+"""The rig server: one :class:`~dotshell.session.console.Session` (rig, scans, console namespace, event
 log) held by a background process whose session worker process owns the devices. Front
 ends — ``dotshell tui``, ``attach``, ``status``, ``scan --detach``, ``stop`` — talk to it over a Unix-domain socket in the
 user's runtime directory and receive the events ``events.jsonl`` records, so a front end that

@@ -1,6 +1,6 @@
 """The front ends' side of the rig server: :class:`ServerClient` (requests and pushed messages
 over the socket) and :class:`RemoteSession` (the same actions as
-:class:`~dotshell.console.Session`, each a request, with the server's state mirrored).
+:class:`~dotshell.session.console.Session`, each a request, with the server's state mirrored).
 
 Cheap to import (no numpy, no plugins): a front end holds no frames and no devices.
 """
@@ -261,7 +261,7 @@ class RemoteSession(ServerClient):
 
     def configure(self, **settings: Any) -> Any:
         """The next scan's settings: ``views``, ``exposure_ms``, ``pdi_angles_deg``,
-        ``out_dir`` (see :meth:`dotshell.console.Session.configure`)."""
+        ``out_dir`` (see :meth:`dotshell.session.console.Session.configure`)."""
         if settings.get("out_dir") is not None:
             settings["out_dir"] = str(Path(settings["out_dir"]).expanduser().resolve())
         return self.call("configure", **settings)

@@ -11,7 +11,7 @@ import threading
 from dataclasses import dataclass
 from typing import Any, Callable
 
-from dotshell.console import Session
+from dotshell.session.console import Session
 from dotshell.errors import DotshellError, RunError
 from dotshell.events import ScanFinished, ScanStarted
 from dotshell.server.repl import ServerConsole
@@ -41,8 +41,8 @@ def profile_summary(session: Session) -> dict[str, Any] | None:
     p = session.profile
     if p is None:
         return None
-    from dotshell.owners import profile_device_ids
-    from dotshell.profile import DEVICE_ROLES
+    from dotshell.rig.owners import profile_device_ids
+    from dotshell.profile.loader import DEVICE_ROLES
 
     return {"name": p.name, "source": str(p.source), "device_ids": profile_device_ids(p),
             "path": str(session.profile_path.resolve()) if session.profile_path else None,

@@ -99,7 +99,7 @@ class Interpreter:
     """Runs console input in ``namespace``; one input at a time.
 
     Args:
-        namespace: the globals the input runs in (e.g. :meth:`dotshell.console.Session.namespace`).
+        namespace: the globals the input runs in (e.g. :meth:`dotshell.session.console.Session.namespace`).
         write: receives output as it is produced (from the running thread).
         on_interrupt: called by :meth:`interrupt` when the input is not waiting for a line;
             return True when it handled the interrupt (e.g. by aborting a running scan

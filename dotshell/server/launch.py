@@ -14,7 +14,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from dotshell.server.paths import alive, running_servers, server_log_dir, server_name, socket_path
+from dotshell.runtime.paths import alive, running_servers, server_log_dir, server_name, socket_path
 from dotshell.server.protocol import ServerError
 from dotshell.shipped import resolve
 
@@ -45,7 +45,7 @@ def _profile_socket(profile: str | Path) -> Path:
     """The socket of ``profile``'s server from any directory: its own name if that server
     runs, else the running server of the same file (device and inode) or, where no such file
     is, of the same profile name; else where its server would listen."""
-    from dotshell.owners import holder, server_lock_path, servers_of_profile
+    from dotshell.rig.owners import holder, server_lock_path, servers_of_profile
 
     own = socket_path(server_name(profile))
     if holder(server_lock_path(own)) is not None:
@@ -84,7 +84,7 @@ def spawn_server(profile: str | Path | None, *, sock: Path, out: str | Path,
     do its own start-up meanwhile, then :func:`wait_listening`)."""
     name = sock.stem
     out_file = server_log_dir(name) / "server.out"
-    cmd = [sys.executable, "-m", "dotshell.cli", *(["--strict-plugins"] if strict_plugins else []),
+    cmd = [sys.executable, "-m", "dotshell.cli.app", *(["--strict-plugins"] if strict_plugins else []),
            "serve", *([str(resolve("profiles", profile).resolve())] if profile else []),
            "--out", str(Path(out).expanduser().resolve()), "--socket", str(sock),
            *[arg for o in overrides for arg in ("--set", o)],

@@ -13,11 +13,11 @@ from collections import deque
 from pathlib import Path
 from typing import Any, Callable
 
-from dotshell.console import Session, SessionBusy, readable_repr
+from dotshell.session.console import Session, SessionBusy, readable_repr
 from dotshell.events import Event
 from dotshell.server.describe import describe_event
 from dotshell.server.interpreter import Interpreter
-from dotshell.server.paths import open_private
+from dotshell.runtime.paths import open_private
 
 #: Inputs kept in the history file and offered to ↑/↓.
 HISTORY_SIZE = 1000
@@ -145,7 +145,7 @@ class ServerConsole:
 
     def _on_event(self, ev: Event) -> None:
         """A line for the session's events while an input runs, from the session's
-        :meth:`~dotshell.console.Session.log_level` on (progress by default, not a line per
+        :meth:`~dotshell.session.console.Session.log_level` on (progress by default, not a line per
         frame)."""
         if not self.interpreter.busy:
             return

@@ -1,6 +1,6 @@
 """The rig server process: one session on a Unix-domain socket — held by a session worker
 process (:mod:`dotshell.server.supervisor`, what ``dotshell serve`` runs) or, for tests and
-embedding, a :class:`~dotshell.console.Session` in this process.
+embedding, a :class:`~dotshell.session.console.Session` in this process.
 
 Threads: the caller's (accepts clients, takes signals), one poller (device status and session
 state for attached clients, idle exit), and per client a reader (requests in; urgent ones such
@@ -31,12 +31,12 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from dotshell import __version__
-from dotshell.console import Session
+from dotshell.session.console import Session
 from dotshell.errors import DotshellError
 from dotshell.events import Event, ScanFinished, ScanPaused, ScanResumed, ScanStarted
 from dotshell.server.commands import COMMANDS, Context, profile_summary
 from dotshell.server.describe import describe_event
-from dotshell.server.paths import HANGUP_CHOICES, open_private
+from dotshell.runtime.paths import HANGUP_CHOICES, open_private
 from dotshell.server.progress import ScanTracker
 from dotshell.server.protocol import (CONTROL_COMMANDS, PROTOCOL_VERSION, URGENT_COMMANDS,
                                       ServerError, decode, encode, error_reply, peer_uid,
@@ -285,7 +285,7 @@ class RigServer:
     def _claim(self, path: Path) -> None:
         """Hold the server lock of ``path`` (one server per socket, so per profile, even while
         a server is momentarily unresponsive); refused naming the holder."""
-        from dotshell.owners import (OwnerLock, describe, held_devices, profile_device_ids,
+        from dotshell.rig.owners import (OwnerLock, describe, held_devices, profile_device_ids,
                                      profile_identity, server_lock_path)
 
         profile = self.session.profile

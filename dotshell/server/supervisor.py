@@ -1,7 +1,7 @@
 """The server's side of the session worker (:mod:`dotshell.server.worker`): starts it, mirrors
 what clients are shown, forwards requests, watches that it answers, ends and restarts it.
 
-:class:`WorkerSession` stands where the server holds a :class:`~dotshell.console.Session`:
+:class:`WorkerSession` stands where the server holds a :class:`~dotshell.session.console.Session`:
 the same ``bus`` (events re-emitted as the worker sends them), ``state``, ``scanning``,
 ``connected``, ``run``, ``devices()``, ``stop()`` and ``close()``, read from the mirror the
 worker keeps current, so the server answers its clients whatever the worker does.
@@ -31,7 +31,7 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, Callable
 
-from dotshell.console import Run
+from dotshell.session.console import Run
 from dotshell.errors import DotshellError
 from dotshell.events import EventBus, Message, ScanFinished, ScanStarted
 from dotshell.server.callboard import CallBoard
@@ -496,8 +496,8 @@ def mark_run_aborted(run_dir: Path, reason: str) -> tuple[str, dict[str, Any]]:
     ``reason``, each view's frame count as found on disk (a stack cut short reads up to its
     last complete page), and a ``ScanFinished`` line in ``events.jsonl``. Returns (status,
     summary: ``frames`` on disk)."""
-    from dotshell.pipeline.lifecycle import RunLock
-    from dotshell.store import RunStore
+    from dotshell.run.lifecycle import RunLock
+    from dotshell.run.store import RunStore
 
     store = RunStore.open(run_dir)
     with RunLock(run_dir) as lock:

@@ -170,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     ``profile``, ``out``, ``overrides``, ``strict_plugins`` and ``history``."""
     spec = json.loads((argv or sys.argv)[1])
     sock = socket.socket(fileno=spec["sock_fd"])
-    from dotshell import handles
+    from dotshell.rig import handles
     from dotshell.server.callboard import CallBoard
 
     handles.call_watcher = CallBoard(spec["board_fd"])
@@ -185,9 +185,9 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _open_session(spec: dict[str, Any]) -> Any:
-    from dotshell.console import Session
+    from dotshell.session.console import Session
     from dotshell.plugins import get_plugin_manager
-    from dotshell.runtime import configure_process
+    from dotshell.runtime.process import configure_process
 
     configure_process()
     pm = get_plugin_manager(strict=bool(spec.get("strict_plugins")))

@@ -29,7 +29,7 @@ from textual.widgets._tabbed_content import ContentTabs
 
 from dotshell.errors import DotshellError
 from dotshell.server.client import RemoteSession
-from dotshell.server.paths import user_config
+from dotshell.runtime.paths import user_config
 from dotshell.server.progress import ScanTracker
 from dotshell.server.protocol import event_from_wire
 from dotshell.tui.messages import ActionDone, ServerBatch, ServerMessage

@@ -52,9 +52,9 @@ from typing import Any, Sequence
 import numpy as np
 
 from dotshell.coding import Correspondence, PatternFrame
-from dotshell import hugepages
+from dotshell.runtime import hugepages
 from dotshell.settings import Setting
-from dotshell.parallel import bands, split, split_bands
+from dotshell.runtime.parallel import bands, split, split_bands
 from dotshell_codings.robust import full_scale, noise_sigma
 
 SETTINGS_SCHEMA: dict[str, Setting] = {

@@ -35,7 +35,7 @@ temporary per operation and per bit (the decoder made ~40 passes over 1.3 M-pixe
 bit pair), OpenCV has no kernel for the robust rule or the edge-anchored interpolation, and
 threads running numpy release the GIL only inside each small operation. Compiled loops touch each frame pixel once,
 keep the per-pixel state in registers; each takes a range of rows (``start``, ``stop``) and
-releases the GIL, and :func:`dotshell.parallel.split` runs the ranges on the cores
+releases the GIL, and :func:`dotshell.runtime.parallel.split` runs the ranges on the cores
 (``cache=True`` keeps the compiled code in ``__pycache__``).
 """
 
@@ -44,7 +44,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from dotshell import numba_cache
+from dotshell.runtime import numba_cache
 
 numba_cache.install()  # cache files safe for processes compiling at once
 

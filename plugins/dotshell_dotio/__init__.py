@@ -14,7 +14,7 @@ from typing import Any
 
 from dotshell import hookimpl
 from dotshell.backends import Backend
-from dotshell.meshfiles import read_optodes, read_volume
+from dotshell.fem.meshfiles import read_optodes, read_volume
 from dotshell.settings import Setting
 
 from dotshell_dotio.common import FORMATS, write_common

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from dotshell.meshfiles import _atomic_meshio, read_surface, read_volume
+from dotshell.fem.meshfiles import _atomic_meshio, read_surface, read_volume
 
 #: format name → (file name, meshio format, which mesh)
 FORMATS: dict[str, tuple[str, str, str]] = {

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from dotshell.errors import RunError
-from dotshell.fem import TetMesh
-from dotshell.meshfiles import Optodes
-from dotshell.store import atomic_write_text
+from dotshell.fem.meshes import TetMesh
+from dotshell.fem.meshfiles import Optodes
+from dotshell.run.store import atomic_write_text
 
 
 def kappa_mm(mua_per_mm: np.ndarray, musp_per_mm: np.ndarray) -> np.ndarray:

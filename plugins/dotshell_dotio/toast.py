@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 
 from dotshell.errors import RunError
-from dotshell.fem import TetMesh
-from dotshell.meshfiles import Optodes
-from dotshell.store import atomic_write_text
+from dotshell.fem.meshes import TetMesh
+from dotshell.fem.meshfiles import Optodes
+from dotshell.run.store import atomic_write_text
 
 from dotshell_dotio.nirfast import kappa_mm
 

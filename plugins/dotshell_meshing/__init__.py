@@ -9,7 +9,7 @@ Registered under the ``dotshell`` entry-point group as ``meshing = "dotshell_mes
 * volume mesher ``tetgen`` (:mod:`dotshell_meshing.volume`): quality tetrahedra with a maximum
   element volume set by the node distance.
 
-Both implement the protocols of :mod:`dotshell.fem`; factories take ``(settings, context)``
+Both implement the protocols of :mod:`dotshell.fem.meshes`; factories take ``(settings, context)``
 with ``context=None`` (no hardware).
 """
 

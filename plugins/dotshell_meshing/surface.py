@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from dotshell.compat import import_open3d
+from dotshell.runtime.compat import import_open3d
 from dotshell.geometry.raycast import TriangleScene
-from dotshell.fem import (MeshError, SurfaceResult, TriangleSurface, closed_manifold_problems,
+from dotshell.fem.meshes import (MeshError, SurfaceResult, TriangleSurface, closed_manifold_problems,
                           enclosed_volume_mm3, triangle_areas_mm2)
 from dotshell.settings import Setting
 
@@ -48,7 +48,7 @@ SETTINGS: dict[str, Setting] = {
 
 
 class PoissonSurfaceMesher:
-    """Implements :class:`dotshell.fem.SurfaceMesher` with open3d, pyacvd and pymeshfix."""
+    """Implements :class:`dotshell.fem.meshes.SurfaceMesher` with open3d, pyacvd and pymeshfix."""
 
     def __init__(self, settings: dict[str, Any]):
         self.s = settings

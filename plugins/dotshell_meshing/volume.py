@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from dotshell.fem import (MeshError, TetMesh, TriangleSurface, closed_manifold_problems,
+from dotshell.fem.meshes import (MeshError, TetMesh, TriangleSurface, closed_manifold_problems,
                           compact, joe_liu_quality, orient_positive, unique_rows)
 from dotshell.settings import Setting
 
@@ -40,7 +40,7 @@ def max_element_volume_mm3(node_distance_mm: float) -> float:
 
 
 class TetgenVolumeMesher:
-    """Implements :class:`dotshell.fem.VolumeMesher` with TetGen."""
+    """Implements :class:`dotshell.fem.meshes.VolumeMesher` with TetGen."""
 
     def __init__(self, settings: dict[str, Any]):
         self.s = settings

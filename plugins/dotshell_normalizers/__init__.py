@@ -6,7 +6,7 @@ Each backend implements :class:`dotshell.normalizer.Normalizer`:
 * ``none`` — no correction (factor 1): the raw node intensities, for comparison;
 * ``lambertian`` — the paper's Eq. 1, a Lambertian emitter per node: factor sin β;
 * ``diffuse-fresnel`` — light leaving a diffusive medium of refractive index n through its
-  surface (Fresnel transmission and the diffusion-theory flux term, :mod:`dotshell.optics`):
+  surface (Fresnel transmission and the diffusion-theory flux term, :mod:`dotshell.fem.optics`):
   factor sin β · L(θo)/L(0) with cos θo = sin β. Falls to the Lambertian model for n → 1 only
   in the Fresnel part; at the default grazing limit (sin β = 0.3) it differs from it by 25 %.
 """
@@ -17,7 +17,7 @@ import numpy as np
 
 from dotshell import hookimpl
 from dotshell.backends import Backend
-from dotshell.optics import exit_radiance_factor
+from dotshell.fem.optics import exit_radiance_factor
 from dotshell.settings import Setting
 
 
@@ -59,5 +59,5 @@ def dotshell_normalizers() -> list[Backend]:
                     settings["refractive_index"]),
                 FRESNEL_SETTINGS,
                 "diffusion theory + Fresnel transmission at refractive index n "
-                "(dotshell.optics): I = I0 · sin β · L(θ)/L(0)"),
+                "(dotshell.fem.optics): I = I0 · sin β · L(θ)/L(0)"),
     ]

@@ -14,7 +14,7 @@ from dotshell_projectors.lc4500_images import pack, save
 
 def main(argv: Sequence[str] | None = None) -> int:
     from dotshell.plugins import get_plugin_manager
-    from dotshell.profile import load_profile
+    from dotshell.profile.loader import load_profile
 
     args = list(sys.argv[1:] if argv is None else argv)
     if len(args) != 2:

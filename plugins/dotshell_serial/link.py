@@ -24,7 +24,7 @@ except ImportError:  # pragma: no cover - Windows
     TermiosError = OSError
 
 from dotshell.errors import DeviceError, DeviceLostError, DeviceTimeout
-from dotshell.ports import resolve_port
+from dotshell.rig.ports import resolve_port
 
 #: What pyserial raises when the port fails under us (unplugged, closed from another thread).
 PORT_FAILURES = (serial.SerialException, OSError, TermiosError, TypeError, AttributeError)

@@ -34,7 +34,7 @@ from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens, lens_from_fov
 from dotshell.settings import Setting, validate_settings
 
-from dotshell.optics import exit_radiance_per_fluence
+from dotshell.fem.optics import exit_radiance_per_fluence
 
 from dotshell_sim import transillum
 from dotshell_sim.timing import DisplayTimeline, SimClock, display_time
@@ -627,7 +627,7 @@ class SimProjector(_Device):
         # in place, in float32 (the same operations in the same order as
         # brightness · (black + (1 - black) · img)): a full-size panel (912 x 1140 on a
         # LightCrafter, whatever the camera's scale) is 4 MiB an array, and each fresh one is
-        # a new mapping whose pages fault in (dotshell.runtime.fix_mmap_threshold)
+        # a new mapping whose pages fault in (dotshell.runtime.process.fix_mmap_threshold)
         img = image.astype(np.float32)
         img *= np.float32(1.0 if image.dtype == np.bool_ else 1 / 255.0)
         img *= 1 - s["black_level"]

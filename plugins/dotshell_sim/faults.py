@@ -1,5 +1,5 @@
 """A simulated camera that misbehaves as real ones do, to prove the frame-integrity checks
-(:mod:`dotshell.pipeline.integrity`): backend ``sim-camera-faulty``, the ``sim-camera`` with
+(:mod:`dotshell.run.integrity`): backend ``sim-camera-faulty``, the ``sim-camera`` with
 three settings more.
 
 Faults (``fault``), each happening once, at the ``fault_at_frame``-th frame since connect:

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from dotshell import hugepages
+from dotshell.runtime import hugepages
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens, distort_normalized
 
@@ -43,7 +43,7 @@ from dotshell_sim.scene import StagedScene
 from dotshell_sim.subsurface import SubsurfaceView, fresnel_transmittance, gaussian_mixture
 
 # rays per chunk: an (N, 3) float64 temporary of a chunk (768 KiB) stays under the 1 MiB mmap
-# threshold the process sets (dotshell.runtime.fix_mmap_threshold), so the dozens of temporaries
+# threshold the process sets (dotshell.runtime.process.fix_mmap_threshold), so the dozens of temporaries
 # of a trace come from the heap; at 1 << 16 each was a fresh mapping whose pages faulted in, and
 # a view took 2.5-3x as long (6 views at 320x256, 2x2 supersampled: 7.5 -> 2.7 s of CPU)
 _CHUNK = 1 << 15
@@ -115,7 +115,7 @@ class Light:
 
     @property
     def total(self) -> np.ndarray:
-        """Both states together (H, W), in lent memory (:mod:`dotshell.hugepages`)."""
+        """Both states together (H, W), in lent memory (:mod:`dotshell.runtime.hugepages`)."""
         return np.add(self.polarized, self.depolarized,
                       out=hugepages.empty(np.broadcast_shapes(self.polarized.shape,
                                                               self.depolarized.shape),
@@ -493,8 +493,8 @@ class Renderer:
         if radiance is None:
             return Light(np.zeros_like(base), base.copy())
         # float maps on a float image: exact bilinear interpolation (checked in the tests).
-        # The frame's image-sized arrays are lent (dotshell.hugepages): each fresh one is a new
-        # mapping whose pages fault in and are zeroed (dotshell.runtime.fix_mmap_threshold),
+        # The frame's image-sized arrays are lent (dotshell.runtime.hugepages): each fresh one is a new
+        # mapping whose pages fault in and are zeroed (dotshell.runtime.process.fix_mmap_threshold),
         # ~7 000 faults and 19-30 ms of system time a full-resolution frame
         s = cv2.remap(radiance, view.map_x, view.map_y, cv2.INTER_LINEAR,
                       dst=hugepages.empty(view.map_x.shape, np.float32),

@@ -6,16 +6,16 @@ Model (docs/light-model.md, "Trans-illumination"; lengths mm, coefficients 1/mm)
 1. **Volume**: the true sample (the analytic cylinder as a closed triangulated surface, a mesh
    phantom's marching-cubes surface decimated to the node spacing) is filled with tetrahedra by
    TetGen. The continuous-wave diffusion equation with NIRFAST's Robin boundary
-   (:func:`dotshell.forward.system_matrix`) is solved for a unit point source one transport
+   (:func:`dotshell.fem.forward.system_matrix`) is solved for a unit point source one transport
    length ``1/μs'`` inside the beam's entry point, along the beam: φ per node (1/mm² per unit
    power). The system matrix is symmetric positive definite; it is solved by conjugate
-   gradients with a Jacobi preconditioner (:func:`dotshell.forward.jacobi_cg`, to a relative
-   residual of 1e-10), the solver of :func:`dotshell.forward.solve_cw`.
+   gradients with a Jacobi preconditioner (:func:`dotshell.fem.forward.jacobi_cg`, to a relative
+   residual of 1e-10), the solver of :func:`dotshell.fem.forward.solve_cw`.
 2. **Surface**: φ at a surface point is read by snapping the point to the FEM boundary
    (:class:`dotshell.geometry.raycast.TriangleScene`, closest point) and interpolating the
    boundary triangle's node values barycentrically.
 3. **Exit**: the radiance leaving the surface towards the camera is
-   ``P · φ · L(θo)/φ`` with :func:`dotshell.optics.exit_radiance_per_fluence` (Fresnel
+   ``P · φ · L(θo)/φ`` with :func:`dotshell.fem.optics.exit_radiance_per_fluence` (Fresnel
    transmission and the Robin flux term), θo the angle between the outward normal and the
    direction from the surface point to the camera centre. ``P`` is the beam power in the
    renderer's relative units (1 = the radiance of a white Lambertian surface under the
@@ -39,12 +39,12 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from dotshell.errors import DeviceError
-from dotshell.fem import (MeshError, TetMesh, TriangleSurface, closed_manifold_problems,
+from dotshell.fem.meshes import (MeshError, TetMesh, TriangleSurface, closed_manifold_problems,
                           compact, element_containing, orient_positive)
 from dotshell.geometry.calibration import rot_z
 from dotshell.geometry.lens import Lens
 from dotshell.geometry.raycast import TriangleScene
-from dotshell.optics import exit_radiance_per_fluence
+from dotshell.fem.optics import exit_radiance_per_fluence
 
 from dotshell_sim.lru import cached
 from dotshell_sim.render import Renderer, View, subpixel_grid
@@ -225,7 +225,7 @@ class FluenceModel:
     @classmethod
     def build(cls, surface: TriangleSurface, optics: Optics, spacing_mm: float,
               key: str = "") -> "FluenceModel":
-        from dotshell.forward import robin_A, system_matrix
+        from dotshell.fem.forward import robin_A, system_matrix
 
         mesh = tetrahedralize(surface, spacing_mm)
         n = len(mesh.nodes)
@@ -243,7 +243,7 @@ class FluenceModel:
             element_containing(self.mesh, along)
             return along
         except MeshError:
-            from dotshell.forward import move_inside
+            from dotshell.fem.forward import move_inside
 
             return move_inside(self.mesh, entry_mm, depth)
 
@@ -253,7 +253,7 @@ class FluenceModel:
                       lambda: self._solve(source_mm), 64)
 
     def _solve(self, source_mm: np.ndarray) -> np.ndarray:
-        from dotshell.forward import jacobi_cg
+        from dotshell.fem.forward import jacobi_cg
 
         el, w = element_containing(self.mesh, source_mm)
         q = np.zeros(len(self.mesh.nodes))

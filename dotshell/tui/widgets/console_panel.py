@@ -1,6 +1,6 @@
 """The Console panel: the Python console of the rig server, bound to its live session
 (``rig``, ``profile``, ``run``, ``scan()``, ``np`` and the rest of
-:meth:`dotshell.console.Session.namespace`). Input is sent to the server and runs there;
+:meth:`dotshell.session.console.Session.namespace`). Input is sent to the server and runs there;
 output, results, tracebacks and ``input()`` prompts come back as they happen, to every attached
 front end."""
 

@@ -16,7 +16,7 @@ from textual.containers import Container, Vertical
 from textual.events import Resize
 from textual.widgets import Sparkline, Static
 
-from dotshell.console import PreviewSaved
+from dotshell.session.console import PreviewSaved
 from dotshell.events import Event
 from dotshell.tui.redraw import DrawnWhileShown, show
 from dotshell.tui.text import shown_path

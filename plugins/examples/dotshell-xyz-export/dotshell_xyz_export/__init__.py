@@ -14,9 +14,9 @@ import numpy as np
 
 from dotshell import hookimpl
 from dotshell.backends import Backend
-from dotshell.ply import read_ply
+from dotshell.run.ply import read_ply
 from dotshell.settings import Setting
-from dotshell.store import atomic_write_text
+from dotshell.run.store import atomic_write_text
 
 
 class XyzExporter:

@@ -1,0 +1,2 @@
+"""The run directory and everything written into it: :class:`~dotshell.run.store.RunStore`,
+frames and TIFF pages, frame checks, PLY clouds, generations and the run lifecycle."""

@@ -1,0 +1,138 @@
+"""PLY point clouds. dotshell writes binary little-endian PLY: ``x y z`` (float32, mm) plus
+optional float32 scalar properties (e.g. ``view``, ``nx ny nz``), readable by open3d, MeshLab,
+CloudCompare, pyvista. It reads any PLY point cloud through plyfile (binary or ASCII, float or
+double, extra properties such as colours): a reference cloud from open3d or MeshLab as well as
+its own. benchmarks/ply_read.py measures the readers (docs/formats.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dotshell.errors import RunError
+from dotshell.run.store import atomic_write_bytes
+
+
+def write_ply(path: Path, points: np.ndarray, **scalars: np.ndarray) -> Path:
+    """Write points (N, 3) and named per-point scalars (N,) atomically. The file's bytes are
+    built once, in place (a 5 M-point cloud is 80 MB; no copies of it)."""
+    points = np.asarray(points).reshape(-1, 3)
+    names = ["x", "y", "z", *scalars]
+    header = "\n".join(["ply", "format binary_little_endian 1.0", "comment dotshell, units mm",
+                        f"element vertex {len(points)}", *(f"property float {n}" for n in names),
+                        "end_header"]).encode("ascii") + b"\n"
+    dtype = np.dtype([(n, "<f4") for n in names])
+    data = np.empty(len(header) + len(points) * dtype.itemsize, np.uint8)
+    data[:len(header)] = np.frombuffer(header, np.uint8)
+    rec = data[len(header):].view(dtype)
+    for i, n in enumerate("xyz"):
+        rec[n] = points[:, i]
+    for n, v in scalars.items():
+        rec[n] = np.asarray(v).ravel()
+    atomic_write_bytes(Path(path), data)
+    return Path(path)
+
+
+def read_ply(path: Path, finite: bool = True,
+             float_type: type = np.float64) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """Read a PLY point cloud: (points (N, 3) in the file's units — mm for dotshell's —
+    float64, or ``float_type``; the vertices' other scalar properties by name, float64).
+
+    Read by plyfile: binary (either byte order) or ASCII, ``float`` or ``double`` coordinates
+    (open3d writes double), any other vertex properties (colours, normals, ``view``) and other
+    elements (a mesh's faces, ignored). A file that is not such a PLY — no vertex element or no
+    x, y, z, data cut short, non-finite points (unless ``finite`` is False, for clouds made
+    elsewhere) — raises :class:`RunError` naming the file and what is wrong with it."""
+    path = Path(path)
+    if not path.exists():
+        raise RunError(f"point cloud {path} is missing.")
+    if path.is_dir():
+        raise RunError(f"point cloud {path} is a directory, not a PLY file.")
+    vertex = _vertex_data(path)
+    names = vertex.dtype.names or ()
+    if not {"x", "y", "z"} <= set(names):
+        raise _damaged(path, f"its vertex properties {list(names)} need x, y, z")
+    pts = np.empty((len(vertex), 3), dtype=float_type)
+    for i, axis in enumerate("xyz"):
+        pts[:, i] = vertex[axis]
+    if finite and not np.isfinite(pts).all():
+        bad = int((~np.isfinite(pts).all(axis=1)).sum())
+        raise _damaged(path, f"{bad} of its {len(pts)} points have non-finite coordinates (NaN "
+                             "or infinity)")
+    scalars = {m: np.asarray(vertex[m], dtype=np.float64) for m in names
+               if m not in ("x", "y", "z") and vertex.dtype[m].shape == ()
+               and vertex.dtype[m].kind in "fiub"}
+    return pts, scalars
+
+
+def _vertex_data(path: Path) -> np.ndarray:
+    """The structured array of the PLY's vertex element. Binary files are memory-mapped
+    copy-on-write (plyfile's fast path: 2 M points in ~30 ms, where reading them through a
+    stream took 20 s, benchmarks/ply_read.py); callers copy what they keep, and dotshell
+    replaces files by renaming, so the mapped file never changes under the map."""
+    from plyfile import PlyData, PlyElementParseError, PlyHeaderParseError
+
+    with path.open("rb") as f:
+        lines = _header_lines(path, f.read(HEADER_MAX))
+        f.seek(0)
+        try:
+            ply = PlyData.read(f, mmap="c")
+        except PlyHeaderParseError as exc:
+            where = f" line {exc.line} ({lines[exc.line - 1]!r})" if exc.line else ""
+            raise _damaged(path, f"its header{where} is wrong: {exc.message}") from None
+        except PlyElementParseError as exc:
+            raise _damaged(path, _early_end(lines, exc)) from None
+        except (UnicodeDecodeError, ValueError) as exc:
+            if "format ascii 1.0" in lines:
+                raise _damaged(path, "its data is not the text its header's 'format ascii' "
+                                     f"announces ({exc})") from None
+            raise _damaged(path, f"{type(exc).__name__}: {exc}") from None
+        except MemoryError:
+            raise _damaged(path, "its header declares more vertices than fit in memory") from None
+        except Exception as exc:  # plyfile and numpy on other garbage: named, never a traceback
+            raise _damaged(path, f"{type(exc).__name__}: {exc}") from None
+    if "vertex" not in ply:
+        raise _damaged(path, f"it has no vertex element (elements: "
+                             f"{[e.name for e in ply.elements]})")
+    return ply["vertex"].data
+
+
+#: the longest PLY header read (bytes); dotshell's, open3d's and MeshLab's take a few hundred
+HEADER_MAX = 1 << 16
+
+
+def _header_lines(path: Path, head: bytes) -> list[str]:
+    """The header's lines (``ply`` ... up to ``end_header``), or RunError."""
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        raise RunError(f"{path} is not a PLY file (no 'ply' ... 'end_header' header); give a "
+                       "point cloud written by dotshell, open3d, MeshLab or CloudCompare.")
+    try:
+        return [ln.strip() for ln in head[:end].decode("ascii").splitlines()]
+    except UnicodeDecodeError:
+        raise _damaged(path, "its header is not ASCII text") from None
+
+
+def _early_end(lines: list[str], exc: Exception) -> str:
+    """What a data error means: the file ends before the vertices its header declares."""
+    count, props, in_vertex = "?", [], False
+    for line in lines:
+        words = line.split()
+        if words[:1] == ["element"]:
+            in_vertex = words[1:2] == ["vertex"]
+            if in_vertex and len(words) > 2:
+                count = words[2]
+        elif words[:1] == ["property"] and in_vertex:
+            props.append(" ".join(words[1:]))
+    row = getattr(exc, "row", None)
+    got = f"after {row} of the {count} vertices" if row is not None else "early"
+    return (f"the data ends {got} its header declares ({getattr(exc, 'message', exc)}): the "
+            f"file is cut short, or the header's vertex count or property types "
+            f"({', '.join(props)}) do not match the data")
+
+
+def _damaged(path: Path, what: str) -> RunError:
+    return RunError(f"{path} is not a point cloud dotshell can read: {what}. Make it again "
+                    "(`dotshell reconstruct RUN` remakes a run's clouds from its frames) or "
+                    "export it as a PLY with x, y, z vertex properties.")
