@@ -183,7 +183,7 @@ def test_zsh_completion_script_parses(tmp_path):
 
 
 def test_user_directories_are_platformdirs_at_todays_places(monkeypatch, tmp_path):
-    from dotshell.server import paths
+    from dotshell.runtime import paths
 
     monkeypatch.delenv("XDG_STATE_HOME", raising=False)
     monkeypatch.delenv("XDG_CONFIG_HOME", raising=False)
