@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import importlib.metadata as md
 import traceback
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Any, Iterable, Mapping
 
@@ -281,6 +281,18 @@ class PluginObject:
 
     def __repr__(self) -> str:
         return repr(self._obj)
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        """Pickled (into the mesh process, :mod:`dotshell.pipeline.mesh_process`) as the
+        plugin's object and the names a fault message needs; the backend's factory (often a
+        lambda) and settings schema stay behind."""
+        backend = replace(self._info.backend, factory=_made_elsewhere, settings_schema={})
+        return (PluginObject, (self._obj, replace(self._info, backend=backend)))
+
+
+def _made_elsewhere(*args: Any, **kwargs: Any) -> Any:
+    """The factory of a backend whose object was pickled: it was made in another process."""
+    raise PluginError("this backend's object was made in another process; create it there")
 
 
 def plugin_fault(info: BackendInfo, doing: str, exc: BaseException) -> str:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -21,13 +22,14 @@ import numpy as np
 
 from dotshell.errors import RunError
 from dotshell.events import EventBus, StepStarted
-from dotshell.fem.meshes import MeshError, TetMesh, quality_report
+from dotshell.fem.meshes import MeshError, SurfaceResult, TetMesh, quality_report
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.profile.mesh import MESH_SCHEMA
 from dotshell.fem.meshfiles import (optodes_from_settings, read_optodes, read_volume, write_optodes,
                                 write_surface, write_volume)
 from dotshell.plugins import PluginManager
-from dotshell.run.ply import read_ply
+from dotshell.pipeline.mesh_process import picklable, run_in_child
+from dotshell.run.ply import map_ply
 from dotshell.profile.loader import Profile
 from dotshell.run.store import RunStore
 
@@ -61,18 +63,68 @@ class ViewpointsPerPoint:
         return self._centres[np.searchsorted(self._keys, ids)]
 
 
-def viewpoints_mm(store: RunStore, views: np.ndarray) -> ViewpointsPerPoint | None:
-    """Camera centre (sample frame, mm) of the view each point came from, or None."""
-    try:
-        calib = RigCalibration.load(store.path("calibration.json"))
-        angles = {v["index"]: v["angle_deg"] for v in store.manifest["views"]}
-    except Exception:  # a cloud without its run's calibration: orient by the centroid
-        return None
-    keys = np.array(sorted(angles), int)
-    if not np.isin(views, keys).all():  # a view the manifest does not list
-        return None
-    centres = np.array([calib.camera_to_sample(np.zeros((1, 3)), angles[i])[0] for i in keys])
-    return ViewpointsPerPoint(views, keys, centres)
+@dataclass
+class ViewCentres:
+    """The camera centre (sample frame, mm) of each view of a run, by view index."""
+
+    indices: np.ndarray
+    centres_mm: np.ndarray
+
+    @classmethod
+    def of_run(cls, store: RunStore) -> ViewCentres | None:
+        """From the run's calibration and stage angles; None without them."""
+        try:
+            calib = RigCalibration.load(store.path("calibration.json"))
+            angles = {v["index"]: v["angle_deg"] for v in store.manifest["views"]}
+        except Exception:  # a cloud without its run's calibration: orient by the centroid
+            return None
+        keys = sorted(angles)
+        return cls(np.array(keys, int), np.array(
+            [calib.camera_to_sample(np.zeros((1, 3)), angles[i])[0] for i in keys]))
+
+    def per_point(self, views: np.ndarray) -> ViewpointsPerPoint | None:
+        """The centre of the view each point came from (``views``: each point's view index);
+        None when a point names a view the run does not list."""
+        if not np.isin(views, self.indices).all():
+            return None
+        return ViewpointsPerPoint(views, self.indices, self.centres_mm)
+
+
+@dataclass
+class MeshJob:
+    """What the mesh process needs to mesh a run's cloud (plain data and the meshers: it is
+    pickled into the process, :mod:`dotshell.pipeline.mesh_process`)."""
+
+    cloud: Path
+    view_centres: ViewCentres | None
+    node_distances_mm: list[float]
+    bottom_z_mm: float | None
+    surface_mesher: Any
+    volume_mesher: Any
+    cfg: dict[str, Any]
+    optodes: Any
+
+
+def mesh_cloud(job: MeshJob, node_distance_mm: float, target: Path) -> dict[str, Any]:
+    """Read the cloud (memory-mapped, no copies), refuse a huge mesh at any of the job's node
+    distances, make the surface at ``node_distance_mm``, let the cloud go (its mapped pages
+    were the largest part of the process's peak, with TetGen's and the quality figures' memory
+    on top), then the volume, both written into ``target``; the report entry. Runs in the mesh
+    process."""
+    points, scalars = map_ply(job.cloud)
+    if len(points) == 0:
+        raise MeshError(f"{job.cloud} has no points; nothing to mesh.")
+    for d in job.node_distances_mm:
+        refuse_huge_mesh(points, d)
+    views = None
+    if job.view_centres is not None and "view" in scalars:
+        views = job.view_centres.per_point(scalars["view"])
+    t0 = time.perf_counter()
+    result = job.surface_mesher.surface(points, views, node_distance_mm, job.bottom_z_mm)
+    t_surface = time.perf_counter() - t0
+    del points, scalars, views
+    return mesh_volume(result, t_surface, node_distance_mm, job.volume_mesher, job.cfg,
+                       job.optodes, target)
 
 
 def mesh_dir_name(node_distance_mm: float) -> str:
@@ -81,7 +133,10 @@ def mesh_dir_name(node_distance_mm: float) -> str:
 
 def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
                node_distance_mm: float | None = None) -> dict[str, Any]:
-    """Mesh the run's cloud at the profile's node distance(s); returns the report section."""
+    """Mesh the run's cloud at the profile's node distance(s); returns the report section.
+
+    Each node distance is meshed in a process of its own (:func:`run_in_child`), unless a
+    plugin's mesher cannot be handed to one (it does not pickle): then in this process."""
     cfg = profile.data["mesh"]
     primary = cfg["node_distance_mm"] if node_distance_mm is None else node_distance_mm
     if not (isinstance(primary, (int, float)) and math.isfinite(primary) and primary > 0):
@@ -92,24 +147,21 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
         raise MeshError(f"--node-distance {node_distance_mm:g} mm is below the smallest node "
                         f"distance [mesh] node_distance_mm allows ({smallest:g} mm); give a "
                         "larger one (e.g. 1.0).")
-    # float32, as stored: the surface mesher thins it a chunk at a time in float64
-    points, scalars = read_ply(store.path("cloud.ply"), float_type=np.float32)
-    if len(points) == 0:
-        raise MeshError(f"{store.path('cloud.ply')} has no points; nothing to mesh.")
-    for d in [primary, *cfg["also_node_distances_mm"]]:
-        refuse_huge_mesh(points, d)
-    views = viewpoints_mm(store, scalars["view"]) if "view" in scalars else None
-    surface_mesher = _mesher(profile, pm, "surface_mesher")
-    volume_mesher = _mesher(profile, pm, "volume_mesher")
-    optodes = optodes_from_settings(cfg["optodes"], profile.source)
-    bottom = cfg["bottom_z_mm"] if cfg["close_bottom"] else None
-    out: dict[str, Any] = {"meshes": []}
     extras = [d for d in cfg["also_node_distances_mm"] if d != primary]
-    for d in [primary, *extras]:
+    job = MeshJob(store.path("cloud.ply"), ViewCentres.of_run(store), [primary, *extras],
+                  cfg["bottom_z_mm"] if cfg["close_bottom"] else None,
+                  _mesher(profile, pm, "surface_mesher"), _mesher(profile, pm, "volume_mesher"),
+                  cfg, optodes_from_settings(cfg["optodes"], profile.source))
+    in_child = picklable(job)
+    if not in_child:
+        bus.info("meshing in this process: a mesher of the profile cannot be handed to a "
+                 "process of its own (it does not pickle)")
+    out: dict[str, Any] = {"meshes": []}
+    for d in job.node_distances_mm:
         target = store.root if d == primary else store.path("meshes", mesh_dir_name(d))
         bus.emit(StepStarted(step=f"mesh {d:g} mm"))
-        entry = mesh_one(points, views, d, bottom, surface_mesher, volume_mesher, cfg, optodes,
-                         target)
+        entry = (run_in_child(mesh_cloud, job, d, target) if in_child
+                 else mesh_cloud(job, d, target))
         entry["dir"] = "." if target == store.root else str(target.relative_to(store.root))
         _validate_volume(entry, profile)
         if cfg["previews"]:
@@ -136,12 +188,10 @@ def refuse_huge_mesh(points: np.ndarray, node_distance_mm: float) -> None:
                         "or --node-distance).")
 
 
-def mesh_one(points, views, node_distance_mm: float, bottom_z_mm: float | None, surface_mesher,
-             volume_mesher, cfg: dict[str, Any], optodes, target: Path) -> dict[str, Any]:
-    """Surface + volume at one node distance, written into ``target``."""
-    t0 = time.perf_counter()
-    result = surface_mesher.surface(points, views, node_distance_mm, bottom_z_mm)
-    t_surface = time.perf_counter() - t0
+def mesh_volume(result: SurfaceResult, t_surface: float, node_distance_mm: float, volume_mesher,
+                cfg: dict[str, Any], optodes, target: Path) -> dict[str, Any]:
+    """The volume of a surface mesher's ``result`` (made in ``t_surface`` s) at one node
+    distance; surface and volume written into ``target``; the report entry."""
     t0 = time.perf_counter()
     volume = volume_mesher.volume(result.surface, node_distance_mm)
     t_volume = time.perf_counter() - t0

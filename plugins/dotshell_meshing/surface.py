@@ -161,7 +161,7 @@ def check_node_distance(node_distance_mm: float) -> None:
 
 #: Points thinned at a time (millions of points: open3d's copies of the whole cloud and its
 #: viewpoints took ~1 GB at full resolution; a chunk at a time, tens of MB).
-THIN_CHUNK = 1_000_000
+THIN_CHUNK = 250_000
 
 
 def _thinned_cloud(o3d, points_mm: np.ndarray, viewpoints_mm: np.ndarray | None,

@@ -1,0 +1,136 @@
+"""The mesh stage's heavy part in a process of its own.
+
+Reading the cloud, the surface and volume meshers (open3d, pyacvd, pymeshfix, TetGen) and
+writing the meshes run in a new Python process (``python -m dotshell.pipeline.mesh_process``):
+it holds none of the calling process's memory, and what the meshers allocate goes back to the
+system when it ends. A scan that meshes at its end (``[mesh] after_scan``) therefore peaks at
+the larger of its own memory and the mesher's, not their sum (issue 33: the agar scan peaked at
+2.56 GB in the mesh step; docs/performance.md). A new interpreter rather than
+``multiprocessing``'s spawn: spawn runs the caller's main script again, which breaks scripts
+without an ``if __name__ == "__main__"`` guard.
+
+The parent writes the child's ``sys.path`` and then ``(func, args)`` pickled to its stdin; the
+child writes back ``(True, result)`` or ``(False, exception)`` pickled on its stdout (a
+:class:`~dotshell.errors.DotshellError` such as MeshError unchanged, any other with the child's
+traceback added as a note); whatever the libraries print goes to its stderr, which the parent
+logs (DEBUG). A child that dies without a word — killed by the system when memory runs out, or a
+crash in a mesher's compiled code — is a :class:`MeshError` naming its exit code or signal and
+the end of its stderr. An interrupted parent (Ctrl-C, a stop) ends the child before returning.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import pickle
+import signal
+import subprocess
+import sys
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+from dotshell.fem.meshes import MeshError
+
+log = logging.getLogger(__name__)
+
+
+def run_in_child(func: Callable[..., Any], *args: Any) -> Any:
+    """``func(*args)`` in a new Python process; its return value, or the exception it raised.
+    ``func`` and ``args`` must pickle (module-level functions, plain data, objects of
+    importable classes); :func:`picklable` checks.
+
+    Raises:
+        MeshError: the process ended without a result (killed, crashed), with its exit code
+            or signal; whatever ``func`` raised, otherwise.
+    """
+    payload = pickle.dumps(list(sys.path)) + pickle.dumps((func, args))
+    proc = subprocess.Popen([sys.executable, "-m", __name__], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        out, err = proc.communicate(payload)
+    finally:
+        if proc.poll() is None:  # interrupted while waiting: do not leave the mesher running
+            proc.kill()
+            proc.wait()
+    text = err.decode(errors="replace").strip()
+    if text:
+        log.debug("mesh process (pid %d) wrote:\n%s", proc.pid, text)
+    try:
+        ok, value = pickle.loads(out)
+    except Exception:
+        tail = "\n".join(text.splitlines()[-5:])
+        raise MeshError(f"the mesh process ended without a result ({_ending(proc.returncode)})"
+                        ": the system may have stopped it for lack of memory, or a mesher "
+                        "crashed. Try a larger node distance ([mesh] node_distance_mm or "
+                        "--node-distance), or free memory, and run `dotshell mesh RUN` again."
+                        + (f" Its last words:\n{tail}" if tail else "")) from None
+    if ok:
+        return value
+    raise value
+
+
+def picklable(*objects: Any) -> bool:
+    """Whether ``objects`` can be handed to :func:`run_in_child` (a plugin's mesher may hold
+    things that cannot, such as a lambda)."""
+    try:
+        pickle.dumps(objects)
+    except Exception:
+        return False
+    return True
+
+
+def _ending(returncode: int | None) -> str:
+    """How a process ended, in words: 'killed by SIGKILL' or 'exit code 3'."""
+    if returncode is not None and returncode < 0:
+        try:
+            return f"killed by {signal.Signals(-returncode).name}"
+        except ValueError:
+            return f"killed by signal {-returncode}"
+    return f"exit code {returncode}"
+
+
+def _child_main() -> None:
+    """The child: read the job, configure the process as the ``dotshell`` command does, run,
+    write the outcome on the original stdout (everything else printed goes to stderr)."""
+    import faulthandler
+
+    result = os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    faulthandler.enable()
+    sys.path[:] = pickle.load(sys.stdin.buffer)
+    try:
+        from dotshell.runtime.process import fix_mmap_threshold, limit_blas_threads
+
+        func, args = pickle.load(sys.stdin.buffer)
+        limit_blas_threads()
+        fix_mmap_threshold()
+        outcome: tuple[bool, Any] = (True, func(*args))
+    except BaseException as exc:  # noqa: BLE001 - every outcome goes back to the parent
+        outcome = (False, _portable(exc))
+    try:
+        data = pickle.dumps(outcome)
+    except Exception as exc:  # a result that does not pickle: say so rather than vanish
+        data = pickle.dumps((False, _portable(exc)))
+    result.write(data)
+    result.close()
+
+
+def _portable(exc: BaseException) -> BaseException:
+    """``exc`` as it can cross the pipe: itself (with the child's traceback as a note unless it
+    is a dotshell error, whose message is for the user), or a RuntimeError with its text when
+    it cannot be pickled."""
+    from dotshell.errors import DotshellError
+
+    if not isinstance(exc, DotshellError):
+        exc.add_note("in the mesh process:\n" + "".join(traceback.format_exception(exc)))
+    try:
+        pickle.loads(pickle.dumps(exc))
+    except Exception:
+        return RuntimeError(f"{type(exc).__name__}: {exc}\n"
+                            + "".join(traceback.format_exception(exc)))
+    return exc
+
+
+if __name__ == "__main__":
+    _child_main()
