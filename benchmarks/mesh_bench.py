@@ -91,6 +91,20 @@ def agar_like_run(metal: Path, dest: Path, per_view: int = 690_000, seed: int = 
     return dest
 
 
+#: Starts the measured command and prints its CPU seconds and peak RSS (its own or any of its
+#: children's: ``os.wait4``). A small process of its own: on Linux a process's peak RSS starts
+#: at that of the process it was started from (the exec keeps the old memory's high-water
+#: mark), so ``wait4`` in this bench (hundreds of MiB after making the agar-like cloud) set a
+#: floor under every figure.
+LAUNCHER = """
+import json, os, subprocess, sys
+proc = subprocess.Popen(sys.argv[1:], stdout=subprocess.DEVNULL)
+_, status, ru = os.wait4(proc.pid, 0)
+print(json.dumps({"cpu_s": ru.ru_utime + ru.ru_stime, "peak_rss_mib": ru.ru_maxrss / 1024}))
+sys.exit(os.waitstatus_to_exitcode(status))
+"""
+
+
 def _env(tree: Path) -> dict[str, str]:
     return {**os.environ, "PYTHONPATH": f"{tree}:{tree / 'plugins'}", "OMP_NUM_THREADS": "1",
             "OPENBLAS_NUM_THREADS": "1"}
@@ -104,15 +118,14 @@ def mesh_once(tree: Path, run: Path, work: Path) -> dict[str, Any]:
     for name in (*RUN_FILES, "cloud.ply"):
         shutil.copy(run / name, copy / name)
     t0 = time.perf_counter()
-    proc = subprocess.Popen([sys.executable, "-m", "dotshell.cli.entry", "mesh", str(copy), "-q"],
-                            env=_env(tree), stdout=subprocess.DEVNULL)
-    _, status, usage = os.wait4(proc.pid, 0)
+    proc = subprocess.run([sys.executable, "-c", LAUNCHER, sys.executable, "-m",
+                           "dotshell.cli.entry", "mesh", str(copy), "-q"], env=_env(tree),
+                          capture_output=True, text=True)
     wall = time.perf_counter() - t0
-    if status != 0:
-        raise SystemExit(f"dotshell mesh failed in {tree} (status {status})")
-    out = {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime,
-           "peak_rss_mib": usage.ru_maxrss / 1024, "load": os.getloadavg()[0],
-           **accuracy(copy)}
+    if proc.returncode != 0:
+        raise SystemExit(f"dotshell mesh failed in {tree}: {proc.stderr}")
+    usage = json.loads(proc.stdout.strip().splitlines()[-1])
+    out = {"wall_s": wall, **usage, "load": os.getloadavg()[0], **accuracy(copy)}
     shutil.rmtree(copy)
     return out
 

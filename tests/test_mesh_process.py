@@ -6,6 +6,7 @@ import json
 import os
 import shutil
 import signal
+import threading
 import tomllib
 from pathlib import Path
 
@@ -58,7 +59,7 @@ def test_an_unexpected_error_comes_back_with_the_child_traceback():
 
 
 def test_a_killed_child_is_a_mesh_error_naming_the_signal():
-    with pytest.raises(MeshError, match="ended without a result \\(killed by SIGKILL\\)"):
+    with pytest.raises(MeshError, match=r"ended without a result \(killed by SIGKILL\)"):
         run_in_child(child_kills_itself)
 
 
@@ -75,21 +76,32 @@ class KillingSurfaceMesher:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-class HereOnlySurfaceMesher:
-    """A mesher holding a lambda (does not pickle): it must run in the calling process."""
+class BuggySurfaceMesher:
+    """A surface mesher with a bug: its ValueError must come back naming the plugin."""
 
     def __init__(self, settings=None, context=None):
-        self.where = lambda: os.getpid()
+        pass
 
     def surface(self, points_mm, viewpoints_mm, node_distance_mm, bottom_z_mm):
-        raise MeshError(f"surface() ran in process {self.where()}")
+        raise ValueError(f"a bug in process {os.getpid()}")
+
+
+class HereOnlySurfaceMesher:
+    """A mesher holding a lock (does not pickle): it must run in the calling process."""
+
+    def __init__(self, settings=None, context=None):
+        self.lock = threading.Lock()
+
+    def surface(self, points_mm, viewpoints_mm, node_distance_mm, bottom_z_mm):
+        raise MeshError(f"surface() ran in process {os.getpid()}")
 
 
 class TestMeshers:
     @hookimpl
     def dotshell_surface_meshers(self):
         return [Backend("killing", KillingSurfaceMesher, {}),
-                Backend("here-only", HereOnlySurfaceMesher, {})]
+                Backend("here-only", HereOnlySurfaceMesher, {}),
+                Backend("buggy", BuggySurfaceMesher, {})]
 
 
 @pytest.fixture
@@ -118,8 +130,8 @@ def test_a_mesher_killed_in_its_process_fails_the_job_and_keeps_the_run(small_sc
 
     run = _run_with_mesher(small_scan, tmp_path, "killing")
     before = json.loads((run / "manifest.json").read_text())["status"]
-    with pytest.raises(MeshError, match="mesh process ended without a result \\(killed by "
-                                        "SIGKILL\\).*larger node distance"):
+    with pytest.raises(MeshError, match=r"mesh process ended without a result \(killed by "
+                                        r"SIGKILL\).*larger node distance"):
         mesh_run(run, mesh_pm)
     m = json.loads((run / "manifest.json").read_text())
     assert m["status"] == before
@@ -135,3 +147,16 @@ def test_a_mesher_that_does_not_pickle_runs_in_this_process(small_scan, tmp_path
     run = _run_with_mesher(small_scan, tmp_path, "here-only")
     with pytest.raises(MeshError, match=f"ran in process {os.getpid()}$"):
         mesh_run(run, mesh_pm)
+
+
+def test_a_mesher_bug_in_its_process_names_the_plugin(small_scan, tmp_path, mesh_pm):
+    """The mesher crosses into the mesh process with what names it (PluginObject pickles)."""
+    from dotshell.errors import PluginFault
+    from dotshell.pipeline.commands import mesh_run
+
+    run = _run_with_mesher(small_scan, tmp_path, "buggy")
+    with pytest.raises(PluginFault, match=r"plugin 'test-meshers' .*backend 'buggy'.* raised "
+                                          r"ValueError while surface\(\): a bug in process"
+                       ) as info:
+        mesh_run(run, mesh_pm)
+    assert f"process {os.getpid()}" not in str(info.value)

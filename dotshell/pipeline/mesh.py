@@ -22,7 +22,8 @@ import numpy as np
 
 from dotshell.errors import RunError
 from dotshell.events import EventBus, StepStarted
-from dotshell.fem.meshes import MeshError, SurfaceResult, TetMesh, quality_report
+from dotshell.fem.meshes import (MeshError, SurfaceResult, TetMesh, TriangleSurface,
+                                 quality_report)
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.profile.mesh import MESH_SCHEMA
 from dotshell.fem.meshfiles import (optodes_from_settings, read_optodes, read_volume, write_optodes,
@@ -93,7 +94,8 @@ class ViewCentres:
 @dataclass
 class MeshJob:
     """What the mesh process needs to mesh a run's cloud (plain data and the meshers: it is
-    pickled into the process, :mod:`dotshell.pipeline.mesh_process`)."""
+    pickled into the process, :mod:`dotshell.pipeline.mesh_process`); ``optodes`` are written
+    beside the meshes by the command's process."""
 
     cloud: Path
     view_centres: ViewCentres | None
@@ -105,12 +107,14 @@ class MeshJob:
     optodes: Any
 
 
-def mesh_cloud(job: MeshJob, node_distance_mm: float, target: Path) -> dict[str, Any]:
+def mesh_cloud(job: MeshJob, node_distance_mm: float) -> tuple[TriangleSurface, TetMesh,
+                                                                 dict[str, Any]]:
     """Read the cloud (memory-mapped, no copies), refuse a huge mesh at any of the job's node
     distances, make the surface at ``node_distance_mm``, let the cloud go (its mapped pages
     were the largest part of the process's peak, with TetGen's and the quality figures' memory
-    on top), then the volume, both written into ``target``; the report entry. Runs in the mesh
-    process."""
+    on top), then the volume; the surface, the volume (with its per-node optics) and the report
+    entry. Runs in the mesh process; writes nothing (the run's files are written by the
+    command's process, where a full disk is reported as everywhere else)."""
     points, scalars = map_ply(job.cloud)
     if len(points) == 0:
         raise MeshError(f"{job.cloud} has no points; nothing to mesh.")
@@ -123,8 +127,7 @@ def mesh_cloud(job: MeshJob, node_distance_mm: float, target: Path) -> dict[str,
     result = job.surface_mesher.surface(points, views, node_distance_mm, job.bottom_z_mm)
     t_surface = time.perf_counter() - t0
     del points, scalars, views
-    return mesh_volume(result, t_surface, node_distance_mm, job.volume_mesher, job.cfg,
-                       job.optodes, target)
+    return mesh_volume(result, t_surface, node_distance_mm, job.volume_mesher, job.cfg)
 
 
 def mesh_dir_name(node_distance_mm: float) -> str:
@@ -160,8 +163,10 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
     for d in job.node_distances_mm:
         target = store.root if d == primary else store.path("meshes", mesh_dir_name(d))
         bus.emit(StepStarted(step=f"mesh {d:g} mm"))
-        entry = (run_in_child(mesh_cloud, job, d, target) if in_child
-                 else mesh_cloud(job, d, target))
+        surface, volume, entry = (run_in_child(mesh_cloud, job, d) if in_child
+                                  else mesh_cloud(job, d))
+        write_meshes(target, surface, volume, job.optodes)
+        del surface, volume
         entry["dir"] = "." if target == store.root else str(target.relative_to(store.root))
         _validate_volume(entry, profile)
         if cfg["previews"]:
@@ -189,9 +194,9 @@ def refuse_huge_mesh(points: np.ndarray, node_distance_mm: float) -> None:
 
 
 def mesh_volume(result: SurfaceResult, t_surface: float, node_distance_mm: float, volume_mesher,
-                cfg: dict[str, Any], optodes, target: Path) -> dict[str, Any]:
+                cfg: dict[str, Any]) -> tuple[TriangleSurface, TetMesh, dict[str, Any]]:
     """The volume of a surface mesher's ``result`` (made in ``t_surface`` s) at one node
-    distance; surface and volume written into ``target``; the report entry."""
+    distance, with ``[mesh.optics]`` per node; the surface, the volume and the report entry."""
     t0 = time.perf_counter()
     volume = volume_mesher.volume(result.surface, node_distance_mm)
     t_volume = time.perf_counter() - t0
@@ -203,14 +208,7 @@ def mesh_volume(result: SurfaceResult, t_surface: float, node_distance_mm: float
         "musp_per_mm": np.full(n, optics["musp_per_mm"]),
         "refractive_index": np.full(n, optics["refractive_index"]),
     }
-    target.mkdir(parents=True, exist_ok=True)
-    write_surface(target / "surface.ply", result.surface)
-    write_volume(target / "volume.vtu", volume)
-    if not optodes.empty:
-        write_optodes(target / "optodes.json", optodes)
-    elif (target / "optodes.json").exists():
-        os.unlink(target / "optodes.json")
-    return {
+    return result.surface, volume, {
         "node_distance_mm": node_distance_mm,
         "surface": {k: v for k, v in result.stats.items() if not k.startswith("seconds")},
         "volume": quality_report(volume, result.surface),
@@ -218,6 +216,17 @@ def mesh_volume(result: SurfaceResult, t_surface: float, node_distance_mm: float
                       **{k.replace("seconds_", "surface_"): v for k, v in result.stats.items()
                          if k.startswith("seconds")}},
     }
+
+
+def write_meshes(target: Path, surface: TriangleSurface, volume: TetMesh, optodes) -> None:
+    """``surface.ply``, ``volume.vtu`` and ``optodes.json`` (or none) into ``target``."""
+    target.mkdir(parents=True, exist_ok=True)
+    write_surface(target / "surface.ply", surface)
+    write_volume(target / "volume.vtu", volume)
+    if not optodes.empty:
+        write_optodes(target / "optodes.json", optodes)
+    elif (target / "optodes.json").exists():
+        os.unlink(target / "optodes.json")
 
 
 def _validate_volume(entry: dict[str, Any], profile: Profile) -> None:
