@@ -160,3 +160,24 @@ def test_a_mesher_bug_in_its_process_names_the_plugin(small_scan, tmp_path, mesh
                        ) as info:
         mesh_run(run, mesh_pm)
     assert f"process {os.getpid()}" not in str(info.value)
+
+
+def test_the_cloud_is_mapped_not_copied_and_checked(tmp_path):
+    """map_ply (what the mesh process reads): the values read_ply reads, as views of the
+    file's map in float32; a non-finite point is refused naming the file."""
+    from dotshell.errors import RunError
+    from dotshell.run.ply import map_ply, read_ply, write_ply
+
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(5000, 3)).astype(np.float32)
+    path = write_ply(tmp_path / "cloud.ply", pts, view=rng.integers(0, 4, 5000))
+    mapped, scalars = map_ply(path)
+    copied, copied_scalars = read_ply(path, float_type=np.float32)
+    assert mapped.dtype == np.float32
+    assert not mapped.flags.owndata
+    np.testing.assert_array_equal(mapped, copied)
+    np.testing.assert_array_equal(scalars["view"], copied_scalars["view"])
+    pts[4321, 1] = np.nan
+    write_ply(path, pts, view=np.zeros(5000))
+    with pytest.raises(RunError, match=r"cloud\.ply .*1 of its 5000 points have non-finite"):
+        map_ply(path, chunk=1000)

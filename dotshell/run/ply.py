@@ -45,14 +45,8 @@ def read_ply(path: Path, finite: bool = True,
     x, y, z, data cut short, non-finite points (unless ``finite`` is False, for clouds made
     elsewhere) — raises :class:`RunError` naming the file and what is wrong with it."""
     path = Path(path)
-    if not path.exists():
-        raise RunError(f"point cloud {path} is missing.")
-    if path.is_dir():
-        raise RunError(f"point cloud {path} is a directory, not a PLY file.")
-    vertex = _vertex_data(path)
+    vertex = _cloud_vertices(path)
     names = vertex.dtype.names or ()
-    if not {"x", "y", "z"} <= set(names):
-        raise _damaged(path, f"its vertex properties {list(names)} need x, y, z")
     pts = np.empty((len(vertex), 3), dtype=float_type)
     for i, axis in enumerate("xyz"):
         pts[:, i] = vertex[axis]
@@ -76,14 +70,8 @@ def map_ply(path: Path, chunk: int = 1 << 20) -> tuple[np.ndarray, dict[str, np.
     from numpy.lib.recfunctions import structured_to_unstructured
 
     path = Path(path)
-    if not path.exists():
-        raise RunError(f"point cloud {path} is missing.")
-    if path.is_dir():
-        raise RunError(f"point cloud {path} is a directory, not a PLY file.")
-    vertex = _vertex_data(path)
+    vertex = _cloud_vertices(path)
     names = vertex.dtype.names or ()
-    if not {"x", "y", "z"} <= set(names):
-        raise _damaged(path, f"its vertex properties {list(names)} need x, y, z")
     pts = structured_to_unstructured(vertex[["x", "y", "z"]], copy=False)
     bad = sum(int((~np.isfinite(pts[s:s + chunk]).all(axis=1)).sum())
               for s in range(0, len(pts), chunk))
@@ -93,6 +81,20 @@ def map_ply(path: Path, chunk: int = 1 << 20) -> tuple[np.ndarray, dict[str, np.
     scalars = {m: vertex[m] for m in names if m not in ("x", "y", "z")
                and vertex.dtype[m].shape == () and vertex.dtype[m].kind in "fiub"}
     return pts, scalars
+
+
+def _cloud_vertices(path: Path) -> np.ndarray:
+    """The vertex element of the point cloud at ``path``, which has x, y, z; RunError naming the
+    file otherwise."""
+    if not path.exists():
+        raise RunError(f"point cloud {path} is missing.")
+    if path.is_dir():
+        raise RunError(f"point cloud {path} is a directory, not a PLY file.")
+    vertex = _vertex_data(path)
+    names = vertex.dtype.names or ()
+    if not {"x", "y", "z"} <= set(names):
+        raise _damaged(path, f"its vertex properties {list(names)} need x, y, z")
+    return vertex
 
 
 def _vertex_data(path: Path) -> np.ndarray:
