@@ -56,7 +56,7 @@ def export_tree(ref: str, dest: Path) -> Path:
 def scan_metal(out: Path) -> Path:
     """A full-resolution sim-metal-cylinder run (the shipped profile as is)."""
     subprocess.run([sys.executable, "-m", "dotshell.cli.entry", "scan", "sim-metal-cylinder",
-                    "--out", str(out), "-q"], check=True, env=_env(ROOT))
+                    "--out", str(out), "-q"], check=True, env=_env(ROOT), cwd=out.parent)
     return next(out.iterdir())
 
 
@@ -106,6 +106,9 @@ sys.exit(os.waitstatus_to_exitcode(status))
 
 
 def _env(tree: Path) -> dict[str, str]:
+    """The environment of a command run by the dotshell in ``tree`` (run with a working
+    directory outside any source tree: ``python -m`` puts it first on ``sys.path``, before
+    PYTHONPATH; from this repository's root the peer imported this tree's dotshell)."""
     return {**os.environ, "PYTHONPATH": f"{tree}:{tree / 'plugins'}", "OMP_NUM_THREADS": "1",
             "OPENBLAS_NUM_THREADS": "1"}
 
@@ -120,7 +123,7 @@ def mesh_once(tree: Path, run: Path, work: Path) -> dict[str, Any]:
     t0 = time.perf_counter()
     proc = subprocess.run([sys.executable, "-c", LAUNCHER, sys.executable, "-m",
                            "dotshell.cli.entry", "mesh", str(copy), "-q"], env=_env(tree),
-                          capture_output=True, text=True)
+                          cwd=work, capture_output=True, text=True, check=False)
     wall = time.perf_counter() - t0
     if proc.returncode != 0:
         raise SystemExit(f"dotshell mesh failed in {tree}: {proc.stderr}")
