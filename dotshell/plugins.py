@@ -233,7 +233,7 @@ def _distribution_label(dist: md.Distribution) -> tuple[str, str]:
 
 def _user_interrupt(exc: BaseException) -> bool:
     """A real Ctrl-C / stop signal (to be obeyed), not a plugin raising KeyboardInterrupt."""
-    from dotshell.run.lifecycle import Interrupted
+    from dotshell.errors import Interrupted
 
     return isinstance(exc, Interrupted)
 
@@ -323,3 +323,20 @@ def get_plugin_manager(strict: bool = False) -> PluginManager:
         pm.load_entry_points()
         _default = pm
     return _default
+
+
+#: The entry-point group of device emulators (``dotshell emulate NAME``, docs/devices.md).
+EMULATOR_GROUP = "dotshell_emulators"
+
+
+def emulator_class(name: str) -> type:
+    """The emulator registered as ``name`` in the ``dotshell_emulators`` entry-point group."""
+    eps = {ep.name: ep for ep in md.entry_points(group=EMULATOR_GROUP)}
+    if name not in eps:
+        raise PluginError(f"no emulator named {name!r}; installed emulators: "
+                          f"{', '.join(sorted(eps)) or '(none)'}.")
+    try:
+        return eps[name].load()
+    except Exception as exc:
+        raise PluginError(f"emulator {name!r} ({eps[name].value}) failed to load: "
+                          f"{type(exc).__name__}: {exc}") from None

@@ -516,7 +516,7 @@ def dotshell_pm() -> PluginManager:
 @pytest.fixture
 def serial_emulator(tmp_path: Path) -> Iterator[Callable[..., Any]]:
     """A factory: ``serial_emulator("zaber", speed_deg_s=90)`` → a started emulator."""
-    from dotshell.cli.devices import emulator_class
+    from dotshell.plugins import emulator_class
 
     started: list[Any] = []
 

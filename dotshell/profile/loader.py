@@ -17,7 +17,6 @@ from typing import Any
 
 from dotshell.profile.calibration import CALIBRATE_SCHEMA
 from dotshell.errors import ProfileError
-from dotshell.rig.handles import TIMEOUT_DEFAULTS_S
 from dotshell.profile.mesh import MESH_SCHEMA
 from dotshell.plugins import PluginManager
 from dotshell.settings import REQUIRED, Setting, validate_settings
@@ -25,6 +24,13 @@ from dotshell.profile.transillum import NORMALIZE_SCHEMA, TRANSILLUMINATION_SCHE
 
 DEVICE_ROLES = ("camera", "projector", "stage", "analyzer", "light_source")
 REQUIRED_ROLES = ("camera", "projector", "stage", "coding")
+#: Default timeout of each device call in seconds (``[ROLE.timeouts]``, used by
+#: :mod:`dotshell.rig.handles`); ``other`` covers every method not listed.
+TIMEOUT_DEFAULTS_S: dict[str, float] = {
+    "connect": 30.0, "close": 10.0, "status": 5.0, "capture": 30.0, "show": 10.0,
+    "move_to": 120.0, "set_angle": 60.0, "home": 300.0, "set": 10.0, "read_angle": 10.0,
+    "other": 30.0,
+}
 
 
 def _role(required: bool) -> Setting:

@@ -26,26 +26,12 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from dotshell.errors import RunError
-from dotshell.rig.owners import holder, try_flock
+from dotshell.errors import Interrupted, RunError
+from dotshell.runtime.locks import holder, try_flock
 
 #: Final states; ``running`` is the only other one.
 FINAL_STATES = ("completed", "failed", "aborted", "interrupted")
 LOCK_NAME = ".lock"
-
-
-class Interrupted(KeyboardInterrupt):
-    """The process was asked to stop (Ctrl-C, SIGTERM, SIGHUP): ``signame`` says which."""
-
-    def __init__(self, signame: str = "SIGINT") -> None:
-        super().__init__(signame)
-        self.signame = signame
-
-    @property
-    def reason(self) -> str:
-        what = {"SIGINT": "Ctrl-C (SIGINT)", "SIGTERM": "SIGTERM", "SIGHUP":
-                "SIGHUP (the terminal or SSH session closed)"}.get(self.signame, self.signame)
-        return f"stopped by {what}"
 
 
 def interrupt_reason(exc: BaseException) -> str:

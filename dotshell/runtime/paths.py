@@ -148,9 +148,9 @@ def alive(path: Path) -> bool:
 
 
 def running_servers() -> list[Path]:
-    """Sockets of the servers that hold their lock (:mod:`dotshell.rig.owners`: found even while
-    momentarily unresponsive) or answer, sorted by name."""
-    from dotshell.rig.owners import held_servers
+    """Sockets of the servers that hold their lock (:mod:`dotshell.runtime.locks`: found even
+    while momentarily unresponsive) or answer, sorted by name."""
+    from dotshell.runtime.locks import held_servers
 
     d = runtime_dir()
     held = {sock for sock, _ in held_servers(d)}

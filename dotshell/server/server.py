@@ -285,8 +285,8 @@ class RigServer:
     def _claim(self, path: Path) -> None:
         """Hold the server lock of ``path`` (one server per socket, so per profile, even while
         a server is momentarily unresponsive); refused naming the holder."""
-        from dotshell.rig.owners import (OwnerLock, describe, held_devices, profile_device_ids,
-                                     profile_identity, server_lock_path)
+        from dotshell.rig.owners import held_devices, profile_device_ids
+        from dotshell.runtime.locks import OwnerLock, describe, profile_identity, server_lock_path
 
         profile = self.session.profile
         self._owner = OwnerLock(server_lock_path(path))
