@@ -1455,7 +1455,7 @@ def test_debug_shows_the_traceback(tmp_path: Path, capsys) -> None:
 def test_progress_shows_a_stalled_step_as_stalled() -> None:
     from rich.console import Console
 
-    from dotshell.cli.app import ScanProgress
+    from dotshell.cli.common import ScanProgress
     from dotshell.events import FrameCaptured, ScanStarted
 
     view = ScanProgress(Console(file=open(os.devnull, "w")))

@@ -193,11 +193,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from dotshell.calibration.board import Board
     from dotshell.calibration.captures import TurntableFrames, calibrate_captures
     from dotshell.calibration.procedure import capture, solve
-    from dotshell.cli.app import ScanProgress, _pm, err, out
+    from dotshell.cli.common import ScanProgress, err, out, plugin_manager
     from dotshell.errors import CalibrationError
     from dotshell.events import EventBus
 
-    pm = _pm(args)
+    pm = plugin_manager(args)
     settings, profile = calibrate_settings(args, pm)
     bus = EventBus()
     view = ScanProgress(err)

@@ -124,15 +124,14 @@ def completion_script(parser: argparse.ArgumentParser, shell: str) -> str:
 
 
 def cmd_completion(args: argparse.Namespace) -> int:
-    from dotshell.cli.app import _parser
-
-    print(completion_script(_parser(), args.shell), end="")
+    print(completion_script(args.root_parser, args.shell), end="")
     return 0
 
 
-def add_completion_parser(sub: Any) -> None:
+def add_completion_parser(sub: Any, root: argparse.ArgumentParser) -> None:
+    """``dotshell completion SHELL``: the script completes every command of ``root``."""
     sp = sub.add_parser("completion", help="print a shell completion script (bash, zsh, fish)",
                         description="Print a completion script for your shell; install it with "
                         "one of: " + "; ".join(INSTALL.values()) + ".")
     sp.add_argument("shell", choices=SHELLS, help="the shell")
-    sp.set_defaults(func=cmd_completion)
+    sp.set_defaults(func=cmd_completion, root_parser=root)
