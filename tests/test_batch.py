@@ -69,7 +69,7 @@ def copy_study(study: Path, dest: Path) -> list[Path]:
 def serial(study, tmp_path_factory):
     """The single-run commands' results: `dotshell reconstruct RUN` on each run, with and
     without a new calibration file (the runs' own, copied)."""
-    from dotshell.pipeline.scan import reconstruct_run
+    from dotshell.pipeline.commands import reconstruct_run
 
     tmp = tmp_path_factory.mktemp("serial")
     pm = _pm()

@@ -8,7 +8,7 @@ import numpy as np
 import tifffile
 
 from dotshell.events import FrameCaptured, ScanFinished, ScanStarted, ViewReconstructed
-from dotshell.pipeline.scan import reconstruct_run
+from dotshell.pipeline.commands import reconstruct_run
 from dotshell.runtime import hugepages
 from dotshell.plugins import PluginManager
 from dotshell.run.ply import read_ply
@@ -58,7 +58,7 @@ def test_report_times_acquisition_and_last_frame_to_cloud(small_scan, tmp_path):
     it); the command prints them. A reconstruction of the run keeps the scan's figures (as it
     keeps its acquisition time) and times its own merge."""
     from dotshell.cli.app import timing_line
-    from dotshell.pipeline.scan import reconstruct_run
+    from dotshell.pipeline.commands import reconstruct_run
     from dotshell.plugins import PluginManager
 
     result, _ = small_scan

@@ -176,7 +176,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    from dotshell.pipeline.scan import reconstruct_run
+    from dotshell.pipeline.commands import reconstruct_run
 
     pm = _pm(args)
     if args.captures or args.run is None:

@@ -306,9 +306,9 @@ class Acquisition:
 
     def _set_aside(self, view: int) -> None:
         """Move a failed capture of ``view`` out of the way (kept) before it is captured again."""
-        from dotshell.pipeline.scan import _set_aside_partial  # the run's one way to do it
+        from dotshell.run.frames import set_aside_partial  # the run's one way to do it
 
-        _set_aside_partial(self.store, view)
+        set_aside_partial(self.store.root, view)
         self.writer.written[view] = 0
         self.store.mark_view(view, 0, False)
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import TYPE_CHECKING, Any, Iterable
 
 from dotshell.errors import CalibrationError, RunError
 from dotshell.events import EventBus
@@ -17,6 +17,9 @@ from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.steps import require_turntable_axis
 from dotshell.plugins import PluginManager
 from dotshell.run.store import RunStore
+
+if TYPE_CHECKING:
+    from dotshell.pipeline.scan import ScanResult
 
 
 def reprocess(run_dir: Path | str, pm: PluginManager, command: str, targets: Iterable[str],
@@ -39,6 +42,19 @@ def reprocess(run_dir: Path | str, pm: PluginManager, command: str, targets: Ite
     finally:
         unsub()
         store.close()
+
+
+def reconstruct_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
+                    calibration_file: str | None = None) -> ScanResult:
+    """Re-process a run from its frames on disk into a new generation (views not fully
+    captured are skipped with a warning); with ``calibration_file``, that calibration is
+    validated first and used for the new generation. Nothing of earlier generations changes."""
+    from dotshell.pipeline.scan import ScanResult
+
+    report = reprocess(run_dir, pm, "reconstruct", ("views",), bus,
+                       {"calibration_file": calibration_file} if calibration_file else {},
+                       targets_if_calibration=("calibration",))
+    return ScanResult(Path(run_dir), report.get("status", "completed"), report)
 
 
 def check_calibration_for_run(path: str | Path, store: RunStore) -> RigCalibration:

@@ -7,13 +7,12 @@ exposure, relative to the principal point), map it onto the run's ``surface.ply`
 divide the node intensities by the orientation factor of the profile's ``[normalizer]`` backend
 (default ``diffuse-fresnel``) and of each ``[normalize] compare`` backend. When the rig knows
 the true light (the simulator), every backend is scored against it. Outputs are written by
-:mod:`dotshell.pipeline.normalize_outputs`; the figures go to ``normalize/report.json`` and the
-``normalize`` section of ``report.json``.
+:mod:`dotshell.pipeline.normalize_outputs` (whose ``normalize_stage`` runs the whole step); the
+figures go to ``normalize/report.json`` and the ``normalize`` section of ``report.json``.
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -313,19 +312,3 @@ class Normalization:
 
 def _r(x: float) -> float:
     return round(float(x), 4)
-
-
-def normalize_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
-                    normalizer: str | None = None, min_sin_beta: float | None = None,
-                    max_normal_spread_deg: float | None = None) -> dict[str, Any]:
-    """Normalize a run and write its outputs; returns the report section."""
-    from dotshell.pipeline.normalize_outputs import OutputWriter
-
-    t0 = time.perf_counter()
-    job = Normalization(store, profile, pm, bus, normalizer, min_sin_beta, max_normal_spread_deg)
-    writer = OutputWriter(store, profile, job)
-    results = job.run(writer.view)
-    section = writer.summary(results)
-    section["seconds"] = round(time.perf_counter() - t0, 3)
-    store.write_json("normalize/report.json", section)
-    return section

@@ -9,12 +9,16 @@
 * ``view_VVV_src_SS.png`` — preview: flat-fielded frame, node intensities and normalized I0;
 * ``nirfast_vVVV_src_SS.paa`` — NIRFAST "standard" measurement data (source, det, active,
   amplitude, phase) at the ``[mesh.optodes]`` detectors, when the profile defines them.
+
+:func:`normalize_stage` is the pipeline's normalize step: the normalization
+(:mod:`dotshell.pipeline.normalize`) with these files written as it goes.
 """
 
 from __future__ import annotations
 
 import csv
 import io
+import time
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -22,11 +26,13 @@ import numpy as np
 
 from dotshell.geometry.raycast import TriangleScene
 from dotshell.geometry.surface_map import MASK_REASONS, SurfaceView, resample_to_image
+from dotshell.pipeline.normalize import Normalization, SourceResult, error_stats
 from dotshell.profile.loader import Profile
 from dotshell.run.store import RunStore, atomic_write_bytes, atomic_write_text
 
 if TYPE_CHECKING:
-    from dotshell.pipeline.normalize import Normalization, SourceResult
+    from dotshell.events import EventBus
+    from dotshell.plugins import PluginManager
 
 
 def stem(r: "SourceResult") -> str:
@@ -135,8 +141,6 @@ def write_paa(store: RunStore, r: "SourceResult", amplitudes: np.ndarray) -> str
 
 def pooled(results: list["SourceResult"]) -> dict[str, Any]:
     """Error statistics over all views and sources together, per normalizer."""
-    from dotshell.pipeline.normalize import error_stats
-
     if not results or results[0].truth is None:
         return {}
     truth = np.concatenate([r.truth for r in results])
@@ -194,3 +198,17 @@ def _sum_masks(entries: list[dict[str, Any]]) -> dict[str, int]:
         for r, n in e["masked"].items():
             total[r] += n
     return total
+
+
+def normalize_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
+                    normalizer: str | None = None, min_sin_beta: float | None = None,
+                    max_normal_spread_deg: float | None = None) -> dict[str, Any]:
+    """Normalize a run and write its outputs; returns the report section."""
+    t0 = time.perf_counter()
+    job = Normalization(store, profile, pm, bus, normalizer, min_sin_beta, max_normal_spread_deg)
+    writer = OutputWriter(store, profile, job)
+    results = job.run(writer.view)
+    section = writer.summary(results)
+    section["seconds"] = round(time.perf_counter() - t0, 3)
+    store.write_json("normalize/report.json", section)
+    return section

@@ -1,8 +1,9 @@
 """Scans: capture every view (reconstructing each one while the next is captured), then the
-rest of the processing steps; ``resume`` finishes an interrupted or failed scan; ``reconstruct``
-re-processes a run from its frames as a new generation.
+rest of the processing steps; ``resume`` finishes an interrupted or failed scan (``reconstruct``,
+which re-processes a run from its frames as a new generation, is in
+:mod:`dotshell.pipeline.commands`).
 
-Front ends call :func:`scan`, :func:`resume_run` and :func:`reconstruct_run` and listen to the
+Front ends call :func:`scan` and :func:`resume_run` and listen to the
 :class:`EventBus`. The lifecycle (lock, status, reason) belongs to
 :class:`dotshell.pipeline.engine.RunJob`; the steps after acquisition to
 :func:`dotshell.pipeline.engine.process`.
@@ -29,6 +30,7 @@ from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.acquire import Acquisition
 from dotshell.pipeline.engine import RunJob, process
+from dotshell.run.frames import set_aside_partial
 from dotshell.run.generations import Generation, ProductStore
 from dotshell.run.lifecycle import connected, describe_holder, lock_holder
 from dotshell.pipeline.pdi import plan_shots
@@ -276,7 +278,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
             for view, fringes in todo:
                 angle = angles[view]
                 if fringes:
-                    _set_aside_partial(store, view)
+                    set_aside_partial(store.root, view)
                     frames = acq.run_view(view, angle)
                     if frames is None:
                         job.finish("aborted", "aborted by the user")
@@ -356,22 +358,6 @@ def _views_to_capture(store: RunStore, trans: TransilluminationCapture | None,
     return todo
 
 
-def _set_aside_partial(store: RunStore, view: int) -> None:
-    """Move the frames of an unfinished view out of the way (kept, never deleted): its frame
-    stack ``frames/view_NNN.tif`` and directory ``frames/view_NNN/`` (frame metadata; PNG frames
-    of runs before TIFF stacks) become ``view_NNN.partial-K.tif`` and ``view_NNN.partial-K/``."""
-    stem = f"view_{view:03d}"
-    found = [p for p in (store.path("frames", stem), store.path("frames", f"{stem}.tif"))
-             if p.is_file() or (p.is_dir() and any(p.iterdir()))]
-    if not found:
-        return
-    k = 1
-    while any(store.path("frames", f"{stem}.partial-{k}{s}").exists() for s in ("", ".tif")):
-        k += 1
-    for p in found:
-        p.rename(store.path("frames", f"{stem}.partial-{k}{p.suffix}"))
-
-
 def _transillumination(rig: Rig, store: RunStore, profile: Profile, acq: Acquisition,
                        bus: EventBus) -> TransilluminationCapture | None:
     """The scan's trans-illumination step (flat field captured now, unless a resumed run
@@ -402,19 +388,6 @@ def load_run_profile(store: RunStore, pm: PluginManager) -> Profile:
         raise RunError(f"{p} is damaged ({exc}); it is written by dotshell only — restore it "
                        "from a backup or copy the profile the run was made with.") from None
     return validate_profile(raw, pm, str(p), store.root)
-
-
-def reconstruct_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
-                    calibration_file: str | None = None) -> ScanResult:
-    """Re-process a run from its frames on disk into a new generation (views not fully
-    captured are skipped with a warning); with ``calibration_file``, that calibration is
-    validated first and used for the new generation. Nothing of earlier generations changes."""
-    from dotshell.pipeline.commands import reprocess
-
-    report = reprocess(run_dir, pm, "reconstruct", ("views",), bus,
-                       {"calibration_file": calibration_file} if calibration_file else {},
-                       targets_if_calibration=("calibration",))
-    return ScanResult(Path(run_dir), report.get("status", "completed"), report)
 
 
 def _summary(report: dict[str, Any]) -> dict[str, Any]:

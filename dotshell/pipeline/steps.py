@@ -322,7 +322,7 @@ def mesh_step(ctx: StepContext) -> dict[str, Any]:
 
 
 def normalize_step(ctx: StepContext) -> dict[str, Any]:
-    from dotshell.pipeline.normalize import normalize_stage
+    from dotshell.pipeline.normalize_outputs import normalize_stage
 
     o = ctx.options
     return {"normalize": normalize_stage(ctx.store, ctx.profile, ctx.pm, ctx.bus,

@@ -358,6 +358,24 @@ def damaged_views(root: Path, manifest: dict) -> list[tuple[int, int, int]]:
             if v.get("complete") and n < v["frames"]]
 
 
+def set_aside_partial(root: Path, view: int) -> None:
+    """Move the frames of an unfinished view of the run at ``root`` out of the way (kept, never
+    deleted): its frame stack ``frames/view_NNN.tif`` and directory ``frames/view_NNN/`` (frame
+    metadata; PNG frames of runs before TIFF stacks) become ``view_NNN.partial-K.tif`` and
+    ``view_NNN.partial-K/``."""
+    frames = Path(root) / "frames"
+    stem = f"view_{view:03d}"
+    found = [p for p in (frames / stem, frames / f"{stem}.tif")
+             if p.is_file() or (p.is_dir() and any(p.iterdir()))]
+    if not found:
+        return
+    k = 1
+    while any((frames / f"{stem}.partial-{k}{s}").exists() for s in ("", ".tif")):
+        k += 1
+    for p in found:
+        p.rename(frames / f"{stem}.partial-{k}{p.suffix}")
+
+
 def export_png(frames: FrameStore, out_dir: Path) -> list[Path]:
     """Write the view's frames losslessly as ``out_dir/view_NNN/III_NAME.png`` (the PNG layout,
     same bit depth); returns the files written."""
