@@ -230,7 +230,7 @@ class PoseFrames:
     has no ``layout``, else reordered and their polarity undone as the layout says."""
 
     def __init__(self, run: Path, cap: dict[str, Any], pm) -> None:
-        from dotshell.pipeline.captures import capture_order, coding_frame_names, layout_from_dict
+        from dotshell.run.layouts import capture_order, coding_frame_names, layout_from_dict
 
         where = str(run / "capture.json")
         self.run = run
@@ -249,7 +249,7 @@ class PoseFrames:
         return files[self.order.index("white")] if len(files) == len(self.order) else files[0]
 
     def __call__(self, pose: dict) -> list[np.ndarray]:
-        from dotshell.pipeline.captures import to_coding_frames
+        from dotshell.run.layouts import to_coding_frames
 
         files = pose["frames"]
         if len(files) != len(self.order):

@@ -14,7 +14,8 @@ from typing import Any
 import numpy as np
 
 from dotshell.errors import CalibrationError
-from dotshell.pipeline.captures import CapturesResult, load_layout, read_sequence
+from dotshell.pipeline.captures import CapturesResult
+from dotshell.run.layouts import load_layout, read_sequence
 
 #: Matched rays passing further apart than this (mm) are dropped (a wrong match or code).
 MAX_RAY_GAP_MM = 0.2
