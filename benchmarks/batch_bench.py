@@ -229,7 +229,7 @@ def study_alone(quick: bool) -> None:
     ``bench-results/batch[-quick].json``."""
     import tempfile
 
-    from run import RESULTS, run_child
+    from bench_profile import RESULTS, run_child
 
     with tempfile.TemporaryDirectory(prefix="dotshell-batch-bench-") as tmp:
         work = Path(tmp)

@@ -6,6 +6,7 @@ rule and shows the same checks report it, with the chain that breaks it."""
 
 from __future__ import annotations
 
+import ast
 import subprocess
 import sys
 import textwrap
@@ -112,11 +113,31 @@ def _render(chain: list[str], graph: grimp.ImportGraph) -> str:
     return " -> ".join(parts)
 
 
-def cycles_report(package: str) -> str:
-    """Each import cycle of ``package``: its modules and one chain; '' when there is none."""
-    graph = import_graph(package)
+def cycles_report(package: str | grimp.ImportGraph) -> str:
+    """Each import cycle of ``package`` (a name, or its graph): its modules and one chain; ''
+    when there is none."""
+    graph = import_graph(package) if isinstance(package, str) else package
     return "\n".join(f"cycle of {len(c)} modules ({', '.join(c)}):\n  {cycle_chain(graph, c)}"
                      for c in import_cycles(graph))
+
+
+def script_graph(directory: Path) -> grimp.ImportGraph:
+    """The imports between the scripts of ``directory`` (not a package: the benchmarks import
+    each other by their bare names), inside functions too."""
+    graph = grimp.ImportGraph()
+    names = {p.stem for p in directory.glob("*.py")}
+    for name in names:
+        graph.add_module(name)
+    for path in sorted(directory.glob("*.py")):
+        lines = path.read_text().splitlines()
+        for node in ast.walk(ast.parse("\n".join(lines))):
+            targets = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                       [node.module] if isinstance(node, ast.ImportFrom) and node.module
+                       and not node.level else [])
+            for target in {t.split(".")[0] for t in targets} & names - {path.stem}:
+                graph.add_import(importer=path.stem, imported=target, line_number=node.lineno,
+                                 line_contents=lines[node.lineno - 1].strip())
+    return graph
 
 
 def stray_modules(package_dir: Path, allowed: tuple[str, ...]) -> list[str]:
@@ -139,6 +160,11 @@ def test_rooms_import_downward_only():
 def test_no_import_cycles():
     report = cycles_report("dotshell")
     assert report == "", "import cycles in dotshell/:\n" + report
+
+
+def test_no_import_cycles_among_the_benchmarks():
+    report = cycles_report(script_graph(ROOT / "benchmarks"))
+    assert report == "", "import cycles in benchmarks/:\n" + report
 
 
 def test_only_the_plugin_contract_sits_at_the_top():
@@ -199,3 +225,9 @@ def test_checks_report_what_breaks_them(toy):
     assert cycles_report("toy") == ("cycle of 2 modules (toy.low.a, toy.low.b):\n"
                                     "  toy.low.a -> toy.low.b (l.1) -> toy.low.a (l.5)")
     assert stray_modules(toy / "toy", ("base",)) == ["stray.py"]
+    scripts = toy / "scripts"  # by bare names, as the benchmarks import each other
+    scripts.mkdir()
+    (scripts / "bench.py").write_text("import json\nimport helper\n")
+    (scripts / "helper.py").write_text("def figures():\n    from bench import RESULTS\n")
+    assert cycles_report(script_graph(scripts)) == ("cycle of 2 modules (bench, helper):\n"
+                                                    "  bench -> helper (l.2) -> bench (l.2)")
