@@ -1,13 +1,14 @@
 """Reconstruction of capture sequences made elsewhere (another rig, another program).
 
 A *layout file* (TOML, see ``docs/layouts.md`` and ``layouts/*.toml``; read by
-:mod:`dotshell.run.layouts`) says how the sequence was made: the file names, the frame order (white, black, column bits, row bits), bit order,
-inverse patterns, dropped low bits, whether the code is centred, the bit polarity and the
-projector resolution. :func:`reconstruct_captures` reads the frames in that order, puts them in
-the order the gray-code coding expects, decodes, triangulates with the given calibration (a
-``calibration.json`` or an OpenCV ``.xml``/``.yml`` file such as SLStudio's) and writes the
-cloud **in the camera frame** (mm) into a new output directory, with a report, previews and —
-when a reference cloud is given — the distance statistics against it.
+:mod:`dotshell.run.layouts`) says how the sequence was made: the file names, the frame order
+(white, black, column bits, row bits), bit order, inverse patterns, dropped low bits, whether
+the code is centred, the bit polarity and the projector resolution. :func:`reconstruct_captures`
+reads the frames in that order, puts them in the order the gray-code coding expects, decodes,
+triangulates with the given calibration (a ``calibration.json`` or an OpenCV ``.xml``/``.yml``
+file such as SLStudio's) and writes the cloud **in the camera frame** (mm) into a new output
+directory, with a report, previews and — when a reference cloud is given — the distance
+statistics against it.
 """
 
 from __future__ import annotations
