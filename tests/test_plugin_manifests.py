@@ -217,3 +217,29 @@ def test_plugin_without_manifest_is_loaded_eagerly_as_before(tmp_path, monkeypat
     info = pm.backend("exporter", "mine-xyz")
     assert info.loaded and info.plugin == "old" and "old" not in pm.manifests
     assert pm.create("exporter", "mine-xyz", {}).settings == {"digits": 3}
+
+
+def test_manifest_hooks_module_is_registered_for_workflow_hooks(tmp_path, monkeypatch):
+    site = tmp_path / "site"
+    events = ("from dotshell import hookimpl\nSEEN = []\n\n@hookimpl\n"
+              "def dotshell_view_captured(view):\n    SEEN.append(view)\n")
+    _install(site, "hooked_pkg", 'hooks = "hooked_pkg.events"\n', {"__init__": "",
+                                                                   "events": events}, ep="hooked")
+    monkeypatch.syspath_prepend(str(site))
+    pm = PluginManager()
+    pm.load_entry_points()
+    assert pm.load_errors == [] and "hooked" in pm.manifests
+    assert pm.notify("dotshell_view_captured", run_dir="r", view=4, angle_deg=0.0,
+                     n_frames=1) == []
+    assert sys.modules["hooked_pkg.events"].SEEN == [4]
+
+
+def test_a_profile_naming_a_broken_backend_fails_with_exit_2_naming_it(my_plugin, tmp_path,
+                                                                       capsys):
+    raw = small_profile_dict()
+    raw["camera"] = {"backend": "mine-cam"}
+    code = main(["check", str(write_profile(tmp_path / "p.toml", raw))])
+    err = " ".join(capsys.readouterr().err.split())
+    assert code == 2 and "Traceback" not in err
+    assert "plugin 'mine' (dotshell-mine 1.0) failed to load its camera backend 'mine-cam'" in err
+    assert "needs libcam.so" in err and "dotshell plugins --check" in err
