@@ -57,11 +57,11 @@ class ManifestBackend:
             backend = obj() if callable(obj) and not isinstance(obj, Backend) else obj
         except (Exception, SystemExit) as exc:  # plugin code: any import-time failure
             raise PluginError(f"importing {self.python_name} raised {type(exc).__name__}: "
-                              f"{exc}{_where(exc)}") from exc
+                              f"{exc}{raised_at(exc)}") from exc
         if not isinstance(backend, Backend) or backend.name != self.name:
             raise PluginError(f"{self.python_name} must be (or return) a dotshell.backends."
                               f"Backend named {self.name!r}, as the manifest says; it is "
-                              f"{_describe(backend)}")
+                              f"{short_repr(backend)}")
         return Backend(self.name, backend.factory, backend.settings_schema,
                        self.summary or backend.summary, self.usb_ids or backend.usb_ids)
 
@@ -151,14 +151,16 @@ def backends_of(package: str, kind: str) -> list[Backend]:
     return [b.load() for b in read_manifest(path).of_kind(kind)]
 
 
-def _where(exc: BaseException) -> str:
+def raised_at(exc: BaseException) -> str:
+    """' at FILE:LINE' of the innermost frame of ``exc``'s traceback ('' without one)."""
     import traceback
 
     last = traceback.extract_tb(exc.__traceback__)[-1:] if exc.__traceback__ else []
     return f" at {last[0].filename}:{last[0].lineno}" if last else ""
 
 
-def _describe(value: Any) -> str:
+def short_repr(value: Any) -> str:
+    """``repr(value)``, cut to 80 characters."""
     text = repr(value)
     return text if len(text) <= 80 else text[:77] + "..."
 

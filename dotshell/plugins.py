@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import importlib
 import importlib.metadata as md
-import traceback
 from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any, Iterable, Mapping
@@ -19,7 +18,8 @@ import pluggy
 from dotshell import hookspecs
 from dotshell.backends import ROLES, Backend
 from dotshell.errors import DotshellError, PluginError, PluginFault
-from dotshell.manifest import Manifest, ManifestBackend, find_manifest, read_manifest
+from dotshell.manifest import (Manifest, ManifestBackend, find_manifest, raised_at, read_manifest,
+                               short_repr)
 from dotshell.settings import validate_settings
 
 GROUP = "dotshell"
@@ -137,9 +137,8 @@ class PluginManager:
             except BaseException as exc:  # any import-time failure, sys.exit() included
                 if _user_interrupt(exc):
                     raise
-                last = traceback.extract_tb(exc.__traceback__)[-1:] if exc.__traceback__ else []
-                at = f" at {last[0].filename}:{last[0].lineno}" if last else ""
-                self._load_failed(PluginLoadError(ep.name, dist, f"{type(exc).__name__}: {exc}{at}"))
+                self._load_failed(PluginLoadError(ep.name, dist,
+                                                  f"{type(exc).__name__}: {exc}{raised_at(exc)}"))
                 continue
             self.register(plugin, name=name, distribution=dist)
         self.backends("camera")  # collect now: duplicate or malformed backends are load errors
@@ -179,7 +178,7 @@ class PluginManager:
             self.backends(role)
             for info in self.qualified[role].values():  # duplicates kept aside included
                 try:
-                    info.backend
+                    _ = info.backend  # imports it
                 except PluginError as exc:
                     failures.append(PluginLoadError(info.plugin, info.distribution, str(exc)))
         return failures
@@ -262,7 +261,7 @@ class PluginManager:
             self._load_failed(PluginLoadError(
                 impl.plugin_name, dist, f"{hook_name}() must return a list of "
                 "dotshell.backends.Backend (a name, a callable factory and a settings schema of "
-                f"dotshell.settings.Setting); it returned {_describe(provided)}"))
+                f"dotshell.settings.Setting); it returned {short_repr(provided)}"))
             return []
         return list(provided)
 
@@ -348,11 +347,6 @@ def _schema_ok(schema: Any) -> bool:
 
     return isinstance(schema, Mapping) and all(
         isinstance(k, str) and isinstance(v, Setting) for k, v in schema.items())
-
-
-def _describe(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
 
 
 class PluginObject:

@@ -75,15 +75,12 @@ def test_a_profile_imports_only_the_backends_it_uses(tmp_path):
 def test_every_first_party_package_ships_a_manifest_its_backends_match():
     pm = PluginManager()
     pm.load_entry_points()
-    declared = {}
-    for package in FIRST_PARTY:
-        manifest = ROOT / "plugins" / package / "dotshell.toml"
-        for b in tomllib.loads(manifest.read_text())["backends"]:
-            declared[(b["kind"], b["name"])] = package
+    declared = {(b["kind"], b["name"]) for package in FIRST_PARTY for b in tomllib.loads(
+        (ROOT / "plugins" / package / "dotshell.toml").read_text())["backends"]}
     assert pm.check_backends() == [] and pm.load_errors == []
     listed = {(role, name) for role in pm.qualified for name in pm.backends(role)}
-    assert set(declared) <= listed and len(declared) >= 31
-    for (role, name), package in declared.items():
+    assert declared <= listed and len(declared) >= 31
+    for role, name in declared:
         info = pm.backend(role, name)
         assert info.loaded and info.plugin in pm.manifests and info.backend.name == name
         assert info.backend.summary == info.summary != ""

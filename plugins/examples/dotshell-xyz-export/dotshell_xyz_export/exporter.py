@@ -5,8 +5,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from dotshell.backends import Backend
 from dotshell.run.ply import read_ply
 from dotshell.settings import Setting
