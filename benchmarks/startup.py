@@ -1,5 +1,6 @@
-"""Start-up of light commands (issue 31): ``dotshell --help``, ``dotshell status`` and
-``dotshell plugins`` as fresh processes, this checkout against a reference commit (default
+"""Start-up of light commands (issue 31): ``dotshell --help``, ``dotshell status``,
+``dotshell plugins`` and ``dotshell check sim-metal-cylinder`` (a profile: it imports the
+backends it names) as fresh processes, this checkout against a reference commit (default
 ``main``) in the same run, interleaved.
 
 For each command and code base: wall time of the whole process (interpreter start included;
@@ -29,7 +30,8 @@ from io import BytesIO
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-COMMANDS = (["--help"], ["status"], ["plugins"])
+COMMANDS = (["--help"], ["status"], ["plugins"],
+            ["check", "sim-metal-cylinder"])  # a profile: only the backends it names
 #: first-party modules that are drivers or pull in their libraries
 DRIVERS = ("dotshell_cameras.", "dotshell_serial.", "dotshell_projectors.", "dotshell_sim.",
            "dotshell_codings.", "dotshell_meshing.", "dotshell_dotio.", "dotshell_normalizers.")
@@ -48,8 +50,9 @@ sys.stderr.write("\\nMODULES " + json.dumps(sorted(sys.modules)) + "\\n")
 
 
 def export_ref(ref: str, into: Path) -> Path:
-    """``dotshell/`` and ``plugins/`` of commit ``ref`` under ``into``."""
-    tar = subprocess.run(["git", "-C", str(ROOT), "archive", ref, "dotshell", "plugins"],
+    """``dotshell/``, ``plugins/`` and the shipped files of commit ``ref`` under ``into``."""
+    tar = subprocess.run(["git", "-C", str(ROOT), "archive", ref, "dotshell", "plugins",
+                          "profiles", "layouts", "docs"],
                          capture_output=True, check=True).stdout
     with tarfile.open(fileobj=BytesIO(tar)) as t:
         t.extractall(into, filter="data")
@@ -95,7 +98,8 @@ def main() -> None:
         for _ in range(args.repeat):  # interleaved: the host's load falls on both alike
             for argv in COMMANDS:
                 for base, root in bases.items():
-                    runs.setdefault((" ".join(argv), base), []).append(run_once(root, argv, env))
+                    runs.setdefault((" ".join(argv)[:10], base), []).append(
+                        run_once(root, argv, env))
         load_after = os.getloadavg()[0]
     print(f"start-up, {args.repeat} fresh processes each; {os.cpu_count()} CPUs, load average "
           f"{load_before:.1f} before, {load_after:.1f} after")
@@ -110,7 +114,7 @@ def main() -> None:
               f"{s['modules']:>8} {'yes' if s['cv2'] else 'no':>4} "
               f"{'yes' if s['serial'] else 'no':>6} {s['drivers']:>7}")
     for argv in COMMANDS:
-        cmd = " ".join(argv)
+        cmd = " ".join(argv)[:10]
         ref, this = results[f"{cmd} [{args.ref}]"], results[f"{cmd} [this]"]
         print(f"{cmd}: wall {ref['wall_median_s']:.3f} -> {this['wall_median_s']:.3f} s "
               f"(x{ref['wall_median_s'] / this['wall_median_s']:.2f}), CPU "

@@ -1,5 +1,10 @@
 """Plugin discovery: entry points of the ``dotshell`` group, loaded one by one.
 
+A plugin whose package ships a ``dotshell.toml`` manifest (:mod:`dotshell.manifest`) is not
+imported: its backends are known from the manifest and each is imported the first time it is
+used (:attr:`BackendInfo.backend`). A plugin without one is imported here and asked for its
+backends through the hooks of :mod:`dotshell.hookspecs`.
+
 A plugin that fails to import is recorded in :attr:`PluginManager.load_errors` with its name,
 distribution and reason; the others still load. ``strict=True`` (``--strict-plugins``) turns
 such a failure into a :class:`~dotshell.errors.PluginError` — for plugin authors and CI.
@@ -163,10 +168,10 @@ class PluginManager:
         if manifest.hooks:
             try:
                 module = importlib.import_module(manifest.hooks)
-            except Exception as exc:  # plugin code: any import-time failure
-                self._load_failed(PluginLoadError(ep.name, dist, f"its hooks module "
-                                                  f"{manifest.hooks!r} raised {type(exc).__name__}"
-                                                  f": {exc}"))
+            except (Exception, SystemExit) as exc:  # plugin code: any import-time failure
+                self._load_failed(PluginLoadError(
+                    ep.name, dist, f"its hooks module {manifest.hooks!r} raised "
+                    f"{type(exc).__name__}: {exc}{raised_at(exc)}"))
                 return True
             self.register(module, name=name, distribution=dist)
         return True
@@ -207,7 +212,8 @@ class PluginManager:
         for role, hook_name in ROLES.items():
             impls = {i.plugin_name: i for i in getattr(self.pm.hook, hook_name).get_hookimpls()}
             # first-party plugins first, then in the order they were loaded or registered
-            for plugin in sorted(set(self.distributions) | set(impls), key=self._order):
+            plugins = [*self.distributions, *(p for p in impls if p not in self.distributions)]
+            for plugin in sorted(plugins, key=self._order):
                 for info in self._infos(plugin, role, impls.get(plugin)):
                     self._enter(table[role], info)
         return table
