@@ -9,8 +9,10 @@ and implements any of the hooks below with :data:`dotshell.hookimpl`. Hooks are 
 with keyword arguments, so an implementation may accept only the arguments it needs.
 
 **Backend hooks** return a list of :class:`dotshell.backends.Backend` for one role; the profile
-chooses among all plugins' backends by name. First-party backends (the simulator, gray code)
-are registered exactly this way.
+chooses among all plugins' backends by name. A plugin that declares its backends in a
+``dotshell.toml`` manifest instead (:mod:`dotshell.manifest`; all first-party plugins do) is not
+imported until one of them is used; its package's hooks are then only for being registered as
+a plain pluggy plugin.
 
 **Workflow hooks** observe a scan; they must not raise (an exception is logged as a warning
 against the plugin and the scan goes on) and should return quickly.

@@ -228,8 +228,10 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_plugins(args: argparse.Namespace) -> int:
+    """List every backend from the plugins' manifests (importing none of them); ``--check``
+    imports each and names those that fail (exit 2), ``--settings`` imports each to list its
+    settings."""
     from dotshell.backends import ROLES
-    from dotshell.settings import describe
 
     pm = _pm(args)
     t = Table(title="dotshell backends")
@@ -237,23 +239,40 @@ def cmd_plugins(args: argparse.Namespace) -> int:
         t.add_column(col)
     for role in ROLES:
         for name, info in sorted(pm.backends(role).items()):
-            t.add_row(role, name, info.plugin, info.distribution, escape(info.backend.summary))
+            t.add_row(role, name, info.plugin, info.distribution, escape(info.summary))
     out.print(t)
+    broken = pm.check_backends() if args.check or args.settings else []
     if args.settings:
-        for role in ROLES:
-            for name, info in sorted(pm.backends(role).items()):
-                st = Table(title=escape(f"[{role}] backend = \"{name}\" — [{role}.settings]"))
-                for col in ("key", "type", "default", "help"):
-                    st.add_column(col)
-                for row in describe(info.backend.settings_schema):
-                    st.add_row(*map(escape, row))
-                out.print(st)
+        _print_settings(pm, ROLES)
     if pm.load_errors:
         out.print("[red]plugins that failed to load:[/]")
         for e in pm.load_errors:
             out.print(f"  {escape(str(e))}")
-        return 1
-    return 0
+    if broken:
+        out.print("[red]backends that failed to load:[/]")
+        for e in broken:
+            out.print(f"  {escape(e.reason)}")
+        return 2
+    if args.check:
+        out.print(f"[green]all {sum(len(pm.qualified[r]) for r in ROLES)} backends load[/]")
+    return 1 if pm.load_errors else 0
+
+
+def _print_settings(pm, roles) -> None:
+    """Each backend's ``[ROLE.settings]`` table (after ``check_backends``: the broken ones,
+    still not loaded, are skipped)."""
+    from dotshell.settings import describe
+
+    for role in roles:
+        for name, info in sorted(pm.backends(role).items()):
+            if not info.loaded:
+                continue
+            st = Table(title=escape(f"[{role}] backend = \"{name}\" — [{role}.settings]"))
+            for col in ("key", "type", "default", "help"):
+                st.add_column(col)
+            for row in describe(info.backend.settings_schema):
+                st.add_row(*map(escape, row))
+            out.print(st)
 
 
 def cmd_script(args: argparse.Namespace) -> int:
@@ -340,6 +359,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("plugins", help="list backends by role and plugin load errors")
     sp.add_argument("--settings", action="store_true", help="also list each backend's settings")
+    sp.add_argument("--check", action="store_true", help="import every backend and name the "
+                    "ones that fail to load (exit 2)")
     sp.set_defaults(func=cmd_plugins)
 
     from dotshell.cli.mesh import add_mesh_parsers

@@ -73,7 +73,7 @@ def cmd_ports(args: argparse.Namespace, pm_of: Callable[[argparse.Namespace], An
             u.add_column(col)
         for vid_pid, name in usb:
             fits = [f"{role}:{n}" for role, found in backends.items()
-                    for n, info in sorted(found.items()) if vid_pid in info.backend.usb_ids]
+                    for n, info in sorted(found.items()) if vid_pid in info.usb_ids]
             u.add_row(vid_pid, escape(name or "-"), escape(", ".join(fits) or "-"))
         out.print(u)
     else:

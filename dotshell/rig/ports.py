@@ -114,7 +114,7 @@ def matching_backends(port: SerialPortInfo, backends: dict[str, dict[str, object
         return []
     return [f"{role}:{name}" for role, found in backends.items()
             for name, info in sorted(found.items())
-            if vp in getattr(info.backend, "usb_ids", ())]  # type: ignore[attr-defined]
+            if vp in getattr(info, "usb_ids", ())]
 
 
 def emulator_dir() -> Path:

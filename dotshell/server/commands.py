@@ -124,7 +124,7 @@ def _plugins(ctx: Context, args: dict[str, Any]) -> Any:
     from dotshell.backends import ROLES
 
     pm = ctx.session.pm
-    rows = [[role, name, info.plugin, info.distribution, info.backend.summary]
+    rows = [[role, name, info.plugin, info.distribution, info.summary]
             for role in ROLES for name, info in sorted(pm.backends(role).items())]
     return {"backends": rows, "errors": [str(e) for e in pm.load_errors]}
 
