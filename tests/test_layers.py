@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 #: The flat plugin contract: the only modules directly in dotshell/ (beside __init__, __main__).
 PLUGIN_CONTRACT = ("hookspecs", "devices", "coding", "normalizer", "settings", "errors",
-                   "events", "plugins", "backends", "testing")
+                   "events", "plugins", "backends", "manifest", "testing")
 
 
 # ---- the checks -------------------------------------------------------------------------------
