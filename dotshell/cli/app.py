@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any
 
 from rich.markup import escape
-from rich.table import Table
 
 from dotshell import __version__
 from dotshell.cli.common import ScanProgress, err, out, plugin_manager as _pm, print_as_is
@@ -22,12 +21,19 @@ from dotshell.errors import DotshellError
 from dotshell.events import EventBus, Message
 
 
+def _table(title: str) -> Any:
+    """A rich table, imported at first use: ``--help`` and ``status`` print none."""
+    from rich.table import Table
+
+    return Table(title=title)
+
+
 def _print_report(report: dict[str, Any], run_dir: Path) -> None:
     from dotshell.pipeline.validate import table1
 
     rows = table1(report)
     if rows:
-        t = Table(title="Validation (paper's Table 1 layout)")
+        t = _table(title="Validation (paper's Table 1 layout)")
         t.add_column("")
         t.add_column(report.get("profile", ""))
         for k, v in rows:
@@ -144,7 +150,7 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     gens = generation_numbers(store.root)
     out.print(f"generations: {', '.join(f'{g:03d}' for g in gens) or 'none'}; published: "
               f"{'none' if cur is None else f'{cur:03d}'}")
-    t = Table(title="jobs")
+    t = _table(title="jobs")
     for col in ("command", "status", "generation", "finished", "reason"):
         t.add_column(col)
     for j in m.get("jobs", []):
@@ -160,7 +166,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
     from dotshell.pipeline.compare import COLUMNS, compare_runs
 
     rows, csv_path, png_path = compare_runs(args.runs, args.out)
-    t = Table(title="Validation across runs (paper's Table 1 layout)")
+    t = _table(title="Validation across runs (paper's Table 1 layout)")
     heads = {"mean_rel_error_pct": "mean rel. err %", "std_rel_error_pct": "std %",
              "rms_radius_error_mm": "RMS µm", "coverage_pct": "coverage %",
              "decoded_pct": "decoded %", "rejected_pct": "rejected %"}
@@ -234,7 +240,7 @@ def cmd_plugins(args: argparse.Namespace) -> int:
     from dotshell.backends import ROLES
 
     pm = _pm(args)
-    t = Table(title="dotshell backends")
+    t = _table(title="dotshell backends")
     for col in ("role", "name", "plugin", "distribution", "summary"):
         t.add_column(col)
     for role in ROLES:
@@ -267,7 +273,7 @@ def _print_settings(pm, roles) -> None:
         for name, info in sorted(pm.backends(role).items()):
             if not info.loaded:
                 continue
-            st = Table(title=escape(f"[{role}] backend = \"{name}\" — [{role}.settings]"))
+            st = _table(title=escape(f"[{role}] backend = \"{name}\" — [{role}.settings]"))
             for col in ("key", "type", "default", "help"):
                 st.add_column(col)
             for row in describe(info.backend.settings_schema):
