@@ -210,8 +210,16 @@ WORKER_MODULES = ("dotshell.pipeline.batch_tasks", "dotshell.pipeline.reconstruc
                   "dotshell.pipeline.validate")
 
 
+#: where a local cluster's scheduler serves its HTTP routes (health, metrics; no dashboard):
+#: a free port of the loopback interface. Without it the scheduler takes port 8787 whatever
+#: ``dashboard_address`` says, and a second cluster on the host (another batch, the test
+#: suite's other worker) warns "Port 8787 is already in use" and moves elsewhere
+SCHEDULER_HTTP_ADDRESS = "127.0.0.1:0"
+
+
 def local_cluster(workers: int) -> Any:
-    """A Dask ``LocalCluster`` of ``workers`` processes, one thread each, no dashboard.
+    """A Dask ``LocalCluster`` of ``workers`` processes, one thread each, no dashboard (its
+    scheduler's HTTP routes on a free loopback port, :data:`SCHEDULER_HTTP_ADDRESS`).
 
     Its workers are forked from a forkserver (where the platform has one and Dask's
     ``distributed.worker.multiprocessing-method`` is left at its default, ``spawn``): the
@@ -230,7 +238,8 @@ def local_cluster(workers: int) -> Any:
         if method == "forkserver":
             _preload_in_forkserver()
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                            dashboard_address=None, silence_logs=logging.ERROR)
+                            dashboard_address=None, silence_logs=logging.ERROR,
+                            scheduler_kwargs={"dashboard_address": SCHEDULER_HTTP_ADDRESS})
 
 
 def _preload_in_forkserver() -> None:
