@@ -36,7 +36,7 @@ from dotshell.pipeline.batch_tasks import (TaskOutcome, executing_keys, head_tas
 from dotshell.pipeline.commands import check_calibration_for_run
 from dotshell.pipeline.engine import JobWork, RunJob, outcome_of, prepare, publish
 from dotshell.run.generations import current_number
-from dotshell.pipeline.steps import view_angle
+from dotshell.pipeline.steps import complete_views, view_angle
 from dotshell.plugins import PluginManager
 from dotshell.run.store import RunStore
 
@@ -461,7 +461,7 @@ class StudyBatch:
         if "views" in steps:
             views = [client.submit(view_task, work, v["index"], view_angle(v), version, head,
                                    key=f"view-{name}-{v['index']:03d}", **opts)
-                     for v in store.manifest["views"] if v.get("complete")]
+                     for v in complete_views(store)]  # not those marked lost
         tail = client.submit(tail_task, work, tail_names, version, head, views,
                              key=f"tail-{name}", **opts)
         futures = [f for f in (head, *views, tail) if f is not None]
