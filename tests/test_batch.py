@@ -263,6 +263,33 @@ def test_a_stopped_batch_is_finished_by_running_it_again(cluster, study, serial,
     assert_same_products(runs, serial["plain"], renumbered=True)
 
 
+def test_a_local_clusters_workers_keep_dasks_comm_noise_off_the_terminal(cluster):
+    """A worker process prints its own log lines straight to the terminal: at the cluster's
+    close on a loaded host, a heartbeat that met the closing scheduler printed "Failed to
+    communicate with scheduler during heartbeat" at ERROR with its traceback (seen once in five
+    `dotshell batch` runs at load 17-19). Workers log only CRITICAL lines unless the command
+    runs at INFO or below (-v)."""
+    import logging
+
+    from distributed import Client
+
+    from dotshell.pipeline.batch import worker_log_level
+
+    assert logging.getLogger().getEffectiveLevel() == logging.WARNING  # as `dotshell batch`
+    assert worker_log_level() == logging.CRITICAL
+    with Client(cluster, set_as_default=False) as client:
+        levels = client.run(lambda: sorted({h.level for h in logging.getLogger(
+            "distributed").handlers if isinstance(h, logging.StreamHandler)}))
+    assert levels and all(lv == [logging.CRITICAL] for lv in levels.values()), levels
+    root = logging.getLogger()
+    before = root.level
+    try:
+        root.setLevel(logging.INFO)  # -v: the workers' INFO lines too
+        assert worker_log_level() == logging.INFO
+    finally:
+        root.setLevel(before)
+
+
 def test_workers_with_another_dotshell_version_are_refused(cluster, study, monkeypatch):
     import dotshell.pipeline.batch_tasks as tasks
 

@@ -238,8 +238,19 @@ def local_cluster(workers: int) -> Any:
         if method == "forkserver":
             _preload_in_forkserver()
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                            dashboard_address=None, silence_logs=logging.ERROR,
+                            dashboard_address=None, silence_logs=worker_log_level(),
                             scheduler_kwargs={"dashboard_address": SCHEDULER_HTTP_ADDRESS})
+
+
+def worker_log_level() -> int:
+    """The level of a local cluster's worker processes' own log lines (printed straight to
+    the terminal, not through this process's logging): CRITICAL, unless this process logs at
+    INFO or below (``-v``), then that level. What a worker logs at ERROR is Dask's comm noise
+    (under load a heartbeat that meets the closing scheduler, with its traceback); a run's
+    fault reaches the batch through its task's outcome, a dead worker through its nanny, which
+    logs in this process."""
+    level = logging.getLogger().getEffectiveLevel()
+    return level if level <= logging.INFO else logging.CRITICAL
 
 
 def _preload_in_forkserver() -> None:
