@@ -137,15 +137,23 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     views = m["views"]
     on_disk = frames_on_disk(store.root, m)
     damaged = damaged_views(store.root, m)
-    done = sum(v["complete"] for v in views) - len(damaged)
+    from dotshell.run.lost import is_lost, lost_views
+
+    lost = sum(is_lost(v) for v in views)
+    done = sum(v["complete"] and not is_lost(v) for v in views) - len(damaged)
     print_as_is(out, f"run: {store.root}")
     out.print(f"status: [bold]{status}[/]" + (f" — {escape(reason)}" if reason else ""))
     out.print(f"profile: {escape(str(m.get('profile', '?')))}, created {m.get('created', '?')}")
-    out.print(f"views: {done} of {len(views)} complete, {sum(on_disk)} frames on disk")
+    out.print(f"views: {done} of {len(views)} complete" + (f", {lost} lost" if lost else "") +
+              f", {sum(on_disk)} frames on disk")
     for v, n, recorded in damaged:
         print_as_is(out, f"view {v}: {n} of its {recorded} frames on disk (cut or deleted "
                     f"after the scan); re-capture it with `dotshell resume {store.root} "
-                    f"--view {v}`")
+                    f"--view {v}`, or mark it lost: `dotshell lose-view {store.root} {v} "
+                    "--reason TEXT`")
+    for gone in lost_views(m):
+        print_as_is(out, f"view {gone['view']}: lost ({gone['reason']}); the run is processed "
+                    "without it")
     cur = current_number(store.root)
     gens = generation_numbers(store.root)
     out.print(f"generations: {', '.join(f'{g:03d}' for g in gens) or 'none'}; published: "
@@ -330,8 +338,12 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("run", help="run directory")
     sp.add_argument("--view", type=int, action="append", metavar="N",
                     help="also capture view N again (frames/view_NNN.tif cut or deleted; "
-                         "the old frames are kept aside); repeat for several views")
+                         "the old frames are kept aside; a view marked lost is no longer "
+                         "lost once captured); repeat for several views")
     sp.set_defaults(func=cmd_resume)
+    from dotshell.cli.lost import add_lose_view_parser
+
+    add_lose_view_parser(sub, _pm)
 
     sp = sub.add_parser("inspect", help="a run's true status, views, generations and jobs")
     sp.add_argument("run", help="run directory")

@@ -84,6 +84,10 @@ def configure_logging(args: argparse.Namespace) -> int:
         handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
         root.addHandler(handler)
     handler.verbose = level <= logging.INFO
+    # the handler holds the chosen level too: a library that sets its own logger's level lower
+    # (Dask sets ``distributed`` to INFO and, finding this handler on the root, propagates to
+    # it) would otherwise print every INFO line, tracebacks included, at the default level
+    handler.setLevel(level)
     root.setLevel(level)
     logging.captureWarnings(True)
     logging.getLogger("py.warnings").setLevel(logging.WARNING if level <= logging.INFO

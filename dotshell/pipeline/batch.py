@@ -36,7 +36,7 @@ from dotshell.pipeline.batch_tasks import (TaskOutcome, executing_keys, head_tas
 from dotshell.pipeline.commands import check_calibration_for_run
 from dotshell.pipeline.engine import JobWork, RunJob, outcome_of, prepare, publish
 from dotshell.run.generations import current_number
-from dotshell.pipeline.steps import view_angle
+from dotshell.pipeline.steps import complete_views, view_angle
 from dotshell.plugins import PluginManager
 from dotshell.run.store import RunStore
 
@@ -210,8 +210,16 @@ WORKER_MODULES = ("dotshell.pipeline.batch_tasks", "dotshell.pipeline.reconstruc
                   "dotshell.pipeline.validate")
 
 
+#: where a local cluster's scheduler serves its HTTP routes (health, metrics; no dashboard):
+#: a free port of the loopback interface. Without it the scheduler takes port 8787 whatever
+#: ``dashboard_address`` says, and a second cluster on the host (another batch, the test
+#: suite's other worker) warns "Port 8787 is already in use" and moves elsewhere
+SCHEDULER_HTTP_ADDRESS = "127.0.0.1:0"
+
+
 def local_cluster(workers: int) -> Any:
-    """A Dask ``LocalCluster`` of ``workers`` processes, one thread each, no dashboard.
+    """A Dask ``LocalCluster`` of ``workers`` processes, one thread each, no dashboard (its
+    scheduler's HTTP routes on a free loopback port, :data:`SCHEDULER_HTTP_ADDRESS`).
 
     Its workers are forked from a forkserver (where the platform has one and Dask's
     ``distributed.worker.multiprocessing-method`` is left at its default, ``spawn``): the
@@ -230,7 +238,19 @@ def local_cluster(workers: int) -> Any:
         if method == "forkserver":
             _preload_in_forkserver()
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                            dashboard_address=None, silence_logs=logging.ERROR)
+                            dashboard_address=None, silence_logs=worker_log_level(),
+                            scheduler_kwargs={"dashboard_address": SCHEDULER_HTTP_ADDRESS})
+
+
+def worker_log_level() -> int:
+    """The level of a local cluster's worker processes' own log lines (printed straight to
+    the terminal, not through this process's logging): CRITICAL, unless this process logs at
+    INFO or below (``-v``), then that level. What a worker logs at ERROR is Dask's comm noise
+    (under load a heartbeat that meets the closing scheduler, with its traceback); a run's
+    fault reaches the batch through its task's outcome, a dead worker through its nanny, which
+    logs in this process."""
+    level = logging.getLogger().getEffectiveLevel()
+    return level if level <= logging.INFO else logging.CRITICAL
 
 
 def _preload_in_forkserver() -> None:
@@ -452,7 +472,7 @@ class StudyBatch:
         if "views" in steps:
             views = [client.submit(view_task, work, v["index"], view_angle(v), version, head,
                                    key=f"view-{name}-{v['index']:03d}", **opts)
-                     for v in store.manifest["views"] if v.get("complete")]
+                     for v in complete_views(store)]  # not those marked lost
         tail = client.submit(tail_task, work, tail_names, version, head, views,
                              key=f"tail-{name}", **opts)
         futures = [f for f in (head, *views, tail) if f is not None]

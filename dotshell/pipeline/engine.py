@@ -30,6 +30,7 @@ from dotshell.events import EventBus, StepStarted
 from dotshell.run.generations import (Generation, ProductStore, current_number,
                                            published, remove_unpublished)
 from dotshell.run.lifecycle import Interrupted, RunLock, effective_status
+from dotshell.run.lost import finished, lost_reason
 from dotshell.pipeline.steps import STEP_BY_NAME, STEPS, StepContext, import_ahead
 from dotshell.plugins import PluginManager
 from dotshell.profile.loader import Profile
@@ -133,12 +134,17 @@ class RunJob:
     def run_state(self) -> dict[str, str]:
         """The run's status after this job: a capturing job's own outcome; after a
         re-processing job the run keeps its state, except that a successful one makes a run
-        whose every view is captured ``completed`` (its products are now whole)."""
+        whose every view is captured (or marked lost) ``completed`` (its products are now
+        whole). A completed run with lost views says so in its reason."""
+        manifest = self.store.manifest
         if self.captures:
-            return {"status": self.status or "failed", "reason": self.reason}
-        status, reason = self.previous
-        if self.status == "completed" and all(v["complete"] for v in self.store.manifest["views"]):
-            return {"status": "completed", "reason": ""}
+            status, reason = self.status or "failed", self.reason
+        else:
+            status, reason = self.previous
+            if self.status == "completed" and all(finished(v) for v in manifest["views"]):
+                status, reason = "completed", ""
+        if status == "completed":
+            reason = reason or lost_reason(manifest)
         return {"status": status, "reason": reason}
 
     def _batch_entry(self) -> dict[str, str]:
@@ -350,7 +356,7 @@ REPORT_ONLY = ("validation",)
 
 def sections_of(product: str) -> tuple[str, ...]:
     """The report.json sections a product's step writes."""
-    return {"calibration": ("calibration",), "views": ("views",), "cloud": ("cloud",),
+    return {"calibration": ("calibration",), "views": ("views", "lost_views"), "cloud": ("cloud",),
             "validation": ("validation",), "previews": ("previews",), "mesh": ("mesh",),
             "normalize": ("normalize",), "exports": ("exports",),
             "forward": ("forward",)}.get(product, ())

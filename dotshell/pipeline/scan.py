@@ -213,10 +213,13 @@ def _refuse_damaged_views(store: RunStore, recapture: frozenset[int]) -> None:
     if damaged:
         named = "; ".join(f"view {v} has {n} of its {rec} frames on disk" for v, n, rec in damaged)
         flags = " ".join(f"--view {v}" for v, _, _ in damaged)
+        views = " ".join(str(v) for v, _, _ in damaged)
         raise RunError(f"{store.root}: {named} (its frame stack was cut or deleted after the "
                        f"scan). Re-capture it with `dotshell resume {store.root} {flags}` (the "
                        "rig set up as for the scan; the damaged frames are kept aside as "
-                       "view_NNN.partial-K), or restore the stack from a backup.")
+                       "view_NNN.partial-K), restore the stack from a backup, or, if it cannot "
+                       "be re-captured, mark it lost so the run completes from the other views: "
+                       f"`dotshell lose-view {store.root} {views} --reason TEXT`.")
 
 
 def _capture_and_process(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
@@ -345,7 +348,9 @@ def _record_sequence(store: RunStore, shots, patterns, resuming: bool) -> None:
 def _views_to_capture(store: RunStore, trans: TransilluminationCapture | None,
                       recapture: frozenset[int] = frozenset()) -> list[tuple[int, bool]]:
     """(view, fringes needed) for every view that misses fringe or trans-illumination frames,
-    and those of ``recapture`` (captured again whole)."""
+    and those of ``recapture`` (captured again whole); not those marked lost, unless asked."""
+    from dotshell.run.lost import is_lost
+
     m = store.manifest
     done_trans = (m.get("transillumination") or {}).get("views", {})
     todo = []
@@ -353,6 +358,8 @@ def _views_to_capture(store: RunStore, trans: TransilluminationCapture | None,
         needs_trans = trans is not None and trans.covers(v["index"]) and \
             done_trans.get(str(v["index"])) != trans.expected_names()
         again = v["index"] in recapture
+        if is_lost(v) and not again:  # the operator gave it up (`dotshell lose-view`)
+            continue
         if not v["complete"] or needs_trans or again:
             todo.append((v["index"], not v["complete"] or again))
     return todo

@@ -31,6 +31,7 @@ from dotshell.runtime import hugepages
 from dotshell.errors import CalibrationError, ReconstructionError, RunError
 from dotshell.events import EventBus, StepProgress, StepStarted, ViewReconstructed
 from dotshell.run.framecheck import FrameSpec
+from dotshell.run.lost import is_lost, lost_views, usable
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.pdi import combine, shots_from_manifest
@@ -173,8 +174,10 @@ def stored_frames(store: RunStore, view: int, calib: RigCalibration,
     else:
         first = store.frames(view).read_one(0)
         spec = FrameSpec(*calib.camera.size, 8 if first.dtype == np.uint8 else 16)
-    return store.read_frames(view, spec, "Restore the run's frames from a backup, or "
-                             "re-capture the view.", out)
+    root = store.run_root
+    return store.read_frames(view, spec, "Restore the run's frames from a backup, re-capture "
+                             f"the view (`dotshell resume {root} --view {view}`), or mark it "
+                             f"lost (`dotshell lose-view {root} {view} --reason TEXT`).", out)
 
 
 def view_angle(view: dict[str, Any]) -> float:
@@ -184,22 +187,28 @@ def view_angle(view: dict[str, Any]) -> float:
 
 
 def complete_views(store: RunStore) -> list[dict[str, Any]]:
-    return [v for v in store.manifest["views"] if v.get("complete")]
+    """The views processing reads: captured whole and not marked lost."""
+    return [v for v in store.manifest["views"] if usable(v)]
 
 
 def views_step(ctx: StepContext) -> dict[str, Any]:
     store, manifest = ctx.store, ctx.store.manifest
     views = manifest["views"]
     done: dict[int, dict[str, Any]] = ctx.options.get("reconstructed", {})
-    if not any(v.get("complete") for v in views):
+    if not any(usable(v) for v in views):
+        lost = sum(is_lost(v) for v in views)
         raise ReconstructionError(
             f"no view of {store.run_root} is completely captured ({len(views)} views, "
-            f"{sum(v['frames'] for v in views)} frames on disk): there is nothing to "
+            f"{sum(v['frames'] for v in views)} frames on disk" +
+            (f", {lost} marked lost" if lost else "") + "): there is nothing to "
             f"reconstruct. Capture the missing views with `dotshell resume {store.run_root}`.")
     coding = None
     frames = None  # one view's frames at a time, read over the previous view's (same array)
     ctx.bus.emit(StepStarted(step="reconstruct", total=len(views)))
     for n, v in enumerate(views, 1):
+        if is_lost(v):
+            ctx.bus.info(f"view {v['index']} is marked lost ({v['lost']['reason']}); skipped")
+            continue
         if not v.get("complete"):
             ctx.bus.warn(f"view {v['index'] + 1} of {len(views)} has {v['frames']} of "
                          f"{len(manifest['frame_names'])} frames; skipped")
@@ -216,7 +225,8 @@ def views_step(ctx: StepContext) -> dict[str, Any]:
     seconds = [read_view_record(store, r["view"]).get("seconds", {}) for r in records]
     ctx.timings["decode"] = sum(s.get("decode", 0.0) for s in seconds)
     ctx.timings["triangulate"] = sum(s.get("triangulate", 0.0) for s in seconds)
-    return {"views": records}
+    lost = lost_views(manifest)
+    return {"views": records, **({"lost_views": lost} if lost else {})}
 
 
 def read_view_record(store: RunStore, view: int) -> dict[str, Any]:

@@ -37,6 +37,7 @@ import tifffile
 from dotshell.run import tiffpages
 from dotshell.errors import FrameError, RunError
 from dotshell.run.framecheck import FrameSpec, dtype_for
+from dotshell.run.lost import is_lost
 
 TIFF_STACK = "tiff-stack/1"
 PNG_FILES = "png/1"
@@ -140,7 +141,9 @@ class FrameStore:
         return RunError(f"{what} of view {self.view} is missing or unreadable in {self.path}; "
                         f"the view cannot be reconstructed from it. Re-capture it with "
                         f"`dotshell resume {self.root} --view {self.view}` (the damaged frames "
-                        "are kept aside).")
+                        "are kept aside), or, if it cannot be, mark it lost so the run completes "
+                        f"from the other views: `dotshell lose-view {self.root} {self.view} "
+                        "--reason TEXT`.")
 
     def _check_index(self, index: int) -> str:
         if not 0 <= index < len(self.names):
@@ -352,10 +355,10 @@ def frames_on_disk(root: Path, manifest: dict) -> list[int]:
 
 def damaged_views(root: Path, manifest: dict) -> list[tuple[int, int, int]]:
     """(view, frames on disk, frames recorded) of every view recorded complete whose frames
-    on disk are fewer (cut or deleted after the scan)."""
+    on disk are fewer (cut or deleted after the scan), unless it is marked lost."""
     return [(v["index"], n, v["frames"]) for v, n in zip(manifest["views"],
                                                          frames_on_disk(root, manifest))
-            if v.get("complete") and n < v["frames"]]
+            if v.get("complete") and not is_lost(v) and n < v["frames"]]
 
 
 def set_aside_partial(root: Path, view: int) -> None:

@@ -30,6 +30,7 @@ import tomli_w
 from dotshell.errors import RunError
 from dotshell.run.framecheck import FrameSpec
 from dotshell.run.frames import CURRENT_FORMAT, FrameStore, check_image, open_frames
+from dotshell.run.lost import check_lost_entry
 
 RUN_FORMAT = "dotshell-run/1"
 
@@ -147,6 +148,9 @@ def check_manifest(m: Any, path: Path) -> dict[str, Any]:
                 raise bad(f"views[{i}].{key} is missing or of the wrong type")
         if not math.isfinite(v["angle_deg"]) or v["index"] != i:
             raise bad(f"views[{i}] has index {v['index']} / angle {v['angle_deg']}")
+        lost_problem = check_lost_entry(v.get("lost"))
+        if lost_problem is not None:
+            raise bad(f"views[{i}].{lost_problem}")
         if "angle_read_deg" in v and not _number(v["angle_read_deg"]):
             raise bad(f"views[{i}].angle_read_deg = {v['angle_read_deg']!r} is not a finite "
                       "number of degrees")
@@ -374,6 +378,8 @@ class RunStore:
     def mark_view(self, view: int, frames: int, complete: bool) -> None:
         m = self.manifest
         m["views"][view].update(frames=frames, complete=complete)
+        if complete:  # captured whole again (`resume --view N`): no longer lost
+            m["views"][view].pop("lost", None)
         self.write_json("manifest.json", m)
 
     # ---- frames -----------------------------------------------------------------------------
