@@ -57,7 +57,7 @@ def test_report_times_acquisition_and_last_frame_to_cloud(small_scan, tmp_path):
     to ``cloud.ply`` (which holds the merge, but not the validation or previews that follow
     it); the command prints them. A reconstruction of the run keeps the scan's figures (as it
     keeps its acquisition time) and times its own merge."""
-    from dotshell.cli.app import timing_line
+    from dotshell.cli.report import timing_line
     from dotshell.pipeline.commands import reconstruct_run
     from dotshell.plugins import PluginManager
 

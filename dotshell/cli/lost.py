@@ -10,7 +10,8 @@ from rich.markup import escape
 
 
 def cmd_lose_view(args: argparse.Namespace, pm) -> int:
-    from dotshell.cli.app import ScanProgress, _print_report, err, out
+    from dotshell.cli.common import ScanProgress, err, out
+    from dotshell.cli.report import print_report
     from dotshell.events import EventBus
     from dotshell.pipeline.lost_views import lose_views
     from dotshell.run.store import RunStore
@@ -23,7 +24,7 @@ def cmd_lose_view(args: argparse.Namespace, pm) -> int:
     for lost in report.get("lost_views", []):
         out.print(f"view {lost['view']} ({lost['angle_deg']:g}°) lost: {escape(lost['reason'])}")
     status, reason = RunStore.open(Path(args.run)).status()
-    _print_report(report, Path(args.run))
+    print_report(report, Path(args.run))
     out.print(f"run status: [bold]{status}[/]" + (f" — {escape(reason)}" if reason else ""))
     return 0
 
