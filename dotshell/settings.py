@@ -42,7 +42,7 @@ class Setting:
     min: float | None = None
     max: float | None = None
     length: int | tuple[int, int] | None = None
-    schema: Mapping[str, "Setting"] | None = field(default=None)
+    schema: Mapping[str, Setting] | None = field(default=None)
 
     def __post_init__(self) -> None:
         if self.kind not in _KINDS:

@@ -40,7 +40,7 @@ class Board:
     dictionary: str = "DICT_4X4_50"
 
     @classmethod
-    def from_settings(cls, s: dict[str, Any]) -> "Board":
+    def from_settings(cls, s: dict[str, Any]) -> Board:
         return cls(s["target"], s["columns"], s["rows"], s["square_mm"], s["marker_mm"],
                    s["dictionary"])
 

@@ -444,7 +444,7 @@ def evidence(run: Path, joint, models: dict[str, str], choices: dict, sizes: dic
             "residual_pictures": {n: f"report/{f}" for n, f in pictures.items()}}
 
 
-def out_of_bounds(calib: RigCalibration, sigma: dict[str, Any], axis: "_Axis | None",
+def out_of_bounds(calib: RigCalibration, sigma: dict[str, Any], axis: _Axis | None,
                   settings: dict[str, Any]) -> list[str]:
     """Every figure of a solve beyond ``max_rms_px`` / ``max_sigma_pct``, each as a sentence
     that names it, its value, the bound and what would fix it."""

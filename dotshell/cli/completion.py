@@ -51,8 +51,8 @@ def _fish_positionals(parser: argparse.ArgumentParser, condition: str) -> list[s
     if any(a.dest == "profile" for a in positionals):  # shipped names, and files
         from dotshell.shipped import shipped_names
 
-        return [f"complete -c dotshell -n {_quote(condition)} -F -a "
-                f"{_quote(' '.join(shipped_names('profiles')))}"]
+        return [(f"complete -c dotshell -n {_quote(condition)} -F -a "
+                 f"{_quote(' '.join(shipped_names('profiles')))}")]
     if choices:
         words = " ".join(str(c) for a in choices for c in a.choices)
         return [f"complete -c dotshell -n {_quote(condition)} -xa {_quote(words)}"]

@@ -93,7 +93,7 @@ def _distortion(fs: cv2.FileStorage, key: str, where: str) -> np.ndarray:
 
 def _int(fs: cv2.FileStorage, key: str, where: str) -> int:
     node = fs.getNode(key)
-    if node.empty() or not node.isReal() and not node.isInt():
+    if node.empty() or (not node.isReal() and not node.isInt()):
         raise CalibrationError(f"{where}: OpenCV calibration has no number {key!r} (the image "
                                "size of the camera or projector in pixels).")
     return int(round(node.real()))

@@ -105,7 +105,7 @@ class _Rig:
     sin2_min: float
 
     @classmethod
-    def of(cls, calib: RigCalibration, tolerance_px: float, min_angle_deg: float) -> "_Rig":
+    def of(cls, calib: RigCalibration, tolerance_px: float, min_angle_deg: float) -> _Rig:
         return cls(np.ascontiguousarray(calib.R, np.float64),
                    np.ascontiguousarray(calib.T, np.float64).ravel(),
                    calib.projector.K, _twelve_terms(calib.projector.dist),

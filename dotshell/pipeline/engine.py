@@ -57,13 +57,13 @@ class RunJob:
         self.previous: tuple[str, str] = ("unknown", "")
         self.started = 0.0
 
-    def __enter__(self) -> "RunJob":
+    def __enter__(self) -> RunJob:
         return self.open()
 
     def __exit__(self, exc_type: Any, exc: BaseException | None, tb: Any) -> None:
         self.close(exc)
 
-    def open(self) -> "RunJob":
+    def open(self) -> RunJob:
         """Take the run's lock and record ``running`` (what ``with RunJob(...)`` does first)."""
         self.lock.acquire(self.command)
         try:

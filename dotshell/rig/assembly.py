@@ -159,10 +159,10 @@ class Rig:
             self._claim(role)
             self._guarded(role, dev.connect)
             self.connected.append(role)
-            self._guarded(role, lambda: self._record(role))
+            self._guarded(role, lambda role=role: self._record(role))
         for role, policy in self.policies.items():
             if policy.home == "on_connect":
-                self._guarded(role, lambda: self.home(role))
+                self._guarded(role, lambda role=role: self.home(role))
 
     def _claim(self, role: str) -> None:
         """Hold the hardware the role's settings name (one process per device,
@@ -244,7 +244,7 @@ class Rig:
             if devices.implements(dev, devices.Stoppable):
                 dev.stop_now()
 
-    def __enter__(self) -> "Rig":
+    def __enter__(self) -> Rig:
         self.connect()
         return self
 

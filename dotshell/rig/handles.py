@@ -212,7 +212,7 @@ class DeviceHandle:
         if name.startswith("_"):
             raise AttributeError(name)
         if name == "stop":
-            getattr(self._device, "stop")  # AttributeError if the driver cannot stop
+            getattr(self._device, "stop")  # noqa: B009 (a probe: AttributeError if it cannot stop)
             return self.stop_now
         try:
             value = getattr(self._device, name)

@@ -268,7 +268,7 @@ class TiffFrameStore(FrameStore):
                            f"{self._written} frames; frames are stored in capture order.")
         if self._tiff is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = open(self.path, "wb")
+            self._file = open(self.path, "wb")  # noqa: SIM115 (held open until close())
             big = image.nbytes * len(self.names) > _TIFF_LIMIT_BYTES
             self._tiff = tifffile.TiffWriter(_WriteThrough(self._file), bigtiff=big)
         self._tiff.write(image, contiguous=False, metadata=None, description=name,

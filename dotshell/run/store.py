@@ -228,7 +228,7 @@ class RunStore:
     # ---- creation ---------------------------------------------------------------------------
 
     @classmethod
-    def create(cls, parent: Path, profile_name: str) -> "RunStore":
+    def create(cls, parent: Path, profile_name: str) -> RunStore:
         """A new, empty run directory ``<parent>/<YYYYmmdd-HHMMSS>_<profile>``."""
         safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", profile_name) or "run"
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -247,7 +247,7 @@ class RunStore:
         raise RunError(f"cannot create a run directory under {parent}: too many runs this second.")
 
     @classmethod
-    def open(cls, root: Path) -> "RunStore":
+    def open(cls, root: Path) -> RunStore:
         """An existing run; raises :class:`RunError` if it is not one."""
         root = Path(root)
         if not (root / "manifest.json").is_file():
@@ -432,7 +432,7 @@ class RunStore:
             return
         try:
             if self._events is None:
-                self._events = open(self.path("events.jsonl"), "a+b")
+                self._events = open(self.path("events.jsonl"), "a+b")  # noqa: SIM115 (held open)
                 if self._events.tell() > 0:
                     self._events.seek(-1, os.SEEK_END)
                     if self._events.read(1) != b"\n":

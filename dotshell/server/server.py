@@ -69,7 +69,7 @@ def _peer(sock: socket.socket) -> tuple[int, int]:
 class Connection:
     """One attached client."""
 
-    def __init__(self, server: "RigServer", sock: socket.socket, cid: int, pid: int) -> None:
+    def __init__(self, server: RigServer, sock: socket.socket, cid: int, pid: int) -> None:
         self.server = server
         self.sock = sock
         self.id = cid
@@ -654,7 +654,7 @@ class RigServer:
         with self._log_lock:
             self._close_run_log()
             try:
-                self._run_log = open(run_dir / "server.log", "a", encoding="utf-8", buffering=1)
+                self._run_log = open(run_dir / "server.log", "a", encoding="utf-8", buffering=1)  # noqa: SIM115
             except OSError as exc:
                 self._run_log = None
                 self.log(f"cannot write {run_dir / 'server.log'}: {exc}", "warning")

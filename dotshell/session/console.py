@@ -73,7 +73,7 @@ LOG_LEVELS = ("debug", "info", "warning", "error", "off")
 HISTOGRAM_BINS = 32
 
 
-def frame_stats(frame: "np.ndarray", bit_depth: int | None = None) -> dict[str, Any]:
+def frame_stats(frame: np.ndarray, bit_depth: int | None = None) -> dict[str, Any]:
     """What a person checks on a raw frame: its size, minimum, maximum and mean (DN), the share
     of saturated pixels (at full scale, ``2**bit_depth - 1``; the dtype's maximum when the bit
     depth is unknown), in percent, and a histogram over 0..full scale (counts)."""
@@ -599,10 +599,10 @@ class Session:
             proj = self._device("projector", "decode")
             pats = self._coding_patterns()
             frames = []
-            for name, image in pats.items():
+            for image in pats.values():
                 proj.show(image)
                 frames.append(cam.capture())
-            self.projected = name
+            self.projected = list(pats)[-1]
         corr = self._coding.decode(frames, proj.resolution)
         d = self._snapshot_dir()
         path = column_map_preview(corr.column, corr.valid, proj.resolution[0],
@@ -658,7 +658,7 @@ class Session:
         self._refresh_namespaces()
         return run
 
-    def normalize(self, run: "Run | str | Path | None" = None,
+    def normalize(self, run: Run | str | Path | None = None,
                   normalizer: str | None = None) -> dict[str, Any]:
         """Normalize a run's trans-illumination frames on its surface (default: the session's
         last run) and return the report section (docs/transillumination.md)."""
@@ -738,7 +738,7 @@ class Session:
         if self.rig is not None and self.rig.connected and not self.scanning:
             self.rig.close()
 
-    def __enter__(self) -> "Session":
+    def __enter__(self) -> Session:
         return self
 
     def __exit__(self, *exc: Any) -> None:

@@ -393,8 +393,8 @@ class DotshellApp(App):
             ("Disconnect the rig", "close every device", rig.action_disconnect),
             ("Start scan", "scan with the loaded profile (Scan: s)", scan.action_start),
             ("Pause or resume the scan", "between frames (Scan: p)", scan.action_pause),
-            ("Stop motion", "pause a scan before its next frame, else stop every moving "
-             "device; never aborts (esc)", self.action_stop),
+            ("Stop motion", ("pause a scan before its next frame, else stop every moving "
+                             "device; never aborts (esc)"), self.action_stop),
             ("Go to stage angle", "absolute, degrees (Rig: g)", rig.action_goto),
             ("Home the stage", "find its reference position (Rig: h)", rig.action_home),
             ("Jog stage +", "by the jog step (Rig: ])", lambda: rig.action_jog(1)),

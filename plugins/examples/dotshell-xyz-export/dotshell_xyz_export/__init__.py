@@ -10,8 +10,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from dotshell import hookimpl
 from dotshell.backends import Backend
 from dotshell.run.ply import read_ply
