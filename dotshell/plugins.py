@@ -112,7 +112,7 @@ class PluginManager:
 
     def _collect(self) -> dict[str, dict[str, BackendInfo]]:
         table: dict[str, dict[str, BackendInfo]] = {role: {} for role in ROLES}
-        self.qualified: dict[str, dict[str, BackendInfo]] = {role: {} for role in ROLES}
+        self.qualified = {role: {} for role in ROLES}
         impls = {role: getattr(self.pm.hook, hook).get_hookimpls() for role, hook in ROLES.items()}
         for role, hook_name in ROLES.items():
             # pluggy lists the last registered first; first-party plugins were registered first

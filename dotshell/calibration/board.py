@@ -146,7 +146,7 @@ def _search(image: np.ndarray, board: Board) -> Detection | None:
             return None
         px = refine_corners(image, corners.reshape(-1, 2).astype(np.float64), board.inner)
         sharp = cv2.estimateChessboardSharpness(img, board.inner, corners)
-        return Detection(px, np.arange(board.n_corners), float(sharp[0][0]))
+        return Detection(px, np.arange(board.n_corners), float(np.ravel(sharp[0])[0]))
     detector = cv2.aruco.CharucoDetector(board.charuco())
     corners, ids, _, _ = detector.detectBoard(img)
     if ids is None or len(ids) < max(6, board.n_corners // 4):

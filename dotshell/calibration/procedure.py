@@ -347,7 +347,8 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
                                axis.direction, source=f"dotshell calibrate ({run})", rms=rms)
     else:
         calib = RigCalibration(joint.camera, joint.projector, joint.R, joint.T,
-                               PLACEHOLDER_AXIS_POINT, PLACEHOLDER_AXIS_DIRECTION,
+                               np.asarray(PLACEHOLDER_AXIS_POINT, float),
+                               np.asarray(PLACEHOLDER_AXIS_DIRECTION, float),
                                source=f"dotshell calibrate ({run}; no turntable axis)", rms=rms,
                                axis_measured=False)
     for name, rep in poses_report.items():
@@ -538,7 +539,7 @@ def solve_turntable(run: Path, poses: list[dict], board: Board, camera, cam_size
         bad = {n: e for n, e in sol.per_pose_rms_px.items() if e > limit}
         if not bad or len(dets) - 1 < 3:
             break
-        worst = max(bad, key=bad.get)
+        worst = max(bad, key=bad.__getitem__)
         left_out[worst] = f"reprojection RMS {bad[worst]:.3f} px > {limit:g} px"
         dets = [(p, d) for p, d in dets if p["name"] != worst]
     return _Axis(sol.point, sol.direction, sol.rms_px, sol.per_pose_rms_px, left_out)

@@ -337,8 +337,8 @@ def process(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
     caller already started writing into (a scan writes views while it captures). Options
     ``reconstructed``, ``prewritten`` and ``timings`` are as in :func:`run_steps`."""
     options = dict(options or {})
-    extra = {k: options.pop(k) for k in ("reconstructed", "prewritten", "timings")
-             if k in options}
+    extra: dict[str, Any] = {k: options.pop(k) for k in ("reconstructed", "prewritten", "timings")
+                             if k in options}
     work = prepare(job, profile, pm, targets, options, generation)
     return publish(job, work, [run_steps(work, profile, pm, job.bus, extra=extra)],
                    final_status)

@@ -80,7 +80,7 @@ class Step:
 
 
 def make_coding(profile: Profile, pm: PluginManager):
-    c = profile.role("coding")
+    c = profile.required_role("coding")
     return pm.create("coding", c["backend"], c["settings"], None, profile.source)
 
 
@@ -144,7 +144,8 @@ def store_view(store: RunStore, vc: ViewCloud, first_frame: np.ndarray | None,
 
 def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: Profile,
                          coding: Any, calib: RigCalibration, bus: EventBus,
-                         frames: Sequence[np.ndarray] | None = None) -> dict[str, Any]:
+                         frames: Sequence[np.ndarray] | np.ndarray | None = None
+                         ) -> dict[str, Any]:
     """Decode and triangulate one view (frames given, or read from the run) into its
     products; returns its report record."""
     # here, not at the top: the decoding and triangulation (numba, 0.5-1 s to import) load with
@@ -302,7 +303,7 @@ def previews_step(ctx: StepContext) -> dict[str, Any]:
     from dotshell.render.previews import cloud_previews
 
     ctx.bus.emit(StepStarted(step="previews"))
-    out = {}
+    out: dict[str, Any] = {}
     for v in stored_views(ctx.store):
         out.update(read_view_record(ctx.store, v).get("previews") or {})
     if not out:
@@ -391,7 +392,7 @@ def import_ahead(names: Sequence[str], current: str) -> threading.Thread | None:
     step itself to meet and report. Returns the thread, or None when there is nothing to do."""
     order = list(names)
     later = order[order.index(current) + 1:]
-    work = [STEP_BY_NAME[n].imports for n in later if STEP_BY_NAME[n].imports is not None
+    work = [imports for n in later if (imports := STEP_BY_NAME[n].imports) is not None
             and current == max((r for r in STEP_BY_NAME[n].reads if r in order),
                                key=order.index, default=None)]
     if not work:

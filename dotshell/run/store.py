@@ -113,7 +113,7 @@ def versions() -> dict[str, str]:
 
 
 _MANIFEST_KEYS = {"status": str, "frame_names": list, "views": list}
-_VIEW_KEYS = {"index": int, "angle_deg": (int, float), "frames": int, "complete": bool}
+_VIEW_KEYS: dict[str, type | tuple[type, ...]] = {"index": int, "angle_deg": (int, float), "frames": int, "complete": bool}
 
 
 def _number(v: Any, integer: bool = False) -> bool:
@@ -141,9 +141,9 @@ def check_manifest(m: Any, path: Path) -> dict[str, Any]:
     for i, v in enumerate(m["views"]):
         if not isinstance(v, dict):
             raise bad(f"views[{i}] is not an object")
-        for key, kind in _VIEW_KEYS.items():
+        for key, kinds in _VIEW_KEYS.items():
             val = v.get(key)
-            if not isinstance(val, kind) or (key != "complete" and isinstance(val, bool)):
+            if not isinstance(val, kinds) or (key != "complete" and isinstance(val, bool)):
                 raise bad(f"views[{i}].{key} is missing or of the wrong type")
         if not math.isfinite(v["angle_deg"]) or v["index"] != i:
             raise bad(f"views[{i}] has index {v['index']} / angle {v['angle_deg']}")

@@ -289,7 +289,7 @@ class DotshellApp(App):
     # ---- requests -----------------------------------------------------------------------------
 
     def run_session_action(self, label: str, fn: Callable[..., Any], *args: Any,
-                           reply_to: Any = None, then: Callable[[Any], None] | None = None) -> None:
+                           reply_to: Any = None, then: Callable[[Any], object] | None = None) -> None:
         """Run ``fn(*args)`` (a request to the server) in a worker thread. Its outcome is posted
         as :class:`ActionDone` to ``reply_to`` (a widget); ``then(result)`` runs on the UI thread
         after a success; errors are logged."""
