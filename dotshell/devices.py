@@ -297,11 +297,11 @@ class FlatFieldReference(Protocol):
 class TransilluminationTruth(Protocol):
     """A simulated light source that knows the true light leaving the sample."""
 
-    def true_normal_radiance(self, angle_deg: float, target_mm: tuple[float, float],
+    def true_normal_radiance(self, angle_deg: float, target_mm: tuple[float, float] | None,
                              points_mm: np.ndarray) -> np.ndarray:
         """True radiance leaving the sample along the surface normal (the paper's I0) at the
         sample-frame points ``points_mm`` (N, 3), snapped to the true surface, for the stage at
-        ``angle_deg`` and the beam at ``target_mm``. Units: camera DN per ms of exposure that a
+        ``angle_deg`` and the beam at ``target_mm`` (None: a source not aimed). Units: camera DN per ms of exposure that a
         dark-subtracted, flat-fielded pixel at the principal point would record from a surface
         element facing the camera squarely. NaN where a point is farther than 1 mm from the
         true surface."""

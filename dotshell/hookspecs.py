@@ -33,54 +33,54 @@ hookspec = pluggy.HookspecMarker("dotshell")
 
 
 @hookspec
-def dotshell_cameras() -> list["Backend"]:
+def dotshell_cameras() -> list[Backend]:
     """Camera backends. Factories return a :class:`dotshell.devices.Camera`."""
 
 
 @hookspec
-def dotshell_projectors() -> list["Backend"]:
+def dotshell_projectors() -> list[Backend]:
     """Projector backends. Factories return a :class:`dotshell.devices.Projector`."""
 
 
 @hookspec
-def dotshell_stages() -> list["Backend"]:
+def dotshell_stages() -> list[Backend]:
     """Rotation-stage backends. Factories return a :class:`dotshell.devices.Stage`."""
 
 
 @hookspec
-def dotshell_analyzers() -> list["Backend"]:
+def dotshell_analyzers() -> list[Backend]:
     """Polarization-analyzer backends. Factories return a :class:`dotshell.devices.Analyzer`."""
 
 
 @hookspec
-def dotshell_light_sources() -> list["Backend"]:
+def dotshell_light_sources() -> list[Backend]:
     """Light-source backends (trans-illumination laser). Factories return a
     :class:`dotshell.devices.LightSource`."""
 
 
 @hookspec
-def dotshell_codings() -> list["Backend"]:
+def dotshell_codings() -> list[Backend]:
     """Pattern codings. Factories return a :class:`dotshell.coding.PatternCoding`; they are
     called with ``context=None`` because codings touch no hardware."""
 
 
 @hookspec
-def dotshell_surface_meshers() -> list["Backend"]:
+def dotshell_surface_meshers() -> list[Backend]:
     """Surface meshers: point cloud → closed triangle surface."""
 
 
 @hookspec
-def dotshell_volume_meshers() -> list["Backend"]:
+def dotshell_volume_meshers() -> list[Backend]:
     """Volume meshers: closed surface → tetrahedral mesh."""
 
 
 @hookspec
-def dotshell_normalizers() -> list["Backend"]:
+def dotshell_normalizers() -> list[Backend]:
     """Trans-illumination intensity normalization methods."""
 
 
 @hookspec
-def dotshell_exporters() -> list["Backend"]:
+def dotshell_exporters() -> list[Backend]:
     """Exporters. Factories return an object with ``export(run_dir: Path) -> list[Path]`` that
     reads the run's products (``cloud.ply``, meshes) and writes files under the run directory,
     returning the paths written."""

@@ -60,14 +60,14 @@ class BackendInfo:
         self._declared = declared
 
     @classmethod
-    def of(cls, role: str, backend: Backend, plugin: str, distribution: str) -> "BackendInfo":
+    def of(cls, role: str, backend: Backend, plugin: str, distribution: str) -> BackendInfo:
         """A backend a plugin's hook returned (already imported)."""
         return cls(role, plugin, distribution, backend.name, backend.summary, backend.usb_ids,
                    backend=backend)
 
     @classmethod
     def from_manifest(cls, entry: ManifestBackend, plugin: str,
-                      distribution: str) -> "BackendInfo":
+                      distribution: str) -> BackendInfo:
         """A backend a plugin's manifest declares (imported on first use)."""
         return cls(entry.kind, plugin, distribution, entry.name, entry.summary, entry.usb_ids,
                    declared=entry)

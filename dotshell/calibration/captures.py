@@ -78,7 +78,7 @@ def calibrate_captures(pose_dirs: list[Path | str], layout_file: Path | str, boa
             "row patterns (order with 'rows').")
     coding = layout_coding(layout, pm, axes="both")
     order = capture_order(layout, coding_frame_names(coding, layout.projector_size))
-    poses = []
+    poses: list[dict[str, Any]] = []
     for k, d in enumerate(pose_dirs):
         files = sequence_files(Path(d), layout, order)
         poses.append({"name": f"pose_{k:02d}", "kind": "free", "angle_deg": 0.0,

@@ -347,7 +347,8 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
                                axis.direction, source=f"dotshell calibrate ({run})", rms=rms)
     else:
         calib = RigCalibration(joint.camera, joint.projector, joint.R, joint.T,
-                               PLACEHOLDER_AXIS_POINT, PLACEHOLDER_AXIS_DIRECTION,
+                               np.asarray(PLACEHOLDER_AXIS_POINT, float),
+                               np.asarray(PLACEHOLDER_AXIS_DIRECTION, float),
                                source=f"dotshell calibrate ({run}; no turntable axis)", rms=rms,
                                axis_measured=False)
     for name, rep in poses_report.items():
@@ -444,7 +445,7 @@ def evidence(run: Path, joint, models: dict[str, str], choices: dict, sizes: dic
             "residual_pictures": {n: f"report/{f}" for n, f in pictures.items()}}
 
 
-def out_of_bounds(calib: RigCalibration, sigma: dict[str, Any], axis: "_Axis | None",
+def out_of_bounds(calib: RigCalibration, sigma: dict[str, Any], axis: _Axis | None,
                   settings: dict[str, Any]) -> list[str]:
     """Every figure of a solve beyond ``max_rms_px`` / ``max_sigma_pct``, each as a sentence
     that names it, its value, the bound and what would fix it."""
@@ -538,7 +539,7 @@ def solve_turntable(run: Path, poses: list[dict], board: Board, camera, cam_size
         bad = {n: e for n, e in sol.per_pose_rms_px.items() if e > limit}
         if not bad or len(dets) - 1 < 3:
             break
-        worst = max(bad, key=bad.get)
+        worst = max(bad, key=bad.__getitem__)
         left_out[worst] = f"reprojection RMS {bad[worst]:.3f} px > {limit:g} px"
         dets = [(p, d) for p, d in dets if p["name"] != worst]
     return _Axis(sol.point, sol.direction, sol.rms_px, sol.per_pose_rms_px, left_out)

@@ -42,7 +42,7 @@ class StallAwareRemaining(TimeRemainingColumn):
         super().__init__()
         self.last_advance = last_advance
 
-    def render(self, task):  # type: ignore[override]
+    def render(self, task):
         from rich.text import Text
 
         last = self.last_advance.get(task.id)

@@ -51,10 +51,10 @@ def _fish_positionals(parser: argparse.ArgumentParser, condition: str) -> list[s
     if any(a.dest == "profile" for a in positionals):  # shipped names, and files
         from dotshell.shipped import shipped_names
 
-        return [f"complete -c dotshell -n {_quote(condition)} -F -a "
-                f"{_quote(' '.join(shipped_names('profiles')))}"]
+        return [(f"complete -c dotshell -n {_quote(condition)} -F -a "
+                 f"{_quote(' '.join(shipped_names('profiles')))}")]
     if choices:
-        words = " ".join(str(c) for a in choices for c in a.choices)
+        words = " ".join(str(c) for a in choices for c in a.choices or ())
         return [f"complete -c dotshell -n {_quote(condition)} -xa {_quote(words)}"]
     return [f"complete -c dotshell -n {_quote(condition)} -F"] if positionals else []
 
@@ -110,7 +110,7 @@ def _mark_profile_arguments(parser: argparse.ArgumentParser) -> None:
     for child in (sub.choices.values() if sub is not None else ()):
         for action in child._actions:
             if not action.option_strings and action.dest == "profile":
-                action.complete = _profile_completer()  # type: ignore[attr-defined]
+                action.complete = _profile_completer()
 
 
 def completion_script(parser: argparse.ArgumentParser, shell: str) -> str:

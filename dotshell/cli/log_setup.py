@@ -29,7 +29,7 @@ class StderrHandler(logging.StreamHandler):
     def __init__(self) -> None:
         super().__init__(sys.stderr)
 
-    @property  # type: ignore[override]
+    @property
     def stream(self):  # noqa: D102
         return sys.stderr
 
@@ -37,7 +37,7 @@ class StderrHandler(logging.StreamHandler):
     def stream(self, value) -> None:
         pass
 
-    def filter(self, record: logging.LogRecord) -> bool:  # type: ignore[override]
+    def filter(self, record: logging.LogRecord) -> bool:
         if record.name.startswith("dotshell.devices") and not self.verbose:
             return False
         return bool(super().filter(record))

@@ -20,7 +20,7 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, TypeVar, cast
 
 import numpy as np
 
@@ -64,7 +64,7 @@ def with_retries(action: Callable[[], T], retries: int, what: str, bus: EventBus
 
 def check_frame(rig: Rig, spec: FrameSpec, frame: object, what: str) -> np.ndarray:
     """A frame just captured, checked against the run's frames (:mod:`dotshell.run.framecheck`)."""
-    backend = rig.profile.role("camera")["backend"]
+    backend = rig.profile.required_role("camera")["backend"]
     return spec.check(frame, f"{what} from the camera ({backend})",
                       "Fix the camera's settings or its plugin; frames already written are "
                       "kept.")
@@ -128,9 +128,9 @@ class FrameWriter:
                 frames.sync()
         elif kind == "end":  # one view, or all (None)
             for view in [args[0]] if args[0] is not None else list(self._views):
-                frames = self._views.pop(view, None)
-                if frames is not None:
-                    frames.close()
+                stack = self._views.pop(view, None)
+                if stack is not None:
+                    stack.close()
 
     def put(self, view: int, index: int, name: str, image: np.ndarray) -> None:
         """Queue a fringe frame of a view."""
@@ -201,9 +201,9 @@ class Acquisition:
         self.writer = FrameWriter(store)
         self.spec = FrameSpec.of_camera(rig.camera)
         if implements(rig.camera, ExposureControl):
-            rig.camera.set_exposure(scan["exposure_ms"])
-        for line in refused_controls(rig):
-            bus.warn(line)
+            cast(ExposureControl, rig.camera).set_exposure(scan["exposure_ms"])
+        for refusal in refused_controls(rig):
+            bus.warn(refusal)
         self._show_kwargs = accepted_kwargs(rig.projector.show, ("name", "index"))
         self.sequenced = (SequencedCapture(rig, patterns, self.shots, scan, bus, with_retries)
                           if uses_sequenced(rig, scan) else None)
@@ -216,7 +216,10 @@ class Acquisition:
     def _set_analyzer(self, degrees: float) -> None:
         if degrees != self._analyzer_deg:
             self._analyzer_deg = None  # unknown until the move succeeds
-            self.rig.analyzer.set_angle(degrees)
+            analyzer = self.rig.analyzer
+            if analyzer is None:  # refused when the acquisition was made
+                raise DeviceError("the scan's shots turn an analyzer, but the rig has none.")
+            analyzer.set_angle(degrees)
             self._analyzer_deg = degrees
 
     def _stop_watch(self) -> None:
@@ -242,7 +245,7 @@ class Acquisition:
             try:
                 if shot.analyzer_deg is not None:
                     self._set_analyzer(shot.analyzer_deg)
-                ident = {"name": pattern.name, "index": shot.pattern}
+                ident: dict[str, Any] = {"name": pattern.name, "index": shot.pattern}
                 self.rig.projector.show(pattern.image, **{k: ident[k] for k in self._show_kwargs})
                 if self.scan["settle_ms"] > 0:
                     time.sleep(self.scan["settle_ms"] / 1000.0)
@@ -262,7 +265,7 @@ class Acquisition:
                      f"view {view}: stage move to {angle_deg:g}°", self.bus)
         reached: dict[str, Any] = {}
         if implements(self.rig.stage, AngleReadback):
-            reached["angle_read_deg"] = float(self.rig.stage.read_angle())
+            reached["angle_read_deg"] = float(cast(AngleReadback, self.rig.stage).read_angle())
         return reached
 
     def _wait_if_paused(self, view: int, index: int) -> bool:
@@ -339,10 +342,11 @@ class Acquisition:
                     frame = check_frame(self.rig, self.spec,
                                         self.sequenced.frame(view, i, self._set_analyzer),
                                         f"view {view}, frame {shot.name!r}")
-                    info = self.sequenced.infos[i].to_dict()
+                    info: dict[str, Any] | None = self.sequenced.infos[i].to_dict()
                 else:
                     frame = self._capture(shot, view)
-                    info = self.rig.camera.last_frame_info().to_dict() if frame_info else None
+                    info = (cast(FrameInfoSource, self.rig.camera).last_frame_info().to_dict()
+                            if frame_info else None)
                 if info is not None:
                     infos.append({"index": i, "name": shot.name, **info})
                 self.writer.put(view, i, shot.name, frame)

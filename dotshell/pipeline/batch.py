@@ -145,8 +145,8 @@ def find_runs(patterns: list[str]) -> list[Path]:
                                "glob such as 'runs/2026*'.")
         else:
             found = [RunStore.open(Path(pattern)).root]
-        for p in found:
-            p = p.absolute()
+        for path in found:
+            p = path.absolute()
             if p not in runs:
                 runs.append(p)
     return runs

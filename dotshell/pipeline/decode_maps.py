@@ -62,10 +62,10 @@ def write_map(path: Path, values: np.ndarray) -> Path:
         np.save(buf, values)
         _write_bytes(path, buf.getvalue())
         return path
-    ok, buf = cv2.imencode(".tiff", values)
+    ok, encoded = cv2.imencode(".tiff", values)
     if not ok:
         raise RunError(f"could not encode {path.name} as a float32 TIFF.")
-    _write_bytes(path, buf.tobytes())
+    _write_bytes(path, encoded.tobytes())
     return path
 
 
@@ -192,7 +192,7 @@ def decode_run(run_dir: Path | str, pm, out_dir: Path | str = "runs",
 
     run = RunStore.open(Path(run_dir))
     profile = load_run_profile(run, pm)
-    c = profile.role("coding")
+    c = profile.required_role("coding")
     coding = pm.create("coding", c["backend"], c["settings"], None, profile.source)
     manifest = run.manifest
     shots = shots_from_manifest(manifest)

@@ -58,13 +58,13 @@ class RunJob:
         self.previous: tuple[str, str] = ("unknown", "")
         self.started = 0.0
 
-    def __enter__(self) -> "RunJob":
+    def __enter__(self) -> RunJob:
         return self.open()
 
     def __exit__(self, exc_type: Any, exc: BaseException | None, tb: Any) -> None:
         self.close(exc)
 
-    def open(self) -> "RunJob":
+    def open(self) -> RunJob:
         """Take the run's lock and record ``running`` (what ``with RunJob(...)`` does first)."""
         self.lock.acquire(self.command)
         try:
@@ -343,8 +343,8 @@ def process(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
     caller already started writing into (a scan writes views while it captures). Options
     ``reconstructed``, ``prewritten`` and ``timings`` are as in :func:`run_steps`."""
     options = dict(options or {})
-    extra = {k: options.pop(k) for k in ("reconstructed", "prewritten", "timings")
-             if k in options}
+    extra: dict[str, Any] = {k: options.pop(k) for k in ("reconstructed", "prewritten", "timings")
+                             if k in options}
     work = prepare(job, profile, pm, targets, options, generation)
     return publish(job, work, [run_steps(work, profile, pm, job.bus, extra=extra)],
                    final_status)

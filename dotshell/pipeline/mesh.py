@@ -70,7 +70,7 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
         raise MeshError(f"node distance must be a positive number of mm, got {primary!r}; set "
                         "[mesh] node_distance_mm or pass --node-distance (e.g. 1.0).")
     smallest = MESH_SCHEMA["node_distance_mm"].min
-    if node_distance_mm is not None and node_distance_mm < smallest:
+    if node_distance_mm is not None and smallest is not None and node_distance_mm < smallest:
         raise MeshError(f"--node-distance {node_distance_mm:g} mm is below the smallest node "
                         f"distance [mesh] node_distance_mm allows ({smallest:g} mm); give a "
                         "larger one (e.g. 1.0).")

@@ -281,8 +281,8 @@ class Normalization:
         truth = None
         if self.truth is not None:
             truth = np.asarray(self.truth.true_normal_radiance(
-                geometry.angle_deg, tuple(target) if target else None, self.surface.vertices),
-                float)
+                geometry.angle_deg, (target[0], target[1]) if target else None,
+                self.surface.vertices), np.float64)
             truth = np.where(good, truth, np.nan)
         stats = self._stats(light, geometry, estimates, truth)
         return SourceResult(view, geometry.angle_deg, name, target, light, geometry.sin_beta,

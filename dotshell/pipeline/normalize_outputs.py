@@ -35,11 +35,11 @@ if TYPE_CHECKING:
     from dotshell.plugins import PluginManager
 
 
-def stem(r: "SourceResult") -> str:
+def stem(r: SourceResult) -> str:
     return f"view_{r.view:03d}_{r.source}"
 
 
-def write_csv(store: RunStore, job: "Normalization", r: "SourceResult") -> str:
+def write_csv(store: RunStore, job: Normalization, r: SourceResult) -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
     backends = list(r.normalized)
@@ -64,7 +64,7 @@ def _g(x: float) -> str:
     return "" if not np.isfinite(x) else f"{x:.6g}"
 
 
-def write_vtu(store: RunStore, job: "Normalization", results: list["SourceResult"]) -> str:
+def write_vtu(store: RunStore, job: Normalization, results: list[SourceResult]) -> str:
     import meshio
 
     from dotshell.fem.meshfiles import _atomic_meshio
@@ -86,7 +86,7 @@ def write_vtu(store: RunStore, job: "Normalization", results: list["SourceResult
     return name
 
 
-def write_flat_image(store: RunStore, r: "SourceResult", image: np.ndarray) -> str:
+def write_flat_image(store: RunStore, r: SourceResult, image: np.ndarray) -> str:
     ok, buf = cv2.imencode(".tiff", image.astype(np.float32))
     if not ok:
         raise OSError("could not encode the flattened image as TIFF")
@@ -95,7 +95,7 @@ def write_flat_image(store: RunStore, r: "SourceResult", image: np.ndarray) -> s
     return name
 
 
-def write_preview(store: RunStore, r: "SourceResult", frame: np.ndarray, raw_img: np.ndarray,
+def write_preview(store: RunStore, r: SourceResult, frame: np.ndarray, raw_img: np.ndarray,
                   flat_img: np.ndarray, primary: str) -> str:
     import matplotlib
 
@@ -126,7 +126,7 @@ def write_preview(store: RunStore, r: "SourceResult", frame: np.ndarray, raw_img
     return name
 
 
-def write_paa(store: RunStore, r: "SourceResult", amplitudes: np.ndarray) -> str:
+def write_paa(store: RunStore, r: SourceResult, amplitudes: np.ndarray) -> str:
     """NIRFAST standard data: header ``source det active amplitude phase``, one row per
     detector (1-based indices; this image is source 1; inactive where no value; phase 0 for
     continuous-wave light)."""
@@ -139,7 +139,7 @@ def write_paa(store: RunStore, r: "SourceResult", amplitudes: np.ndarray) -> str
     return name
 
 
-def pooled(results: list["SourceResult"]) -> dict[str, Any]:
+def pooled(results: list[SourceResult]) -> dict[str, Any]:
     """Error statistics over all views and sources together, per normalizer."""
     if not results or results[0].truth is None:
         return {}
@@ -151,7 +151,7 @@ def pooled(results: list["SourceResult"]) -> dict[str, Any]:
 class OutputWriter:
     """Writes each view's files as the normalization produces them, then the summary."""
 
-    def __init__(self, store: RunStore, profile: Profile, job: "Normalization") -> None:
+    def __init__(self, store: RunStore, profile: Profile, job: Normalization) -> None:
         self.store, self.profile, self.job = store, profile, job
         detectors = np.asarray(profile.data["mesh"]["optodes"]["detectors_mm"],
                                float).reshape(-1, 3)
@@ -161,7 +161,7 @@ class OutputWriter:
         self.entries: list[dict[str, Any]] = []
         store.path("normalize").mkdir(exist_ok=True)
 
-    def view(self, geometry: SurfaceView, pairs: list[tuple["SourceResult", np.ndarray]]) -> None:
+    def view(self, geometry: SurfaceView, pairs: list[tuple[SourceResult, np.ndarray]]) -> None:
         job, store = self.job, self.store
         for r, frame in pairs:
             primary = r.normalized[job.primary]
@@ -176,7 +176,7 @@ class OutputWriter:
             self.entries.append({"view": r.view, "angle_deg": r.angle_deg, "source": r.source,
                                  "target_mm": r.target_mm, **r.stats, "files": files})
 
-    def summary(self, results: list["SourceResult"]) -> dict[str, Any]:
+    def summary(self, results: list[SourceResult]) -> dict[str, Any]:
         job = self.job
         section = {"normalizer": job.primary,
                    "compare": [b for b in job.models if b != job.primary],

@@ -50,7 +50,7 @@ def shots_from_manifest(manifest: dict[str, Any]) -> list[Shot]:
     return [Shot(n, i) for i, n in enumerate(manifest["frame_names"])]
 
 
-def combine(frames: Sequence[np.ndarray], shots: Sequence[Shot]) -> list[np.ndarray]:
+def combine(frames: Sequence[np.ndarray] | np.ndarray, shots: Sequence[Shot]) -> list[np.ndarray]:
     """Frames in shot order → one image per pattern (|I∥ − I⊥| for PDI shots)."""
     if len(frames) != len(shots):
         raise RunError(f"{len(frames)} frames for a plan of {len(shots)} shots; the view is "

@@ -298,7 +298,7 @@ def no_points_error(where: str, stats: dict[str, int], calib: RigCalibration, ha
     decoded = int(stats.get("decoded", 0))
     stage = ("grazing", "row_rejected") if decoded else ("shadow", "low_contrast", "uncertain",
                                                          "out_of_range")
-    worst = max(stage, key=counts.get)
+    worst = max(stage, key=counts.__getitem__)
     why = (explain_grazing(calib, has_rows, min_angle_deg) if worst == "grazing"
            else LOSSES[worst])
     listing = ", ".join(f"{k} {v}" for k, v in counts.items() if v)

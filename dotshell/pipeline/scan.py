@@ -292,7 +292,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
                     rig.stage.move_to(angle)
                 if trans is not None and trans.covers(view):
                     trans.run_view(view)
-                if fringes:
+                if fringes and frames is not None:  # None: stopped, the loop has ended
                     pipeline.submit(view, view_angle(store.manifest["views"][view]), frames)
                     del frames  # the pipeline holds them only until the view is reconstructed
             last_frame_at = time.monotonic() if todo else None  # last frames stored
@@ -317,7 +317,7 @@ def _check_devices(store: RunStore, rig: Rig, calib: RigCalibration, resuming: b
         if tuple(lens.size) != tuple(size):
             raise CalibrationError(
                 f"{calib.source}: the calibration's {role} is {lens.width}x{lens.height} px but "
-                f"the {role} ({rig.profile.role(role)['backend']}) is {size[0]}x{size[1]} px; "
+                f"the {role} ({rig.profile.required_role(role)['backend']}) is {size[0]}x{size[1]} px; "
                 f"give the calibration of this {role} at this resolution (or set the {role}'s "
                 "resolution to the calibrated one).")
     if not resuming:
@@ -328,7 +328,7 @@ def _check_devices(store: RunStore, rig: Rig, calib: RigCalibration, resuming: b
         was = FrameSpec.from_dict(recorded)
         raise FrameError(
             f"{store.root} was captured at {was.bit_depth} bit, {was.width}x{was.height} px, but "
-            f"the camera ({rig.profile.role('camera')['backend']}) now reports {spec.bit_depth} "
+            f"the camera ({rig.profile.required_role('camera')['backend']}) now reports {spec.bit_depth} "
             f"bit, {spec.width}x{spec.height} px: a resumed view must match the others. Set the "
             f"camera's bit_depth and resolution as they were (in {store.path('profile.toml')}).")
 

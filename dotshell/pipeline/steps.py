@@ -81,7 +81,7 @@ class Step:
 
 
 def make_coding(profile: Profile, pm: PluginManager):
-    c = profile.role("coding")
+    c = profile.required_role("coding")
     return pm.create("coding", c["backend"], c["settings"], None, profile.source)
 
 
@@ -145,7 +145,8 @@ def store_view(store: RunStore, vc: ViewCloud, first_frame: np.ndarray | None,
 
 def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: Profile,
                          coding: Any, calib: RigCalibration, bus: EventBus,
-                         frames: Sequence[np.ndarray] | None = None) -> dict[str, Any]:
+                         frames: Sequence[np.ndarray] | np.ndarray | None = None
+                         ) -> dict[str, Any]:
     """Decode and triangulate one view (frames given, or read from the run) into its
     products; returns its report record."""
     # here, not at the top: the decoding and triangulation (numba, 0.5-1 s to import) load with
@@ -196,11 +197,11 @@ def views_step(ctx: StepContext) -> dict[str, Any]:
     views = manifest["views"]
     done: dict[int, dict[str, Any]] = ctx.options.get("reconstructed", {})
     if not any(usable(v) for v in views):
-        lost = sum(is_lost(v) for v in views)
+        n_lost = sum(is_lost(v) for v in views)
         raise ReconstructionError(
             f"no view of {store.run_root} is completely captured ({len(views)} views, "
             f"{sum(v['frames'] for v in views)} frames on disk" +
-            (f", {lost} marked lost" if lost else "") + "): there is nothing to "
+            (f", {n_lost} marked lost" if n_lost else "") + "): there is nothing to "
             f"reconstruct. Capture the missing views with `dotshell resume {store.run_root}`.")
     coding = None
     frames = None  # one view's frames at a time, read over the previous view's (same array)
@@ -312,7 +313,7 @@ def previews_step(ctx: StepContext) -> dict[str, Any]:
     from dotshell.render.previews import cloud_previews
 
     ctx.bus.emit(StepStarted(step="previews"))
-    out = {}
+    out: dict[str, Any] = {}
     for v in stored_views(ctx.store):
         out.update(read_view_record(ctx.store, v).get("previews") or {})
     if not out:
@@ -401,7 +402,7 @@ def import_ahead(names: Sequence[str], current: str) -> threading.Thread | None:
     step itself to meet and report. Returns the thread, or None when there is nothing to do."""
     order = list(names)
     later = order[order.index(current) + 1:]
-    work = [STEP_BY_NAME[n].imports for n in later if STEP_BY_NAME[n].imports is not None
+    work = [imports for n in later if (imports := STEP_BY_NAME[n].imports) is not None
             and current == max((r for r in STEP_BY_NAME[n].reads if r in order),
                                key=order.index, default=None)]
     if not work:

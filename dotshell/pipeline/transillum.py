@@ -38,16 +38,17 @@ class TransilluminationCapture:
                  writer: FrameWriter, bus: EventBus, base_dir: Path) -> None:
         self.rig, self.store, self.s, self.scan = rig, store, settings, scan
         self.writer, self.bus = writer, bus
-        self.light = rig.light_source
+        light = rig.light_source
         where = rig.profile.source
-        if self.light is None:
+        if light is None:
             raise ProfileError(f"{where}: [transillumination] enabled = true needs a "
                                "[light_source].")
+        self.light = light
         self.targets = [tuple(t) for t in settings["targets_mm"]]
         if self.targets and not isinstance(self.light, Targetable):
             raise ProfileError(
                 f"{where}: [transillumination] targets_mm lists {len(self.targets)} source "
-                f"position(s) but the light source ({rig.profile.role('light_source')['backend']}) "
+                f"position(s) but the light source ({rig.profile.required_role('light_source')['backend']}) "
                 "cannot be aimed; remove targets_mm or use a targetable source (galvo).")
         self.flat_device = next((d for d in rig.devices.values()
                                  if isinstance(d, FlatFieldReference)), None)
@@ -94,7 +95,7 @@ class TransilluminationCapture:
             target.parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(self.flat_file, target)
         elif self.s["flat_field"] == "capture" and self.flat_device is not None:
-            self._capture_flat_pair()
+            self._capture_flat_pair(self.flat_device)
         else:
             why = ("flat_field = 'none'" if self.s["flat_field"] == "none" else
                    "no device of this rig can show the camera a uniform field")
@@ -106,7 +107,7 @@ class TransilluminationCapture:
         self.store.update_manifest(transillumination=entry)
         return entry["flat_field"]
 
-    def _capture_flat_pair(self) -> None:
+    def _capture_flat_pair(self, device: FlatFieldReference) -> None:
         """The uniform field at the trans exposure and at half of it. Their difference is the
         flat field without the black level or any light that does not scale with exposure (a
         dark frame with the diffuser taken away would also subtract the scene's ambient light,
@@ -120,14 +121,14 @@ class TransilluminationCapture:
             self.bus.warn("the camera has no exposure control: the flat field keeps the black "
                           "level (one frame, no half-exposure frame to subtract).")
         try:
-            self.flat_device.flat_field(True)
+            device.flat_field(True)
             for name, ms in exposures:
                 self._exposure(ms)
                 frame = self._capture(f"flat-field frame {name!r}")
                 self.writer.put_path(self.store.trans_path(name), frame,
                                      f"flat-field frame {name!r}")
         finally:
-            self.flat_device.flat_field(False)
+            device.flat_field(False)
             self._exposure(self.scan["exposure_ms"])
         self.writer.queue.join()
         self.writer.check()
@@ -149,8 +150,9 @@ class TransilluminationCapture:
         try:
             try:
                 self.light.set(True)
-                for name, target in zip(self.names, self.targets or [None]):
-                    if target is not None:
+                targets: list[tuple[Any, ...] | None] = [*self.targets] or [None]
+                for name, target in zip(self.names, targets):
+                    if target is not None and isinstance(self.light, Targetable):
                         self.light.aim(target)
                     self._take(view, name)
                     written.append(name)

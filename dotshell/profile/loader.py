@@ -189,6 +189,14 @@ class Profile:
         """``{"backend": ..., "settings": {...}}`` for a role, or None when not configured."""
         return self.data.get(role)
 
+    def required_role(self, role: str) -> dict[str, Any]:
+        """:meth:`role` for a role the profile must configure (camera, projector, stage,
+        coding) or one the caller checked; a ProfileError naming the missing table otherwise."""
+        section = self.data.get(role)
+        if section is None:
+            raise ProfileError(f"{self.source}: no [{role}] table; add one naming its backend.")
+        return section
+
     def angles_deg(self) -> list[float]:
         """Stage angles of the scan's views in degrees."""
         scan = self.data["scan"]

@@ -16,7 +16,7 @@ def _plotter():
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     import pyvista as pv
 
-    pl = pv.Plotter(off_screen=True, window_size=(900, 900))
+    pl = pv.Plotter(off_screen=True, window_size=[900, 900])
     pl.set_background("white")
     return pv, pl
 

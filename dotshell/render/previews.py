@@ -78,7 +78,7 @@ def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
         points = points[pick]
         scalars = None if scalars is None else np.asarray(scalars)[pick]
     cloud = pv.PolyData(np.asarray(points, np.float32))
-    pl = pv.Plotter(off_screen=True, window_size=(900, 900))
+    pl = pv.Plotter(off_screen=True, window_size=[900, 900])
     try:
         pl.set_background("white")
         cloud[scalar_name] = np.asarray(points[:, 2] if scalars is None else scalars, np.float64)

@@ -158,12 +158,6 @@ class _Worker:
         job = self.current
         return job if job is not None and job.overdue() else None
 
-    def release(self) -> None:
-        """End the worker thread without closing the device (it was never connected)."""
-        worker, self._worker = self._worker, None
-        if worker is not None:
-            worker.shutdown()
-
     def shutdown(self) -> None:
         self.jobs.put(None)
 
@@ -207,7 +201,7 @@ class DeviceHandle:
         if name.startswith("_"):
             raise AttributeError(name)
         if name == "stop":
-            getattr(self._device, "stop")  # AttributeError if the driver cannot stop
+            getattr(self._device, "stop")  # noqa: B009 (a probe: AttributeError if it cannot stop)
             return self.stop_now
         try:
             value = getattr(self._device, name)

@@ -242,7 +242,7 @@ class TiffFrameStore(FrameStore):
     def _label(self, index: int) -> str:
         return f"frame {self.names[index]!r} (page {index}) of {self.path}"
 
-    def _open_read(self) -> BinaryIO:
+    def _open_read(self) -> io.FileIO:
         try:
             return open(self.path, "rb", buffering=0)
         except FileNotFoundError:
@@ -269,11 +269,12 @@ class TiffFrameStore(FrameStore):
         if index != self._written:
             raise RunError(f"view {self.view}: frame {index} ({name!r}) arrived after "
                            f"{self._written} frames; frames are stored in capture order.")
-        if self._tiff is None:
+        if self._tiff is None or self._file is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = open(self.path, "wb")
+            self._file = open(self.path, "wb")  # noqa: SIM115 (held open until close())
             big = image.nbytes * len(self.names) > _TIFF_LIMIT_BYTES
-            self._tiff = tifffile.TiffWriter(_WriteThrough(self._file), bigtiff=big)
+            # tifffile writes to any object with write/seek/tell; its annotation names IO[bytes]
+            self._tiff = tifffile.TiffWriter(_WriteThrough(self._file), bigtiff=big)  # type: ignore[arg-type]
         self._tiff.write(image, contiguous=False, metadata=None, description=name,
                          software="dotshell")
         self._file.flush()  # in the OS's hands: a crash of this process keeps the frame
@@ -286,7 +287,7 @@ class TiffFrameStore(FrameStore):
             fsync_path(self.path.parent)
 
     def close(self) -> None:
-        if self._tiff is None:
+        if self._tiff is None or self._file is None:
             return
         try:
             self._tiff.close()

@@ -91,7 +91,7 @@ class Generation:
         self.missing_base: int | None = None
 
     @classmethod
-    def start(cls, run: RunStore) -> "Generation":
+    def start(cls, run: RunStore) -> Generation:
         """A new, empty generation after the highest existing one, based on the published one."""
         adopt_legacy_products(run)
         base = current_number(run.root)

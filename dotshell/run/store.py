@@ -114,7 +114,7 @@ def versions() -> dict[str, str]:
 
 
 _MANIFEST_KEYS = {"status": str, "frame_names": list, "views": list}
-_VIEW_KEYS = {"index": int, "angle_deg": (int, float), "frames": int, "complete": bool}
+_VIEW_KEYS: dict[str, type | tuple[type, ...]] = {"index": int, "angle_deg": (int, float), "frames": int, "complete": bool}
 
 
 def _number(v: Any, integer: bool = False) -> bool:
@@ -142,9 +142,9 @@ def check_manifest(m: Any, path: Path) -> dict[str, Any]:
     for i, v in enumerate(m["views"]):
         if not isinstance(v, dict):
             raise bad(f"views[{i}] is not an object")
-        for key, kind in _VIEW_KEYS.items():
+        for key, kinds in _VIEW_KEYS.items():
             val = v.get(key)
-            if not isinstance(val, kind) or (key != "complete" and isinstance(val, bool)):
+            if not isinstance(val, kinds) or (key != "complete" and isinstance(val, bool)):
                 raise bad(f"views[{i}].{key} is missing or of the wrong type")
         if not math.isfinite(v["angle_deg"]) or v["index"] != i:
             raise bad(f"views[{i}] has index {v['index']} / angle {v['angle_deg']}")
@@ -232,7 +232,7 @@ class RunStore:
     # ---- creation ---------------------------------------------------------------------------
 
     @classmethod
-    def create(cls, parent: Path, profile_name: str) -> "RunStore":
+    def create(cls, parent: Path, profile_name: str) -> RunStore:
         """A new, empty run directory ``<parent>/<YYYYmmdd-HHMMSS>_<profile>``."""
         safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", profile_name) or "run"
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -251,7 +251,7 @@ class RunStore:
         raise RunError(f"cannot create a run directory under {parent}: too many runs this second.")
 
     @classmethod
-    def open(cls, root: Path) -> "RunStore":
+    def open(cls, root: Path) -> RunStore:
         """An existing run; raises :class:`RunError` if it is not one."""
         root = Path(root)
         if not (root / "manifest.json").is_file():
@@ -438,7 +438,7 @@ class RunStore:
             return
         try:
             if self._events is None:
-                self._events = open(self.path("events.jsonl"), "a+b")
+                self._events = open(self.path("events.jsonl"), "a+b")  # noqa: SIM115 (held open)
                 if self._events.tell() > 0:
                     self._events.seek(-1, os.SEEK_END)
                     if self._events.read(1) != b"\n":

@@ -63,7 +63,7 @@ class _Pending:
 class WorkerConsole:
     """What the server reads of the console that runs in the worker."""
 
-    def __init__(self, owner: "WorkerSession") -> None:
+    def __init__(self, owner: WorkerSession) -> None:
         from dotshell.server.repl import Transcript
 
         self._owner = owner

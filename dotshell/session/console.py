@@ -29,7 +29,7 @@ import types
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Literal, Sequence, overload
 
 from dotshell.errors import DeviceError, DotshellError, ProfileError, RunError
 from dotshell.events import Event, EventBus, ScanFinished, ScanStarted, ViewCaptured
@@ -73,7 +73,7 @@ LOG_LEVELS = ("debug", "info", "warning", "error", "off")
 HISTOGRAM_BINS = 32
 
 
-def frame_stats(frame: "np.ndarray", bit_depth: int | None = None) -> dict[str, Any]:
+def frame_stats(frame: np.ndarray, bit_depth: int | None = None) -> dict[str, Any]:
     """What a person checks on a raw frame: its size, minimum, maximum and mean (DN), the share
     of saturated pixels (at full scale, ``2**bit_depth - 1``; the dtype's maximum when the bit
     depth is unknown), in percent, and a histogram over 0..full scale (counts)."""
@@ -474,7 +474,7 @@ class Session:
             self._require_idle("set the exposure")
             cam = self.rig.devices.get("camera") if "camera" in self.rig.connected else None  # type: ignore[union-attr]
             if cam is not None and not isinstance(cam, ExposureControl):
-                raise DeviceError(f"the camera ({prof.role('camera')['backend']}) has no "
+                raise DeviceError(f"the camera ({prof.required_role('camera')['backend']}) has no "
                                   "exposure control.")
             # the value is checked as a profile key first: a refused one never reaches the camera
             self._retune([f"scan.exposure_ms={float(ms)!r}"],
@@ -551,7 +551,7 @@ class Session:
             proj = self._device("projector", "project a pattern")
             pats = self._coding_patterns()
             if name not in pats:
-                raise DeviceError(f"no pattern {name!r} in the {self.profile.role('coding')['backend']} "  # type: ignore[union-attr]
+                raise DeviceError(f"no pattern {name!r} in the {self.profile.required_role('coding')['backend']} "  # type: ignore[union-attr]
                                   f"coding; choose one of {', '.join(pats)}.")
             proj.show(pats[name])
             self.projected = name
@@ -599,10 +599,10 @@ class Session:
             proj = self._device("projector", "decode")
             pats = self._coding_patterns()
             frames = []
-            for name, image in pats.items():
+            for image in pats.values():
                 proj.show(image)
                 frames.append(cam.capture())
-            self.projected = name
+            self.projected = list(pats)[-1]
         corr = self._coding.decode(frames, proj.resolution)
         d = self._snapshot_dir()
         path = column_map_preview(corr.column, corr.valid, proj.resolution[0],
@@ -614,6 +614,14 @@ class Session:
         return result
 
     # ---- scans ----------------------------------------------------------------------------------
+
+    @overload
+    def scan(self, wait: Literal[True] = ..., out: Path | str | None = None,
+             calibration: Path | str | None = None) -> Run: ...
+
+    @overload
+    def scan(self, wait: Literal[False], out: Path | str | None = None,
+             calibration: Path | str | None = None) -> ScanJob: ...
 
     def scan(self, wait: bool = True, out: Path | str | None = None,
              calibration: Path | str | None = None) -> Run | ScanJob:
@@ -658,7 +666,7 @@ class Session:
         self._refresh_namespaces()
         return run
 
-    def normalize(self, run: "Run | str | Path | None" = None,
+    def normalize(self, run: Run | str | Path | None = None,
                   normalizer: str | None = None) -> dict[str, Any]:
         """Normalize a run's trans-illumination frames on its surface (default: the session's
         last run) and return the report section (docs/transillumination.md)."""
@@ -738,7 +746,7 @@ class Session:
         if self.rig is not None and self.rig.connected and not self.scanning:
             self.rig.close()
 
-    def __enter__(self) -> "Session":
+    def __enter__(self) -> Session:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -795,14 +803,14 @@ def readable_repr(value: Any) -> str:
     from dotshell.rig.assembly import Rig
 
     if isinstance(value, Rig):
-        devices = ", ".join(f"{role} {value.profile.role(role)['backend']}"
+        devices = ", ".join(f"{role} {value.profile.required_role(role)['backend']}"
                             + ("" if role in value.connected else " (closed)")
                             for role in value.devices)
         return f"<Rig of {value.profile.name}: {devices or 'no devices'}>"
     if isinstance(value, Profile):
         scan = value.data["scan"]
         return (f"<Profile {value.name} from {value.source}: {len(value.angles_deg())} views, "
-                f"exposure {scan['exposure_ms']:g} ms, coding {value.role('coding')['backend']}>")
+                f"exposure {scan['exposure_ms']:g} ms, coding {value.required_role('coding')['backend']}>")
     return repr(value)
 
 

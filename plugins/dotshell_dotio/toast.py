@@ -53,7 +53,7 @@ def msh_text(mesh: TetMesh) -> str:
     lines += [f"{f}[{x:.10g} {y:.10g} {z:.10g}]R{r}"
               for f, (x, y, z), r in zip(flag, mesh.nodes, region)]
     lines += ["", f"ElementList {len(mesh.tets)}"]
-    lines += ["c %d %d %d %d" % tuple(t) for t in mesh.tets + 1]
+    lines += ["c " + " ".join(str(int(i)) for i in t) for t in mesh.tets + 1]
     lines += ["", "[ParameterList]N", f"Size {n}", "Param1 MUA", "Param2 KAPPA", "Param3 N",
               "Data"]
     lines += [f"{a:.10g} {k:.10g} {r:.10g}" for a, k, r in zip(mua, kappa_mm(mua, musp), ri)]
@@ -62,9 +62,9 @@ def msh_text(mesh: TetMesh) -> str:
 
 def qm_text(optodes: Optodes) -> str:
     lines = ["QM file 3D", "Dimension 3", "", f"SourceList {len(optodes.sources_mm)}"]
-    lines += ["%.10g %.10g %.10g" % tuple(p) for p in optodes.sources_mm]
+    lines += [" ".join(f"{v:.10g}" for v in p) for p in optodes.sources_mm]
     lines += ["", f"MeasurementList {len(optodes.detectors_mm)}"]
-    lines += ["%.10g %.10g %.10g" % tuple(p) for p in optodes.detectors_mm]
+    lines += [" ".join(f"{v:.10g}" for v in p) for p in optodes.detectors_mm]
     lines += ["", "LinkList"]
     for s in range(len(optodes.sources_mm)):
         dets = optodes.links[optodes.links[:, 0] == s, 1]

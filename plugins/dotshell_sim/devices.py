@@ -226,7 +226,7 @@ class SimWorld:
         self.laser: SimLaser | None = None
         self._key_memo: tuple[tuple, str] | None = None  # (devices and scene, renderer key)
 
-    def require(self, who: str) -> tuple["SimProjector", "SimTurntable"]:
+    def require(self, who: str) -> tuple[SimProjector, SimTurntable]:
         missing = [(role, name) for role, name, dev in
                    (("projector", "sim-projector", self.projector),
                     ("stage", "sim-turntable", self.stage)) if dev is None]
@@ -291,7 +291,7 @@ class SimWorld:
             memo = self._key_memo = (state, self._geometry_key(projector, stage))
         return memo[1]
 
-    def _geometry_key(self, projector: "SimProjector", stage: "SimTurntable") -> str:
+    def _geometry_key(self, projector: SimProjector, stage: SimTurntable) -> str:
         s = self.camera.settings
         return json.dumps([self.calibration().to_dict(), stage.settings["scene"],
                            stage.settings["plate"], stage.settings["background"],
@@ -876,7 +876,7 @@ class SimLaser(_Device):
 
     # ---- for the camera and the truth --------------------------------------------------------
 
-    def _stage(self) -> "SimTurntable":
+    def _stage(self) -> SimTurntable:
         if self.world.stage is None:
             raise DeviceError(f"{self.name}: no sim-turntable in this rig, so there is no sample "
                               "to trans-illuminate; add [stage] backend = \"sim-turntable\".")
