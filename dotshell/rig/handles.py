@@ -163,12 +163,6 @@ class _Worker:
         job = self.current
         return job if job is not None and job.overdue() else None
 
-    def release(self) -> None:
-        """End the worker thread without closing the device (it was never connected)."""
-        worker, self._worker = self._worker, None
-        if worker is not None:
-            worker.shutdown()
-
     def shutdown(self) -> None:
         self.jobs.put(None)
 
