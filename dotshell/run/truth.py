@@ -20,6 +20,7 @@ import io
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -46,8 +47,10 @@ def record_transillumination_truth(store: RunStore, view: int, light_source: str
     if not fields:
         return
     first = next(iter(fields.values()))
-    arrays = {"vertices_mm": first.vertices_mm, "triangles": first.triangles,
-              "max_snap_mm": np.float64(first.max_snap_mm)}
+    arrays: dict[str, Any] = {
+        "vertices_mm": np.asarray(first.vertices_mm, float),
+        "triangles": np.asarray(first.triangles, np.int64),
+        "max_snap_mm": np.asarray(first.max_snap_mm, float)}
     for name, field in fields.items():
         if len(field.radiance) != len(first.vertices_mm):
             raise RunError(f"{light_source}: the true light of {name!r} (view {view}) is not on "

@@ -15,7 +15,7 @@ from dotshell.profile.mesh import MESH_SCHEMA
 #: μa (1/mm), μs' (1/mm) and n for a mesh whose ``volume.vtu`` carries none: the ``[mesh.optics]``
 #: defaults, so an exported file and a meshed run agree.
 DEFAULT_OPTICS: dict[str, float] = {
-    name: MESH_SCHEMA["optics"].schema[name].default for name in OPTICS}
+    name: (MESH_SCHEMA["optics"].schema or {})[name].default for name in OPTICS}
 
 
 def kappa_mm(mua_per_mm: np.ndarray, musp_per_mm: np.ndarray) -> np.ndarray:
