@@ -1,6 +1,9 @@
-"""The acquisition runner: moves the stage, shows each pattern, captures and stores frames.
+"""The acquisition runner: moves the stage, takes each shot's frame through its engine and
+stores frames.
 
-The runner owns the loop, events, retries and abort; the devices own the hardware. A
+The runner owns the loop, events, retries, frame checks and abort; its engine
+(:mod:`dotshell.pipeline.engines`: show-capture or hardware-sequenced, chosen once from the
+devices' capabilities) takes the frames; the devices own the hardware. A
 :class:`~dotshell.errors.DeviceError` from a move or a capture is a recoverable per-step
 failure, retried ``scan.retries`` times before the scan fails (a lost device has already been
 reconnected once by the rig, and a stopped one is never retried). Frames go to a writer thread
@@ -25,8 +28,7 @@ from typing import Any, Callable, TypeVar, cast
 import numpy as np
 
 from dotshell.coding import PatternFrame
-from dotshell.devices import (AngleReadback, ExposureControl, FrameInfoSource, accepted_kwargs,
-                              implements)
+from dotshell.devices import AngleReadback, ExposureControl, implements
 from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, FrameError,
                              ProfileError, RunError)
 from dotshell.events import (EventBus, FrameCaptured, Message, ScanPaused, ScanResumed,
@@ -35,8 +37,8 @@ from dotshell.run.frames import FrameStore
 from dotshell.run.framecheck import FrameSpec
 from dotshell.run.integrity import ViewIntegrity, check_view
 from dotshell.run.lifecycle import signals_deferred
+from dotshell.pipeline.engines import AcquisitionEngine, choose_engine
 from dotshell.pipeline.pdi import Shot, plan_shots
-from dotshell.pipeline.sequenced import SequencedCapture, uses_sequenced
 from dotshell.rig.assembly import Rig
 from dotshell.rig.checks import refused_controls
 from dotshell.run.store import RunStore
@@ -189,7 +191,6 @@ class Acquisition:
         self.stop = stop or threading.Event()
         self.running = running  # cleared = pause before the next frame; None = never pause
         self.seconds = 0.0
-        self._analyzer_deg: float | None = None
         self._device_lines: queue.SimpleQueue = queue.SimpleQueue()
         self._unlisten = rig.listen(lambda *line: self._device_lines.put(line))
         for line in rig.messages:  # logged while connecting, before this run listened
@@ -204,23 +205,17 @@ class Acquisition:
             cast(ExposureControl, rig.camera).set_exposure(scan["exposure_ms"])
         for refusal in refused_controls(rig):
             bus.warn(refusal)
-        self._show_kwargs = accepted_kwargs(rig.projector.show, ("name", "index"))
-        self.sequenced = (SequencedCapture(rig, patterns, self.shots, scan, bus, with_retries)
-                          if uses_sequenced(rig, scan) else None)
+        self.engine: AcquisitionEngine = choose_engine(rig, patterns, self.shots, scan, bus,
+                                                       self._retry)
         for role, policy in rig.policies.items():
             if policy.home == "before_scan":
                 self.bus.info(f"homing the {role} before the scan")
                 rig.home(role)
         self.flush_device_log()
 
-    def _set_analyzer(self, degrees: float) -> None:
-        if degrees != self._analyzer_deg:
-            self._analyzer_deg = None  # unknown until the move succeeds
-            analyzer = self.rig.analyzer
-            if analyzer is None:  # refused when the acquisition was made
-                raise DeviceError("the scan's shots turn an analyzer, but the rig has none.")
-            analyzer.set_angle(degrees)
-            self._analyzer_deg = degrees
+    def _retry(self, action: Callable[[], T], what: str) -> T:
+        """``action()`` under the scan's retry policy (:func:`with_retries`)."""
+        return with_retries(action, self.scan["retries"], what, self.bus)
 
     def _stop_watch(self) -> None:
         """Stop moving devices as soon as the scan is asked to stop (abort from any thread)."""
@@ -237,26 +232,6 @@ class Acquisition:
             except queue.Empty:
                 return
             self.bus.emit(Message(level=level, text=text, time=when))
-
-    def _capture(self, shot: Shot, view: int) -> np.ndarray:
-        pattern = self.patterns[shot.pattern]
-
-        def attempt() -> np.ndarray:
-            try:
-                if shot.analyzer_deg is not None:
-                    self._set_analyzer(shot.analyzer_deg)
-                ident: dict[str, Any] = {"name": pattern.name, "index": shot.pattern}
-                self.rig.projector.show(pattern.image, **{k: ident[k] for k in self._show_kwargs})
-                if self.scan["settle_ms"] > 0:
-                    time.sleep(self.scan["settle_ms"] / 1000.0)
-                return self.rig.camera.capture()
-            except DeviceError:
-                self._analyzer_deg = None  # unknown after a failure: set it again
-                raise
-
-        what = f"view {view}, frame {shot.name!r}"
-        return check_frame(self.rig, self.spec,
-                           with_retries(attempt, self.scan["retries"], what, self.bus), what)
 
     def _move(self, view: int, angle_deg: float) -> dict[str, Any]:
         """Move the stage for a view (retried like captures); what the stage read back."""
@@ -330,25 +305,17 @@ class Acquisition:
         frames: list[np.ndarray] = []
         infos: list[dict[str, Any]] = []
         reached: dict[str, Any] = {}
-        frame_info = implements(self.rig.camera, FrameInfoSource)
         try:
             reached = self._move(view, angle_deg)
             self.flush_device_log()
             for i, shot in enumerate(self.shots):
-                captured = self.sequenced is not None and self.sequenced.pending()
+                captured = self.engine.holds_frames()
                 if (self.stop.is_set() and not captured) or not self._wait_if_paused(view, i):
                     return None
-                if self.sequenced is not None:
-                    frame = check_frame(self.rig, self.spec,
-                                        self.sequenced.frame(view, i, self._set_analyzer),
-                                        f"view {view}, frame {shot.name!r}")
-                    info: dict[str, Any] | None = self.sequenced.infos[i].to_dict()
-                else:
-                    frame = self._capture(shot, view)
-                    info = (cast(FrameInfoSource, self.rig.camera).last_frame_info().to_dict()
-                            if frame_info else None)
+                raw, info = self.engine.frame(view, i)
+                frame = check_frame(self.rig, self.spec, raw, f"view {view}, frame {shot.name!r}")
                 if info is not None:
-                    infos.append({"index": i, "name": shot.name, **info})
+                    infos.append({"index": i, "name": shot.name, **info.to_dict()})
                 self.writer.put(view, i, shot.name, frame)
                 frames.append(frame)
                 self.flush_device_log()

@@ -5,10 +5,11 @@ For every view and source position: dark-subtract and flat-field the frame (DN p
 exposure, relative to the principal point), map it onto the run's ``surface.ply`` nodes
 (:mod:`dotshell.geometry.surface_map`: occlusion by ray casting, sin β per node, masks), and
 divide the node intensities by the orientation factor of the profile's ``[normalizer]`` backend
-(default ``diffuse-fresnel``) and of each ``[normalize] compare`` backend. When the rig knows
-the true light (the simulator), every backend is scored against it. Outputs are written by
-:mod:`dotshell.pipeline.normalize_outputs` (whose ``normalize_stage`` runs the whole step); the
-figures go to ``normalize/report.json`` and the ``normalize`` section of ``report.json``.
+(default ``diffuse-fresnel``) and of each ``[normalize] compare`` backend. When the run recorded
+the true light (a simulated rig writes it to ``truth.json``, :mod:`dotshell.run.truth`), every
+backend is scored against it. Outputs are written by
+:mod:`dotshell.pipeline.normalize_outputs` (whose ``normalize_stage`` runs the whole step); the figures go to ``normalize/report.json`` and the
+``normalize`` section of ``report.json``.
 """
 
 from __future__ import annotations
@@ -20,12 +21,13 @@ from typing import Any, Callable
 import cv2
 import numpy as np
 
-from dotshell.devices import TransilluminationTruth
+from dotshell.devices import SurfaceRadiance
 from dotshell.errors import CalibrationError, DotshellError, RunError
 from dotshell.events import EventBus, StepProgress, StepStarted
 from dotshell.fem.meshes import TriangleSurface
 from dotshell.run.framecheck import FrameSpec
 from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.raycast import ClosestPoints, TriangleScene
 from dotshell.geometry.surface_map import (OK, NodeLight, SurfaceView, mask_counts,
                                            node_intensities, normal_spread_deg, view_surface)
 from dotshell.normalizer import Normalizer
@@ -35,6 +37,7 @@ from dotshell.profile.loader import Profile
 from dotshell.settings import validate_settings
 from dotshell.profile.transillum import NORMALIZE_SCHEMA
 from dotshell.run.store import RunStore
+from dotshell.run.truth import TRUTH_FILE, read_transillumination_truth
 
 DEFAULT_NORMALIZER = "diffuse-fresnel"
 ViewCallback = Callable[[SurfaceView, list[tuple["SourceResult", np.ndarray]]], None]
@@ -53,7 +56,7 @@ class SourceResult:
     light: NodeLight
     sin_beta: np.ndarray                 # (N,) per node, this view
     normalized: dict[str, np.ndarray]    # backend name → I0 estimate per node (NaN masked)
-    truth: np.ndarray | None             # true I0 per node, if the rig knows it
+    truth: np.ndarray | None             # true I0 per node, if the run recorded it
     stats: dict[str, Any]
 
 
@@ -164,19 +167,37 @@ def _checked(img: np.ndarray, calib: RigCalibration, bit_depth: int, path: Path)
                       "run's frames from a backup, or capture the trans-illumination again.")
 
 
-def _truth_source(profile: Profile, pm: PluginManager) -> TransilluminationTruth | None:
-    """The rig's light source if it knows the true light (the simulator); devices are built but
-    not connected."""
-    if profile.role("light_source") is None:
-        return None
-    from dotshell.rig.assembly import Rig
+class TruthAtNodes:
+    """The true I0 a run recorded (:mod:`dotshell.run.truth`), read at the nodes of the scanned
+    surface: each node takes the value at its closest point of the true surface, NaN farther
+    than the field's ``max_snap_mm``."""
 
-    try:
-        rig = Rig(profile, pm)
-    except DotshellError:
-        return None
-    light = rig.light_source
-    return light if isinstance(light, TransilluminationTruth) else None
+    def __init__(self, store: RunStore, nodes_mm: np.ndarray, bus: EventBus) -> None:
+        self.nodes_mm = nodes_mm
+        self.recorded = read_transillumination_truth(store.run_root)
+        self._closest: tuple[SurfaceRadiance, ClosestPoints] | None = None
+        if self.recorded is None:
+            bus.info(f"{store.run_root} has no {TRUTH_FILE} with the true trans-illumination "
+                     "light (only a simulated rig records it): the normalization is not scored "
+                     "against the truth.")
+
+    def at(self, view: int, source: str) -> np.ndarray | None:
+        """True I0 per node for ``source`` at ``view``; None if the run recorded none."""
+        field = self.recorded.field(view, source) if self.recorded is not None else None
+        if field is None:
+            return None
+        at = self._closest_points(field)
+        return np.where(at.distance_mm <= field.max_snap_mm, at.interpolate(field.radiance),
+                        np.nan)
+
+    def _closest_points(self, field: SurfaceRadiance) -> ClosestPoints:
+        """The nodes' closest points on the field's surface (found once per surface)."""
+        last = self._closest
+        if last is None or not (np.array_equal(last[0].vertices_mm, field.vertices_mm)
+                                and np.array_equal(last[0].triangles, field.triangles)):
+            scene = TriangleScene(field.vertices_mm, field.triangles)
+            last = self._closest = (field, scene.closest(self.nodes_mm))
+        return last[1]
 
 
 def error_stats(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:
@@ -223,7 +244,7 @@ class Normalization:
         self.models = normalizers(profile, pm, normalizer)
         self.primary = next(iter(self.models))
         self.flat = flat_field(store, self.entry, self.calib, bus)
-        self.truth = _truth_source(profile, pm)
+        self.truth = TruthAtNodes(store, self.surface.vertices, bus)
         self.bit_depth = int(self.entry.get("camera_bit_depth", 16))
         self.full_scale = (1 << self.bit_depth) - 1
         self.angles = {v["index"]: v["angle_deg"] for v in store.manifest["views"]}
@@ -278,11 +299,8 @@ class Normalization:
             factor = model.orientation_factor(np.clip(geometry.sin_beta, 1e-6, 1.0))
             estimates[backend] = np.where(good, light.intensity / factor, np.nan)
         target = self.targets.get(name)
-        truth = None
-        if self.truth is not None:
-            truth = np.asarray(self.truth.true_normal_radiance(
-                geometry.angle_deg, (target[0], target[1]) if target else None,
-                self.surface.vertices), np.float64)
+        truth = self.truth.at(view, name)
+        if truth is not None:
             truth = np.where(good, truth, np.nan)
         stats = self._stats(light, geometry, estimates, truth)
         return SourceResult(view, geometry.angle_deg, name, target, light, geometry.sin_beta,

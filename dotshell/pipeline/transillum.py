@@ -13,17 +13,19 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
-from dotshell.devices import ExposureControl, FlatFieldReference, Targetable
+from dotshell.devices import (ExposureControl, FlatFieldReference, SurfaceRadiance, Targetable,
+                              TransilluminationTruth, implements)
 from dotshell.errors import ProfileError
 from dotshell.events import EventBus, StepStarted
 from dotshell.run.framecheck import FrameSpec
 from dotshell.pipeline.acquire import FrameWriter, check_frame, with_retries
 from dotshell.rig.assembly import Rig
 from dotshell.run.store import RunStore
+from dotshell.run.truth import record_transillumination_truth
 
 
 def source_names(n_targets: int) -> list[str]:
@@ -55,6 +57,8 @@ class TransilluminationCapture:
         self.flat_file = self._flat_file(settings["flat_field"], base_dir, where)
         self.names = source_names(len(self.targets))
         self.spec = FrameSpec.of_camera(rig.camera)
+        #: a simulated source knows the true light: recorded in the run (truth.json) per view
+        self.knows_truth = implements(self.light, TransilluminationTruth)
 
     @staticmethod
     def _flat_file(value: str, base_dir: Path, where: str) -> Path | None:
@@ -147,6 +151,7 @@ class TransilluminationCapture:
         self._exposure(self.s["exposure_ms"])
         self._dark_projector()
         written: list[str] = []
+        truth: dict[str, SurfaceRadiance] = {}
         try:
             try:
                 self.light.set(True)
@@ -156,6 +161,10 @@ class TransilluminationCapture:
                         self.light.aim(target)
                     self._take(view, name)
                     written.append(name)
+                    if self.knows_truth:  # None: where the un-aimed source points now
+                        truth[name] = cast(TransilluminationTruth,
+                                           self.light).true_surface_radiance(
+                            self.store.manifest["views"][view]["angle_deg"], target)
             finally:
                 self.light.set(False)
             if self.s["dark"]:
@@ -168,6 +177,8 @@ class TransilluminationCapture:
                                          if self.store.trans_path(n, view).is_file()]
             self.store.update_manifest(transillumination=entry)
         self.writer.check()
+        record_transillumination_truth(self.store, view,
+                                       self.rig.profile.required_role("light_source")["backend"], truth)
         self._exposure(self.scan["exposure_ms"])
         return written
 

@@ -34,7 +34,7 @@ PRODUCTS_FILE = "products.json"
 #: Top-level names that are the capture (or bookkeeping), never products.
 CAPTURE_ITEMS = frozenset({"manifest.json", "profile.toml", "calibration.json", "events.jsonl",
                            ".lock", "frames", "transillumination", GEN_DIR, CURRENT,
-                           "server.log", "snapshots", "live"})
+                           "server.log", "snapshots", "live", "truth.json", "truth"})
 #: Where products of runs made before generations existed (format dotshell-run/1) are found.
 LEGACY_PRODUCTS = {"views": "views", "cloud.ply": "cloud", "report.json": "report",
                    "surface.ply": "mesh", "volume.vtu": "mesh", "optodes.json": "mesh",

@@ -38,16 +38,13 @@ from dotshell.fem.meshes import TetMesh
 from dotshell.fem.meshfiles import Optodes
 from dotshell.run.store import atomic_write_text
 
-from dotshell_dotio.nirfast import kappa_mm
+from dotshell_dotio.optics import node_optics
 
 
 def msh_text(mesh: TetMesh) -> str:
     n = len(mesh.nodes)
-    pd = mesh.point_data
-    mua = pd.get("mua_per_mm", np.full(n, 0.01))
-    musp = pd.get("musp_per_mm", np.full(n, 1.0))
-    ri = pd.get("refractive_index", np.full(n, 1.33))
-    region = np.asarray(pd.get("region", np.ones(n)), int) - 1
+    optics = node_optics(mesh)
+    region = np.asarray(optics.region, int) - 1
     flag = np.where(mesh.boundary_nodes, "B", "N")
     lines = ["MeshData 5.0", "", f"NodeList {n} 1"]
     lines += [f"{f}[{x:.10g} {y:.10g} {z:.10g}]R{r}"
@@ -56,7 +53,8 @@ def msh_text(mesh: TetMesh) -> str:
     lines += ["c " + " ".join(str(int(i)) for i in t) for t in mesh.tets + 1]
     lines += ["", "[ParameterList]N", f"Size {n}", "Param1 MUA", "Param2 KAPPA", "Param3 N",
               "Data"]
-    lines += [f"{a:.10g} {k:.10g} {r:.10g}" for a, k, r in zip(mua, kappa_mm(mua, musp), ri)]
+    lines += [f"{a:.10g} {k:.10g} {r:.10g}" for a, k, r in zip(
+        optics.mua_per_mm, optics.kappa_mm, optics.refractive_index)]
     return "\n".join(lines) + "\n"
 
 
