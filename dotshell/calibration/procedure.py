@@ -23,7 +23,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Protocol, runtime_checkable
+from typing import Any, Callable, Mapping, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -67,7 +67,7 @@ class PoseSpec:
         return f"{self.name}: stage at {self.angle_deg:g}°, board {where}"
 
 
-def pose_specs(settings: dict[str, Any]) -> list[PoseSpec]:
+def pose_specs(settings: Mapping[str, Any]) -> list[PoseSpec]:
     """The poses of a profile's ``[calibrate]`` section, free poses first."""
     out = []
     for k, row in enumerate(settings["poses"]):
@@ -111,7 +111,7 @@ def capture(profile, pm, out_dir: Path | str = "runs", bus: EventBus | None = No
     from dotshell.run.store import RunStore
 
     bus = bus or EventBus()
-    settings = profile.data["calibrate"]
+    settings = profile.calibrate
     specs = pose_specs(settings)
     if not specs:
         raise CalibrationError(f"{profile.source}: [calibrate] lists no poses; add poses = "
@@ -129,7 +129,7 @@ def capture(profile, pm, out_dir: Path | str = "runs", bus: EventBus | None = No
             raise CalibrationError(f"coding {backend!r} has no 'white' frame; calibration needs "
                                    "a coding whose sequence starts with white and black.")
         if isinstance(rig.camera, ExposureControl):
-            rig.camera.set_exposure(settings["exposure_ms"])
+            rig.camera.set_exposure(settings.exposure_ms)
         placer = rig.stage if isinstance(rig.stage, TargetPlacement) else None
         total = sum(len(patterns) if s.kind == "free" else 1 for s in specs)
         bus.emit(StepStarted(step="calibration capture", total=total))

@@ -32,7 +32,8 @@ def reprocess(run_dir: Path | str, pm: PluginManager, command: str, targets: Ite
     try:
         profile = load_run_profile(store, pm)
         if options.get("calibration_file"):
-            check_calibration_for_run(options["calibration_file"], store)
+            options["calibration"] = check_calibration_for_run(options["calibration_file"],
+                                                               store)
             targets = targets_if_calibration or targets
         with RunJob(store, command, bus) as job:
             return process(job, profile, pm, targets, options)

@@ -335,9 +335,11 @@ def process(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
     """Make ``targets`` (and whatever they need) in a new generation of ``job``'s run and
     publish it, all in this process; returns the published report. ``generation``: one the
     caller already started writing into (a scan writes views while it captures). Options
-    ``reconstructed``, ``prewritten`` and ``timings`` are as in :func:`run_steps`."""
+    ``reconstructed``, ``prewritten`` and ``timings`` are as in :func:`run_steps`; option
+    ``calibration`` is the generation's calibration the caller already loaded and checked (a
+    :class:`RigCalibration`, so that the file is read once)."""
     options = dict(options or {})
-    extra = {k: options.pop(k) for k in ("reconstructed", "prewritten", "timings")
+    extra = {k: options.pop(k) for k in ("reconstructed", "prewritten", "timings", "calibration")
              if k in options}
     work = prepare(job, profile, pm, targets, options, generation)
     return publish(job, work, [run_steps(work, profile, pm, job.bus, extra=extra)],

@@ -29,6 +29,7 @@ from dotshell.fem.meshfiles import (optodes_from_settings, read_optodes, read_vo
 from dotshell.plugins import PluginManager
 from dotshell.run.ply import read_ply
 from dotshell.profile.loader import Profile
+from dotshell.profile.sections import MeshSettings
 from dotshell.run.store import RunStore
 
 DEFAULT_BACKENDS = {"surface_mesher": "open3d-poisson", "volume_mesher": "tetgen"}
@@ -42,10 +43,11 @@ def _mesher(profile: Profile, pm: PluginManager, role: str):
     return pm.create(role, section["backend"], section["settings"], None, profile.source)
 
 
-def viewpoints_mm(store: RunStore, views: np.ndarray) -> np.ndarray | None:
+def viewpoints_mm(store: RunStore, views: np.ndarray,
+                  calib: RigCalibration | None = None) -> np.ndarray | None:
     """Camera centre (sample frame, mm) of the view each point came from, or None."""
     try:
-        calib = RigCalibration.load(store.path("calibration.json"))
+        calib = calib or RigCalibration.load(store.path("calibration.json"))
         angles = {v["index"]: v["angle_deg"] for v in store.manifest["views"]}
     except Exception:  # a cloud without its run's calibration: orient by the centroid
         return None
@@ -62,10 +64,12 @@ def mesh_dir_name(node_distance_mm: float) -> str:
 
 
 def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
-               node_distance_mm: float | None = None) -> dict[str, Any]:
-    """Mesh the run's cloud at the profile's node distance(s); returns the report section."""
-    cfg = profile.data["mesh"]
-    primary = cfg["node_distance_mm"] if node_distance_mm is None else node_distance_mm
+               node_distance_mm: float | None = None,
+               calib: RigCalibration | None = None) -> dict[str, Any]:
+    """Mesh the run's cloud at the profile's node distance(s); returns the report section.
+    ``calib``: the run's calibration when the caller has it loaded (else read from the run)."""
+    cfg = profile.mesh
+    primary = cfg.node_distance_mm if node_distance_mm is None else node_distance_mm
     if not (isinstance(primary, (int, float)) and math.isfinite(primary) and primary > 0):
         raise MeshError(f"node distance must be a positive number of mm, got {primary!r}; set "
                         "[mesh] node_distance_mm or pass --node-distance (e.g. 1.0).")
@@ -77,15 +81,15 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
     points, scalars = read_ply(store.path("cloud.ply"))
     if len(points) == 0:
         raise MeshError(f"{store.path('cloud.ply')} has no points; nothing to mesh.")
-    for d in [primary, *cfg["also_node_distances_mm"]]:
+    for d in [primary, *cfg.also_node_distances_mm]:
         refuse_huge_mesh(points, d)
-    views = viewpoints_mm(store, scalars["view"]) if "view" in scalars else None
+    views = viewpoints_mm(store, scalars["view"], calib) if "view" in scalars else None
     surface_mesher = _mesher(profile, pm, "surface_mesher")
     volume_mesher = _mesher(profile, pm, "volume_mesher")
-    optodes = optodes_from_settings(cfg["optodes"], profile.source)
-    bottom = cfg["bottom_z_mm"] if cfg["close_bottom"] else None
+    optodes = optodes_from_settings(cfg.optodes.as_table(), profile.source)
+    bottom = cfg.bottom_z_mm if cfg.close_bottom else None
     out: dict[str, Any] = {"meshes": []}
-    extras = [d for d in cfg["also_node_distances_mm"] if d != primary]
+    extras = [d for d in cfg.also_node_distances_mm if d != primary]
     for d in [primary, *extras]:
         target = store.root if d == primary else store.path("meshes", mesh_dir_name(d))
         bus.emit(StepStarted(step=f"mesh {d:g} mm"))
@@ -93,7 +97,7 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
                          target)
         entry["dir"] = "." if target == store.root else str(target.relative_to(store.root))
         _validate_volume(entry, profile)
-        if cfg["previews"]:
+        if cfg.previews:
             entry["previews"] = _previews(store, target, d, bus)
         out["meshes"].append(entry)
     return out
@@ -118,7 +122,7 @@ def refuse_huge_mesh(points: np.ndarray, node_distance_mm: float) -> None:
 
 
 def mesh_one(points, views, node_distance_mm: float, bottom_z_mm: float | None, surface_mesher,
-             volume_mesher, cfg: dict[str, Any], optodes, target: Path) -> dict[str, Any]:
+             volume_mesher, cfg: MeshSettings, optodes, target: Path) -> dict[str, Any]:
     """Surface + volume at one node distance, written into ``target``."""
     t0 = time.perf_counter()
     result = surface_mesher.surface(points, views, node_distance_mm, bottom_z_mm)
@@ -127,12 +131,12 @@ def mesh_one(points, views, node_distance_mm: float, bottom_z_mm: float | None, 
     volume = volume_mesher.volume(result.surface, node_distance_mm)
     t_volume = time.perf_counter() - t0
     n = len(volume.nodes)
-    optics = cfg["optics"]
+    optics = cfg.optics
     volume.point_data = {
         "region": np.ones(n, np.int32),
-        "mua_per_mm": np.full(n, optics["mua_per_mm"]),
-        "musp_per_mm": np.full(n, optics["musp_per_mm"]),
-        "refractive_index": np.full(n, optics["refractive_index"]),
+        "mua_per_mm": np.full(n, optics.mua_per_mm),
+        "musp_per_mm": np.full(n, optics.musp_per_mm),
+        "refractive_index": np.full(n, optics.refractive_index),
     }
     target.mkdir(parents=True, exist_ok=True)
     write_surface(target / "surface.ply", result.surface)
@@ -154,14 +158,14 @@ def mesh_one(points, views, node_distance_mm: float, bottom_z_mm: float | None, 
 def _validate_volume(entry: dict[str, Any], profile: Profile) -> None:
     """Against a known cylinder standing on the plate: the solid from the bottom plane to the
     top (the region of interest dropped the lowest band; the surface closes it at the plate)."""
-    v = profile.data["validation"]
-    if v["shape"] != "cylinder" or not profile.data["mesh"]["close_bottom"]:
+    v = profile.validation
+    if v.shape != "cylinder" or not profile.mesh.close_bottom:
         return
-    bottom = profile.data["mesh"]["bottom_z_mm"]
-    true = math.pi * v["radius_mm"] ** 2 * (v["height_mm"] - bottom)
+    bottom = profile.mesh.bottom_z_mm
+    true = math.pi * v.radius_mm ** 2 * (v.height_mm - bottom)
     got = entry["volume"]["volume_mm3"]
     entry["validation"] = {"true_volume_mm3": true, "volume_error_pct": 100 * (got - true) / true,
-                           "section_mm": [bottom, v["height_mm"]]}
+                           "section_mm": [bottom, v.height_mm]}
 
 
 def _previews(store: RunStore, target: Path, node_distance_mm: float, bus: EventBus) -> dict:

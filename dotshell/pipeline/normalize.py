@@ -14,7 +14,7 @@ the true light (the simulator), every backend is scored against it. Outputs are 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -62,7 +62,7 @@ def normalizers(profile: Profile, pm: PluginManager, override: str | None) -> di
     """The primary normalizer first, then the ``compare`` ones (each once)."""
     section = profile.role("normalizer")
     primary = override or (section["backend"] if section else DEFAULT_NORMALIZER)
-    names = [primary] + [n for n in profile.data["normalize"]["compare"] if n != primary]
+    names = [primary] + [n for n in profile.normalize.compare if n != primary]
     out = {}
     for name in dict.fromkeys(names):
         settings = dict(section["settings"]) if section and section["backend"] == name else {}
@@ -70,7 +70,7 @@ def normalizers(profile: Profile, pm: PluginManager, override: str | None) -> di
         settings = validate_settings(info.backend.settings_schema, settings, profile.source,
                                      "normalizer.settings")
         if settings.get("refractive_index") == 0.0:  # documented: 0 = the sample's [mesh.optics]
-            settings["refractive_index"] = profile.data["mesh"]["optics"]["refractive_index"]
+            settings["refractive_index"] = profile.mesh.optics.refractive_index
         out[name] = pm.create("normalizer", name, settings, None, profile.source)
     return out
 
@@ -212,15 +212,16 @@ class Normalization:
 
     def __init__(self, store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
                  normalizer: str | None = None, min_sin_beta: float | None = None,
-                 max_normal_spread_deg: float | None = None) -> None:
+                 max_normal_spread_deg: float | None = None,
+                 calib: RigCalibration | None = None) -> None:
         self.store, self.profile, self.bus = store, profile, bus
-        self.cfg = {**profile.data["normalize"],
-                    **checked_overrides(min_sin_beta, max_normal_spread_deg)}
+        self.cfg = replace(profile.normalize,
+                           **checked_overrides(min_sin_beta, max_normal_spread_deg))
         self.entry = transillumination_entry(store)
         self.surface = _load_surface(store)
-        self.unscanned = unscanned_nodes(store, self.surface, self.cfg["max_cloud_distance_mm"])
-        self.crease = normal_spread_deg(self.surface) > self.cfg["max_normal_spread_deg"]
-        self.calib = _load_calibration(store)
+        self.unscanned = unscanned_nodes(store, self.surface, self.cfg.max_cloud_distance_mm)
+        self.crease = normal_spread_deg(self.surface) > self.cfg.max_normal_spread_deg
+        self.calib = calib or _load_calibration(store)
         self.models = normalizers(profile, pm, normalizer)
         self.primary = next(iter(self.models))
         self.flat = flat_field(store, self.entry, self.calib, bus)
@@ -242,7 +243,7 @@ class Normalization:
                 raise RunError(f"{self.store.root}: trans-illumination view {view} is not a view "
                                "of this run's manifest; the run is damaged.")
             geometry = view_surface(self.surface, self.calib, self.angles[view],
-                                    self.cfg["min_sin_beta"], self.unscanned, self.crease)
+                                    self.cfg.min_sin_beta, self.unscanned, self.crease)
             pairs = [self._source(geometry, view, name)
                      for name in self.entry["views"][str(view)] if name != "dark"]
             if each_view is not None:
@@ -256,7 +257,7 @@ class Normalization:
         path = self.store.trans_path(name, view)
         raw = _checked(self.store.read_image(path, f"view {view} cannot be normalized"),
                        self.calib, self.bit_depth, path)
-        saturated = raw >= self.cfg["saturation_fraction"] * self.full_scale
+        saturated = raw >= self.cfg.saturation_fraction * self.full_scale
         img = _float(raw)
         if "dark" in self.entry["views"][str(view)]:
             dark = self.store.trans_path("dark", view)
@@ -271,7 +272,7 @@ class Normalization:
     def _source(self, geometry: SurfaceView, view: int,
                 name: str) -> tuple[SourceResult, np.ndarray]:
         img, saturated = self._image(view, name)
-        light = node_intensities(geometry, img, saturated, self.cfg["min_pixels"])
+        light = node_intensities(geometry, img, saturated, self.cfg.min_pixels)
         self._warn_saturation(view, name, saturated, geometry)
         estimates = {}
         good = light.mask == OK
@@ -317,12 +318,15 @@ def _r(x: float) -> float:
 
 def normalize_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
                     normalizer: str | None = None, min_sin_beta: float | None = None,
-                    max_normal_spread_deg: float | None = None) -> dict[str, Any]:
-    """Normalize a run and write its outputs; returns the report section."""
+                    max_normal_spread_deg: float | None = None,
+                    calib: RigCalibration | None = None) -> dict[str, Any]:
+    """Normalize a run and write its outputs; returns the report section. ``calib``: the run's
+    calibration when the caller has it loaded (else read from the run)."""
     from dotshell.pipeline.normalize_outputs import OutputWriter
 
     t0 = time.perf_counter()
-    job = Normalization(store, profile, pm, bus, normalizer, min_sin_beta, max_normal_spread_deg)
+    job = Normalization(store, profile, pm, bus, normalizer, min_sin_beta, max_normal_spread_deg,
+                        calib)
     writer = OutputWriter(store, profile, job)
     results = job.run(writer.view)
     section = writer.summary(results)

@@ -149,7 +149,7 @@ class OutputWriter:
 
     def __init__(self, store: RunStore, profile: Profile, job: "Normalization") -> None:
         self.store, self.profile, self.job = store, profile, job
-        detectors = np.asarray(profile.data["mesh"]["optodes"]["detectors_mm"],
+        detectors = np.asarray(profile.mesh.optodes.detectors_mm,
                                float).reshape(-1, 3)
         # the surface point nearest to each detector (sample frame), found once for all images
         self.at_detectors = TriangleScene(job.surface.vertices, job.surface.triangles).closest(
@@ -164,7 +164,7 @@ class OutputWriter:
             flat_img = resample_to_image(geometry, primary)
             files = {"csv": write_csv(store, job, r),
                      "flattened": write_flat_image(store, r, flat_img)}
-            if self.profile.data["outputs"]["previews"]:
+            if self.profile.outputs.previews:
                 raw_img = resample_to_image(geometry, r.light.intensity)
                 files["preview"] = write_preview(store, r, frame, raw_img, flat_img, job.primary)
             if self.at_detectors is not None:
@@ -176,8 +176,8 @@ class OutputWriter:
         job = self.job
         section = {"normalizer": job.primary,
                    "compare": [b for b in job.models if b != job.primary],
-                   "min_sin_beta": job.cfg["min_sin_beta"],
-                   "max_normal_spread_deg": job.cfg["max_normal_spread_deg"],
+                   "min_sin_beta": job.cfg.min_sin_beta,
+                   "max_normal_spread_deg": job.cfg.max_normal_spread_deg,
                    "flat_field": job.flat is not None,
                    "mask_reasons": list(MASK_REASONS), "sources": self.entries,
                    "masked_total": _sum_masks(self.entries),

@@ -54,6 +54,7 @@ class StepContext:
     bus: EventBus
     options: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    #: the calibration once loaded (by the calibration step or on first use); steps reuse it
     _calib: RigCalibration | None = None
     #: the merged cloud as ``cloud.ply`` holds it ((N, 3) float32, mm), kept by the merge for
     #: the steps after it in this process (reading the 5.5 M-point file again cost ~0.5 s each)
@@ -88,9 +89,13 @@ def make_coding(profile: Profile, pm: PluginManager):
 
 def calibration_step(ctx: StepContext) -> dict[str, Any]:
     """This generation's calibration: the command's ``--calibration`` file (validated before
-    anything is written) or the one the run was captured with."""
-    source = ctx.options.get("calibration_file") or ctx.store.path("..", "..", "calibration.json")
-    calib = load_any_calibration(source)  # a user's file may be an OpenCV .yml/.xml
+    anything is written) or the one the run was captured with; option ``calibration``: that
+    calibration, already loaded by the command."""
+    calib = ctx.options.get("calibration")
+    if calib is None:
+        source = ctx.options.get("calibration_file") or ctx.store.path("..", "..",
+                                                                        "calibration.json")
+        calib = load_any_calibration(source)  # a user's file may be an OpenCV .yml/.xml
     calib.save(ctx.store.path("calibration.json"))
     ctx._calib = calib
     return {"calibration": calib.source}
@@ -123,8 +128,8 @@ def store_view(store: RunStore, vc: ViewCloud, first_frame: np.ndarray | None,
     integrity = getattr(store, "run", store).manifest["views"][vc.view].get("integrity")
     if integrity is not None:  # the capture's frame checks (dotshell.run.integrity)
         record["integrity"] = integrity
-    out = profile.data["outputs"]
-    if out["previews"] and vc.view == out["preview_view"] and vc.correspondence is not None:
+    out = profile.outputs
+    if out.previews and vc.view == out.preview_view and vc.correspondence is not None:
         from dotshell.render.previews import column_map_preview, frame_preview
 
         pdir = store.path("previews")
@@ -157,7 +162,7 @@ def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: 
         frames = stored_frames(store, view, calib)
     shots = shots_from_manifest(manifest)
     vc = reconstruct_view(view, angle_deg, combine(frames, shots), coding, calib,
-                          profile.data["processing"])
+                          profile.processing)
     return store_view(store, vc, frames[0] if len(frames) else None, profile, calib, bus)
 
 
@@ -273,7 +278,7 @@ def _no_points(ctx: StepContext, views: list[int]) -> ReconstructionError:
     if totals.get("triangulated", 0) == 0:
         has_rows = totals.get("refined_row", 0) > 0 or totals.get("row_rejected", 0) > 0
         return no_points_error(where, totals, ctx.calibration, has_rows,
-                               ctx.profile.data["processing"]["min_ray_angle_deg"])
+                               ctx.profile.processing.min_ray_angle_deg)
     return ReconstructionError(
         f"{where}: {totals['triangulated']} pixels were triangulated but no point is left: "
         f"{totals.get('speckle', 0)} removed as speckle, {totals.get('outside_roi', 0)} outside "
@@ -293,9 +298,8 @@ def validation_step(ctx: StepContext) -> dict[str, Any]:
     from dotshell.pipeline.validate import cylinder_report
 
     ctx.bus.emit(StepStarted(step="validate"))
-    v = ctx.profile.data["validation"]
-    return {"validation": cylinder_report(load_cloud(ctx), ctx.calibration, v,
-                                          ctx.profile.data["processing"]["roi"])}
+    return {"validation": cylinder_report(load_cloud(ctx), ctx.calibration,
+                                          ctx.profile.validation, ctx.profile.processing.roi)}
 
 
 def previews_step(ctx: StepContext) -> dict[str, Any]:
@@ -306,7 +310,7 @@ def previews_step(ctx: StepContext) -> dict[str, Any]:
     for v in stored_views(ctx.store):
         out.update(read_view_record(ctx.store, v).get("previews") or {})
     if not out:
-        ctx.bus.warn(f"frame previews skipped: view {ctx.profile.data['outputs']['preview_view']}"
+        ctx.bus.warn(f"frame previews skipped: view {ctx.profile.outputs.preview_view}"
                      " ([outputs] preview_view) was not reconstructed")
     out.update(cloud_previews(ctx.store, load_cloud(ctx), ctx.profile, ctx.bus))
     return {"previews": out}
@@ -318,7 +322,7 @@ def mesh_step(ctx: StepContext) -> dict[str, Any]:
     from dotshell.pipeline.mesh import mesh_stage
 
     return {"mesh": mesh_stage(ctx.store, ctx.profile, ctx.pm, ctx.bus,
-                               ctx.options.get("node_distance_mm"))}
+                               ctx.options.get("node_distance_mm"), ctx._calib)}
 
 
 def normalize_step(ctx: StepContext) -> dict[str, Any]:
@@ -327,12 +331,12 @@ def normalize_step(ctx: StepContext) -> dict[str, Any]:
     o = ctx.options
     return {"normalize": normalize_stage(ctx.store, ctx.profile, ctx.pm, ctx.bus,
                                          o.get("normalizer"), o.get("min_sin_beta"),
-                                         o.get("max_normal_spread_deg"))}
+                                         o.get("max_normal_spread_deg"), ctx._calib)}
 
 
 def exports_step(ctx: StepContext) -> dict[str, Any]:
     out = {}
-    for name, settings in ctx.profile.data["export"].items():
+    for name, settings in ctx.profile.export.items():
         ctx.bus.emit(StepStarted(step=f"export {name}"))
         exporter = ctx.pm.create("exporter", name, settings, None, ctx.profile.source)
         paths = exporter.export(ctx.store.root)
@@ -367,17 +371,17 @@ STEPS: tuple[Step, ...] = (
     Step("views", ("calibration",), views_step),
     Step("cloud", ("views",), cloud_step),
     Step("validation", ("cloud", "calibration"), validation_step,
-         lambda ctx, base: ctx.profile.data["validation"]["shape"] == "cylinder", _import_fit),
+         lambda ctx, base: ctx.profile.validation.shape == "cylinder", _import_fit),
     Step("previews", ("cloud", "views"), previews_step,
-         lambda ctx, base: bool(ctx.profile.data["outputs"]["previews"]), _import_renderer),
+         lambda ctx, base: ctx.profile.outputs.previews, _import_renderer),
     Step("mesh", ("cloud", "calibration"), mesh_step,
-         lambda ctx, base: "mesh" in base or bool(ctx.profile.data["mesh"]["after_scan"])),
+         lambda ctx, base: "mesh" in base or ctx.profile.mesh.after_scan),
     Step("normalize", ("mesh", "calibration"), normalize_step,
          lambda ctx, base: "normalize" in base or (
-             _has_transillumination(ctx) and bool(ctx.profile.data["mesh"]["after_scan"])
-             and bool(ctx.profile.data["normalize"]["after_scan"]))),
+             _has_transillumination(ctx) and ctx.profile.mesh.after_scan
+             and ctx.profile.normalize.after_scan)),
     Step("exports", ("cloud", "mesh"), exports_step,
-         lambda ctx, base: bool(ctx.profile.data["export"]) and ctx.options.get("export", True)),
+         lambda ctx, base: bool(ctx.profile.export) and ctx.options.get("export", True)),
     Step("forward", ("mesh",), forward_step, lambda ctx, base: "forward" in base),
 )
 STEP_BY_NAME = {s.name: s for s in STEPS}

@@ -121,11 +121,11 @@ def cloud_previews(store, points: np.ndarray, profile, bus) -> dict[str, Any]:
     out: dict[str, Any] = {}
     pdir = store.path("previews")
     pdir.mkdir(parents=True, exist_ok=True)
-    v = profile.data["validation"]
+    v = profile.validation
     style: dict[str, Any] = {}
-    if v["shape"] == "cylinder":  # float64 arithmetic on float32 or float64 points (mm)
+    if v.shape == "cylinder":  # float64 arithmetic on float32 or float64 points (mm)
         scal, name = np.hypot(points[:, 0], points[:, 1], dtype=np.float64), "radius error [mm]"
-        scal -= v["radius_mm"]
+        scal -= v.radius_mm
         c = max(0.01, 4 * float(np.median(np.abs(scal), overwrite_input=True)))  # the cap saturates
         style = {"clim": (-c, c), "cmap": "coolwarm"}
     else:

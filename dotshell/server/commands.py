@@ -46,8 +46,8 @@ def profile_summary(session: Session) -> dict[str, Any] | None:
 
     return {"name": p.name, "source": str(p.source), "device_ids": profile_device_ids(p),
             "path": str(session.profile_path.resolve()) if session.profile_path else None,
-            "views": len(p.angles_deg()), "exposure_ms": p.data["scan"]["exposure_ms"],
-            "pdi": p.data["scan"]["pdi"], "pdi_angles_deg": list(p.data["scan"]["pdi_angles_deg"]),
+            "views": len(p.angles_deg()), "exposure_ms": p.scan.exposure_ms,
+            "pdi": p.scan.pdi, "pdi_angles_deg": list(p.scan.pdi_angles_deg),
             "coding": p.role("coding")["backend"],
             "roles": {r: p.role(r)["backend"] for r in DEVICE_ROLES if p.role(r) is not None}}
 

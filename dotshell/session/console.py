@@ -800,9 +800,8 @@ def readable_repr(value: Any) -> str:
                             for role in value.devices)
         return f"<Rig of {value.profile.name}: {devices or 'no devices'}>"
     if isinstance(value, Profile):
-        scan = value.data["scan"]
         return (f"<Profile {value.name} from {value.source}: {len(value.angles_deg())} views, "
-                f"exposure {scan['exposure_ms']:g} ms, coding {value.role('coding')['backend']}>")
+                f"exposure {value.scan.exposure_ms:g} ms, coding {value.role('coding')['backend']}>")
     return repr(value)
 
 
