@@ -27,6 +27,7 @@ from dotshell.profile.mesh import MESH_SCHEMA
 from dotshell.fem.meshfiles import (optodes_from_settings, read_optodes, read_volume, write_optodes,
                                 write_surface, write_volume)
 from dotshell.plugins import PluginManager
+from dotshell.run.layout import RunLayout
 from dotshell.run.ply import read_ply
 from dotshell.profile.loader import Profile
 from dotshell.profile.sections import MeshSettings
@@ -47,7 +48,7 @@ def viewpoints_mm(store: RunStore, views: np.ndarray,
                   calib: RigCalibration | None = None) -> np.ndarray | None:
     """Camera centre (sample frame, mm) of the view each point came from, or None."""
     try:
-        calib = calib or RigCalibration.load(store.path("calibration.json"))
+        calib = calib or RigCalibration.load(store.path(RunLayout.CALIBRATION))
         angles = {v["index"]: v["angle_deg"] for v in store.manifest["views"]}
     except Exception:  # a cloud without its run's calibration: orient by the centroid
         return None
@@ -57,10 +58,6 @@ def viewpoints_mm(store: RunStore, views: np.ndarray,
         return None
     table = np.array([centres[i] for i in sorted(centres)])
     return table[np.searchsorted(sorted(centres), ids)]
-
-
-def mesh_dir_name(node_distance_mm: float) -> str:
-    return f"{node_distance_mm:g}mm"
 
 
 def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
@@ -78,9 +75,9 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
         raise MeshError(f"--node-distance {node_distance_mm:g} mm is below the smallest node "
                         f"distance [mesh] node_distance_mm allows ({smallest:g} mm); give a "
                         "larger one (e.g. 1.0).")
-    points, scalars = read_ply(store.path("cloud.ply"))
+    points, scalars = read_ply(store.path(RunLayout.CLOUD))
     if len(points) == 0:
-        raise MeshError(f"{store.path('cloud.ply')} has no points; nothing to mesh.")
+        raise MeshError(f"{store.path(RunLayout.CLOUD)} has no points; nothing to mesh.")
     for d in [primary, *cfg.also_node_distances_mm]:
         refuse_huge_mesh(points, d)
     views = viewpoints_mm(store, scalars["view"], calib) if "view" in scalars else None
@@ -91,7 +88,7 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
     out: dict[str, Any] = {"meshes": []}
     extras = [d for d in cfg.also_node_distances_mm if d != primary]
     for d in [primary, *extras]:
-        target = store.root if d == primary else store.path("meshes", mesh_dir_name(d))
+        target = store.root if d == primary else store.path(RunLayout.mesh_dir(d))
         bus.emit(StepStarted(step=f"mesh {d:g} mm"))
         entry = mesh_one(points, views, d, bottom, surface_mesher, volume_mesher, cfg, optodes,
                          target)
@@ -139,12 +136,12 @@ def mesh_one(points, views, node_distance_mm: float, bottom_z_mm: float | None, 
         "refractive_index": np.full(n, optics.refractive_index),
     }
     target.mkdir(parents=True, exist_ok=True)
-    write_surface(target / "surface.ply", result.surface)
-    write_volume(target / "volume.vtu", volume)
+    write_surface(target / RunLayout.SURFACE, result.surface)
+    write_volume(target / RunLayout.VOLUME, volume)
     if not optodes.empty:
-        write_optodes(target / "optodes.json", optodes)
-    elif (target / "optodes.json").exists():
-        os.unlink(target / "optodes.json")
+        write_optodes(target / RunLayout.OPTODES, optodes)
+    elif (target / RunLayout.OPTODES).exists():
+        os.unlink(target / RunLayout.OPTODES)
     return {
         "node_distance_mm": node_distance_mm,
         "surface": {k: v for k, v in result.stats.items() if not k.startswith("seconds")},
@@ -172,8 +169,8 @@ def _previews(store: RunStore, target: Path, node_distance_mm: float, bus: Event
     from dotshell.render.mesh_previews import render_mesh_previews
 
     try:
-        files = render_mesh_previews(target, store.path("previews"),
-                                     f"_{mesh_dir_name(node_distance_mm)}")
+        files = render_mesh_previews(target, store.path(RunLayout.PREVIEWS),
+                                     f"_{RunLayout.mesh_dir_name(node_distance_mm)}")
     except Exception as exc:  # rendering depends on the machine's OpenGL; degrade
         bus.warn(f"mesh previews skipped: 3-D rendering is not available here "
                  f"({type(exc).__name__}: {exc}). The meshes are written.")
@@ -190,7 +187,7 @@ def forward_stage(store: RunStore, source_mm: list[float] | None = None,
     from dotshell.fem.meshfiles import _atomic_meshio
 
     d = store.path(mesh_dir)
-    mesh = read_volume(d / "volume.vtu")
+    mesh = read_volume(d / RunLayout.VOLUME)
     source = _default_source(mesh, d) if source_mm is None else np.asarray(source_mm, float)
     if not np.all(np.isfinite(source)) or source.shape != (3,):
         raise RunError(f"--source must be three finite numbers (x y z in mm), got {source_mm!r}.")
@@ -203,7 +200,7 @@ def forward_stage(store: RunStore, source_mm: list[float] | None = None,
     import meshio
 
     data = {**mesh.point_data, "fluence": res.fluence}
-    _atomic_meshio(d / "forward.vtu", meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)],
+    _atomic_meshio(d / RunLayout.FORWARD, meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)],
                                                   point_data=data), "vtu")
     b = mesh.boundary_nodes
     fb = res.fluence[b]
@@ -212,8 +209,8 @@ def forward_stage(store: RunStore, source_mm: list[float] | None = None,
            "boundary_fluence_per_mm2": {"min": float(fb.min()), "median": float(np.median(fb)),
                                         "max": float(fb.max())},
            "negative_nodes": int((res.fluence < 0).sum()),
-           "file": str(Path(mesh_dir) / "forward.vtu")}
-    optodes = read_optodes(d / "optodes.json")
+           "file": str(Path(mesh_dir) / RunLayout.FORWARD)}
+    optodes = read_optodes(d / RunLayout.OPTODES)
     if len(optodes.detectors_mm):
         from scipy.spatial import cKDTree
 
@@ -234,7 +231,7 @@ def _inside(mesh: TetMesh, point: np.ndarray) -> bool:
 
 def _default_source(mesh: TetMesh, d: Path) -> np.ndarray:
     """The first optode source, else the centroid of the mesh volume."""
-    optodes = read_optodes(d / "optodes.json")
+    optodes = read_optodes(d / RunLayout.OPTODES)
     if len(optodes.sources_mm):
         return optodes.sources_mm[0]
     from dotshell.fem.meshes import signed_volumes_mm3

@@ -38,6 +38,7 @@ from dotshell.pipeline.transillum import TransilluminationCapture
 from dotshell.plugins import PluginManager
 from dotshell.profile.loader import Profile, validate_profile
 from dotshell.rig.assembly import Rig
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore
 
 #: What a scan makes: everything downstream of the calibration.
@@ -184,8 +185,8 @@ def resume_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = No
     profile = load_run_profile(store, pm)
     coding = make_coding(profile, pm)
     calib = None
-    if store.path("calibration.json").is_file():
-        calib = RigCalibration.load(store.path("calibration.json"))  # checked before the job
+    if store.path(RunLayout.CALIBRATION).is_file():
+        calib = RigCalibration.load(store.path(RunLayout.CALIBRATION))  # checked before the job
     elif any(v["frames"] for v in store.manifest["views"]):
         raise RunError(f"{store.root} has frames but no calibration.json; restore the run's "
                        "calibration.json from a backup to resume it.")
@@ -251,19 +252,19 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
     store, bus = job.store, job.bus
     # a resumed run continues with its own calibration; one killed before it recorded any
     # (nothing was captured yet) starts as a new scan would
-    resuming = job.command == "resume" and store.path("calibration.json").is_file()
+    resuming = job.command == "resume" and store.path(RunLayout.CALIBRATION).is_file()
     gen = Generation.start(store)
     job.generation = gen.number
     products = ProductStore(store, gen.dir)
     with _stoppable_rig(profile, pm, rig) as rig:
         if resuming:
-            calib = loaded or RigCalibration.load(store.path("calibration.json"))
+            calib = loaded or RigCalibration.load(store.path(RunLayout.CALIBRATION))
         else:
             calib = loaded or rig.calibration(calibration_file)
             require_turntable_axis(calib, profile.angles_deg(), profile.source)
         _check_devices(store, rig, calib, resuming)
         if not resuming:
-            calib.save(store.path("calibration.json"))
+            calib.save(store.path(RunLayout.CALIBRATION))
         patterns = coding.patterns(rig.projector.resolution)
         shots = plan_shots(patterns, profile.scan)
         _record_sequence(store, shots, patterns, resuming)
@@ -365,16 +366,16 @@ def _set_aside_partial(store: RunStore, view: int) -> None:
     """Move the frames of an unfinished view out of the way (kept, never deleted): its frame
     stack ``frames/view_NNN.tif`` and directory ``frames/view_NNN/`` (frame metadata; PNG frames
     of runs before TIFF stacks) become ``view_NNN.partial-K.tif`` and ``view_NNN.partial-K/``."""
-    stem = f"view_{view:03d}"
-    found = [p for p in (store.path("frames", stem), store.path("frames", f"{stem}.tif"))
+    found = [p for p in (store.path(RunLayout.frame_folder(view)),
+                         store.path(RunLayout.frame_stack(view)))
              if p.is_file() or (p.is_dir() and any(p.iterdir()))]
     if not found:
         return
     k = 1
-    while any(store.path("frames", f"{stem}.partial-{k}{s}").exists() for s in ("", ".tif")):
+    while any(store.path(RunLayout.set_aside(view, k) + s).exists() for s in ("", ".tif")):
         k += 1
     for p in found:
-        p.rename(store.path("frames", f"{stem}.partial-{k}{p.suffix}"))
+        p.rename(store.path(RunLayout.set_aside(view, k) + p.suffix))
 
 
 def _transillumination(rig: Rig, store: RunStore, profile: Profile, acq: Acquisition,
@@ -396,17 +397,8 @@ def _transillumination(rig: Rig, store: RunStore, profile: Profile, acq: Acquisi
 
 def load_run_profile(store: RunStore, pm: PluginManager) -> Profile:
     """The exact profile a run was made with."""
-    import tomllib
-
-    p = store.path("profile.toml")
-    try:
-        raw = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise RunError(f"{p} is missing; this run cannot be re-processed.") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError, RecursionError) as exc:
-        raise RunError(f"{p} is damaged ({exc}); it is written by dotshell only — restore it "
-                       "from a backup or copy the profile the run was made with.") from None
-    return validate_profile(raw, pm, str(p), store.root)
+    return validate_profile(store.read_profile(), pm, str(store.path(RunLayout.PROFILE)),
+                            store.root)
 
 
 def reconstruct_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,

@@ -35,6 +35,7 @@ from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.pdi import combine, shots_from_manifest
 from dotshell.plugins import PluginManager
+from dotshell.run.layout import RunLayout
 from dotshell.run.ply import read_ply, write_ply
 from dotshell.profile.loader import Profile
 from dotshell.run.store import RunStore, atomic_write_text, dumps
@@ -64,7 +65,7 @@ class StepContext:
     def calibration(self) -> RigCalibration:
         """The calibration of this generation (``calibration.json`` in it)."""
         if self._calib is None:
-            self._calib = RigCalibration.load(self.store.path("calibration.json"))
+            self._calib = RigCalibration.load(self.store.path(RunLayout.CALIBRATION))
         return self._calib
 
 
@@ -94,9 +95,9 @@ def calibration_step(ctx: StepContext) -> dict[str, Any]:
     calib = ctx.options.get("calibration")
     if calib is None:
         source = ctx.options.get("calibration_file") or ctx.store.path("..", "..",
-                                                                        "calibration.json")
+                                                                        RunLayout.CALIBRATION)
         calib = load_any_calibration(source)  # a user's file may be an OpenCV .yml/.xml
-    calib.save(ctx.store.path("calibration.json"))
+    calib.save(ctx.store.path(RunLayout.CALIBRATION))
     ctx._calib = calib
     return {"calibration": calib.source}
 
@@ -115,15 +116,11 @@ def require_turntable_axis(calib: RigCalibration, angles_deg: Sequence[float],
 
 # ---- views ---------------------------------------------------------------------------------
 
-def view_stem(view: int) -> str:
-    return f"view_{view:03d}"
-
-
 def store_view(store: RunStore, vc: ViewCloud, first_frame: np.ndarray | None,
                profile: Profile, calib: RigCalibration, bus: EventBus) -> dict[str, Any]:
     """Write one reconstructed view (``views/view_NNN.ply`` + ``.json``; frame and column
     previews for the profile's preview view) and return its report record."""
-    write_ply(store.path("views", f"{view_stem(vc.view)}.ply"), vc.points)
+    write_ply(store.path(RunLayout.view_cloud(vc.view)), vc.points)
     record: dict[str, Any] = {"view": vc.view, "angle_deg": vc.angle_deg, **vc.stats}
     integrity = getattr(store, "run", store).manifest["views"][vc.view].get("integrity")
     if integrity is not None:  # the capture's frame checks (dotshell.run.integrity)
@@ -132,15 +129,16 @@ def store_view(store: RunStore, vc: ViewCloud, first_frame: np.ndarray | None,
     if out.previews and vc.view == out.preview_view and vc.correspondence is not None:
         from dotshell.render.previews import column_map_preview, frame_preview
 
-        pdir = store.path("previews")
+        pdir = store.path(RunLayout.PREVIEWS)
         pdir.mkdir(parents=True, exist_ok=True)
         previews = {"columns": column_map_preview(vc.correspondence.column,
                                                   vc.correspondence.valid, calib.projector.width,
-                                                  pdir / f"columns_{view_stem(vc.view)}.png")}
+                                                  store.path(RunLayout.view_preview("columns", vc.view)))}
         if first_frame is not None:
-            previews["frame"] = frame_preview(first_frame, pdir / f"frame_{view_stem(vc.view)}.png")
+            previews["frame"] = frame_preview(first_frame,
+                                              store.path(RunLayout.view_preview("frame", vc.view)))
         record["previews"] = {k: str(Path(p).relative_to(store.root)) for k, p in previews.items()}
-    atomic_write_text(store.path("views", f"{view_stem(vc.view)}.json"),
+    atomic_write_text(store.path(RunLayout.view_record(vc.view)),
                       dumps({**record, "seconds": {k: round(s, 4) for k, s in vc.seconds.items()}}))
     bus.emit(ViewReconstructed(view=vc.view, n_points=len(vc.points),
                                decoded_pixels=int(vc.stats.get("decoded", 0))))
@@ -225,7 +223,7 @@ def views_step(ctx: StepContext) -> dict[str, Any]:
 
 
 def read_view_record(store: RunStore, view: int) -> dict[str, Any]:
-    p = store.path("views", f"{view_stem(view)}.json")
+    p = store.path(RunLayout.view_record(view))
     try:
         return json.loads(p.read_text())
     except (OSError, ValueError) as exc:
@@ -236,13 +234,14 @@ def read_view_record(store: RunStore, view: int) -> dict[str, Any]:
 # ---- cloud, validation, previews -----------------------------------------------------------
 
 def stored_views(store: RunStore) -> list[int]:
-    return sorted(int(p.stem.split("_")[1]) for p in store.path("views").glob("view_*.ply"))
+    return sorted(RunLayout.view_index(p.stem)
+                  for p in store.path(RunLayout.VIEWS).glob(f"{RunLayout.VIEW_GLOB}.ply"))
 
 
 def cloud_step(ctx: StepContext) -> dict[str, Any]:
     ctx.bus.emit(StepStarted(step="merge"))
     views = stored_views(ctx.store)
-    parts = [read_ply(ctx.store.path("views", f"{view_stem(v)}.ply"), float_type=np.float32)[0]
+    parts = [read_ply(ctx.store.path(RunLayout.view_cloud(v)), float_type=np.float32)[0]
              for v in views]  # float32 as stored: the merged file holds the same values
     n = sum(len(p) for p in parts)
     if n == 0:
@@ -250,12 +249,12 @@ def cloud_step(ctx: StepContext) -> dict[str, Any]:
     points = np.concatenate(parts)
     ids = np.repeat(np.asarray(views, np.float32), [len(p) for p in parts])
     del parts
-    write_ply(ctx.store.path("cloud.ply"), points, view=ids)
+    write_ply(ctx.store.path(RunLayout.CLOUD), points, view=ids)
     last_frame_at = ctx.options.get("last_frame_at")
     if last_frame_at is not None:  # a scan: the latency from its last stored frame (s)
         ctx.timings["last_frame_to_cloud"] = time.monotonic() - last_frame_at
     ctx.cloud = points
-    return {"cloud": {"path": "cloud.ply", "points": int(n)}}
+    return {"cloud": {"path": RunLayout.CLOUD, "points": int(n)}}
 
 
 def pixel_totals(records: Sequence[dict[str, Any]]) -> dict[str, int]:
@@ -291,7 +290,7 @@ def load_cloud(ctx: StepContext) -> np.ndarray:
     ``cloud.ply`` read as float64 (the same values; the steps' arithmetic is float64)."""
     if ctx.cloud is not None:
         return ctx.cloud
-    return read_ply(ctx.store.path("cloud.ply"))[0]
+    return read_ply(ctx.store.path(RunLayout.CLOUD))[0]
 
 
 def validation_step(ctx: StepContext) -> dict[str, Any]:

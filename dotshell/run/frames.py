@@ -37,6 +37,7 @@ import tifffile
 from dotshell.run import tiffpages
 from dotshell.errors import FrameError, RunError
 from dotshell.run.framecheck import FrameSpec, dtype_for
+from dotshell.run.layout import RunLayout
 
 TIFF_STACK = "tiff-stack/1"
 PNG_FILES = "png/1"
@@ -192,7 +193,7 @@ class TiffFrameStore(FrameStore):
 
     @property
     def path(self) -> Path:
-        return self.root / "frames" / f"view_{self.view:03d}.tif"
+        return self.root / RunLayout.frame_stack(self.view)
 
     def count(self) -> int:
         if not self.path.is_file():
@@ -300,10 +301,10 @@ class PngFrameStore(FrameStore):
 
     @property
     def path(self) -> Path:
-        return self.root / "frames" / f"view_{self.view:03d}"
+        return self.root / RunLayout.frame_folder(self.view)
 
     def frame_path(self, index: int) -> Path:
-        return self.path / f"{index:03d}_{self._check_index(index)}.png"
+        return self.path / RunLayout.png_frame(index, self._check_index(index))
 
     def count(self) -> int:
         return sum(self.frame_path(i).is_file() for i in range(len(self.names)))
@@ -361,11 +362,11 @@ def damaged_views(root: Path, manifest: dict) -> list[tuple[int, int, int]]:
 def export_png(frames: FrameStore, out_dir: Path) -> list[Path]:
     """Write the view's frames losslessly as ``out_dir/view_NNN/III_NAME.png`` (the PNG layout,
     same bit depth); returns the files written."""
-    d = Path(out_dir) / f"view_{frames.view:03d}"
+    d = Path(out_dir) / RunLayout.view_stem(frames.view)
     d.mkdir(parents=True, exist_ok=True)
     paths = []
     for i, name in enumerate(frames.names[:frames.count()]):
-        p = d / f"{i:03d}_{name}.png"
+        p = d / RunLayout.png_frame(i, name)
         if not cv2.imwrite(str(p), frames.read_one(i), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
             raise RunError(f"could not write {p}; check that {out_dir} is writable.")
         paths.append(p)

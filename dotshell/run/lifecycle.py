@@ -27,11 +27,12 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from dotshell.errors import RunError
+from dotshell.run.layout import RunLayout
 from dotshell.rig.owners import holder, try_flock
 
 #: Final states; ``running`` is the only other one.
 FINAL_STATES = ("completed", "failed", "aborted", "interrupted")
-LOCK_NAME = ".lock"
+LOCK_NAME = RunLayout.LOCK
 
 
 class Interrupted(KeyboardInterrupt):
