@@ -63,3 +63,22 @@ def test_profile_cannot_be_changed_through_its_sections_or_data(profile):
     assert profile.data["camera"]["settings"]["width"] != 1
     with pytest.raises(KeyError):
         profile.scan["no_such_key"]
+
+
+def test_run_layout_names_match_the_documented_run_directory():
+    """The names RunLayout gives are those of docs/run-directory.md (the on-disk contract)."""
+    from dotshell.run.layout import RunLayout as L
+
+    assert (L.CALIBRATION, L.PROFILE, L.MANIFEST, L.EVENTS, L.REPORT, L.CLOUD) == (
+        "calibration.json", "profile.toml", "manifest.json", "events.jsonl", "report.json",
+        "cloud.ply")
+    assert L.frame_stack(7) == "frames/view_007.tif"
+    assert L.frame_info(7) == "frames/view_007/frame_info.json"
+    assert L.view_cloud(12) == "views/view_012.ply" and L.view_record(12) == "views/view_012.json"
+    assert L.view_preview("columns", 0) == "previews/columns_view_000.png"
+    assert L.trans_frame("src_01", 2) == "transillumination/view_002/src_01.png"
+    assert L.trans_frame("flat") == "transillumination/flat.png"
+    assert L.mesh_dir(0.5) == "meshes/0.5mm" and L.generation_dir(3) == "gen/003"
+    assert L.set_aside(1, 2) == "frames/view_001.partial-2"
+    assert L.view_index(L.view_stem(42)) == 42
+    assert L.png_frame(3, "col_02") == "003_col_02.png"

@@ -35,6 +35,7 @@ from dotshell.calibration.solve import (OutlierRule, PoseData, calibrate_lens, c
                                         projector_corners, turntable_axis)
 from dotshell.errors import CalibrationError
 from dotshell.events import EventBus, StepProgress, StepStarted
+from dotshell.run.layout import RunLayout
 from dotshell.geometry.calibration import (PLACEHOLDER_AXIS_DIRECTION, PLACEHOLDER_AXIS_POINT,
                                            RigCalibration)
 
@@ -147,7 +148,7 @@ def capture(profile, pm, out_dir: Path | str = "runs", bus: EventBus | None = No
             for i, pat in enumerate(shown):
                 rig.projector.show(pat.image)
                 frame = rig.camera.capture()
-                rel = f"frames/{spec.name}/{i:03d}_{pat.name}.png"
+                rel = f"{RunLayout.FRAMES}/{spec.name}/{RunLayout.png_frame(i, pat.name)}"
                 _write_png(store.path(rel), frame)
                 files.append(rel)
                 done += 1
@@ -490,7 +491,7 @@ def _publish(run: Path, calib: RigCalibration, report: dict[str, Any], refused: 
         raise CalibrationError(
             f"{run}: calibration refused, no calibration.json written: " + "; ".join(refused)
             + f". Every figure is in {run / 'calibration-refused.json'}.")
-    calib.save(run / "calibration.json")
+    calib.save(run / RunLayout.CALIBRATION)
     write_opencv_calibration(calib, run / "calibration.yml")
     atomic_write_text(run / "calibration-report.json", dumps(report))
     (run / "calibration-refused.json").unlink(missing_ok=True)

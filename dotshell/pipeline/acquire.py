@@ -39,6 +39,7 @@ from dotshell.pipeline.pdi import Shot, plan_shots
 from dotshell.pipeline.sequenced import SequencedCapture, uses_sequenced
 from dotshell.rig.assembly import Rig
 from dotshell.rig.checks import refused_controls
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore
 
 T = TypeVar("T")
@@ -385,7 +386,7 @@ class Acquisition:
                 m["views"][view]["frame_info"] = frame_info_path(view)
             if verdict is not None:
                 m["views"][view]["integrity"] = {**verdict.to_dict(), "captures": attempt}
-            self.store.write_json("manifest.json", m)
+            self.store.write_json(RunLayout.MANIFEST, m)
 
     def close(self) -> None:
         """Stop the writer thread (after it wrote everything queued) and the stop watcher."""
@@ -397,7 +398,7 @@ class Acquisition:
 
 def frame_info_path(view: int) -> str:
     """Where a view's frame metadata goes, relative to the run."""
-    return f"frames/view_{view:03d}/frame_info.json"
+    return RunLayout.frame_info(view)
 
 
 def record_frame_info(store: RunStore, view: int, infos: list[dict[str, Any]]) -> Path:

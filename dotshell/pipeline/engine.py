@@ -29,6 +29,7 @@ from dotshell.errors import DotshellError, RunError
 from dotshell.events import EventBus, StepStarted
 from dotshell.run.generations import (Generation, ProductStore, current_number,
                                            published, remove_unpublished)
+from dotshell.run.layout import RunLayout
 from dotshell.run.lifecycle import Interrupted, RunLock, effective_status
 from dotshell.pipeline.steps import STEP_BY_NAME, STEPS, StepContext, import_ahead
 from dotshell.plugins import PluginManager
@@ -241,7 +242,8 @@ def prepare(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
     gen = generation or Generation.start(job.store)
     job.generation = gen.number
     if gen.missing_base is not None:
-        job.bus.warn(f"{job.store.root}/current points to gen/{gen.missing_base:03d}, which is "
+        job.bus.warn(f"{job.store.root}/{RunLayout.CURRENT} points to "
+                     f"{RunLayout.generation_dir(gen.missing_base)}, which is "
                      f"missing (deleted?); generation {gen.number} makes every product again "
                      "from the frames.")
     options = dict(options or {})

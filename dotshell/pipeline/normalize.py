@@ -35,6 +35,7 @@ from dotshell.pipeline.transillum import source_names
 from dotshell.profile.loader import Profile
 from dotshell.settings import validate_settings
 from dotshell.profile.transillum import NORMALIZE_SCHEMA
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore
 
 DEFAULT_NORMALIZER = "diffuse-fresnel"
@@ -87,7 +88,7 @@ def _load_surface(store: RunStore) -> TriangleSurface:
     from dotshell.fem.meshfiles import read_surface
 
     return read_surface(_required(
-        store, "surface.ply", RunError, "normalization maps the images onto the scanned "
+        store, RunLayout.SURFACE, RunError, "normalization maps the images onto the scanned "
         f"surface. Run `dotshell mesh {store.root}` first, or scan with [mesh] after_scan = true."))
 
 
@@ -100,7 +101,7 @@ def unscanned_nodes(store: RunStore, surface: TriangleSurface,
     from dotshell.run.ply import read_ply
 
     points, _ = read_ply(_required(
-        store, "cloud.ply", RunError, "the surface's nodes cannot be checked against the "
+        store, RunLayout.CLOUD, RunError, "the surface's nodes cannot be checked against the "
         f"scanned points. Re-run `dotshell reconstruct {store.root}`."))
     dist, _ = cKDTree(points).query(surface.vertices, distance_upper_bound=max_distance_mm)
     return ~np.isfinite(dist)
@@ -108,7 +109,7 @@ def unscanned_nodes(store: RunStore, surface: TriangleSurface,
 
 def _load_calibration(store: RunStore) -> RigCalibration:
     return RigCalibration.load(_required(
-        store, "calibration.json", CalibrationError, "its views cannot be mapped onto the "
+        store, RunLayout.CALIBRATION, CalibrationError, "its views cannot be mapped onto the "
         f"surface. Give one with `dotshell reconstruct {store.root} --calibration FILE`."))
 
 
@@ -331,5 +332,5 @@ def normalize_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: E
     results = job.run(writer.view)
     section = writer.summary(results)
     section["seconds"] = round(time.perf_counter() - t0, 3)
-    store.write_json("normalize/report.json", section)
+    store.write_json(RunLayout.normalize_file(RunLayout.REPORT), section)
     return section

@@ -23,6 +23,7 @@ import numpy as np
 from dotshell.geometry.raycast import TriangleScene
 from dotshell.geometry.surface_map import MASK_REASONS, SurfaceView, resample_to_image
 from dotshell.profile.loader import Profile
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore, atomic_write_bytes, atomic_write_text
 
 if TYPE_CHECKING:
@@ -30,7 +31,7 @@ if TYPE_CHECKING:
 
 
 def stem(r: "SourceResult") -> str:
-    return f"view_{r.view:03d}_{r.source}"
+    return f"{RunLayout.view_stem(r.view)}_{r.source}"
 
 
 def write_csv(store: RunStore, job: "Normalization", r: "SourceResult") -> str:
@@ -49,7 +50,7 @@ def write_csv(store: RunStore, job: "Normalization", r: "SourceResult") -> str:
         if r.truth is not None:
             row.append(_g(r.truth[k]))
         w.writerow(row)
-    name = f"normalize/{stem(r)}.csv"
+    name = RunLayout.normalize_file(f"{stem(r)}.csv")
     atomic_write_text(store.path(name), buf.getvalue())
     return name
 
@@ -75,7 +76,7 @@ def write_vtu(store: RunStore, job: "Normalization", results: list["SourceResult
             data[f"i0_true_{key}"] = r.truth
     mesh = meshio.Mesh(job.surface.vertices, [("triangle", job.surface.triangles)],
                        point_data=data)
-    name = "normalize/surface_normalized.vtu"
+    name = RunLayout.normalize_file("surface_normalized.vtu")
     _atomic_meshio(store.path(name), mesh, "vtu")
     return name
 
@@ -84,7 +85,7 @@ def write_flat_image(store: RunStore, r: "SourceResult", image: np.ndarray) -> s
     ok, buf = cv2.imencode(".tiff", image.astype(np.float32))
     if not ok:
         raise OSError("could not encode the flattened image as TIFF")
-    name = f"normalize/{stem(r)}_flat.tiff"
+    name = RunLayout.normalize_file(f"{stem(r)}_flat.tiff")
     atomic_write_bytes(store.path(name), buf.tobytes())
     return name
 
@@ -115,7 +116,7 @@ def write_preview(store: RunStore, r: "SourceResult", frame: np.ndarray, raw_img
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90)
     plt.close(fig)
-    name = f"normalize/{stem(r)}.png"
+    name = RunLayout.normalize_file(f"{stem(r)}.png")
     atomic_write_bytes(store.path(name), buf.getvalue())
     return name
 
@@ -128,7 +129,7 @@ def write_paa(store: RunStore, r: "SourceResult", amplitudes: np.ndarray) -> str
     for d, a in enumerate(amplitudes, 1):
         active = int(np.isfinite(a))
         lines.append("\t".join(f"{x:<10g}" for x in (1, d, active, a if active else 0.0, 0.0)))
-    name = f"normalize/nirfast_v{r.view:03d}_{r.source}.paa"
+    name = RunLayout.normalize_file(f"nirfast_v{r.view:03d}_{r.source}.paa")
     atomic_write_text(store.path(name), "\n".join(lines) + "\n")
     return name
 
@@ -155,7 +156,7 @@ class OutputWriter:
         self.at_detectors = TriangleScene(job.surface.vertices, job.surface.triangles).closest(
             detectors) if len(detectors) else None
         self.entries: list[dict[str, Any]] = []
-        store.path("normalize").mkdir(exist_ok=True)
+        store.path(RunLayout.NORMALIZE).mkdir(exist_ok=True)
 
     def view(self, geometry: SurfaceView, pairs: list[tuple["SourceResult", np.ndarray]]) -> None:
         job, store = self.job, self.store

@@ -24,6 +24,7 @@ from dotshell.run.framecheck import FrameSpec
 from dotshell.pipeline.acquire import FrameWriter, check_frame, with_retries
 from dotshell.rig.assembly import Rig
 from dotshell.profile.sections import ScanSettings, TransilluminationSettings
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore
 
 
@@ -104,7 +105,7 @@ class TransilluminationCapture:
                           "stays in the normalized intensities. Set [transillumination] "
                           "flat_field to an image of a uniform field.")
             return None
-        entry["flat_field"] = str(Path("transillumination") / "flat.png")
+        entry["flat_field"] = RunLayout.trans_frame("flat")
         self.store.update_manifest(transillumination=entry)
         return entry["flat_field"]
 

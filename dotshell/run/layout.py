@@ -72,6 +72,12 @@ class RunLayout:
         return f"{RunLayout.FRAMES}/{RunLayout.view_stem(view)}"
 
     @staticmethod
+    def frame_info(view: int) -> str:
+        """``frames/view_NNN/frame_info.json``: a view's frame metadata (cameras that report
+        it)."""
+        return f"{RunLayout.frame_folder(view)}/frame_info.json"
+
+    @staticmethod
     def png_frame(index: int, name: str) -> str:
         """``III_NAME.png``: a frame in a view's folder of PNG frames (runs before TIFF
         stacks, and ``dotshell frames --png``); ``index`` is its place in the sequence."""
