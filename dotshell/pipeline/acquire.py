@@ -20,7 +20,7 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, Mapping, TypeVar
 
 import numpy as np
 
@@ -176,7 +176,7 @@ class Acquisition:
     """Captures views of a scan into a :class:`RunStore`."""
 
     def __init__(self, rig: Rig, patterns: list[PatternFrame], store: RunStore,
-                 scan: dict[str, Any], bus: EventBus, stop: threading.Event | None = None,
+                 scan: Mapping[str, Any], bus: EventBus, stop: threading.Event | None = None,
                  running: threading.Event | None = None, shots: list[Shot] | None = None) -> None:
         self.rig = rig
         self.patterns = patterns

@@ -216,8 +216,8 @@ class Normalization:
                  max_normal_spread_deg: float | None = None,
                  calib: RigCalibration | None = None) -> None:
         self.store, self.profile, self.bus = store, profile, bus
-        self.cfg = replace(profile.normalize,
-                           **checked_overrides(min_sin_beta, max_normal_spread_deg))
+        overrides: dict[str, Any] = checked_overrides(min_sin_beta, max_normal_spread_deg)
+        self.cfg = replace(profile.normalize, **overrides)
         self.entry = transillumination_entry(store)
         self.surface = _load_surface(store)
         self.unscanned = unscanned_nodes(store, self.surface, self.cfg.max_cloud_distance_mm)

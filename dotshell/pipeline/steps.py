@@ -129,11 +129,11 @@ def store_view(store: RunStore, vc: ViewCloud, first_frame: np.ndarray | None,
     if out.previews and vc.view == out.preview_view and vc.correspondence is not None:
         from dotshell.render.previews import column_map_preview, frame_preview
 
-        pdir = store.path(RunLayout.PREVIEWS)
-        pdir.mkdir(parents=True, exist_ok=True)
+        store.path(RunLayout.PREVIEWS).mkdir(parents=True, exist_ok=True)
+        columns = store.path(RunLayout.view_preview("columns", vc.view))
         previews = {"columns": column_map_preview(vc.correspondence.column,
                                                   vc.correspondence.valid, calib.projector.width,
-                                                  store.path(RunLayout.view_preview("columns", vc.view)))}
+                                                  columns)}
         if first_frame is not None:
             previews["frame"] = frame_preview(first_frame,
                                               store.path(RunLayout.view_preview("frame", vc.view)))

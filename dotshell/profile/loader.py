@@ -20,7 +20,7 @@ from dotshell.errors import ProfileError
 from dotshell.rig.handles import TIMEOUT_DEFAULTS_S
 from dotshell.profile.mesh import MESH_SCHEMA
 from dotshell.plugins import PluginManager
-from dotshell.profile.sections import (SECTIONS, CalibrateSettings, CalibrationSource,
+from dotshell.profile.sections import (CalibrateSettings, CalibrationSource,
                                        MeshSettings, NormalizeSettings, OutputsSettings,
                                        ProcessingSettings, ProfileInfo, ScanSettings,
                                        TransilluminationSettings, ValidationSettings)
@@ -194,9 +194,18 @@ class Profile:
     @classmethod
     def from_validated(cls, data: dict[str, Any], source: str, base_dir: Path) -> Profile:
         """The profile of a dict :func:`validate_settings` filled in against :data:`SCHEMA`."""
-        sections = {("info" if name == "profile" else name): kind.from_table(data[name])
-                    for name, kind in SECTIONS.items()}
-        return cls(source=source, base_dir=base_dir, _data=data, **sections)
+        return cls(source=source, base_dir=base_dir, _data=data,
+                   info=ProfileInfo.from_table(data["profile"]),
+                   scan=ScanSettings.from_table(data["scan"]),
+                   processing=ProcessingSettings.from_table(data["processing"]),
+                   validation=ValidationSettings.from_table(data["validation"]),
+                   outputs=OutputsSettings.from_table(data["outputs"]),
+                   mesh=MeshSettings.from_table(data["mesh"]),
+                   transillumination=TransilluminationSettings.from_table(
+                       data["transillumination"]),
+                   normalize=NormalizeSettings.from_table(data["normalize"]),
+                   calibration=CalibrationSource.from_table(data["calibration"]),
+                   calibrate=CalibrateSettings.from_table(data["calibrate"]))
 
     @property
     def data(self) -> dict[str, Any]:

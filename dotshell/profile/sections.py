@@ -64,8 +64,8 @@ class Section(Mapping[str, Any]):
         return tuple(f.name for f in dataclasses.fields(self))
 
     def as_table(self) -> dict[str, Any]:
-        """The section as a plain dict (sub-sections as dicts, lists for tuples), e.g. to merge command-line options
-        into and validate again."""
+        """The section as a plain dict (sub-sections as dicts, lists for tuples), e.g. to merge
+        command-line options into and validate again."""
         return {f.name: _thawed(getattr(self, f.name)) for f in dataclasses.fields(self)}
 
 
