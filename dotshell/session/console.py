@@ -799,7 +799,8 @@ def readable_repr(value: Any) -> str:
         return f"<Rig of {value.profile.name}: {devices or 'no devices'}>"
     if isinstance(value, Profile):
         return (f"<Profile {value.name} from {value.source}: {len(value.angles_deg())} views, "
-                f"exposure {value.scan.exposure_ms:g} ms, coding {value.role('coding')['backend']}>")
+                f"exposure {value.scan.exposure_ms:g} ms, "
+                f"coding {value.role('coding')['backend']}>")
     return repr(value)
 
 
