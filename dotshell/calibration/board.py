@@ -12,7 +12,7 @@ import hashlib
 import threading
 from collections import OrderedDict
 from dataclasses import asdict, dataclass, replace
-from typing import Any
+from typing import Any, Mapping
 
 import cv2
 import numpy as np
@@ -40,7 +40,7 @@ class Board:
     dictionary: str = "DICT_4X4_50"
 
     @classmethod
-    def from_settings(cls, s: dict[str, Any]) -> Board:
+    def from_settings(cls, s: Mapping[str, Any]) -> Board:
         return cls(s["target"], s["columns"], s["rows"], s["square_mm"], s["marker_mm"],
                    s["dictionary"])
 

@@ -167,7 +167,7 @@ def cmd_check(args: argparse.Namespace) -> int:
             for line in refused_controls(rig):
                 out.print(f"  [yellow]warning[/] {escape(line)}")
             if args.latency:
-                lat = measure_latency(rig, profile.data["scan"]["exposure_ms"])
+                lat = measure_latency(rig, profile.scan.exposure_ms)
                 out.print(f"  display latency: the full pattern is seen {lat.shortest_ms:.0f} ms "
                           f"after show() ({len(lat.trials)} trials, step "
                           f"{lat.contrast_dn:.0f} DN)")

@@ -167,7 +167,7 @@ def calibrate_settings(args: argparse.Namespace, pm):
     profile = None
     if args.profile:
         profile = load_profile(args.profile, pm, args.set)
-        settings = dict(profile.data["calibrate"])
+        settings = profile.calibrate.as_table()
     else:
         raw = apply_overrides({}, args.set, "--set")
         other = [k for k in raw if k != "calibrate"]

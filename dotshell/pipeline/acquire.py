@@ -23,7 +23,7 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, TypeVar, cast
+from typing import Any, Callable, Mapping, TypeVar, cast
 
 import numpy as np
 
@@ -41,6 +41,7 @@ from dotshell.pipeline.engines import AcquisitionEngine, choose_engine
 from dotshell.pipeline.pdi import Shot, plan_shots
 from dotshell.rig.assembly import Rig
 from dotshell.rig.checks import refused_controls
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore
 
 T = TypeVar("T")
@@ -177,7 +178,7 @@ class Acquisition:
     """Captures views of a scan into a :class:`RunStore`."""
 
     def __init__(self, rig: Rig, patterns: list[PatternFrame], store: RunStore,
-                 scan: dict[str, Any], bus: EventBus, stop: threading.Event | None = None,
+                 scan: Mapping[str, Any], bus: EventBus, stop: threading.Event | None = None,
                  running: threading.Event | None = None, shots: list[Shot] | None = None) -> None:
         self.rig = rig
         self.patterns = patterns
@@ -356,7 +357,7 @@ class Acquisition:
                 m["views"][view]["frame_info"] = frame_info_path(view)
             if verdict is not None:
                 m["views"][view]["integrity"] = {**verdict.to_dict(), "captures": attempt}
-            self.store.write_json("manifest.json", m)
+            self.store.write_json(RunLayout.MANIFEST, m)
 
     def close(self) -> None:
         """Stop the writer thread (after it wrote everything queued) and the stop watcher."""
@@ -368,7 +369,7 @@ class Acquisition:
 
 def frame_info_path(view: int) -> str:
     """Where a view's frame metadata goes, relative to the run."""
-    return f"frames/view_{view:03d}/frame_info.json"
+    return RunLayout.frame_info(view)
 
 
 def record_frame_info(store: RunStore, view: int, infos: list[dict[str, Any]]) -> Path:

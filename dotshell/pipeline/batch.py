@@ -36,6 +36,7 @@ from dotshell.pipeline.batch_tasks import (TaskOutcome, executing_keys, head_tas
 from dotshell.pipeline.commands import check_calibration_for_run
 from dotshell.pipeline.engine import JobWork, RunJob, outcome_of, prepare, publish
 from dotshell.run.generations import current_number
+from dotshell.run.layout import RunLayout
 from dotshell.pipeline.steps import complete_views, view_angle
 from dotshell.plugins import PluginManager
 from dotshell.run.store import RunStore
@@ -133,12 +134,12 @@ def find_runs(patterns: list[str]) -> list[Path]:
     for pattern in patterns:
         if any(c in pattern for c in "*?[") and not Path(pattern).exists():
             found = [Path(m) for m in sorted(glob.glob(pattern))]
-            found = [p for p in found if (p / "manifest.json").is_file()]
+            found = [p for p in found if (p / RunLayout.MANIFEST).is_file()]
             if not found:
                 raise RunError(f"{pattern} matches no run directory (a directory holding "
                                "manifest.json); check the pattern and the current directory.")
-        elif Path(pattern).is_dir() and not (Path(pattern) / "manifest.json").is_file():
-            found = sorted(p for p in Path(pattern).iterdir() if (p / "manifest.json").is_file())
+        elif Path(pattern).is_dir() and not (Path(pattern) / RunLayout.MANIFEST).is_file():
+            found = sorted(p for p in Path(pattern).iterdir() if (p / RunLayout.MANIFEST).is_file())
             if not found:
                 raise RunError(f"{pattern} is neither a run directory nor a study directory "
                                "holding runs; give run directories, a study directory or a "
@@ -394,7 +395,8 @@ class StudyBatch:
                 return False
         except DotshellError:  # a damaged manifest: the run's own job says what is wrong
             return False
-        report = store.read_json("report.json") if store.path("report.json").is_file() else {}
+        report = (store.read_json(RunLayout.REPORT) if store.path(RunLayout.REPORT).is_file()
+                  else {})
         self._finish(RunOutcome(root, "skipped", "finished by an earlier run of this batch",
                                 report))
         return True

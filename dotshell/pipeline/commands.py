@@ -16,6 +16,7 @@ from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.steps import require_turntable_axis
 from dotshell.plugins import PluginManager
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore
 
 if TYPE_CHECKING:
@@ -35,7 +36,8 @@ def reprocess(run_dir: Path | str, pm: PluginManager, command: str, targets: Ite
     try:
         profile = load_run_profile(store, pm)
         if options.get("calibration_file"):
-            check_calibration_for_run(options["calibration_file"], store)
+            options["calibration"] = check_calibration_for_run(options["calibration_file"],
+                                                               store)
             targets = targets_if_calibration or targets
         with RunJob(store, command, bus) as job:
             return process(job, profile, pm, targets, options)
@@ -61,7 +63,7 @@ def check_calibration_for_run(path: str | Path, store: RunStore) -> RigCalibrati
     """A calibration file that can re-process this run: valid, and its camera the size of the
     run's frames. Checked before anything is written."""
     calib = load_any_calibration(path)
-    captured = RigCalibration.load(store.path("calibration.json"))
+    captured = RigCalibration.load(store.path(RunLayout.CALIBRATION))
     if calib.camera.size != captured.camera.size:
         raise CalibrationError(
             f"{path}: its camera is {calib.camera.size[0]}x{calib.camera.size[1]} px but the run's "

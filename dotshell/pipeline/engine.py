@@ -29,6 +29,7 @@ from dotshell.errors import DotshellError, RunError
 from dotshell.events import EventBus, StepStarted
 from dotshell.run.generations import (Generation, ProductStore, current_number,
                                            published, remove_unpublished)
+from dotshell.run.layout import RunLayout
 from dotshell.run.lifecycle import Interrupted, RunLock, effective_status
 from dotshell.run.lost import finished, lost_reason
 from dotshell.pipeline.steps import STEP_BY_NAME, STEPS, StepContext, import_ahead
@@ -247,7 +248,8 @@ def prepare(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
     gen = generation or Generation.start(job.store)
     job.generation = gen.number
     if gen.missing_base is not None:
-        job.bus.warn(f"{job.store.root}/current points to gen/{gen.missing_base:03d}, which is "
+        job.bus.warn(f"{job.store.root}/{RunLayout.CURRENT} points to "
+                     f"{RunLayout.generation_dir(gen.missing_base)}, which is "
                      f"missing (deleted?); generation {gen.number} makes every product again "
                      "from the frames.")
     options = dict(options or {})
@@ -341,9 +343,12 @@ def process(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
     """Make ``targets`` (and whatever they need) in a new generation of ``job``'s run and
     publish it, all in this process; returns the published report. ``generation``: one the
     caller already started writing into (a scan writes views while it captures). Options
-    ``reconstructed``, ``prewritten`` and ``timings`` are as in :func:`run_steps`."""
+    ``reconstructed``, ``prewritten`` and ``timings`` are as in :func:`run_steps`; option
+    ``calibration`` is the generation's calibration the caller already loaded and checked (a
+    :class:`RigCalibration`, so that the file is read once)."""
     options = dict(options or {})
-    extra: dict[str, Any] = {k: options.pop(k) for k in ("reconstructed", "prewritten", "timings")
+    extra: dict[str, Any] = {k: options.pop(k) for k in ("reconstructed", "prewritten", "timings",
+                                                               "calibration")
                              if k in options}
     work = prepare(job, profile, pm, targets, options, generation)
     return publish(job, work, [run_steps(work, profile, pm, job.bus, extra=extra)],

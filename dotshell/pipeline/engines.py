@@ -18,7 +18,7 @@ writes, checks or announces a frame.
 from __future__ import annotations
 
 import time
-from typing import Any, Callable, Protocol, Sequence, TypeVar
+from typing import Any, Callable, Mapping, Protocol, Sequence, TypeVar
 
 import numpy as np
 
@@ -112,7 +112,7 @@ class ShowCaptureEngine:
 
 
 def choose_engine(rig: Any, patterns: Sequence[PatternFrame], shots: Sequence[Shot],
-                  scan: dict[str, Any], bus: EventBus, retry: Retry) -> AcquisitionEngine:
+                  scan: Mapping[str, Any], bus: EventBus, retry: Retry) -> AcquisitionEngine:
     """The engine for a scan with ``scan`` settings on ``rig``: sequenced when the projector
     stores sequences and the camera takes a trigger (and ``acquisition`` allows it), else
     show-capture; a ProfileError when ``acquisition = "sequenced"`` is asked of devices that

@@ -14,7 +14,7 @@ backend is scored against it. Outputs are written by
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
@@ -36,6 +36,7 @@ from dotshell.pipeline.transillum import source_names
 from dotshell.profile.loader import Profile
 from dotshell.settings import validate_settings
 from dotshell.profile.transillum import NORMALIZE_SCHEMA
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore
 from dotshell.run.truth import TRUTH_FILE, read_transillumination_truth
 
@@ -64,7 +65,7 @@ def normalizers(profile: Profile, pm: PluginManager, override: str | None) -> di
     """The primary normalizer first, then the ``compare`` ones (each once)."""
     section = profile.role("normalizer")
     primary = override or (section["backend"] if section else DEFAULT_NORMALIZER)
-    names = [primary] + [n for n in profile.data["normalize"]["compare"] if n != primary]
+    names = [primary] + [n for n in profile.normalize.compare if n != primary]
     out = {}
     for name in dict.fromkeys(names):
         settings = dict(section["settings"]) if section and section["backend"] == name else {}
@@ -72,7 +73,7 @@ def normalizers(profile: Profile, pm: PluginManager, override: str | None) -> di
         settings = validate_settings(info.backend.settings_schema, settings, profile.source,
                                      "normalizer.settings")
         if settings.get("refractive_index") == 0.0:  # documented: 0 = the sample's [mesh.optics]
-            settings["refractive_index"] = profile.data["mesh"]["optics"]["refractive_index"]
+            settings["refractive_index"] = profile.mesh.optics.refractive_index
         out[name] = pm.create("normalizer", name, settings, None, profile.source)
     return out
 
@@ -89,7 +90,7 @@ def _load_surface(store: RunStore) -> TriangleSurface:
     from dotshell.fem.meshfiles import read_surface
 
     return read_surface(_required(
-        store, "surface.ply", RunError, "normalization maps the images onto the scanned "
+        store, RunLayout.SURFACE, RunError, "normalization maps the images onto the scanned "
         f"surface. Run `dotshell mesh {store.root}` first, or scan with [mesh] after_scan = true."))
 
 
@@ -102,7 +103,7 @@ def unscanned_nodes(store: RunStore, surface: TriangleSurface,
     from dotshell.run.ply import read_ply
 
     points, _ = read_ply(_required(
-        store, "cloud.ply", RunError, "the surface's nodes cannot be checked against the "
+        store, RunLayout.CLOUD, RunError, "the surface's nodes cannot be checked against the "
         f"scanned points. Re-run `dotshell reconstruct {store.root}`."))
     dist, _ = cKDTree(points).query(surface.vertices, distance_upper_bound=max_distance_mm)
     return ~np.isfinite(dist)
@@ -110,7 +111,7 @@ def unscanned_nodes(store: RunStore, surface: TriangleSurface,
 
 def _load_calibration(store: RunStore) -> RigCalibration:
     return RigCalibration.load(_required(
-        store, "calibration.json", CalibrationError, "its views cannot be mapped onto the "
+        store, RunLayout.CALIBRATION, CalibrationError, "its views cannot be mapped onto the "
         f"surface. Give one with `dotshell reconstruct {store.root} --calibration FILE`."))
 
 
@@ -232,15 +233,16 @@ class Normalization:
 
     def __init__(self, store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
                  normalizer: str | None = None, min_sin_beta: float | None = None,
-                 max_normal_spread_deg: float | None = None) -> None:
+                 max_normal_spread_deg: float | None = None,
+                 calib: RigCalibration | None = None) -> None:
         self.store, self.profile, self.bus = store, profile, bus
-        self.cfg = {**profile.data["normalize"],
-                    **checked_overrides(min_sin_beta, max_normal_spread_deg)}
+        overrides: dict[str, Any] = checked_overrides(min_sin_beta, max_normal_spread_deg)
+        self.cfg = replace(profile.normalize, **overrides)
         self.entry = transillumination_entry(store)
         self.surface = _load_surface(store)
-        self.unscanned = unscanned_nodes(store, self.surface, self.cfg["max_cloud_distance_mm"])
-        self.crease = normal_spread_deg(self.surface) > self.cfg["max_normal_spread_deg"]
-        self.calib = _load_calibration(store)
+        self.unscanned = unscanned_nodes(store, self.surface, self.cfg.max_cloud_distance_mm)
+        self.crease = normal_spread_deg(self.surface) > self.cfg.max_normal_spread_deg
+        self.calib = calib or _load_calibration(store)
         self.models = normalizers(profile, pm, normalizer)
         self.primary = next(iter(self.models))
         self.flat = flat_field(store, self.entry, self.calib, bus)
@@ -262,7 +264,7 @@ class Normalization:
                 raise RunError(f"{self.store.root}: trans-illumination view {view} is not a view "
                                "of this run's manifest; the run is damaged.")
             geometry = view_surface(self.surface, self.calib, self.angles[view],
-                                    self.cfg["min_sin_beta"], self.unscanned, self.crease)
+                                    self.cfg.min_sin_beta, self.unscanned, self.crease)
             pairs = [self._source(geometry, view, name)
                      for name in self.entry["views"][str(view)] if name != "dark"]
             if each_view is not None:
@@ -276,7 +278,7 @@ class Normalization:
         path = self.store.trans_path(name, view)
         raw = _checked(self.store.read_image(path, f"view {view} cannot be normalized"),
                        self.calib, self.bit_depth, path)
-        saturated = raw >= self.cfg["saturation_fraction"] * self.full_scale
+        saturated = raw >= self.cfg.saturation_fraction * self.full_scale
         img = _float(raw)
         if "dark" in self.entry["views"][str(view)]:
             dark = self.store.trans_path("dark", view)
@@ -291,7 +293,7 @@ class Normalization:
     def _source(self, geometry: SurfaceView, view: int,
                 name: str) -> tuple[SourceResult, np.ndarray]:
         img, saturated = self._image(view, name)
-        light = node_intensities(geometry, img, saturated, self.cfg["min_pixels"])
+        light = node_intensities(geometry, img, saturated, self.cfg.min_pixels)
         self._warn_saturation(view, name, saturated, geometry)
         estimates = {}
         good = light.mask == OK

@@ -12,7 +12,7 @@ camera's own dtype.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -34,7 +34,7 @@ class Shot:
         return {"name": self.name, "pattern": self.pattern, "analyzer_deg": self.analyzer_deg}
 
 
-def plan_shots(patterns: Sequence[PatternFrame], scan: dict[str, Any]) -> list[Shot]:
+def plan_shots(patterns: Sequence[PatternFrame], scan: Mapping[str, Any]) -> list[Shot]:
     """The frames of one view, in capture order."""
     if not scan.get("pdi"):
         return [Shot(p.name, i) for i, p in enumerate(patterns)]

@@ -40,6 +40,7 @@ from dotshell.pipeline.transillum import TransilluminationCapture
 from dotshell.plugins import PluginManager
 from dotshell.profile.loader import Profile, validate_profile
 from dotshell.rig.assembly import Rig
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore
 
 #: What a scan makes: everything downstream of the calibration.
@@ -151,8 +152,7 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
     bus = bus or EventBus()
     coding = make_coding(profile, pm)  # a bad coding or calibration is refused before a run
     calibration = calibration_file or profile.calibration_path()  # is made
-    if calibration is not None and rig is None:
-        load_any_calibration(calibration)
+    calib = load_any_calibration(calibration) if calibration is not None and rig is None else None
     store = RunStore.create(Path(out_dir), profile.name)
 
     def create() -> None:
@@ -160,7 +160,7 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
         store.init_manifest(profile.name, profile.angles_deg(), [])
 
     return _capture_and_process(store, profile, pm, bus, "scan", coding, stop, running, rig,
-                                calibration_file, create)
+                                calibration_file, create, calib=calib)
 
 
 def resume_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
@@ -186,13 +186,14 @@ def resume_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = No
                        "`dotshell reconstruct RUN`.")
     profile = load_run_profile(store, pm)
     coding = make_coding(profile, pm)
-    if store.path("calibration.json").is_file():
-        RigCalibration.load(store.path("calibration.json"))  # checked before the job starts
+    calib = None
+    if store.path(RunLayout.CALIBRATION).is_file():
+        calib = RigCalibration.load(store.path(RunLayout.CALIBRATION))  # checked before the job
     elif any(v["frames"] for v in store.manifest["views"]):
         raise RunError(f"{store.root} has frames but no calibration.json; restore the run's "
                        "calibration.json from a backup to resume it.")
     return _capture_and_process(store, profile, pm, bus, "resume", coding, stop, running, rig,
-                                None, None, recapture)
+                                None, None, recapture, calib)
 
 
 def _views_asked(store: RunStore, views: list[int]) -> frozenset[int]:
@@ -226,7 +227,10 @@ def _capture_and_process(store: RunStore, profile: Profile, pm: PluginManager, b
                          command: str, coding: Any, stop: threading.Event | None,
                          running: threading.Event | None, rig: Rig | None,
                          calibration_file: str | None, create,
-                         recapture: frozenset[int] = frozenset()) -> ScanResult:
+                         recapture: frozenset[int] = frozenset(),
+                         calib: RigCalibration | None = None) -> ScanResult:
+    """Acquire and process in a run job. ``calib``: the calibration the caller loaded (and
+    so checked) before the job, used as is (the file is read once)."""
     unsubs = [bus.subscribe(lambda ev: store.append_event(ev.to_dict())),
               _forward_to_plugins(bus, pm, profile, str(store.root))]
     job = RunJob(store, command, bus, create)
@@ -234,7 +238,7 @@ def _capture_and_process(store: RunStore, profile: Profile, pm: PluginManager, b
     try:
         with job:
             report = _acquire_then_process(job, profile, pm, coding, stop, running, rig,
-                                           calibration_file, recapture)
+                                           calibration_file, recapture, calib)
     finally:
         if job.status is not None:
             bus.emit(ScanFinished(status=job.status, run_dir=str(store.root),
@@ -248,30 +252,31 @@ def _capture_and_process(store: RunStore, profile: Profile, pm: PluginManager, b
 def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, coding: Any,
                           stop: threading.Event | None, running: threading.Event | None,
                           rig: Rig | None, calibration_file: str | None,
-                          recapture: frozenset[int] = frozenset()) -> dict[str, Any]:
+                          recapture: frozenset[int] = frozenset(),
+                          loaded: RigCalibration | None = None) -> dict[str, Any]:
     store, bus = job.store, job.bus
     # a resumed run continues with its own calibration; one killed before it recorded any
     # (nothing was captured yet) starts as a new scan would
-    resuming = job.command == "resume" and store.path("calibration.json").is_file()
+    resuming = job.command == "resume" and store.path(RunLayout.CALIBRATION).is_file()
     gen = Generation.start(store)
     job.generation = gen.number
     products = ProductStore(store, gen.dir)
     with _stoppable_rig(profile, pm, rig) as rig:
         if resuming:
-            calib = RigCalibration.load(store.path("calibration.json"))
+            calib = loaded or RigCalibration.load(store.path(RunLayout.CALIBRATION))
         else:
-            calib = rig.calibration(calibration_file)
+            calib = loaded or rig.calibration(calibration_file)
             require_turntable_axis(calib, profile.angles_deg(), profile.source)
         _check_devices(store, rig, calib, resuming)
         if not resuming:
-            calib.save(store.path("calibration.json"))
+            calib.save(store.path(RunLayout.CALIBRATION))
         patterns = coding.patterns(rig.projector.resolution)
-        shots = plan_shots(patterns, profile.data["scan"])
+        shots = plan_shots(patterns, profile.scan)
         _record_sequence(store, shots, patterns, resuming)
         angles = profile.angles_deg()
         bus.emit(ScanStarted(run_dir=str(store.root), profile=profile.name,
                              n_views=len(angles), frames_per_view=len(shots)))
-        acq = Acquisition(rig, patterns, store, profile.data["scan"], bus, stop, running,
+        acq = Acquisition(rig, patterns, store, profile.scan, bus, stop, running,
                           shots=shots)
         pipeline = ViewPipeline(products, profile, coding, calib, bus)
         try:
@@ -303,7 +308,8 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
     if not any(v["complete"] for v in store.manifest["views"]) and job.status == "aborted":
         return {}
     options = {"reconstructed": reconstructed, "prewritten": {"views": gen.listing()},
-               "timings": {"acquire": acq.seconds}, "last_frame_at": last_frame_at}
+               "timings": {"acquire": acq.seconds}, "last_frame_at": last_frame_at,
+               "calibration": calib}
     return process(job, profile, pm, SCAN_TARGETS, options,
                    final_status=job.status or "completed", generation=gen)
 
@@ -369,32 +375,23 @@ def _transillumination(rig: Rig, store: RunStore, profile: Profile, acq: Acquisi
                        bus: EventBus) -> TransilluminationCapture | None:
     """The scan's trans-illumination step (flat field captured now, unless a resumed run
     already has it), or None if disabled."""
-    t = profile.data["transillumination"]
-    if not t["enabled"]:
+    t = profile.transillumination
+    if not t.enabled:
         return None
-    trans = TransilluminationCapture(rig, store, t, profile.data["scan"], acq.writer, bus,
+    trans = TransilluminationCapture(rig, store, t, profile.scan, acq.writer, bus,
                                      profile.base_dir)
     entry = store.manifest.get("transillumination")
     if entry is None:
         store.update_manifest(transillumination=trans.manifest_entry())
-    if entry is None or (entry.get("flat_field") is None and t["flat_field"] != "none"):
+    if entry is None or (entry.get("flat_field") is None and t.flat_field != "none"):
         trans.capture_flat_field()
     return trans
 
 
 def load_run_profile(store: RunStore, pm: PluginManager) -> Profile:
     """The exact profile a run was made with."""
-    import tomllib
-
-    p = store.path("profile.toml")
-    try:
-        raw = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise RunError(f"{p} is missing; this run cannot be re-processed.") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError, RecursionError) as exc:
-        raise RunError(f"{p} is damaged ({exc}); it is written by dotshell only — restore it "
-                       "from a backup or copy the profile the run was made with.") from None
-    return validate_profile(raw, pm, str(p), store.root)
+    return validate_profile(store.read_profile(), pm, str(store.path(RunLayout.PROFILE)),
+                            store.root)
 
 
 def _summary(report: dict[str, Any]) -> dict[str, Any]:

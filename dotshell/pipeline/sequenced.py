@@ -21,7 +21,7 @@ at least the exposure, the camera's minimum trigger period and whatever the proj
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -51,7 +51,7 @@ def sequenced_capable(rig: Any) -> list[str]:
     return why
 
 
-def uses_sequenced(rig: Any, scan: dict[str, Any]) -> bool:
+def uses_sequenced(rig: Any, scan: Mapping[str, Any]) -> bool:
     """Whether a scan with ``scan`` settings acquires sequenced on ``rig``; a ProfileError when
     ``acquisition = "sequenced"`` is asked of devices that cannot."""
     mode = scan.get("acquisition", "auto")
@@ -114,7 +114,7 @@ class SequencedCapture:
     name = "sequenced"
 
     def __init__(self, rig: Any, patterns: Sequence[PatternFrame], shots: Sequence[Shot],
-                 scan: dict[str, Any], bus: EventBus,
+                 scan: Mapping[str, Any], bus: EventBus,
                  retry: Callable[[Callable[[], Any], str], Any],
                  set_analyzer: Callable[[float], None]) -> None:
         self.rig = rig

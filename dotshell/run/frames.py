@@ -38,6 +38,7 @@ from dotshell.run import tiffpages
 from dotshell.errors import FrameError, RunError
 from dotshell.run.framecheck import FrameSpec, dtype_for
 from dotshell.run.lost import is_lost
+from dotshell.run.layout import RunLayout
 
 TIFF_STACK = "tiff-stack/1"
 PNG_FILES = "png/1"
@@ -195,7 +196,7 @@ class TiffFrameStore(FrameStore):
 
     @property
     def path(self) -> Path:
-        return self.root / "frames" / f"view_{self.view:03d}.tif"
+        return self.root / RunLayout.frame_stack(self.view)
 
     def count(self) -> int:
         if not self.path.is_file():
@@ -304,10 +305,10 @@ class PngFrameStore(FrameStore):
 
     @property
     def path(self) -> Path:
-        return self.root / "frames" / f"view_{self.view:03d}"
+        return self.root / RunLayout.frame_folder(self.view)
 
     def frame_path(self, index: int) -> Path:
-        return self.path / f"{index:03d}_{self._check_index(index)}.png"
+        return self.path / RunLayout.png_frame(index, self._check_index(index))
 
     def count(self) -> int:
         return sum(self.frame_path(i).is_file() for i in range(len(self.names)))
@@ -367,27 +368,26 @@ def set_aside_partial(root: Path, view: int) -> None:
     deleted): its frame stack ``frames/view_NNN.tif`` and directory ``frames/view_NNN/`` (frame
     metadata; PNG frames of runs before TIFF stacks) become ``view_NNN.partial-K.tif`` and
     ``view_NNN.partial-K/``."""
-    frames = Path(root) / "frames"
-    stem = f"view_{view:03d}"
-    found = [p for p in (frames / stem, frames / f"{stem}.tif")
+    root, L = Path(root), RunLayout
+    found = [p for p in (root / L.frame_folder(view), root / L.frame_stack(view))
              if p.is_file() or (p.is_dir() and any(p.iterdir()))]
     if not found:
         return
     k = 1
-    while any((frames / f"{stem}.partial-{k}{s}").exists() for s in ("", ".tif")):
+    while any((root / f"{L.set_aside(view, k)}{s}").exists() for s in ("", ".tif")):
         k += 1
     for p in found:
-        p.rename(frames / f"{stem}.partial-{k}{p.suffix}")
+        p.rename(root / f"{L.set_aside(view, k)}{p.suffix}")
 
 
 def export_png(frames: FrameStore, out_dir: Path) -> list[Path]:
     """Write the view's frames losslessly as ``out_dir/view_NNN/III_NAME.png`` (the PNG layout,
     same bit depth); returns the files written."""
-    d = Path(out_dir) / f"view_{frames.view:03d}"
+    d = Path(out_dir) / RunLayout.view_stem(frames.view)
     d.mkdir(parents=True, exist_ok=True)
     paths = []
     for i, name in enumerate(frames.names[:frames.count()]):
-        p = d / f"{i:03d}_{name}.png"
+        p = d / RunLayout.png_frame(i, name)
         if not cv2.imwrite(str(p), frames.read_one(i), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
             raise RunError(f"could not write {p}; check that {out_dir} is writable.")
         paths.append(p)

@@ -27,11 +27,12 @@ from pathlib import Path
 from typing import Any, Callable, Iterator
 
 from dotshell.errors import Interrupted, RunError
+from dotshell.run.layout import RunLayout
 from dotshell.runtime.locks import holder, try_flock
 
 #: Final states; ``running`` is the only other one.
 FINAL_STATES = ("completed", "failed", "aborted", "interrupted")
-LOCK_NAME = ".lock"
+LOCK_NAME = RunLayout.LOCK
 
 
 def interrupt_reason(exc: BaseException) -> str:

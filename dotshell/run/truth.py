@@ -26,10 +26,11 @@ import numpy as np
 
 from dotshell.devices import SurfaceRadiance
 from dotshell.errors import RunError
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore, atomic_write_bytes
 
-TRUTH_FILE = "truth.json"
-TRUTH_DIR = "truth"
+TRUTH_FILE = RunLayout.TRUTH
+TRUTH_DIR = RunLayout.TRUTH_DIR
 FORMAT = "dotshell-truth/1"
 UNITS = ("camera DN per ms of exposure at the principal point, dark-subtracted and "
          "flat-fielded, from a surface element facing the camera (the paper's I0)")

@@ -46,10 +46,11 @@ def profile_summary(session: Session) -> dict[str, Any] | None:
 
     return {"name": p.name, "source": str(p.source), "device_ids": profile_device_ids(p),
             "path": str(session.profile_path.resolve()) if session.profile_path else None,
-            "views": len(p.angles_deg()), "exposure_ms": p.data["scan"]["exposure_ms"],
-            "pdi": p.data["scan"]["pdi"], "pdi_angles_deg": list(p.data["scan"]["pdi_angles_deg"]),
+            "views": len(p.angles_deg()), "exposure_ms": p.scan.exposure_ms,
+            "pdi": p.scan.pdi, "pdi_angles_deg": list(p.scan.pdi_angles_deg),
             "coding": p.required_role("coding")["backend"],
-            "roles": {r: p.required_role(r)["backend"] for r in DEVICE_ROLES if p.role(r) is not None}}
+            "roles": {r: p.required_role(r)["backend"] for r in DEVICE_ROLES
+                      if p.role(r) is not None}}
 
 
 def _load(ctx: Context, args: dict[str, Any]) -> Any:

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING, Any, Callable, Literal, Sequence, overload
 
 from dotshell.errors import DeviceError, DotshellError, ProfileError, RunError
 from dotshell.events import Event, EventBus, ScanFinished, ScanStarted, ViewCaptured
+from dotshell.run.layout import RunLayout
 
 if TYPE_CHECKING:
     import numpy as np
@@ -62,9 +63,6 @@ class PreviewSaved(Event):
     stats: dict[str, Any] = field(default_factory=dict)
 
 
-#: The run's folder for what a session shows while a scan runs (``latest_frame.png``): part
-#: of the capture, not of a generation.
-LIVE_DIR = "live"
 #: The lowest level of the session's log lines a console or script shows while it runs
 #: (``debug`` adds a line per frame; ``off`` shows none); :meth:`Session.log_level`.
 LOG_LEVEL = "info"
@@ -126,11 +124,11 @@ class Run:
 
     @property
     def manifest(self) -> dict[str, Any]:
-        return self._json("manifest.json")
+        return self._json(RunLayout.MANIFEST)
 
     @property
     def report(self) -> dict[str, Any]:
-        return self._json("report.json")
+        return self._json(RunLayout.REPORT)
 
     @property
     def status(self) -> str:
@@ -142,7 +140,7 @@ class Run:
         """The run's status as it truly is, and why when it is not ``completed``."""
         from dotshell.run.store import RunStore
 
-        if not (self.root / "manifest.json").is_file():
+        if not (self.root / RunLayout.MANIFEST).is_file():
             return "unknown", f"{self.root} has no manifest.json"
         try:
             return RunStore(self.root).status()
@@ -168,7 +166,7 @@ class Run:
         """The merged cloud, (N, 3) float in mm (sample/stage frame)."""
         from dotshell.run.ply import read_ply
 
-        p = self.root / "cloud.ply"
+        p = self.root / RunLayout.CLOUD
         if not p.is_file():
             raise RunError(f"{p} does not exist (status {self.status}); only completed or "
                            "re-processed runs have a merged cloud.")
@@ -659,7 +657,7 @@ class Session:
                 self._state = "idle"
             self._refresh_namespaces()
         run = self.run = Run(result.run_dir)
-        products = run.root / "current"  # the published generation the report belongs to
+        products = run.root / RunLayout.CURRENT  # the published generation the report belongs to
         base = products.resolve() if products.is_symlink() else run.root
         for kind, rel in (result.report.get("previews") or {}).items():
             self.bus.emit(PreviewSaved(kind=kind, path=str(base / rel)))
@@ -730,8 +728,8 @@ class Session:
                 frame = store.frames(ev.view).read_one(0)
             except RunError:
                 return
-            store.path(LIVE_DIR).mkdir(exist_ok=True)
-            path = frame_preview(frame, store.path(LIVE_DIR, "latest_frame.png"))
+            store.path(RunLayout.LIVE).mkdir(exist_ok=True)
+            path = frame_preview(frame, store.path(RunLayout.LATEST_FRAME))
             bits = getattr(self.rig.camera, "bit_depth", None) if self.rig else None
             self.bus.emit(PreviewSaved(kind="frame", path=str(path), view=ev.view,
                                        stats=frame_stats(frame, bits)))
@@ -808,9 +806,9 @@ def readable_repr(value: Any) -> str:
                             for role in value.devices)
         return f"<Rig of {value.profile.name}: {devices or 'no devices'}>"
     if isinstance(value, Profile):
-        scan = value.data["scan"]
         return (f"<Profile {value.name} from {value.source}: {len(value.angles_deg())} views, "
-                f"exposure {scan['exposure_ms']:g} ms, coding {value.required_role('coding')['backend']}>")
+                f"exposure {value.scan.exposure_ms:g} ms, "
+                f"coding {value.required_role('coding')['backend']}>")
     return repr(value)
 
 
