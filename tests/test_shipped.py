@@ -18,7 +18,7 @@ from conftest import ROOT
 from dotshell.cli.app import _parser, main
 from dotshell.cli.completion import completion_script
 from dotshell.cli.log_setup import chosen_level
-from dotshell.run.layouts import resolve_layout_path
+from dotshell.run.capture_layouts import resolve_layout_path
 from dotshell.profile.loader import load_profile
 from dotshell.shipped import resolve, shipped_dir, shipped_names
 

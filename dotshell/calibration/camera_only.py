@@ -37,7 +37,7 @@ from dotshell.calibration.solve import (
 )
 from dotshell.errors import CalibrationError
 from dotshell.geometry.lens import Lens
-from dotshell.run.layouts import read_gray
+from dotshell.run.capture_layouts import read_gray
 
 CAMERA_FORMAT = "dotshell-camera-calibration/1"
 

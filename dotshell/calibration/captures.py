@@ -16,7 +16,7 @@ from dotshell.calibration.board import Board
 from dotshell.calibration.procedure import CAPTURE_FORMAT, CalibrationResult, read_image, solve
 from dotshell.errors import CalibrationError
 from dotshell.events import EventBus
-from dotshell.run.layouts import (capture_order, coding_frame_names, layout_coding, load_layout,
+from dotshell.run.capture_layouts import (capture_order, coding_frame_names, layout_coding, load_layout,
                                   sequence_files)
 from dotshell.run.store import RunStore
 

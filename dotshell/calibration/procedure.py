@@ -231,7 +231,7 @@ class PoseFrames:
     has no ``layout``, else reordered and their polarity undone as the layout says."""
 
     def __init__(self, run: Path, cap: dict[str, Any], pm) -> None:
-        from dotshell.run.layouts import capture_order, coding_frame_names, layout_from_dict
+        from dotshell.run.capture_layouts import capture_order, coding_frame_names, layout_from_dict
 
         where = str(run / "capture.json")
         self.run = run
@@ -250,7 +250,7 @@ class PoseFrames:
         return files[self.order.index("white")] if len(files) == len(self.order) else files[0]
 
     def __call__(self, pose: dict) -> list[np.ndarray]:
-        from dotshell.run.layouts import to_coding_frames
+        from dotshell.run.capture_layouts import to_coding_frames
 
         files = pose["frames"]
         if len(files) != len(self.order):

@@ -38,7 +38,7 @@ def refuse_layout_overrides(overrides: list[str], layout: str | None) -> None:
     source = "the layout file"
     if layout:
         from dotshell.errors import RunError
-        from dotshell.run.layouts import resolve_layout_path
+        from dotshell.run.capture_layouts import resolve_layout_path
 
         try:
             source = str(resolve_layout_path(layout))

@@ -15,7 +15,7 @@ import numpy as np
 
 from dotshell.errors import CalibrationError
 from dotshell.pipeline.captures import CapturesResult
-from dotshell.run.layouts import load_layout, read_sequence
+from dotshell.run.capture_layouts import load_layout, read_sequence
 from dotshell.run.layout import RunLayout
 
 #: Matched rays passing further apart than this (mm) are dropped (a wrong match or code).

@@ -1,7 +1,7 @@
 """Reconstruction of capture sequences made elsewhere (another rig, another program).
 
 A *layout file* (TOML, see ``docs/layouts.md`` and ``layouts/*.toml``; read by
-:mod:`dotshell.run.layouts`) says how the sequence was made: the file names, the frame order
+:mod:`dotshell.run.capture_layouts`) says how the sequence was made: the file names, the frame order
 (white, black, column bits, row bits), bit order, inverse patterns, dropped low bits, whether
 the code is centred, the bit polarity and the projector resolution. :func:`reconstruct_captures`
 reads the frames in that order, puts them in the order the gray-code coding expects, decodes,
@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dotshell.errors import CalibrationError
-from dotshell.run.layouts import load_layout, read_sequence
+from dotshell.run.capture_layouts import load_layout, read_sequence
 
 if TYPE_CHECKING:  # numpy, OpenCV and the calibration readers load when captures are read
     import numpy as np

@@ -164,7 +164,7 @@ def write_maps(directory: Path, corr: Correspondence, projector_size: tuple[int,
 def decode_captures(captures: Path | str, layout_file: Path | str, pm,
                     out_dir: Path | str = "runs", fmt: str = "tiff") -> DecodeResult:
     """Decode a capture directory through its layout (no calibration needed)."""
-    from dotshell.run.layouts import load_layout, read_sequence
+    from dotshell.run.capture_layouts import load_layout, read_sequence
     from dotshell.run.store import RunStore
 
     layout = load_layout(layout_file)
