@@ -1,6 +1,7 @@
 """Decoded share and wrong codes of each gray-code classification against the simulator's
 ground truth (issue 27): ``contrast``, ``robust`` (the default) and ``adaptive`` on the metal
-cylinder (clean), the agar cylinder without analyzer under strong room light (ambient light +
+cylinder (clean; and under room light as strong as the projector's with the camera defocused
+to σ = 1.5 px), the agar cylinder without analyzer under strong room light (ambient light +
 subsurface blur) and the agar cylinder with PDI (|I∥ − I⊥| frames). Per scene and
 classification: pixels decoded on the lit surface (share of the lit pixels), wrong codes there
 (more than 1.5 projector px from the true column or row), pixels decoded off it, and the
@@ -25,6 +26,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 CLASSIFICATIONS = ("contrast", "robust", "adaptive")
 #: (name, profile, camera settings changed, PDI)
 SCENES = (("clean metal", "sim-metal-cylinder", {}, False),
+          ("metal, room light 1, blur", "sim-metal-cylinder",
+           {"ambient": 1.0, "defocus_sigma_px": 1.5}, False),
           ("agar, room light 0.5", "sim-agar-cylinder-nopdi", {"ambient": 0.5}, False),
           ("agar PDI", "sim-agar-cylinder", {}, True))
 
@@ -79,7 +82,7 @@ def main() -> None:
     ap.add_argument("--factor", type=float, default=0.25, help="resolution factor (1 = full)")
     args = ap.parse_args()
     print(f"== gray-code classifications against ground truth, {args.factor:g}x ==")
-    print(f"  {'scene':22s} {'classification':14s} {'decoded on lit':>18s} {'wrong':>6s} "
+    print(f"  {'scene':26s} {'classification':14s} {'decoded on lit':>18s} {'wrong':>6s} "
           f"{'off lit':>8s} {'reversals':>9s} {'ms':>7s}")
     for name, profile, camera, pdi in SCENES:
         frames, size, (u, v, lit) = scene_frames(profile, camera, pdi, args.factor)
@@ -90,7 +93,7 @@ def main() -> None:
             corr = coding.decode(frames, size)
             ms = (time.perf_counter() - t0) * 1e3
             s = score(corr, u, v, lit)
-            print(f"  {name:22s} {c:14s} {s['decoded']:8d} ({100 * s['decoded'] / s['lit']:5.1f} %)"
+            print(f"  {name:26s} {c:14s} {s['decoded']:8d} ({100 * s['decoded'] / s['lit']:5.1f} %)"
                   f" {s['wrong']:6d} {s['off']:8d} {s['reversals']:9d} {ms:7.1f}")
 
 

@@ -76,7 +76,7 @@ def test_adaptive_decodes_more_than_robust_with_no_more_wrong_codes(ambient_scen
     print({k: v[0] for k, v in out.items()}, out["adaptive"][1].stats["adaptive_rescued"])
     (rob_n, rob_wrong), robust = out["robust"]
     (ada_n, ada_wrong), adaptive = out["adaptive"]
-    assert ada_n > rob_n and ada_wrong <= rob_wrong       # measured 28829 vs 28824, 1 and 1
+    assert ada_n > rob_n and ada_wrong <= rob_wrong       # measured 38689 vs 38654, 1 and 1
     assert adaptive.stats["adaptive_rescued"] > 0
     assert adaptive.stats["decoded"] == robust.stats["decoded"] + adaptive.stats["adaptive_rescued"]
     assert np.array_equal(adaptive.column[robust.valid], robust.column[robust.valid])
