@@ -280,3 +280,33 @@ def test_camera_pair_fused_with_calibrated_projector_end_to_end(tmp_path, capsys
     assert errs["cloud"][0] > 2000 and abs(errs["cloud"][0] - errs["camera-camera"][0]) < 100
     assert errs["cloud"][1] < 0.85 * min(errs["camera-projector"][1], errs["camera-camera"][1])
     assert errs["cloud"][1] < 0.065
+
+
+def test_fusion_refuses_another_cameras_calibration(tmp_path, capsys):
+    """A camera–projector calibration whose camera is not camera 1's size is refused before
+    any frame is read, naming both sizes and what to give instead (exit code 2)."""
+    import json
+
+    from dotshell.cli.app import main
+    from dotshell.geometry.calibration import RigCalibration
+    from dotshell.geometry.lens import lens_from_fov
+
+    cam, proj = lens_from_fov(320, 256, 400.0), lens_from_fov(256, 192, 280.0)
+    RigCalibration(cam, proj, np.eye(3), [-80.0, 0.0, 0.0], [0.0, 15.0, 204.0],
+                   [0.0, -1.0, 0.0]).save(tmp_path / "calibration.json")
+    other = lens_from_fov(640, 512, 800.0)
+    (tmp_path / "camera-pair.json").write_text(json.dumps({
+        "format": "dotshell-camera-pair/1", "camera1": other.to_dict(),
+        "camera2": other.to_dict(), "R": np.eye(3).tolist(), "T": [-70.0, 0.0, 0.0],
+        "rms_px": 0.1}))
+    for d in ("cam1", "cam2"):
+        (tmp_path / d).mkdir()
+    code = main(["reconstruct", "--captures", str(tmp_path / "cam1"), "--captures2",
+                 str(tmp_path / "cam2"), "--camera-pair", str(tmp_path / "camera-pair.json"),
+                 "--calibration", str(tmp_path / "calibration.json"), "--layout",
+                 "opencv-graycode", "--out", str(tmp_path / "out")])
+    captured = capsys.readouterr()
+    text = " ".join((captured.err + captured.out).split())
+    assert code == 2
+    assert "320x256" in text and "640x512" in text and "camera 1" in text
+    assert not (tmp_path / "out").exists()
