@@ -131,3 +131,18 @@ def fuse_camera_pair(rays1: np.ndarray, projector_ideal: np.ndarray, camera2_ide
     ratio = ratio[np.isfinite(ratio)]
     return FusedPoints(rays1 * s_f[:, None], rays1 * s_p[:, None], rays1 * s_c[:, None], sigma2,
                        float(np.median(ratio)) if len(ratio) else float("nan"))
+
+
+def frame_rotation(lens_a, lens_b, grid: int = 16) -> np.ndarray:
+    """The rotation Q (3, 3) from the frame of camera calibration ``lens_a`` to that of
+    ``lens_b``, two calibrations of one camera: ``X_b = Q X_a`` (the camera centre is both
+    frames' origin). Two solves of one camera place its frame a little differently (a principal
+    point a pixel off turns the frame by ``1 / f`` rad); Q is the least-squares rotation taking
+    ``lens_a``'s rays to ``lens_b``'s over a ``grid``×``grid`` grid of pixels (Kabsch)."""
+    xs = np.linspace(0, lens_a.width - 1, grid)
+    ys = np.linspace(0, lens_a.height - 1, grid)
+    pix = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
+    ra, rb = lens_a.rays(pix), lens_b.rays(pix)
+    u, _, vt = np.linalg.svd(rb.T @ ra)
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt

@@ -114,8 +114,9 @@ def fuse_with_projector(calib, pair, c1, c2, pix1: np.ndarray, pix2: np.ndarray,
     """Fused points (N, 3) of the matched pixels, the single estimates by name, the report's
     ``fusion`` section and the points kept: the camera–camera checks (``keep``) and the
     camera–projector ones (row consistency, grazing rays) must both pass. Camera 1's rays and
-    the projector pose come from ``calib``, camera 2's pose from the pair."""
-    from dotshell.geometry.ray_fusion import fuse_camera_pair, pixels_per_code
+    the projector pose come from ``calib``, camera 2's pose from the pair, moved into
+    ``calib``'s camera frame (:func:`frame_rotation` of the two solves of camera 1)."""
+    from dotshell.geometry.ray_fusion import fuse_camera_pair, frame_rotation, pixels_per_code
     from dotshell.geometry.triangulate import triangulate
 
     x, y = pix1[:, 0].astype(int), pix1[:, 1].astype(int)
@@ -123,13 +124,17 @@ def fuse_with_projector(calib, pair, c1, c2, pix1: np.ndarray, pix2: np.ndarray,
     rays1 = calib.camera.rays(pix1)
     checked = triangulate(rays1, col, calib, row)
     scale = pixels_per_code(c2.column, c2.row, c2.valid)
+    turn = frame_rotation(calib.camera, pair.camera1)
     fused = fuse_camera_pair(rays1, calib.projector.undistort(np.column_stack([col, row])),
-                             pair.camera2.undistort(pix2), (calib.R, calib.T), (pair.R, pair.T),
+                             pair.camera2.undistort(pix2), (calib.R, calib.T),
+                             (pair.R @ turn, pair.T),
                              np.diag(calib.projector.K)[:2], np.diag(pair.camera2.K)[:2], scale)
     keep = keep & checked.keep & np.isfinite(fused.fused).all(axis=1) & (fused.fused[:, 2] > 0)
     differ = np.linalg.norm(fused.camera_projector - fused.camera_camera, axis=1)[keep]
     report = {"projector_calibration": str(calib.source),
               "camera2_px_per_projector_px": round(scale, 4),
+              "camera1_frames_apart_deg": round(float(np.degrees(np.arccos(np.clip(
+                  (np.trace(turn) - 1.0) / 2.0, -1.0, 1.0)))), 5),
               "camera2_sigma_code_units": round(fused.camera2_sigma_px, 4),
               "depth_sigma_ratio_camera_camera_over_projector": round(fused.depth_sigma_ratio, 4),
               "single_estimates_median_apart_mm":
