@@ -298,7 +298,7 @@ def calibrated_fusion(tmp: Path, factor: float) -> dict[str, tuple[int, float, f
     from dotshell.cli.app import main
     from dotshell.run.ply import read_ply
 
-    raw, rigs, truths, R, T, layout = two_camera_captures(tmp, factor)
+    raw, rigs, truths, R, _, layout = two_camera_captures(tmp, factor)
     board = Board("checkerboard", 15, 11, 2.0) if factor == 1 else Board("checkerboard", 10, 7,
                                                                          3.0)
     target = ["--board", f"{board.columns}x{board.rows}", "--square", f"{board.square_mm:g}"]

@@ -116,7 +116,11 @@ def fuse_with_projector(calib, pair, c1, c2, pix1: np.ndarray, pix2: np.ndarray,
     camera–projector ones (row consistency, grazing rays) must both pass. Camera 1's rays and
     the projector pose come from ``calib``, camera 2's pose from the pair, moved into
     ``calib``'s camera frame (:func:`frame_rotation` of the two solves of camera 1)."""
-    from dotshell.geometry.ray_fusion import fuse_camera_pair, frame_rotation, pixels_per_code
+    from dotshell.geometry.ray_fusion import (
+        frame_rotation,
+        fuse_camera_pair,
+        pixels_per_code,
+    )
     from dotshell.geometry.triangulate import triangulate
 
     x, y = pix1[:, 0].astype(int), pix1[:, 1].astype(int)
