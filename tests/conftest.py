@@ -107,7 +107,8 @@ KERNEL_FREE = ("test_wheel.py",  # ~50 s; its kernels compile in the installed w
                "test_numba_cache.py",
                "test_sim.py", "test_plugins.py", "test_ports_cli.py", "test_settings.py",
                "test_docs.py", "test_store.py", "test_cameras.py", "test_hugepages.py",
-               "test_parallel.py", "test_validate_full.py")
+               "test_parallel.py", "test_validate_full.py", "test_layers.py",
+               "test_profile_sections.py")
 
 #: The other test files that take longest on one worker, most first (measured with
 #: ``pytest -n 2 --dist loadfile --junitxml``, summed by file; with a clean clone's compiles in

@@ -37,7 +37,7 @@ from dotshell.calibration.solve import (
 )
 from dotshell.errors import CalibrationError
 from dotshell.geometry.lens import Lens
-from dotshell.pipeline.captures import read_gray
+from dotshell.run.layouts import read_gray
 
 CAMERA_FORMAT = "dotshell-camera-calibration/1"
 
@@ -76,7 +76,10 @@ def _detect_all(images: list[Path], board: Board, max_blur_px: float
     from dotshell.calibration.procedure import _refuse_other_count
 
     objp = board.object_points()
-    poses, left_out, report, size = [], {}, {}, None
+    poses: list[PoseData] = []
+    left_out: dict[str, str] = {}
+    report: dict[str, Any] = {}
+    size: tuple[int, int] | None = None
     for k, path in enumerate(images):
         img, _kind = read_gray(path)
         here = (img.shape[1], img.shape[0])
@@ -98,6 +101,8 @@ def _detect_all(images: list[Path], board: Board, max_blur_px: float
             left_out[name] = f"blurred: edges {det.sharpness_px:.1f} px wide in {path}"
             continue
         poses.append(PoseData(name, objp[det.ids], det.pixels))
+    if size is None:  # board_images() refuses an empty list first
+        raise CalibrationError("no board photos given.")
     return poses, left_out, report, size
 
 

@@ -178,7 +178,7 @@ def calibrate_settings(args: argparse.Namespace, pm):
     profile = None
     if args.profile:
         profile = load_profile(args.profile, pm, args.set)
-        settings = dict(profile.data["calibrate"])
+        settings = profile.calibrate.as_table()
     else:
         raw = apply_overrides({}, args.set, "--set")
         other = [k for k in raw if k != "calibrate"]
@@ -204,11 +204,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from dotshell.calibration.board import Board
     from dotshell.calibration.captures import TurntableFrames, calibrate_captures
     from dotshell.calibration.procedure import capture, solve
-    from dotshell.cli.app import ScanProgress, _pm, err, out
+    from dotshell.cli.common import ScanProgress, err, out, plugin_manager
     from dotshell.errors import CalibrationError
     from dotshell.events import EventBus
 
-    pm = _pm(args)
+    pm = plugin_manager(args)
     settings, profile = calibrate_settings(args, pm)
     bus = EventBus()
     view = ScanProgress(err)

@@ -19,7 +19,9 @@ from typing import Any
 import numpy as np
 
 from dotshell.errors import CalibrationError
-from dotshell.pipeline.captures import CapturesResult, load_layout, read_sequence
+from dotshell.pipeline.captures import CapturesResult
+from dotshell.run.layouts import load_layout, read_sequence
+from dotshell.run.layout import RunLayout
 
 #: Matched rays passing further apart than this (mm) are dropped (a wrong match or code).
 MAX_RAY_GAP_MM = 0.2
@@ -76,7 +78,7 @@ def reconstruct_camera_pair(captures1: Path | str, captures2: Path | str,
                                                             keep)
     t2 = time.perf_counter()
     store = RunStore.create(Path(out_dir), f"camera-pair-{lay1.name}")
-    write_ply(store.path("cloud.ply"), points[keep])
+    write_ply(store.path(RunLayout.CLOUD), points[keep])
     for name, pts in singles.items():
         write_ply(store.path(f"{name}.ply"), pts[keep])
     report: dict[str, Any] = {
@@ -85,11 +87,11 @@ def reconstruct_camera_pair(captures1: Path | str, captures2: Path | str,
         "decode": [c1.stats, c2.stats], "matches": int(len(pix1)),
         "ray_gap_mm": {"median": float(np.median(gap)) if len(gap) else None,
                        "dropped_over": MAX_RAY_GAP_MM, "dropped": int((~keep).sum())},
-        "cloud": {"path": "cloud.ply", "points": int(keep.sum())},
+        "cloud": {"path": RunLayout.CLOUD, "points": int(keep.sum())},
         **({"fusion": fusion} if fusion is not None else {}),
         "timings_s": {"read_decode": round(t1 - t0, 3), "match_triangulate": round(t2 - t1, 3)},
     }
-    store.write_json("report.json", report)
+    store.write_json(RunLayout.REPORT, report)
     store.close()
     return CapturesResult(store.root, report)
 
