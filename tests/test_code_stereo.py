@@ -175,6 +175,15 @@ def test_camera_pair_commands_end_to_end(tmp_path, capsys):
 
     raw, rigs, truths, R, T, layout = two_camera_captures(tmp_path, 0.25)
     board_photos(tmp_path, raw, rigs, truths, R, Board("checkerboard", 10, 7, 3.0))
+    # a joint solve beyond max_rms_px is refused and nothing is written (joint RMS 0.058 px
+    # here, every pose alone under 0.045 px; at full resolution a 15x11 board, 14x10 inner
+    # corners, gave a joint RMS of 99 px and was written before the refusal)
+    assert main(["calibrate", "--camera-pair", str(tmp_path / "board1"),
+                 str(tmp_path / "board2"), "--board", "10x7", "--square", "3",
+                 "--set", "calibrate.min_poses=5", "--set", "calibrate.max_rms_px=0.045",
+                 "--out", str(tmp_path / "refused")]) == 2
+    assert "camera pair refused: joint RMS" in " ".join(capsys.readouterr().err.split())
+    assert not list(tmp_path.glob("refused/*/camera-pair.json"))
     assert main(["calibrate", "--camera-pair", str(tmp_path / "board1"),
                  str(tmp_path / "board2"), "--board", "10x7", "--square", "3",
                  "--set", "calibrate.min_poses=5", "--out", str(tmp_path / "runs")]) == 0
@@ -299,7 +308,8 @@ def calibrated_fusion(tmp: Path, factor: float) -> dict[str, tuple[int, float, f
     from dotshell.run.ply import read_ply
 
     raw, rigs, truths, R, _, layout = two_camera_captures(tmp, factor)
-    board = Board("checkerboard", 15, 11, 2.0) if factor == 1 else Board("checkerboard", 10, 7,
+    # inner corners odd one way (15x10, 9x6): OpenCV reads a board even both ways turned by 180°
+    board = Board("checkerboard", 16, 11, 2.0) if factor == 1 else Board("checkerboard", 10, 7,
                                                                          3.0)
     target = ["--board", f"{board.columns}x{board.rows}", "--square", f"{board.square_mm:g}"]
     w, h = rigs[0]["projector"].resolution
