@@ -250,6 +250,14 @@ def calibrate_camera_pair(dir1: Path | str, dir2: Path | str, board: Board,
         models.append(model)
         solves.append(calibrate_lens("camera", poses, size, model, rule, left_out))
     pair = calibrate_pair(found[0], found[1], solves[0], solves[1], (models[0], models[1]))
+    if not pair.rms_px <= settings["max_rms_px"]:
+        raise CalibrationError(
+            f"camera pair refused: joint RMS {pair.rms_px:.3g} px > max_rms_px "
+            f"{settings['max_rms_px']:g} px over {len(pair.poses)} poses; nothing written. "
+            "Check that --board COLSxROWS counts the squares (a board with an even number of "
+            "inner corners both ways reads the same turned by 180°: use one with an odd count "
+            "one way) and that both folders hold photos of the same poses in the same name "
+            "order.")
     store = RunStore.create(Path(out_dir), "calibrate-camera-pair")
     store.write_json("camera-pair.json", {
         "format": PAIR_FORMAT, "camera1": pair.camera1.to_dict(), "camera2": pair.camera2.to_dict(),

@@ -353,13 +353,16 @@ class GrayCode:
     def _decode_adaptive(self, frames: Sequence[np.ndarray],
                          projector_size: tuple[int, int]) -> Correspondence:
         """Robust where it decides; where it leaves a pixel uncertain, the contrast rule's code
-        when every bit but the weakest stands ``adaptive_sigmas`` noise sigmas beyond what
-        global light could do to it (``max(L_g − L_d, 0)``; the one weak bit is the stripe edge
-        the decoder tolerates anyway)."""
+        (every bit by its sign, no ``min_contrast``) when every bit but the weakest stands
+        ``adaptive_sigmas`` noise sigmas beyond what global light could do to it
+        (``max(L_g − L_d, 0)``; the one weak bit is the stripe edge the decoder tolerates
+        anyway)."""
         from dotshell_codings.robust import noise_model, second_weakest_sigmas
 
         robust = self._with(classification="robust").decode(frames, projector_size)
-        plain = self._with(classification="contrast").decode(frames,
+        # every bit by its sign: the noise-model test below is the guard (a fixed contrast
+        # share, min_contrast, rejected nearly every pixel robust leaves uncertain first)
+        plain = self._with(classification="contrast", min_contrast=0.0).decode(frames,
                                                                                projector_size)
         floor, gain = noise_model(frames)
         axes = self._axes(projector_size)
