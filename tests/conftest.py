@@ -11,6 +11,29 @@ ROOT = Path(__file__).resolve().parents[1]
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 
+def _runtime_dir_of_this_test_session() -> None:
+    """Device locks and server sockets live in the user's runtime directory, one for every
+    dotshell process of the user: the lock of a device says who drives it. Two test sessions at
+    once on one machine (a developer's and CI's, or several worktrees) would see each other's
+    emulated devices there: a pseudo-terminal an emulator closes (an unplug test) can be handed
+    to the other session's emulator under the same /dev/pts number while the first session's
+    scan still holds its lock, and that scan's lock then refuses the other (DeviceInUse). So
+    each test session, with its xdist workers and the subprocesses they start, gets a runtime
+    directory of its own (tests that need another set XDG_RUNTIME_DIR themselves)."""
+    import atexit
+    import shutil
+    import tempfile
+
+    if os.environ.get("DOTSHELL_TEST_RUNTIME_DIR"):
+        return  # an xdist worker, or a process a test started: the session's directory
+    d = tempfile.mkdtemp(prefix="dotshell-tests-runtime-")  # mode 0700
+    os.environ["XDG_RUNTIME_DIR"] = os.environ["DOTSHELL_TEST_RUNTIME_DIR"] = d
+    atexit.register(shutil.rmtree, d, True)
+
+
+_runtime_dir_of_this_test_session()
+
+
 @pytest.fixture(autouse=True)
 def fresh_plugin_manager(monkeypatch):
     """Each test discovers plugins anew (tests add and break plugins)."""
