@@ -69,8 +69,8 @@ def time_view(pm: PluginManager, profile, work: Path) -> dict[str, Any]:
         frames = acq.run_view(0, 0.0)
         sim_s, wall_s = clock.now() - t0, time.perf_counter() - w0
         acq.close()
-        sequenced = acq.sequenced is not None
-        period = acq.sequenced.period_ms if sequenced else None
+        sequenced = acq.engine.name == "sequenced"
+        period = getattr(acq.engine, "period_ms", None)
     store.close()
     return {"frames": len(frames), "sim_s": sim_s, "wall_s": wall_s, "sequenced": sequenced,
             "pattern_period_ms": period}

@@ -2,7 +2,7 @@
 
 The study is ``RUNS`` copies of one full-resolution scan (frames hard-linked, everything else
 copied, so each copy is a run of its own). Serially, one process calls
-:func:`dotshell.pipeline.scan.reconstruct_run` on each copy — the best a single process does,
+:func:`dotshell.pipeline.commands.reconstruct_run` on each copy — the best a single process does,
 no start-up per run. In parallel, ``dotshell batch reconstruct`` runs on a ``LocalCluster`` of
 2 worker processes (1 thread each) over other copies. Both make the same products.
 
@@ -74,7 +74,7 @@ def warm_up() -> float:
 
 
 def serial_child(result: str, runs: list[str]) -> None:
-    from dotshell.pipeline.scan import reconstruct_run
+    from dotshell.pipeline.commands import reconstruct_run
     from dotshell.plugins import get_plugin_manager
     from dotshell.runtime.process import configure_process
 
@@ -229,7 +229,7 @@ def study_alone(quick: bool) -> None:
     ``bench-results/batch[-quick].json``."""
     import tempfile
 
-    from run import RESULTS, run_child
+    from bench_profile import RESULTS, run_child
 
     with tempfile.TemporaryDirectory(prefix="dotshell-batch-bench-") as tmp:
         work = Path(tmp)

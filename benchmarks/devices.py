@@ -69,7 +69,7 @@ def call_overhead(n: int = 5000) -> dict[str, float]:
 
 def stop_latency(pm: PluginManager, name: str, role: str, backend: str, marker: bytes,
                  method: str, repeats: int, via_signal: bool) -> dict[str, float]:
-    from dotshell.cli.devices import emulator_class
+    from dotshell.plugins import emulator_class
 
     hold, back = [], []
     with tempfile.TemporaryDirectory() as tmp:
@@ -119,7 +119,7 @@ def signalled_scans() -> dict[str, dict[str, float | None]]:
     sys.path.insert(0, str(ROOT / "tests"))
     from stop_cases import CASES, SIGNALS, signal_scan
 
-    from dotshell.cli.devices import emulator_class
+    from dotshell.plugins import emulator_class
 
     out: dict[str, dict[str, float | None]] = {}
     for case in CASES:

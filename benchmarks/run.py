@@ -37,7 +37,6 @@ import json
 import os
 import platform
 import subprocess
-import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -53,7 +52,7 @@ import decoders
 import forward_bench
 import frame_io
 import issue32
-from bench_profile import ROOT, load_bench_profile
+from bench_profile import RESULTS, ROOT, load_bench_profile, run_child
 from dotshell.runtime import parallel
 from dotshell.runtime.process import configure_process
 from dotshell.coding import PatternCoding
@@ -66,7 +65,6 @@ from dotshell.rig.assembly import Rig
 
 BENCH_DIR = Path(__file__).resolve().parent
 CONTRIB_VENV = ROOT / ".venv-bench-contrib"
-RESULTS = ROOT / "bench-results" / "latest.json"  # --quick writes latest-quick.json
 BASELINE = BENCH_DIR / "baseline.json"
 
 
@@ -169,19 +167,6 @@ def print_reconstruct(d: dict[str, Any], baseline: dict[str, Any]) -> None:
 
 
 # ---- 4. end-to-end scan and reconstruct --------------------------------------------------------
-
-def run_child(mode: str, path: Path, quick: bool, work: Path) -> dict[str, Any]:
-    """Run ``scan_child.py`` (a fresh process) and return its figures: wall seconds, peak RSS
-    (MiB, the child's own ``getrusage`` maximum) and the run's report."""
-    result = work / f"{mode}_result.json"
-    cmd = [sys.executable, str(BENCH_DIR / "scan_child.py"), mode, str(path), str(result)]
-    t0 = time.perf_counter()
-    subprocess.run(cmd + (["--quick"] if quick else []), check=True)
-    out = json.loads(result.read_text())
-    out["process_wall_s"] = time.perf_counter() - t0
-    out["load"] = os.getloadavg()[0]
-    return out
-
 
 STAGES = ("acquire", "decode", "triangulate", "merge", "validate", "previews")
 

@@ -22,7 +22,8 @@ from pathlib import Path
 from bench_profile import load_bench_profile
 from dotshell.runtime.process import configure_process
 from dotshell.plugins import get_plugin_manager
-from dotshell.pipeline.scan import reconstruct_run, scan
+from dotshell.pipeline.commands import reconstruct_run
+from dotshell.pipeline.scan import scan
 
 
 def peak_rss_mib() -> float:

@@ -134,7 +134,7 @@ class RigContext:
         since = self.computing_since  # read before the deadline (see computing())
         return self.deadline + (time.monotonic() - since if since != math.inf else 0.0)
 
-    def for_device(self, role: str, backend: str) -> "RigContext":
+    def for_device(self, role: str, backend: str) -> RigContext:
         """A context for one device of this rig: same ``shared`` and peers, its own log."""
         return replace(self, role=role, backend=backend, log=DeviceLog(f"{role} ({backend})"),
                        deadline=math.inf, computing_since=math.inf)

@@ -293,18 +293,31 @@ class FlatFieldReference(Protocol):
         ...
 
 
+@dataclass
+class SurfaceRadiance:
+    """The true radiance leaving a sample along its surface normal (the paper's I0), as a field
+    on the true surface: ``radiance`` per vertex, linear on each triangle. Units: camera DN
+    per ms of exposure that a dark-subtracted, flat-fielded pixel at the principal point would
+    record from a surface element facing the camera squarely. At a point the field is read at
+    its closest surface point; a point farther than ``max_snap_mm`` from the surface has none.
+    """
+
+    vertices_mm: np.ndarray   #: (V, 3) sample frame, mm
+    triangles: np.ndarray     #: (T, 3) 0-based vertex indices
+    radiance: np.ndarray      #: (V,) DN per ms
+    max_snap_mm: float = 1.0
+
+
 @runtime_checkable
 class TransilluminationTruth(Protocol):
-    """A simulated light source that knows the true light leaving the sample."""
+    """A simulated light source that knows the true light leaving the sample. A scan records
+    it in the run (``truth.json``, docs/run-directory.md) for every trans-illuminated view and
+    source; validation reads it from there."""
 
-    def true_normal_radiance(self, angle_deg: float, target_mm: tuple[float, float],
-                             points_mm: np.ndarray) -> np.ndarray:
-        """True radiance leaving the sample along the surface normal (the paper's I0) at the
-        sample-frame points ``points_mm`` (N, 3), snapped to the true surface, for the stage at
-        ``angle_deg`` and the beam at ``target_mm``. Units: camera DN per ms of exposure that a
-        dark-subtracted, flat-fielded pixel at the principal point would record from a surface
-        element facing the camera squarely. NaN where a point is farther than 1 mm from the
-        true surface."""
+    def true_surface_radiance(self, angle_deg: float,
+                              target_mm: tuple[float, float] | None) -> SurfaceRadiance:
+        """The true light for the stage at ``angle_deg`` and the beam at ``target_mm`` (None =
+        where it points now: an un-aimed source). Works on devices built but not connected."""
         ...
 
 

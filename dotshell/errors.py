@@ -58,3 +58,19 @@ class PluginFault(DotshellError):
 class FrameError(DotshellError):
     """A frame (from the camera or from a run's files) is not what the run's frames are: its
     size, dtype, bit depth or channels differ (see :mod:`dotshell.run.framecheck`)."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """The process was asked to stop (Ctrl-C, SIGTERM, SIGHUP): ``signame`` says which. Not a
+    :class:`DotshellError`: a stop is obeyed, not reported (raised by
+    :func:`dotshell.run.lifecycle.interrupts`)."""
+
+    def __init__(self, signame: str = "SIGINT") -> None:
+        super().__init__(signame)
+        self.signame = signame
+
+    @property
+    def reason(self) -> str:
+        what = {"SIGINT": "Ctrl-C (SIGINT)", "SIGTERM": "SIGTERM", "SIGHUP":
+                "SIGHUP (the terminal or SSH session closed)"}.get(self.signame, self.signame)
+        return f"stopped by {what}"

@@ -9,8 +9,10 @@ and implements any of the hooks below with :data:`dotshell.hookimpl`. Hooks are 
 with keyword arguments, so an implementation may accept only the arguments it needs.
 
 **Backend hooks** return a list of :class:`dotshell.backends.Backend` for one role; the profile
-chooses among all plugins' backends by name. First-party backends (the simulator, gray code)
-are registered exactly this way.
+chooses among all plugins' backends by name. A plugin that declares its backends in a
+``dotshell.toml`` manifest instead (:mod:`dotshell.manifest`; all first-party plugins do) is not
+imported until one of them is used; its package's hooks are then only for being registered as
+a plain pluggy plugin.
 
 **Workflow hooks** observe a scan; they must not raise (an exception is logged as a warning
 against the plugin and the scan goes on) and should return quickly.
@@ -31,54 +33,54 @@ hookspec = pluggy.HookspecMarker("dotshell")
 
 
 @hookspec
-def dotshell_cameras() -> list["Backend"]:
+def dotshell_cameras() -> list[Backend]:
     """Camera backends. Factories return a :class:`dotshell.devices.Camera`."""
 
 
 @hookspec
-def dotshell_projectors() -> list["Backend"]:
+def dotshell_projectors() -> list[Backend]:
     """Projector backends. Factories return a :class:`dotshell.devices.Projector`."""
 
 
 @hookspec
-def dotshell_stages() -> list["Backend"]:
+def dotshell_stages() -> list[Backend]:
     """Rotation-stage backends. Factories return a :class:`dotshell.devices.Stage`."""
 
 
 @hookspec
-def dotshell_analyzers() -> list["Backend"]:
+def dotshell_analyzers() -> list[Backend]:
     """Polarization-analyzer backends. Factories return a :class:`dotshell.devices.Analyzer`."""
 
 
 @hookspec
-def dotshell_light_sources() -> list["Backend"]:
+def dotshell_light_sources() -> list[Backend]:
     """Light-source backends (trans-illumination laser). Factories return a
     :class:`dotshell.devices.LightSource`."""
 
 
 @hookspec
-def dotshell_codings() -> list["Backend"]:
+def dotshell_codings() -> list[Backend]:
     """Pattern codings. Factories return a :class:`dotshell.coding.PatternCoding`; they are
     called with ``context=None`` because codings touch no hardware."""
 
 
 @hookspec
-def dotshell_surface_meshers() -> list["Backend"]:
+def dotshell_surface_meshers() -> list[Backend]:
     """Surface meshers: point cloud → closed triangle surface."""
 
 
 @hookspec
-def dotshell_volume_meshers() -> list["Backend"]:
+def dotshell_volume_meshers() -> list[Backend]:
     """Volume meshers: closed surface → tetrahedral mesh."""
 
 
 @hookspec
-def dotshell_normalizers() -> list["Backend"]:
+def dotshell_normalizers() -> list[Backend]:
     """Trans-illumination intensity normalization methods."""
 
 
 @hookspec
-def dotshell_exporters() -> list["Backend"]:
+def dotshell_exporters() -> list[Backend]:
     """Exporters. Factories return an object with ``export(run_dir: Path) -> list[Path]`` that
     reads the run's products (``cloud.ply``, meshes) and writes files under the run directory,
     returning the paths written."""

@@ -1,5 +1,10 @@
 """Plugin discovery: entry points of the ``dotshell`` group, loaded one by one.
 
+A plugin whose package ships a ``dotshell.toml`` manifest (:mod:`dotshell.manifest`) is not
+imported: its backends are known from the manifest and each is imported the first time it is
+used (:attr:`BackendInfo.backend`). A plugin without one is imported here and asked for its
+backends through the hooks of :mod:`dotshell.hookspecs`.
+
 A plugin that fails to import is recorded in :attr:`PluginManager.load_errors` with its name,
 distribution and reason; the others still load. ``strict=True`` (``--strict-plugins``) turns
 such a failure into a :class:`~dotshell.errors.PluginError` — for plugin authors and CI.
@@ -7,9 +12,9 @@ such a failure into a :class:`~dotshell.errors.PluginError` — for plugin autho
 
 from __future__ import annotations
 
+import importlib
 import importlib.metadata as md
-import traceback
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any, Iterable, Mapping
 
@@ -18,6 +23,8 @@ import pluggy
 from dotshell import hookspecs
 from dotshell.backends import ROLES, Backend
 from dotshell.errors import DotshellError, PluginError, PluginFault
+from dotshell.manifest import (Manifest, ManifestBackend, find_manifest, raised_at, read_manifest,
+                               short_repr)
 from dotshell.settings import validate_settings
 
 GROUP = "dotshell"
@@ -35,14 +42,60 @@ class PluginLoadError:
         return f"plugin {self.name!r} (from {self.distribution}) failed to load: {self.reason}"
 
 
-@dataclass(frozen=True)
 class BackendInfo:
-    """A backend together with the plugin and distribution that provide it."""
+    """A backend together with the plugin and distribution that provide it. Its role, name,
+    summary and USB ids are known without importing anything; :attr:`backend` imports a
+    backend declared in a manifest the first time it is asked for (and keeps it)."""
 
-    role: str
-    backend: Backend
-    plugin: str
-    distribution: str
+    def __init__(self, role: str, plugin: str, distribution: str, name: str, summary: str = "",
+                 usb_ids: tuple[str, ...] = (), backend: Backend | None = None,
+                 declared: ManifestBackend | None = None) -> None:
+        self.role = role
+        self.plugin = plugin
+        self.distribution = distribution
+        self.name = name
+        self.summary = summary
+        self.usb_ids = usb_ids
+        self._backend = backend
+        self._declared = declared
+
+    @classmethod
+    def of(cls, role: str, backend: Backend, plugin: str, distribution: str) -> BackendInfo:
+        """A backend a plugin's hook returned (already imported)."""
+        return cls(role, plugin, distribution, backend.name, backend.summary, backend.usb_ids,
+                   backend=backend)
+
+    @classmethod
+    def from_manifest(cls, entry: ManifestBackend, plugin: str,
+                      distribution: str) -> BackendInfo:
+        """A backend a plugin's manifest declares (imported on first use)."""
+        return cls(entry.kind, plugin, distribution, entry.name, entry.summary, entry.usb_ids,
+                   declared=entry)
+
+    @property
+    def loaded(self) -> bool:
+        """Whether the backend's module has been imported."""
+        return self._backend is not None
+
+    @property
+    def backend(self) -> Backend:
+        """The :class:`Backend`, imported on first use; :class:`PluginError` naming the plugin,
+        the backend and the import's error when its module is broken."""
+        if self._backend is None:
+            assert self._declared is not None
+            try:
+                self._backend = self._declared.load()
+            except PluginError as exc:
+                raise PluginError(f"plugin {self.plugin!r} ({self.distribution}) failed to load "
+                                  f"its {self.role} backend {self.name!r}: {exc}. Fix or "
+                                  "reinstall the plugin, or choose another backend in the "
+                                  "profile (`dotshell plugins --check` loads every backend)."
+                                  ) from exc
+        return self._backend
+
+    def __repr__(self) -> str:
+        return (f"BackendInfo({self.role!r}, {self.name!r}, plugin={self.plugin!r}, "
+                f"loaded={self.loaded})")
 
 
 class PluginManager:
@@ -54,6 +107,8 @@ class PluginManager:
         self.pm.add_hookspecs(hookspecs)
         self.load_errors: list[PluginLoadError] = []
         self.distributions: dict[str, str] = {}
+        #: plugins found with a manifest (dotshell.toml): their backends are imported on use
+        self.manifests: dict[str, Manifest] = {}
         self._backends: dict[str, dict[str, BackendInfo]] | None = None
         self.qualified: dict[str, dict[str, BackendInfo]] = {}
         #: seconds a workflow hook may take before the workflow goes on without it
@@ -80,17 +135,58 @@ class PluginManager:
                     f"{seen[ep.name]}; it is loaded as {name!r} (rename the entry point in the "
                     "plugin's pyproject.toml)"))
             seen.setdefault(ep.name, dist)
+            if self._load_manifest(ep, name, dist):
+                continue
             try:
                 plugin = ep.load()
             except BaseException as exc:  # any import-time failure, sys.exit() included
                 if _user_interrupt(exc):
                     raise
-                last = traceback.extract_tb(exc.__traceback__)[-1:] if exc.__traceback__ else []
-                at = f" at {last[0].filename}:{last[0].lineno}" if last else ""
-                self._load_failed(PluginLoadError(ep.name, dist, f"{type(exc).__name__}: {exc}{at}"))
+                self._load_failed(PluginLoadError(ep.name, dist,
+                                                  f"{type(exc).__name__}: {exc}{raised_at(exc)}"))
                 continue
             self.register(plugin, name=name, distribution=dist)
         self.backends("camera")  # collect now: duplicate or malformed backends are load errors
+        if self.strict:  # plugin authors and CI: every declared backend must import
+            for failure in self.check_backends():
+                self._load_failed(failure)
+
+    def _load_manifest(self, ep: md.EntryPoint, name: str, dist: str) -> bool:
+        """Take the plugin's backends from its manifest when it has one (nothing of the plugin
+        is imported, except a workflow-hook module it names); False when it has none."""
+        path = find_manifest(ep.module)
+        if path is None:
+            return False
+        try:
+            manifest = read_manifest(path)
+        except PluginError as exc:
+            self._load_failed(PluginLoadError(ep.name, dist, str(exc)))
+            return True
+        self.manifests[name] = manifest
+        self.distributions[name] = dist
+        self._backends = None
+        if manifest.hooks:
+            try:
+                module = importlib.import_module(manifest.hooks)
+            except (Exception, SystemExit) as exc:  # plugin code: any import-time failure
+                self._load_failed(PluginLoadError(
+                    ep.name, dist, f"its hooks module {manifest.hooks!r} raised "
+                    f"{type(exc).__name__}: {exc}{raised_at(exc)}"))
+                return True
+            self.register(module, name=name, distribution=dist)
+        return True
+
+    def check_backends(self) -> list[PluginLoadError]:
+        """Import every backend declared in a manifest; one error per backend that fails."""
+        failures = []
+        for role in ROLES:
+            self.backends(role)
+            for info in self.qualified[role].values():  # duplicates kept aside included
+                try:
+                    _ = info.backend  # imports it
+                except PluginError as exc:
+                    failures.append(PluginLoadError(info.plugin, info.distribution, str(exc)))
+        return failures
 
     def register(self, plugin: Any, name: str, distribution: str = "local") -> None:
         """Register a plugin object or module directly (tests, scripts)."""
@@ -112,25 +208,39 @@ class PluginManager:
 
     def _collect(self) -> dict[str, dict[str, BackendInfo]]:
         table: dict[str, dict[str, BackendInfo]] = {role: {} for role in ROLES}
-        self.qualified: dict[str, dict[str, BackendInfo]] = {role: {} for role in ROLES}
-        impls = {role: getattr(self.pm.hook, hook).get_hookimpls() for role, hook in ROLES.items()}
+        self.qualified = {role: {} for role in ROLES}
         for role, hook_name in ROLES.items():
-            # pluggy lists the last registered first; first-party plugins were registered first
-            for impl in sorted(impls[role], key=lambda i: self._order(i.plugin_name)):
-                dist = self.distributions.get(impl.plugin_name, "local")
-                for b in self._provided(impl, hook_name, dist):
-                    info = BackendInfo(role, b, impl.plugin_name, dist)
-                    self.qualified[role][f"{impl.plugin_name}:{b.name}"] = info
-                    if b.name in table[role]:
-                        other = table[role][b.name]
-                        self._load_failed(PluginLoadError(
-                            impl.plugin_name, dist, f"{role} backend {b.name!r} is already "
-                            f"provided by plugin {other.plugin!r} ({other.distribution}), which "
-                            f"is kept; choose this one with backend = "
-                            f"\"{impl.plugin_name}:{b.name}\""))
-                        continue
-                    table[role][b.name] = info
+            impls = {i.plugin_name: i for i in getattr(self.pm.hook, hook_name).get_hookimpls()}
+            # first-party plugins first, then in the order they were loaded or registered
+            plugins = [*self.distributions, *(p for p in impls if p not in self.distributions)]
+            for plugin in sorted(plugins, key=self._order):
+                for info in self._infos(plugin, role, impls.get(plugin)):
+                    self._enter(table[role], info)
         return table
+
+    def _infos(self, plugin: str, role: str, impl: Any) -> list[BackendInfo]:
+        """One plugin's ``role`` backends: declared in its manifest, then from its hook."""
+        dist = self.distributions.get(plugin, "local")
+        manifest = self.manifests.get(plugin)
+        infos = [BackendInfo.from_manifest(b, plugin, dist)
+                 for b in (manifest.of_kind(role) if manifest else [])]
+        if impl is not None:
+            infos += [BackendInfo.of(role, b, plugin, dist)
+                      for b in self._provided(impl, ROLES[role], dist)]
+        return infos
+
+    def _enter(self, table: dict[str, BackendInfo], info: BackendInfo) -> None:
+        """Add a backend under its name (and ``plugin:name``); a second one of the same name is
+        a load error of its plugin."""
+        self.qualified[info.role][f"{info.plugin}:{info.name}"] = info
+        if info.name in table:
+            other = table[info.name]
+            self._load_failed(PluginLoadError(
+                info.plugin, info.distribution, f"{info.role} backend {info.name!r} is already "
+                f"provided by plugin {other.plugin!r} ({other.distribution}), which is kept; "
+                f"choose this one with backend = \"{info.plugin}:{info.name}\""))
+            return
+        table[info.name] = info
 
     def _order(self, plugin_name: str) -> tuple[bool, int]:
         dist = self.distributions.get(plugin_name, "local")
@@ -157,7 +267,7 @@ class PluginManager:
             self._load_failed(PluginLoadError(
                 impl.plugin_name, dist, f"{hook_name}() must return a list of "
                 "dotshell.backends.Backend (a name, a callable factory and a settings schema of "
-                f"dotshell.settings.Setting); it returned {_describe(provided)}"))
+                f"dotshell.settings.Setting); it returned {short_repr(provided)}"))
             return []
         return list(provided)
 
@@ -233,7 +343,7 @@ def _distribution_label(dist: md.Distribution) -> tuple[str, str]:
 
 def _user_interrupt(exc: BaseException) -> bool:
     """A real Ctrl-C / stop signal (to be obeyed), not a plugin raising KeyboardInterrupt."""
-    from dotshell.run.lifecycle import Interrupted
+    from dotshell.errors import Interrupted
 
     return isinstance(exc, Interrupted)
 
@@ -243,11 +353,6 @@ def _schema_ok(schema: Any) -> bool:
 
     return isinstance(schema, Mapping) and all(
         isinstance(k, str) and isinstance(v, Setting) for k, v in schema.items())
-
-
-def _describe(value: Any) -> str:
-    text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
 
 
 class PluginObject:
@@ -284,21 +389,17 @@ class PluginObject:
 
     def __reduce__(self) -> tuple[Any, ...]:
         """Pickled (into the mesh process, :mod:`dotshell.pipeline.mesh_process`) as the
-        plugin's object and the names a fault message needs; the backend's factory (often a
-        lambda) and settings schema stay behind."""
-        backend = replace(self._info.backend, factory=_made_elsewhere, settings_schema={})
-        return (PluginObject, (self._obj, replace(self._info, backend=backend)))
-
-
-def _made_elsewhere(*args: Any, **kwargs: Any) -> Any:
-    """The factory of a backend whose object was pickled: it was made in another process."""
-    raise PluginError("this backend's object was made in another process; create it there")
+        plugin's object and the names a fault message needs; the backend itself (its factory
+        is often a local function) stays behind."""
+        i = self._info
+        return (PluginObject, (self._obj, BackendInfo(i.role, i.plugin, i.distribution, i.name,
+                                                      i.summary, i.usb_ids)))
 
 
 def plugin_fault(info: BackendInfo, doing: str, exc: BaseException) -> str:
     """The one-paragraph message for plugin code that raised something unexpected."""
     return (f"plugin {info.plugin!r} ({info.distribution}; role {info.role}, backend "
-            f"{info.backend.name!r}) raised {type(exc).__name__} while {doing}: {exc}. This is a "
+            f"{info.name!r}) raised {type(exc).__name__} while {doing}: {exc}. This is a "
             "fault of the plugin: update or fix it, or choose another backend in the profile.")
 
 
@@ -335,3 +436,20 @@ def get_plugin_manager(strict: bool = False) -> PluginManager:
         pm.load_entry_points()
         _default = pm
     return _default
+
+
+#: The entry-point group of device emulators (``dotshell emulate NAME``, docs/devices.md).
+EMULATOR_GROUP = "dotshell_emulators"
+
+
+def emulator_class(name: str) -> type:
+    """The emulator registered as ``name`` in the ``dotshell_emulators`` entry-point group."""
+    eps = {ep.name: ep for ep in md.entry_points(group=EMULATOR_GROUP)}
+    if name not in eps:
+        raise PluginError(f"no emulator named {name!r}; installed emulators: "
+                          f"{', '.join(sorted(eps)) or '(none)'}.")
+    try:
+        return eps[name].load()
+    except Exception as exc:
+        raise PluginError(f"emulator {name!r} ({eps[name].value}) failed to load: "
+                          f"{type(exc).__name__}: {exc}") from None

@@ -42,7 +42,7 @@ class Setting:
     min: float | None = None
     max: float | None = None
     length: int | tuple[int, int] | None = None
-    schema: Mapping[str, "Setting"] | None = field(default=None)
+    schema: Mapping[str, Setting] | None = field(default=None)
 
     def __post_init__(self) -> None:
         if self.kind not in _KINDS:
@@ -139,7 +139,7 @@ def validate_settings(schema: Mapping[str, Setting], data: Mapping[str, Any] | N
                 raise ProfileError(f"{where}: missing required key [{key}] ({s.kind}"
                                    + (f", {s.unit}" if s.unit else "") + f"): {s.help}")
             fill = s.kind == "table" and s.schema is not None and s.default == {}
-            out[name] = validate_settings(s.schema, {}, where, key) if fill else s.default
+            out[name] = validate_settings(s.schema, {}, where, key) if fill and s.schema else s.default
             continue
         out[name] = _check_value(where, key, data[name], s)
     return out

@@ -11,6 +11,29 @@ ROOT = Path(__file__).resolve().parents[1]
 os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
 
 
+def _runtime_dir_of_this_test_session() -> None:
+    """Device locks and server sockets live in the user's runtime directory, one for every
+    dotshell process of the user: the lock of a device says who drives it. Two test sessions at
+    once on one machine (a developer's and CI's, or several worktrees) would see each other's
+    emulated devices there: a pseudo-terminal an emulator closes (an unplug test) can be handed
+    to the other session's emulator under the same /dev/pts number while the first session's
+    scan still holds its lock, and that scan's lock then refuses the other (DeviceInUse). So
+    each test session, with its xdist workers and the subprocesses they start, gets a runtime
+    directory of its own (tests that need another set XDG_RUNTIME_DIR themselves)."""
+    import atexit
+    import shutil
+    import tempfile
+
+    if os.environ.get("DOTSHELL_TEST_RUNTIME_DIR"):
+        return  # an xdist worker, or a process a test started: the session's directory
+    d = tempfile.mkdtemp(prefix="dotshell-tests-runtime-")  # mode 0700
+    os.environ["XDG_RUNTIME_DIR"] = os.environ["DOTSHELL_TEST_RUNTIME_DIR"] = d
+    atexit.register(shutil.rmtree, d, True)
+
+
+_runtime_dir_of_this_test_session()
+
+
 @pytest.fixture(autouse=True)
 def fresh_plugin_manager(monkeypatch):
     """Each test discovers plugins anew (tests add and break plugins)."""
@@ -107,7 +130,8 @@ KERNEL_FREE = ("test_wheel.py",  # ~50 s; its kernels compile in the installed w
                "test_numba_cache.py",
                "test_sim.py", "test_plugins.py", "test_ports_cli.py", "test_settings.py",
                "test_docs.py", "test_store.py", "test_cameras.py", "test_hugepages.py",
-               "test_parallel.py", "test_validate_full.py")
+               "test_parallel.py", "test_validate_full.py", "test_layers.py",
+               "test_profile_sections.py")
 
 #: The other test files that take longest on one worker, most first (measured with
 #: ``pytest -n 2 --dist loadfile --junitxml``, summed by file; with a clean clone's compiles in

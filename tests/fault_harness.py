@@ -127,6 +127,25 @@ class Env:
         self.monkeypatch.syspath_prepend(str(site))
         self.plugins.append(module)
 
+    def manifest_plugin(self, manifest: str, modules: dict[str, str],
+                        entry_point: str = "faulty") -> str:
+        """Install a plugin package with a ``dotshell.toml`` manifest and ``modules`` (its
+        name after its content, as :meth:`plugin`; ``PKG`` in the manifest is replaced by it);
+        the package's name."""
+        package = f"dotshell_fault_{sha((manifest + repr(sorted(modules.items()))).encode())}"
+        site = self.tmp / f"site-{package}"
+        if not site.exists():
+            make_dist(site, f"dotshell-fault-{entry_point}", package, "", entry_point)
+            (site / f"{package}.py").unlink()
+            (site / package).mkdir()
+            (site / package / "__init__.py").write_text("")
+            (site / package / "dotshell.toml").write_text(manifest.replace("PKG", package))
+            for name, source in modules.items():
+                (site / package / f"{name}.py").write_text(source)
+        self.monkeypatch.syspath_prepend(str(site))
+        self.plugins.append(package)
+        return package
+
     def file(self, name: str, content: str | bytes | Any) -> Path:
         """A file in ``tmp``: bytes or text as given, anything else as JSON."""
         p = self.tmp / name

@@ -32,9 +32,18 @@ def _pm() -> PluginManager:
 def cluster():
     """One local Dask cluster (2 worker processes, 1 thread each) for the whole module, made
     as `dotshell batch` makes its own."""
+    import warnings
+
     from dotshell.pipeline.batch import local_cluster
 
-    c = local_cluster(2)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        c = local_cluster(2)
+    # its scheduler's HTTP routes on a free loopback port, never 8787: a second cluster on
+    # the host (the suite's other worker, another batch) warned "Port 8787 is already in use"
+    assert c.scheduler.http_server.address == "127.0.0.1", c.scheduler.http_server.address
+    assert c.scheduler.http_server.port != 8787
+    assert [str(w.message) for w in caught if "already in use" in str(w.message)] == []
     yield c.scheduler_address
     c.close()
 
@@ -69,7 +78,7 @@ def copy_study(study: Path, dest: Path) -> list[Path]:
 def serial(study, tmp_path_factory):
     """The single-run commands' results: `dotshell reconstruct RUN` on each run, with and
     without a new calibration file (the runs' own, copied)."""
-    from dotshell.pipeline.scan import reconstruct_run
+    from dotshell.pipeline.commands import reconstruct_run
 
     tmp = tmp_path_factory.mktemp("serial")
     pm = _pm()
@@ -145,6 +154,16 @@ def test_a_batch_on_two_workers_gives_the_serial_commands_bytes(cluster, study, 
     assert sum(isinstance(e, BatchRunFinished) for e in events) == N_RUNS
 
 
+def quiet_below_warning(err: str) -> None:
+    """The batch's stderr holds no log line below WARNING: Dask's INFO records (its cluster's
+    start and stop, and under load a comm closed at shutdown with its traceback: the batch
+    flake of issue 33) reached it through the root logger's handler."""
+    import re
+
+    low = re.findall(r"^(?:INFO|DEBUG) \S+:.*$", err, re.M)
+    assert low == [] and "Traceback" not in err, low[:3] or err
+
+
 def damage_page(stack: Path, index: int) -> str:
     """Write ``stack`` again (as another TIFF writer would) with page ``index`` replaced by a
     60x50 px frame; returns that frame's name."""
@@ -171,7 +190,8 @@ def test_a_damaged_frame_fails_its_run_alone_with_the_message(study, serial,
     code = main(["batch", "reconstruct", str(tmp_path / "study" / "*"), "--workers", "2",
                  "--out", str(tmp_path)])  # the command's own local cluster
     err = capsys.readouterr().err
-    assert code == 1 and "1 of 4 runs failed" in err and "Traceback" not in err
+    assert code == 1 and "1 of 4 runs failed" in err, err
+    quiet_below_warning(err)
     rows = (tmp_path / "batch.csv").read_text().splitlines()
     assert rows[0].startswith("run,status,generation,views,points,mean_rel_error_pct")
     assert [r.split(",")[1] for r in rows[1:]] == ["completed", "completed", "failed",
@@ -243,6 +263,33 @@ def test_a_stopped_batch_is_finished_by_running_it_again(cluster, study, serial,
     assert_same_products(runs, serial["plain"], renumbered=True)
 
 
+def test_a_local_clusters_workers_keep_dasks_comm_noise_off_the_terminal(cluster):
+    """A worker process prints its own log lines straight to the terminal: at the cluster's
+    close on a loaded host, a heartbeat that met the closing scheduler printed "Failed to
+    communicate with scheduler during heartbeat" at ERROR with its traceback (seen once in five
+    `dotshell batch` runs at load 17-19). Workers log only CRITICAL lines unless the command
+    runs at INFO or below (-v)."""
+    import logging
+
+    from distributed import Client
+
+    from dotshell.pipeline.batch import worker_log_level
+
+    assert logging.getLogger().getEffectiveLevel() == logging.WARNING  # as `dotshell batch`
+    assert worker_log_level() == logging.CRITICAL
+    with Client(cluster, set_as_default=False) as client:
+        levels = client.run(lambda: sorted({h.level for h in logging.getLogger(
+            "distributed").handlers if isinstance(h, logging.StreamHandler)}))
+    assert levels and all(lv == [logging.CRITICAL] for lv in levels.values()), levels
+    root = logging.getLogger()
+    before = root.level
+    try:
+        root.setLevel(logging.INFO)  # -v: the workers' INFO lines too
+        assert worker_log_level() == logging.INFO
+    finally:
+        root.setLevel(before)
+
+
 def test_workers_with_another_dotshell_version_are_refused(cluster, study, monkeypatch):
     import dotshell.pipeline.batch_tasks as tasks
 
@@ -312,7 +359,8 @@ def test_a_truncated_stack_fails_its_run_alone_and_again_alone(study, serial, tm
                      "--out", str(tmp_path / f"out{attempt}")])
         err = capsys.readouterr().err
         assert code == 1 and "1 of 4 runs failed" in err, err
-        assert "Traceback" not in err and "cancelled" not in err, err
+        assert "cancelled" not in err, err
+        quiet_below_warning(err)
         rows = (tmp_path / f"out{attempt}" / "batch.csv").read_text().splitlines()
         statuses = [r.split(",")[1] for r in rows[1:]]
         assert statuses == (["completed", "failed", "completed", "completed"] if attempt == 0

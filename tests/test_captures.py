@@ -18,9 +18,9 @@ from conftest import ROOT
 from dotshell.cli.app import main
 from dotshell.errors import CalibrationError, RunError
 from dotshell.geometry.opencv_io import read_opencv_calibration, write_opencv_calibration
-from dotshell.pipeline.captures import (capture_order, load_layout, read_captures,
-                                        read_sequence, reconstruct_captures,
-                                        to_coding_frames)
+from dotshell.pipeline.captures import reconstruct_captures
+from dotshell.run.capture_layouts import (capture_order, load_layout, read_captures, read_sequence,
+                                  to_coding_frames)
 from dotshell.plugins import PluginManager
 
 SKULL = next((p / "shared" / "data" / "slstudio-skull" for p in (ROOT.parent, ROOT.parents[1])

@@ -105,6 +105,31 @@ def test_toast_files_read_back_field_by_field(mesh_dir):
     assert qm.links.tolist() == [[0, 0], [0, 1], [1, 2]]
 
 
+def test_mesh_without_optics_gets_the_profile_defaults_in_both_formats(mesh_dir, tmp_path):
+    """NIRFAST and TOAST fill a mesh without per-node properties from one place: the
+    profile's [mesh.optics] defaults (μa 0.01/mm, μs' 1/mm, n 1.33), region 1."""
+    from dotshell.profile.mesh import MESH_SCHEMA
+    from dotshell_dotio.nirfast import read_nirfast, write_nirfast
+    from dotshell_dotio.optics import kappa_mm
+    from dotshell_dotio.toast import msh_text, read_msh
+
+    mesh = read_volume(mesh_dir / "volume.vtu")
+    mesh.point_data = {}
+    defaults = {k: s.default for k, s in MESH_SCHEMA["optics"].schema.items()}
+    write_nirfast(tmp_path, "bare", mesh, Optodes([], [], []))
+    nf = read_nirfast(tmp_path, "bare")
+    (tmp_path / "bare.msh").write_text(msh_text(mesh))
+    tm = read_msh(tmp_path / "bare.msh")
+    kappa = kappa_mm(defaults["mua_per_mm"], defaults["musp_per_mm"])
+    np.testing.assert_allclose(nf.mua, defaults["mua_per_mm"])
+    np.testing.assert_allclose(nf.kappa, kappa)
+    np.testing.assert_allclose(nf.ri, defaults["refractive_index"])
+    assert (nf.region == 1).all() and (tm.region == 0).all()
+    np.testing.assert_allclose(tm.params["MUA"], nf.mua)
+    np.testing.assert_allclose(tm.params["KAPPA"], nf.kappa)
+    np.testing.assert_allclose(tm.params["N"], nf.ri)
+
+
 def test_meshio_formats_read_back(mesh_dir, capfd):
     import meshio
 

@@ -991,6 +991,51 @@ _load_error("a duplicate of a first-party backend",
             ("already provided by plugin 'sim'", "faulty:sim-camera"), command="check")
 
 
+def _manifest_scan(env: Env, role: str, body: str) -> list[str]:
+    """A scan whose ``role`` is backend ``m-dev`` of a manifest plugin, its module ``body``."""
+    env.manifest_plugin(f'[[backends]]\nkind = "{role}"\nname = "m-dev"\nsummary = "s"\n'
+                        'python_name = "PKG.driver:BACKEND"\n', {"driver": body})
+    raw = tiny_profile_dict()
+    raw[role] = {"backend": "m-dev"}
+    return ["scan", str(env.profile(raw=raw)), "--out", str(env.tmp / "runs")]
+
+
+@case("plugins", "a manifest backend whose module fails to import",
+      ("plugin 'faulty'", "failed to load its stage backend 'm-dev'", "needs libstage.so",
+       "dotshell plugins --check"))
+def _(env):
+    return _manifest_scan(env, "stage", "raise ImportError('needs libstage.so')\n")
+
+
+@case("plugins", "a manifest python_name that is not a Backend",
+      ("plugin 'faulty'", "'m-dev'", "must be (or return) a dotshell.backends.backend"))
+def _(env):
+    return _manifest_scan(env, "stage", "BACKEND = 42\n")
+
+
+@case("plugins", "a manifest backend of another name",
+      ("'m-dev'", "named 'm-dev', as the manifest says", "other-name"))
+def _(env):
+    return _manifest_scan(env, "stage", "from dotshell.backends import Backend\n"
+                          "BACKEND = Backend('other-name', lambda **k: None)\n")
+
+
+@case("plugins", "a manifest of an unknown kind (plugins)",
+      ("plugin 'faulty'", "dotshell.toml: [[backends]] #1", "kind = 'turntable' is not a role"),
+      code=1)
+def _(env):
+    env.manifest_plugin('[[backends]]\nkind = "turntable"\nname = "t"\n'
+                        'python_name = "PKG.t:B"\n', {})
+    return ["plugins"]
+
+
+@case("plugins", "a manifest that is not TOML (plugins)",
+      ("plugin 'faulty'", "is not a readable toml manifest"), code=1)
+def _(env):
+    env.manifest_plugin('[[backends]\nkind = \n', {})
+    return ["plugins"]
+
+
 @case("plugins", "a workflow hook raising", ("plugin 'faulty'", "dotshell_view_captured",
                                              "went on without it"), code=0)
 def _(env):
@@ -1455,7 +1500,7 @@ def test_debug_shows_the_traceback(tmp_path: Path, capsys) -> None:
 def test_progress_shows_a_stalled_step_as_stalled() -> None:
     from rich.console import Console
 
-    from dotshell.cli.app import ScanProgress
+    from dotshell.cli.common import ScanProgress
     from dotshell.events import FrameCaptured, ScanStarted
 
     view = ScanProgress(Console(file=open(os.devnull, "w")))

@@ -12,7 +12,7 @@ from dotshell.cli.app import main
 from dotshell.errors import FrameError, RunError
 from dotshell.run.framecheck import FrameSpec
 from dotshell.run.frames import PngFrameStore, TiffFrameStore, open_frames
-from dotshell.pipeline.scan import reconstruct_run
+from dotshell.pipeline.commands import reconstruct_run
 from dotshell.plugins import PluginManager
 from dotshell.run.ply import read_ply
 from dotshell.run.store import RunStore

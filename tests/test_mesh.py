@@ -119,7 +119,7 @@ def test_forward_on_the_scanned_mesh(meshed):
 def test_mesh_after_reprocessing_when_the_profile_asks(small_scan, tmp_path):
     """[mesh] after_scan runs the stage inside finish() (scan and reconstruct), before the
     exporters, which find the volume mesh."""
-    from dotshell.pipeline.scan import reconstruct_run
+    from dotshell.pipeline.commands import reconstruct_run
 
     run = copy_run(small_scan[0].run_dir, tmp_path / "run", frames=True,
                    mesh={"after_scan": True, "node_distance_mm": 2.0, "previews": False},

@@ -266,6 +266,41 @@ def _copy_run(trans_run, tmp_path):
     return dst
 
 
+def test_truth_comes_from_the_run_directory_not_from_a_rig(trans_run, tmp_path, capsys,
+                                                         monkeypatch):
+    """The scan records the simulator's true light (truth.json); normalizing a copy of the run
+    elsewhere, with building a rig made impossible, scores exactly as the scan did. Without
+    truth.json the run is normalized and says it was not scored."""
+    from dotshell.cli.app import main
+    from dotshell.rig import assembly
+
+    result, _ = trans_run
+    index = json.loads((result.run_dir / "truth.json").read_text())
+    views = index["transillumination"]["views"]
+    assert {v: e["sources"] for v, e in views.items()} == {"0": ["src_00", "src_01"],
+                                                           "3": ["src_00", "src_01"]}
+    with np.load(result.run_dir / views["3"]["file"]) as data:
+        assert len(data["vertices_mm"]) > 1000 and np.isfinite(data["radiance_src_01"]).all()
+
+    def no_rig(*args, **kwargs):
+        raise AssertionError("normalize built a Rig")
+
+    monkeypatch.setattr(assembly.Rig, "__init__", no_rig)
+    run = _copy_run(trans_run, tmp_path / "copy")
+    assert main(["normalize", str(run)]) == 0
+    n = json.loads((run / "report.json").read_text())["normalize"]
+    assert n["vs_truth"] == result.report["normalize"]["vs_truth"]
+    assert n["vs_truth"]["diffuse-fresnel"]["nodes"] > 1500
+    capsys.readouterr()
+    run = _copy_run(trans_run, tmp_path / "bare")
+    (run / "truth.json").unlink()
+    assert main(["normalize", str(run)]) == 0
+    err = "".join(capsys.readouterr().err.split())  # rich wraps at the test's 80 columns
+    assert "hasnotruth.json" in err and "notscoredagainstthetruth" in err
+    n = json.loads((run / "report.json").read_text())["normalize"]
+    assert "vs_truth" not in n and n["sources"][0]["used"] > 0
+
+
 def test_bad_runs_are_clear_errors(trans_run, small_scan, tmp_path, capsys):
     from dotshell.cli.app import main
 

@@ -16,7 +16,8 @@ from rig_server import served, user_dirs  # noqa: F401 (a fixture)
 from stop_cases import zaber_profile
 from dotshell.cli.app import main
 from dotshell.session.console import Session
-from dotshell.rig.owners import DeviceInUse, OwnerLock, device_identities, server_lock_path
+from dotshell.rig.owners import DeviceInUse, device_identities
+from dotshell.runtime.locks import OwnerLock, server_lock_path
 from dotshell.profile.loader import load_profile
 from dotshell.rig.assembly import Rig
 from dotshell.server.launch import locate
@@ -88,7 +89,7 @@ def test_a_second_server_on_a_held_stage_is_refused_naming_the_holder(tmp_path, 
 
 
 def holder_free(sock: Path) -> bool:
-    from dotshell.rig.owners import holder as lock_holder
+    from dotshell.runtime.locks import holder as lock_holder
 
     return lock_holder(server_lock_path(sock)) is None
 

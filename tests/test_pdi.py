@@ -9,7 +9,8 @@ import pytest
 from conftest import ROOT, write_profile
 from dotshell.coding import PatternFrame
 from dotshell.pipeline.pdi import Shot, combine, plan_shots
-from dotshell.pipeline.scan import reconstruct_run, scan
+from dotshell.pipeline.commands import reconstruct_run
+from dotshell.pipeline.scan import scan
 from dotshell.plugins import PluginManager
 from dotshell.profile.loader import load_profile
 from dotshell.run.store import RunStore

@@ -12,6 +12,7 @@ from rich.console import Console
 
 from rig_server import user_dirs  # noqa: F401 (a fixture)
 import dotshell.cli.devices as cli_devices
+import dotshell.plugins
 import dotshell.rig.ports as ports
 from dotshell.cli.app import main
 from dotshell.errors import DeviceError
@@ -150,7 +151,7 @@ def test_emulate_prints_its_models_errors(tmp_path, monkeypatch, capsys, user_di
         def line(self, text):
             raise ZeroDivisionError(f"cannot parse {text!r}")
 
-    monkeypatch.setattr(cli_devices, "emulator_class", lambda name: Broken)
+    monkeypatch.setattr(dotshell.plugins, "emulator_class", lambda name: Broken)
     link = tmp_path / "broken-link"
 
     def talk():

@@ -340,7 +340,7 @@ def _layout_ok(layout) -> None:
 def test_layout_reader(data):
     import tomllib
 
-    from dotshell.pipeline.captures import load_layout
+    from dotshell.run.capture_layouts import load_layout
 
     kind = data.draw(st.sampled_from(["bytes", "values"]))
     if kind == "bytes":

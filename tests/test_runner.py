@@ -13,7 +13,8 @@ from dotshell import hookimpl
 from dotshell.backends import Backend
 from dotshell.errors import DeviceError
 from dotshell.events import EventBus, FrameCaptured
-from dotshell.pipeline.scan import reconstruct_run, scan
+from dotshell.pipeline.commands import reconstruct_run
+from dotshell.pipeline.scan import scan
 from dotshell.plugins import PluginManager
 from dotshell.profile.loader import load_profile
 from dotshell.run.ply import read_ply

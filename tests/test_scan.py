@@ -8,7 +8,7 @@ import numpy as np
 import tifffile
 
 from dotshell.events import FrameCaptured, ScanFinished, ScanStarted, ViewReconstructed
-from dotshell.pipeline.scan import reconstruct_run
+from dotshell.pipeline.commands import reconstruct_run
 from dotshell.runtime import hugepages
 from dotshell.plugins import PluginManager
 from dotshell.run.ply import read_ply
@@ -57,8 +57,8 @@ def test_report_times_acquisition_and_last_frame_to_cloud(small_scan, tmp_path):
     to ``cloud.ply`` (which holds the merge, but not the validation or previews that follow
     it); the command prints them. A reconstruction of the run keeps the scan's figures (as it
     keeps its acquisition time) and times its own merge."""
-    from dotshell.cli.app import timing_line
-    from dotshell.pipeline.scan import reconstruct_run
+    from dotshell.cli.report import timing_line
+    from dotshell.pipeline.commands import reconstruct_run
     from dotshell.plugins import PluginManager
 
     result, _ = small_scan
@@ -161,3 +161,29 @@ def test_a_scan_gives_each_views_maps_back_before_the_next_view(monkeypatch):
     finally:
         pipeline.close()
     assert idle_at_start == [0, 0, 0] and hugepages.idle_bytes() == 0
+
+
+def test_a_scan_reads_its_calibration_file_once(tmp_path, pm, monkeypatch):
+    """The profile's calibration file is read once per scan: checked before the run, then
+    used for the capture and every step (it was read three times: the check, the rig, and the
+    calibration step's copy of the run's calibration.json)."""
+    from conftest import small_profile_dict, write_profile
+    from dotshell.geometry.calibration import RigCalibration
+    from dotshell.pipeline.scan import scan
+    from dotshell.profile.loader import load_profile
+    from dotshell.rig.assembly import Rig
+
+    raw = small_profile_dict(factor=0.12, views=2)
+    raw["camera"]["settings"]["supersample"] = 1
+    raw["outputs"] = {"previews": False}
+    with Rig(load_profile(write_profile(tmp_path / "gt.toml", raw), pm), pm) as rig:
+        rig.calibration().save(tmp_path / "cal.json")
+    raw["calibration"] = {"source": "file", "file": "cal.json"}
+    profile = load_profile(write_profile(tmp_path / "p.toml", raw), pm)
+    loads = []
+    real = RigCalibration.load.__func__
+    monkeypatch.setattr(RigCalibration, "load",
+                        classmethod(lambda cls, path: loads.append(path) or real(cls, path)))
+    result = scan(profile, pm, tmp_path / "runs")
+    assert result.status == "completed" and result.report["cloud"]["points"] > 0
+    assert loads == [tmp_path / "cal.json"]

@@ -35,3 +35,15 @@ def test_errors_name_file_key_value_and_fix(data, fragment):
         validate_settings(SCHEMA, data, "p.toml", "camera.settings")
     assert str(e.value).startswith("p.toml: ")
     assert fragment in str(e.value)
+
+
+def test_a_role_the_caller_needs_is_named_when_the_profile_lacks_it():
+    from dotshell.plugins import get_plugin_manager
+    from dotshell.profile.loader import load_profile
+
+    p = load_profile("sim-metal-cylinder", get_plugin_manager())  # no light source
+    assert p.required_role("camera")["backend"] == "sim-camera"
+    assert p.role("light_source") is None
+    with pytest.raises(ProfileError, match=r"sim-metal-cylinder.toml: no \[light_source\] "
+                                           r"table; add one"):
+        p.required_role("light_source")

@@ -18,7 +18,7 @@ from conftest import ROOT
 from dotshell.cli.app import _parser, main
 from dotshell.cli.completion import completion_script
 from dotshell.cli.log_setup import chosen_level
-from dotshell.pipeline.captures import resolve_layout_path
+from dotshell.run.capture_layouts import resolve_layout_path
 from dotshell.profile.loader import load_profile
 from dotshell.shipped import resolve, shipped_dir, shipped_names
 
@@ -251,4 +251,33 @@ def test_log_records_reach_stderr_by_level_and_device_lines_only_when_verbose(ca
         lib.warning("lib warning")
         assert "lib warning" not in capsys.readouterr().err
     finally:
+        configure_logging(argparse.Namespace())
+
+
+def test_a_library_logger_set_below_the_chosen_level_stays_quiet(capsys):
+    """Dask sets its ``distributed`` logger to INFO and, finding dotshell's handler on the root
+    logger, propagates to it: every `dotshell batch` printed ~25 INFO lines, and under load the
+    INFO record of a comm closed at the cluster's shutdown with its traceback (issue 33's batch
+    flake). The chosen level holds for such a logger too; -v shows its INFO lines."""
+    import logging
+
+    from dotshell.cli.log_setup import configure_logging
+
+    lib = logging.getLogger("selfleveled")
+    lib.setLevel(logging.INFO)
+    try:
+        configure_logging(argparse.Namespace(verbose=0, quiet=False, log_level=None))
+        try:
+            raise ConnectionError("comm closed")
+        except ConnectionError:
+            lib.info("Batched Comm Closed", exc_info=True)
+        lib.warning("lib warning")
+        err = capsys.readouterr().err
+        assert "WARNING selfleveled: lib warning" in err, err
+        assert "Batched Comm Closed" not in err and "Traceback" not in err, err
+        configure_logging(argparse.Namespace(verbose=1, quiet=False, log_level=None))
+        lib.info("Batched Comm Closed")
+        assert "INFO selfleveled: Batched Comm Closed" in capsys.readouterr().err
+    finally:
+        lib.setLevel(logging.NOTSET)
         configure_logging(argparse.Namespace())

@@ -41,7 +41,7 @@ def test_opencv_layout_says_what_min_contrast_does():
     says what it does under each (it guards only the finest pairs under robust)."""
     from dotshell_codings.graycode import SETTINGS_SCHEMA
 
-    from dotshell.pipeline.captures import load_layout
+    from dotshell.run.capture_layouts import load_layout
 
     layout = load_layout("opencv-graycode")
     assert layout.coding_settings()["classification"] == "robust"

@@ -846,18 +846,18 @@ async def test_log_filters_by_level(server):
         await settle(pilot)
         assert "not connected" in static_text(app, "#rig-error")
         log = app.panel(LogPanel)
-        await wait_until(pilot, lambda: {"warning", "info", "error"} <= {e.level for e in log.visible()})
+        await wait_until(pilot, lambda: {"warning", "info", "error"} <= {e.level for e in log.visible_entries()})
         await show_tab(pilot, "log")
         await pilot.press("l", "l")  # info → warning → error
         await pilot.pause()
         assert log.min_level == "error" and log.query_one("Select").value == "error"
-        assert {e.level for e in log.visible()} == {"error"}
+        assert {e.level for e in log.visible_entries()} == {"error"}
         await pilot.pause()
         shown = "".join(strip.text for strip in log.query_one("#log-view").lines)
         assert "connect the rig first" in shown
         assert "lens cap" not in shown and "hello" not in shown
         log.set_level("debug")
-        assert len(log.visible()) == len(log.entries)
+        assert len(log.visible_entries()) == len(log.entries)
 
         # Scan progress and log lines while the Rig tab is shown lay the screen out not once
         # (the Scan and Log tabs and, at 80 columns, the sidebar are hidden); the Scan tab shows

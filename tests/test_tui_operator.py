@@ -425,10 +425,10 @@ async def test_a_dark_snap_says_why_and_lines_and_output_can_be_copied(server):
         log = app.panel(LogPanel)
         await pilot.press("y")
         await pilot.pause()
-        assert app.clipboard == log.plain(log.visible()[-1]) + "\n"
+        assert app.clipboard == log.plain(log.visible_entries()[-1]) + "\n"
         await pilot.press("Y")
         await pilot.pause()
-        assert app.clipboard.splitlines() == [log.plain(e) for e in log.visible()]
+        assert app.clipboard.splitlines() == [log.plain(e) for e in log.visible_entries()]
         # the console: ctrl+y copies the last input's output
         await show_tab(pilot, "console")
         box = app.panel(ConsoleInput)

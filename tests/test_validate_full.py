@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from conftest import ROOT
-from dotshell.pipeline.scan import reconstruct_run, scan
+from dotshell.pipeline.commands import reconstruct_run
+from dotshell.pipeline.scan import scan
 from dotshell.plugins import PluginManager
 from dotshell.run.ply import read_ply
 from dotshell.profile.loader import load_profile

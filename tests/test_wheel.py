@@ -36,7 +36,11 @@ RUNTIME_FILES = ("dotshell/tui/app.tcss", "dotshell/py.typed",
                  "dotshell/shipped/profiles/lc4500/lc4500_00.png",
                  "dotshell/shipped/layouts/slstudio-graycode.toml",
                  "dotshell/shipped/layouts/opencv-graycode.toml",
-                 "dotshell/shipped/docs/index.md", "dotshell/shipped/docs/profiles.md")
+                 "dotshell/shipped/docs/index.md", "dotshell/shipped/docs/profiles.md",
+                 # the plugins' manifests: without them no first-party backend is found
+                 *(f"dotshell_{p}/dotshell.toml" for p in (
+                     "sim", "codings", "meshing", "dotio", "normalizers", "serial", "projectors",
+                     "cameras")))
 
 
 def _run(argv: list[str], cwd: Path, env: dict[str, str] | None = None,
@@ -181,6 +185,11 @@ def test_installed_decode_with_a_shipped_layout_name(venv, tmp_path):
     assert np.isfinite(column).mean() > 0.95
     err = np.abs(column - truth[None, :])
     assert np.nanmax(err) < 2.5, np.nanmax(err)
+
+
+def test_installed_plugins_check_imports_every_declared_backend(venv, tmp_path):
+    r = _dotshell(venv, "plugins", "--check", cwd=tmp_path, COLUMNS="200")
+    assert "backends load" in r.stdout and "failed" not in r.stdout and "sim-camera" in r.stdout
 
 
 def test_installed_profiles_list_and_copy(venv, tmp_path):

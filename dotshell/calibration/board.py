@@ -12,7 +12,7 @@ import hashlib
 import threading
 from collections import OrderedDict
 from dataclasses import asdict, dataclass, replace
-from typing import Any
+from typing import Any, Mapping
 
 import cv2
 import numpy as np
@@ -40,7 +40,7 @@ class Board:
     dictionary: str = "DICT_4X4_50"
 
     @classmethod
-    def from_settings(cls, s: dict[str, Any]) -> "Board":
+    def from_settings(cls, s: Mapping[str, Any]) -> Board:
         return cls(s["target"], s["columns"], s["rows"], s["square_mm"], s["marker_mm"],
                    s["dictionary"])
 
@@ -146,7 +146,7 @@ def _search(image: np.ndarray, board: Board) -> Detection | None:
             return None
         px = refine_corners(image, corners.reshape(-1, 2).astype(np.float64), board.inner)
         sharp = cv2.estimateChessboardSharpness(img, board.inner, corners)
-        return Detection(px, np.arange(board.n_corners), float(sharp[0][0]))
+        return Detection(px, np.arange(board.n_corners), float(np.ravel(sharp[0])[0]))
     detector = cv2.aruco.CharucoDetector(board.charuco())
     corners, ids, _, _ = detector.detectBoard(img)
     if ids is None or len(ids) < max(6, board.n_corners // 4):

@@ -191,15 +191,15 @@ class _Problem:
             proj_sq.append(p ** 2)
             both = np.concatenate([c, p])
             per[n] = float(np.sqrt(2 * np.mean(both ** 2)))
-        cam_sq, proj_sq = np.concatenate(cam_sq), np.concatenate(proj_sq)
+        cam_all, proj_all = np.concatenate(cam_sq), np.concatenate(proj_sq)
         Rs = cv2.Rodrigues(x[lay.stereo][:3])[0]
         return BundleSolve(
             Lens(Kc, dc, *self.camera.size), Lens(Kp, dp, *self.projector.size), Rs,
             x[lay.stereo][3:].copy(),
             {n: x[lay.pose(i)][:3].copy() for i, n in enumerate(names)},
             {n: x[lay.pose(i)][3:].copy() for i, n in enumerate(names)},
-            float(np.sqrt(2 * np.mean(res ** 2))), float(np.sqrt(2 * np.mean(cam_sq))),
-            float(np.sqrt(2 * np.mean(proj_sq))) if len(proj_sq) else float("nan"), per,
+            float(np.sqrt(2 * np.mean(res ** 2))), float(np.sqrt(2 * np.mean(cam_all))),
+            float(np.sqrt(2 * np.mean(proj_all))) if len(proj_all) else float("nan"), per,
             _sigmas(sol, lay, self.free_c, self.free_p), vectors)
 
 
@@ -220,7 +220,7 @@ def covariance(jac, residuals: np.ndarray) -> np.ndarray:
 def _sigmas(sol, lay: _Layout, free_c: tuple[int, ...], free_p: tuple[int, ...]) -> dict:
     cov = covariance(sol.jac, sol.fun)
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
-    out = {}
+    out: dict = {}
     for which, part, free in (("camera", lay.cam, free_c), ("projector", lay.proj, free_p)):
         names = INTRINSIC_NAMES + tuple(DISTORTION_NAMES[i] for i in free)
         out[which] = dict(zip(names, sd[part].tolist()))

@@ -37,7 +37,7 @@ from dotshell.calibration.solve import (
 )
 from dotshell.errors import CalibrationError
 from dotshell.geometry.lens import Lens
-from dotshell.pipeline.captures import read_gray
+from dotshell.run.capture_layouts import read_gray
 
 CAMERA_FORMAT = "dotshell-camera-calibration/1"
 
@@ -76,7 +76,10 @@ def _detect_all(images: list[Path], board: Board, max_blur_px: float
     from dotshell.calibration.procedure import _refuse_other_count
 
     objp = board.object_points()
-    poses, left_out, report, size = [], {}, {}, None
+    poses: list[PoseData] = []
+    left_out: dict[str, str] = {}
+    report: dict[str, Any] = {}
+    size: tuple[int, int] | None = None
     for k, path in enumerate(images):
         img, _kind = read_gray(path)
         here = (img.shape[1], img.shape[0])
@@ -98,6 +101,8 @@ def _detect_all(images: list[Path], board: Board, max_blur_px: float
             left_out[name] = f"blurred: edges {det.sharpness_px:.1f} px wide in {path}"
             continue
         poses.append(PoseData(name, objp[det.ids], det.pixels))
+    if size is None:  # board_images() refuses an empty list first
+        raise CalibrationError("no board photos given.")
     return poses, left_out, report, size
 
 
@@ -245,6 +250,14 @@ def calibrate_camera_pair(dir1: Path | str, dir2: Path | str, board: Board,
         models.append(model)
         solves.append(calibrate_lens("camera", poses, size, model, rule, left_out))
     pair = calibrate_pair(found[0], found[1], solves[0], solves[1], (models[0], models[1]))
+    if not pair.rms_px <= settings["max_rms_px"]:
+        raise CalibrationError(
+            f"camera pair refused: joint RMS {pair.rms_px:.3g} px > max_rms_px "
+            f"{settings['max_rms_px']:g} px over {len(pair.poses)} poses; nothing written. "
+            "Check that --board COLSxROWS counts the squares (a board with an even number of "
+            "inner corners both ways reads the same turned by 180°: use one with an odd count "
+            "one way) and that both folders hold photos of the same poses in the same name "
+            "order.")
     store = RunStore.create(Path(out_dir), "calibrate-camera-pair")
     store.write_json("camera-pair.json", {
         "format": PAIR_FORMAT, "camera1": pair.camera1.to_dict(), "camera2": pair.camera2.to_dict(),

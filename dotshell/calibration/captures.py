@@ -16,8 +16,8 @@ from dotshell.calibration.board import Board
 from dotshell.calibration.procedure import CAPTURE_FORMAT, CalibrationResult, read_image, solve
 from dotshell.errors import CalibrationError
 from dotshell.events import EventBus
-from dotshell.pipeline.captures import (capture_order, coding_frame_names, layout_coding,
-                                        load_layout, sequence_files)
+from dotshell.run.capture_layouts import (capture_order, coding_frame_names, layout_coding, load_layout,
+                                  sequence_files)
 from dotshell.run.store import RunStore
 
 
@@ -78,7 +78,7 @@ def calibrate_captures(pose_dirs: list[Path | str], layout_file: Path | str, boa
             "row patterns (order with 'rows').")
     coding = layout_coding(layout, pm, axes="both")
     order = capture_order(layout, coding_frame_names(coding, layout.projector_size))
-    poses = []
+    poses: list[dict[str, Any]] = []
     for k, d in enumerate(pose_dirs):
         files = sequence_files(Path(d), layout, order)
         poses.append({"name": f"pose_{k:02d}", "kind": "free", "angle_deg": 0.0,

@@ -23,7 +23,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Protocol, runtime_checkable
+from typing import Any, Callable, Mapping, Protocol, runtime_checkable
 
 import cv2
 import numpy as np
@@ -35,6 +35,7 @@ from dotshell.calibration.solve import (OutlierRule, PoseData, calibrate_lens, c
                                         projector_corners, turntable_axis)
 from dotshell.errors import CalibrationError
 from dotshell.events import EventBus, StepProgress, StepStarted
+from dotshell.run.layout import RunLayout
 from dotshell.geometry.calibration import (PLACEHOLDER_AXIS_DIRECTION, PLACEHOLDER_AXIS_POINT,
                                            RigCalibration)
 
@@ -67,7 +68,7 @@ class PoseSpec:
         return f"{self.name}: stage at {self.angle_deg:g}°, board {where}"
 
 
-def pose_specs(settings: dict[str, Any]) -> list[PoseSpec]:
+def pose_specs(settings: Mapping[str, Any]) -> list[PoseSpec]:
     """The poses of a profile's ``[calibrate]`` section, free poses first."""
     out = []
     for k, row in enumerate(settings["poses"]):
@@ -111,7 +112,7 @@ def capture(profile, pm, out_dir: Path | str = "runs", bus: EventBus | None = No
     from dotshell.run.store import RunStore
 
     bus = bus or EventBus()
-    settings = profile.data["calibrate"]
+    settings = profile.calibrate
     specs = pose_specs(settings)
     if not specs:
         raise CalibrationError(f"{profile.source}: [calibrate] lists no poses; add poses = "
@@ -129,7 +130,7 @@ def capture(profile, pm, out_dir: Path | str = "runs", bus: EventBus | None = No
             raise CalibrationError(f"coding {backend!r} has no 'white' frame; calibration needs "
                                    "a coding whose sequence starts with white and black.")
         if isinstance(rig.camera, ExposureControl):
-            rig.camera.set_exposure(settings["exposure_ms"])
+            rig.camera.set_exposure(settings.exposure_ms)
         placer = rig.stage if isinstance(rig.stage, TargetPlacement) else None
         total = sum(len(patterns) if s.kind == "free" else 1 for s in specs)
         bus.emit(StepStarted(step="calibration capture", total=total))
@@ -147,7 +148,7 @@ def capture(profile, pm, out_dir: Path | str = "runs", bus: EventBus | None = No
             for i, pat in enumerate(shown):
                 rig.projector.show(pat.image)
                 frame = rig.camera.capture()
-                rel = f"frames/{spec.name}/{i:03d}_{pat.name}.png"
+                rel = f"{RunLayout.FRAMES}/{spec.name}/{RunLayout.png_frame(i, pat.name)}"
                 _write_png(store.path(rel), frame)
                 files.append(rel)
                 done += 1
@@ -230,7 +231,7 @@ class PoseFrames:
     has no ``layout``, else reordered and their polarity undone as the layout says."""
 
     def __init__(self, run: Path, cap: dict[str, Any], pm) -> None:
-        from dotshell.pipeline.captures import capture_order, coding_frame_names, layout_from_dict
+        from dotshell.run.capture_layouts import capture_order, coding_frame_names, layout_from_dict
 
         where = str(run / "capture.json")
         self.run = run
@@ -249,7 +250,7 @@ class PoseFrames:
         return files[self.order.index("white")] if len(files) == len(self.order) else files[0]
 
     def __call__(self, pose: dict) -> list[np.ndarray]:
-        from dotshell.pipeline.captures import to_coding_frames
+        from dotshell.run.capture_layouts import to_coding_frames
 
         files = pose["frames"]
         if len(files) != len(self.order):
@@ -347,7 +348,8 @@ def solve(run_dir: Path | str, settings: dict[str, Any], pm,
                                axis.direction, source=f"dotshell calibrate ({run})", rms=rms)
     else:
         calib = RigCalibration(joint.camera, joint.projector, joint.R, joint.T,
-                               PLACEHOLDER_AXIS_POINT, PLACEHOLDER_AXIS_DIRECTION,
+                               np.asarray(PLACEHOLDER_AXIS_POINT, float),
+                               np.asarray(PLACEHOLDER_AXIS_DIRECTION, float),
                                source=f"dotshell calibrate ({run}; no turntable axis)", rms=rms,
                                axis_measured=False)
     for name, rep in poses_report.items():
@@ -444,7 +446,7 @@ def evidence(run: Path, joint, models: dict[str, str], choices: dict, sizes: dic
             "residual_pictures": {n: f"report/{f}" for n, f in pictures.items()}}
 
 
-def out_of_bounds(calib: RigCalibration, sigma: dict[str, Any], axis: "_Axis | None",
+def out_of_bounds(calib: RigCalibration, sigma: dict[str, Any], axis: _Axis | None,
                   settings: dict[str, Any]) -> list[str]:
     """Every figure of a solve beyond ``max_rms_px`` / ``max_sigma_pct``, each as a sentence
     that names it, its value, the bound and what would fix it."""
@@ -490,7 +492,7 @@ def _publish(run: Path, calib: RigCalibration, report: dict[str, Any], refused: 
         raise CalibrationError(
             f"{run}: calibration refused, no calibration.json written: " + "; ".join(refused)
             + f". Every figure is in {run / 'calibration-refused.json'}.")
-    calib.save(run / "calibration.json")
+    calib.save(run / RunLayout.CALIBRATION)
     write_opencv_calibration(calib, run / "calibration.yml")
     atomic_write_text(run / "calibration-report.json", dumps(report))
     (run / "calibration-refused.json").unlink(missing_ok=True)
@@ -538,7 +540,7 @@ def solve_turntable(run: Path, poses: list[dict], board: Board, camera, cam_size
         bad = {n: e for n, e in sol.per_pose_rms_px.items() if e > limit}
         if not bad or len(dets) - 1 < 3:
             break
-        worst = max(bad, key=bad.get)
+        worst = max(bad, key=bad.__getitem__)
         left_out[worst] = f"reprojection RMS {bad[worst]:.3f} px > {limit:g} px"
         dets = [(p, d) for p, d in dets if p["name"] != worst]
     return _Axis(sol.point, sol.direction, sol.rms_px, sol.per_pose_rms_px, left_out)

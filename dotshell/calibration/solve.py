@@ -291,7 +291,7 @@ def turntable_axis(camera: Lens, board_points: np.ndarray, detections: list[tupl
         rv, tv, d, p = unpack(x)
         Rz = cv2.Rodrigues(rv)[0]
         res = []
-        for k, (_, a, ids, px) in enumerate(detections):
+        for _, a, ids, px in detections:
             Ra = _axis_rotation(d, a)
             Rk = Ra @ Rz
             tk = Ra @ (tv - p) + p

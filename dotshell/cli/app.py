@@ -9,148 +9,17 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
-import time
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
 
-from rich.console import Console
 from rich.markup import escape
-from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
-                           TimeElapsedColumn, TimeRemainingColumn)
-from rich.table import Table
 
 from dotshell import __version__
-from dotshell.cli.common import print_as_is
+from dotshell.cli.common import ScanProgress, err, out, plugin_manager as _pm, print_as_is
+from dotshell.cli.report import print_report as _print_report
+from dotshell.cli.report import table as _table
 from dotshell.errors import DotshellError
-from dotshell.events import (EventBus, FrameCaptured, Message, ScanStarted, StepStarted,
-                             ViewCaptured, ViewReconstructed)
-
-err = Console(stderr=True, highlight=False)
-out = Console(highlight=False)
-
-
-def _pm(args: argparse.Namespace):
-    from dotshell.plugins import get_plugin_manager
-
-    pm = get_plugin_manager(strict=args.strict_plugins)
-    for e in pm.load_errors:
-        err.print(f"[yellow]warning:[/] {escape(str(e))}")
-    return pm
-
-
-class StallAwareRemaining(TimeRemainingColumn):
-    """The ETA, or ``stalled N s`` when a task has not advanced for ``STALL_S`` seconds (a device
-    or a step that hangs is shown as such, not as an ETA of one second)."""
-
-    STALL_S = 30.0
-
-    def __init__(self, last_advance: dict[Any, float]) -> None:
-        super().__init__()
-        self.last_advance = last_advance
-
-    def render(self, task):  # type: ignore[override]
-        from rich.text import Text
-
-        last = self.last_advance.get(task.id)
-        if last is not None and not task.finished:
-            idle = time.monotonic() - last
-            if idle > self.STALL_S:
-                return Text(f"stalled {idle:.0f} s", style="bold yellow")
-        return super().render(task)
-
-
-class ScanProgress:
-    """Renders scan events as progress bars (views, frames, ETA) and log lines."""
-
-    def __init__(self, console: Console) -> None:
-        self.last_advance: dict[Any, float] = {}
-        self.progress = Progress(TextColumn("{task.description:<12}"), BarColumn(),
-                                 MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("ETA"),
-                                 StallAwareRemaining(self.last_advance), console=console,
-                                 transient=False)
-        self.tasks: dict[str, Any] = {}
-        self.console = console
-
-    def __call__(self, ev) -> None:
-        p = self.progress
-        if isinstance(ev, ScanStarted):
-            self.tasks["views"] = p.add_task("views", total=ev.n_views)
-            self.tasks["frames"] = p.add_task("frames", total=ev.n_views * ev.frames_per_view)
-            for t in self.tasks.values():
-                self.last_advance[t] = time.monotonic()
-        elif isinstance(ev, FrameCaptured) and "frames" in self.tasks:
-            p.advance(self.tasks["frames"])
-            self.last_advance[self.tasks["frames"]] = time.monotonic()
-        elif isinstance(ev, ViewCaptured) and "views" in self.tasks:
-            p.advance(self.tasks["views"])
-            self.last_advance[self.tasks["views"]] = time.monotonic()
-        elif isinstance(ev, ViewReconstructed):
-            p.console.print(f"  view {ev.view + 1:3d}: {ev.n_points:8d} points")
-        elif isinstance(ev, StepStarted) and ev.step not in ("acquire",):
-            p.console.print(f"[dim]→ {ev.step}[/]")
-        elif isinstance(ev, Message):
-            style = {"warning": "yellow", "error": "red"}.get(ev.level, "dim")
-            p.console.print(f"[{style}]{ev.level}:[/] {escape(ev.text)}")
-
-
-def _print_report(report: dict[str, Any], run_dir: Path) -> None:
-    from dotshell.pipeline.validate import table1
-
-    rows = table1(report)
-    if rows:
-        t = Table(title="Validation (paper's Table 1 layout)")
-        t.add_column("")
-        t.add_column(report.get("profile", ""))
-        for k, v in rows:
-            t.add_row(k, v)
-        out.print(t)
-    elif "validation" in report:
-        out.print(f"validation: {escape(str(report['validation']))}")
-    losses = pixel_losses(report.get("views") or [])
-    if losses:
-        out.print("pixels: " + ", ".join(f"{k} {v:.1f} %" for k, v in losses))
-    cloud = report.get("cloud", {})
-    print_as_is(out, f"cloud: {cloud.get('points', 0)} points → {run_dir / 'cloud.ply'}")
-    timing = timing_line(report.get("timings_s") or {})
-    if timing:
-        out.print(timing)
-    for name, rel in (report.get("previews") or {}).items():
-        print_as_is(out, f"preview {name}: {run_dir / rel}")
-    if "normalize" in report:
-        from dotshell.cli.normalize import print_section
-
-        print_section(report["normalize"], run_dir)
-    print_as_is(out, f"run: {run_dir}  (status: {report.get('status', '?')})")
-
-
-#: (timings_s key, label) of the scan's times the report prints, in the order they happen
-TIMING_LABELS = (("acquire", "acquisition"), ("last_frame_to_cloud", "last frame → cloud.ply"),
-                 ("merge", "merge"), ("validate", "validation"), ("previews", "previews"))
-
-
-def timing_line(timings: dict[str, float]) -> str:
-    """``time: acquisition 41.2 s, last frame → cloud.ply 1.3 s, ...`` from a report's
-    ``timings_s`` (the keys it has; empty when it has none of them)."""
-    parts = [f"{label} {timings[key]:.1f} s" for key, label in TIMING_LABELS if key in timings]
-    return "time: " + ", ".join(parts) if parts else ""
-
-
-#: Where a camera pixel can be lost on the way to a point, in pipeline order.
-LOSS_KEYS = ("shadow", "low_contrast", "uncertain", "out_of_range", "low_modulation",
-             "phase_inconsistent", "grazing", "row_rejected", "outside_roi", "speckle")
-
-
-def pixel_losses(views: list[dict[str, Any]]) -> list[tuple[str, float]]:
-    """(reason, share of all pixels in %) over the views: decoded and every loss, in order."""
-    from dotshell.pipeline.steps import pixel_totals
-
-    totals = pixel_totals(views)
-    pixels = totals.get("pixels", 0)
-    if not pixels:
-        return []
-    keys = ("decoded", *LOSS_KEYS, "points")
-    return [(k, 100.0 * totals[k] / pixels) for k in keys if totals.get(k)]
+from dotshell.events import EventBus, Message
 
 
 def _scan_outcome(result) -> int:
@@ -203,20 +72,28 @@ def cmd_inspect(args: argparse.Namespace) -> int:
     views = m["views"]
     on_disk = frames_on_disk(store.root, m)
     damaged = damaged_views(store.root, m)
-    done = sum(v["complete"] for v in views) - len(damaged)
+    from dotshell.run.lost import is_lost, lost_views
+
+    lost = sum(is_lost(v) for v in views)
+    done = sum(v["complete"] and not is_lost(v) for v in views) - len(damaged)
     print_as_is(out, f"run: {store.root}")
     out.print(f"status: [bold]{status}[/]" + (f" — {escape(reason)}" if reason else ""))
     out.print(f"profile: {escape(str(m.get('profile', '?')))}, created {m.get('created', '?')}")
-    out.print(f"views: {done} of {len(views)} complete, {sum(on_disk)} frames on disk")
+    out.print(f"views: {done} of {len(views)} complete" + (f", {lost} lost" if lost else "") +
+              f", {sum(on_disk)} frames on disk")
     for v, n, recorded in damaged:
         print_as_is(out, f"view {v}: {n} of its {recorded} frames on disk (cut or deleted "
                     f"after the scan); re-capture it with `dotshell resume {store.root} "
-                    f"--view {v}`")
+                    f"--view {v}`, or mark it lost: `dotshell lose-view {store.root} {v} "
+                    "--reason TEXT`")
+    for gone in lost_views(m):
+        print_as_is(out, f"view {gone['view']}: lost ({gone['reason']}); the run is processed "
+                    "without it")
     cur = current_number(store.root)
     gens = generation_numbers(store.root)
     out.print(f"generations: {', '.join(f'{g:03d}' for g in gens) or 'none'}; published: "
               f"{'none' if cur is None else f'{cur:03d}'}")
-    t = Table(title="jobs")
+    t = _table(title="jobs")
     for col in ("command", "status", "generation", "finished", "reason"):
         t.add_column(col)
     for j in m.get("jobs", []):
@@ -232,7 +109,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
     from dotshell.pipeline.compare import COLUMNS, compare_runs
 
     rows, csv_path, png_path = compare_runs(args.runs, args.out)
-    t = Table(title="Validation across runs (paper's Table 1 layout)")
+    t = _table(title="Validation across runs (paper's Table 1 layout)")
     heads = {"mean_rel_error_pct": "mean rel. err %", "std_rel_error_pct": "std %",
              "rms_radius_error_mm": "RMS µm", "coverage_pct": "coverage %",
              "decoded_pct": "decoded %", "rejected_pct": "rejected %"}
@@ -248,7 +125,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_reconstruct(args: argparse.Namespace) -> int:
-    from dotshell.pipeline.scan import reconstruct_run
+    from dotshell.pipeline.commands import reconstruct_run
 
     pm = _pm(args)
     if args.captures or args.run is None:
@@ -290,7 +167,7 @@ def cmd_check(args: argparse.Namespace) -> int:
             for line in refused_controls(rig):
                 out.print(f"  [yellow]warning[/] {escape(line)}")
             if args.latency:
-                lat = measure_latency(rig, profile.data["scan"]["exposure_ms"])
+                lat = measure_latency(rig, profile.scan.exposure_ms)
                 out.print(f"  display latency: the full pattern is seen {lat.shortest_ms:.0f} ms "
                           f"after show() ({len(lat.trials)} trials, step "
                           f"{lat.contrast_dn:.0f} DN)")
@@ -300,32 +177,51 @@ def cmd_check(args: argparse.Namespace) -> int:
 
 
 def cmd_plugins(args: argparse.Namespace) -> int:
+    """List every backend from the plugins' manifests (importing none of them); ``--check``
+    imports each and names those that fail (exit 2), ``--settings`` imports each to list its
+    settings."""
     from dotshell.backends import ROLES
-    from dotshell.settings import describe
 
     pm = _pm(args)
-    t = Table(title="dotshell backends")
+    t = _table(title="dotshell backends")
     for col in ("role", "name", "plugin", "distribution", "summary"):
         t.add_column(col)
     for role in ROLES:
         for name, info in sorted(pm.backends(role).items()):
-            t.add_row(role, name, info.plugin, info.distribution, escape(info.backend.summary))
+            t.add_row(role, name, info.plugin, info.distribution, escape(info.summary))
     out.print(t)
+    broken = pm.check_backends() if args.check or args.settings else []
     if args.settings:
-        for role in ROLES:
-            for name, info in sorted(pm.backends(role).items()):
-                st = Table(title=escape(f"[{role}] backend = \"{name}\" — [{role}.settings]"))
-                for col in ("key", "type", "default", "help"):
-                    st.add_column(col)
-                for row in describe(info.backend.settings_schema):
-                    st.add_row(*map(escape, row))
-                out.print(st)
+        _print_settings(pm, ROLES)
     if pm.load_errors:
         out.print("[red]plugins that failed to load:[/]")
         for e in pm.load_errors:
             out.print(f"  {escape(str(e))}")
-        return 1
-    return 0
+    if broken:
+        out.print("[red]backends that failed to load:[/]")
+        for e in broken:
+            out.print(f"  {escape(e.reason)}")
+        return 2
+    if args.check:
+        out.print(f"[green]all {sum(len(pm.qualified[r]) for r in ROLES)} backends load[/]")
+    return 1 if pm.load_errors else 0
+
+
+def _print_settings(pm, roles) -> None:
+    """Each backend's ``[ROLE.settings]`` table (after ``check_backends``: the broken ones,
+    still not loaded, are skipped)."""
+    from dotshell.settings import describe
+
+    for role in roles:
+        for name, info in sorted(pm.backends(role).items()):
+            if not info.loaded:
+                continue
+            st = _table(title=escape(f"[{role}] backend = \"{name}\" — [{role}.settings]"))
+            for col in ("key", "type", "default", "help"):
+                st.add_column(col)
+            for row in describe(info.backend.settings_schema):
+                st.add_row(*map(escape, row))
+            out.print(st)
 
 
 def cmd_script(args: argparse.Namespace) -> int:
@@ -377,8 +273,12 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("run", help="run directory")
     sp.add_argument("--view", type=int, action="append", metavar="N",
                     help="also capture view N again (frames/view_NNN.tif cut or deleted; "
-                         "the old frames are kept aside); repeat for several views")
+                         "the old frames are kept aside; a view marked lost is no longer "
+                         "lost once captured); repeat for several views")
     sp.set_defaults(func=cmd_resume)
+    from dotshell.cli.lost import add_lose_view_parser
+
+    add_lose_view_parser(sub, _pm)
 
     sp = sub.add_parser("inspect", help="a run's true status, views, generations and jobs")
     sp.add_argument("run", help="run directory")
@@ -412,6 +312,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     sp = sub.add_parser("plugins", help="list backends by role and plugin load errors")
     sp.add_argument("--settings", action="store_true", help="also list each backend's settings")
+    sp.add_argument("--check", action="store_true", help="import every backend and name the "
+                    "ones that fail to load (exit 2)")
     sp.set_defaults(func=cmd_plugins)
 
     from dotshell.cli.mesh import add_mesh_parsers
@@ -439,7 +341,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_shipped_parsers(sub)  # profiles [copy], docs
     from dotshell.cli.completion import add_completion_parser
 
-    add_completion_parser(sub)
+    add_completion_parser(sub, p)
     sp = sub.add_parser("script", help="run a Python script against a live session, headless")
     sp.add_argument("file", help="the Python script (rig, profile, run, scan(), np, ... are "
                     "defined; see docs/tui.md)")

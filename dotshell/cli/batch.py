@@ -62,7 +62,7 @@ def study_table(rows: list[dict[str, Any]]) -> Table:
     for h in heads:
         t.add_column(h)
     for r in rows:
-        def num(k: str, fmt: str) -> str:
+        def num(k: str, fmt: str, r: dict[str, Any] = r) -> str:
             return "" if r[k] is None else format(r[k], fmt)
 
         style = {"completed": "green", "skipped": "dim"}.get(r["status"], "red")

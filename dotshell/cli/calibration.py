@@ -30,7 +30,9 @@ def add_captures_args(sp: argparse.ArgumentParser) -> None:
     sp.add_argument("--captures2", metavar="DIR",
                     help="a second camera's sequence of the same projector patterns: with "
                          "--camera-pair, camera 1 (--captures) is triangulated against camera 2 "
-                         "through the projector codes (the projector needs no calibration)")
+                         "through the projector codes (the projector needs no calibration); "
+                         "with --calibration (camera 1 and the projector) too, the "
+                         "camera-projector and camera-camera points are fused")
     sp.add_argument("--camera-pair", metavar="FILE",
                     help="camera-pair.json of the two cameras (dotshell calibrate --camera-pair)")
     sp.add_argument("--layout2", metavar="LAYOUT",
@@ -88,7 +90,8 @@ def reconstruct_captures_command(args: argparse.Namespace, pm, out: Console) -> 
 
 
 def camera_pair_command(args: argparse.Namespace, pm, out: Console) -> int:
-    """``reconstruct --captures DIR1 --captures2 DIR2 --camera-pair FILE --layout L``."""
+    """``reconstruct --captures DIR1 --captures2 DIR2 --camera-pair FILE --layout L``
+    [``--calibration FILE``: camera 1 and the projector, to fuse the two triangulations]."""
     from dotshell.errors import RunError
     from dotshell.pipeline.camera_pair import reconstruct_camera_pair
 
@@ -99,7 +102,8 @@ def camera_pair_command(args: argparse.Namespace, pm, out: Console) -> int:
         raise RunError("two cameras sharing one projector need --captures DIR1 --captures2 DIR2 "
                        f"--camera-pair FILE --layout LAYOUT; missing: {', '.join(missing)}.")
     res = reconstruct_camera_pair(args.captures, args.captures2, args.camera_pair, args.layout,
-                                  args.layout2, pm, args.out)
+                                  args.layout2, pm, args.out,
+                                  calibration=args.calibration)
     r = res.report
     for name, counts in zip(("camera 1", "camera 2"), r["decode"]):
         out.print(f"{name}: {pixel_counts(counts)}")
@@ -107,6 +111,13 @@ def camera_pair_command(args: argparse.Namespace, pm, out: Console) -> int:
     out.print(f"{r['matches']} pixels matched by projector code; {r['cloud']['points']} points "
               f"(camera 1 frame, mm); median ray gap {gap['median']:.4f} mm, {gap['dropped']} "
               f"dropped over {gap['dropped_over']:g} mm")
+    if "fusion" in r:
+        f = r["fusion"]
+        out.print(f"fused with the calibrated projector: camera 2 spans "
+                  f"{f['camera2_px_per_projector_px']:.2f} px per projector px, camera–camera "
+                  f"depth σ {f['depth_sigma_ratio_camera_camera_over_projector']:.2f}× "
+                  "camera–projector's; camera-projector.ply and camera-camera.ply hold the "
+                  "single estimates")
     print_as_is(out, f"output: {res.out_dir}  (cloud.ply, report.json)")
     return 0
 
@@ -167,7 +178,7 @@ def calibrate_settings(args: argparse.Namespace, pm):
     profile = None
     if args.profile:
         profile = load_profile(args.profile, pm, args.set)
-        settings = dict(profile.data["calibrate"])
+        settings = profile.calibrate.as_table()
     else:
         raw = apply_overrides({}, args.set, "--set")
         other = [k for k in raw if k != "calibrate"]
@@ -193,11 +204,11 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
     from dotshell.calibration.board import Board
     from dotshell.calibration.captures import TurntableFrames, calibrate_captures
     from dotshell.calibration.procedure import capture, solve
-    from dotshell.cli.app import ScanProgress, _pm, err, out
+    from dotshell.cli.common import ScanProgress, err, out, plugin_manager
     from dotshell.errors import CalibrationError
     from dotshell.events import EventBus
 
-    pm = _pm(args)
+    pm = plugin_manager(args)
     settings, profile = calibrate_settings(args, pm)
     bus = EventBus()
     view = ScanProgress(err)

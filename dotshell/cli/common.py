@@ -1,8 +1,90 @@
-"""Printing for the commands."""
+"""What the commands share: printing (``out``, ``err``), the scan progress view, and the
+plugin manager from the command line's options."""
 
 from __future__ import annotations
 
+import argparse
+import time
+from typing import TYPE_CHECKING, Any
+
 from rich.console import Console
+from rich.markup import escape
+from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
+                           TimeElapsedColumn, TimeRemainingColumn)
+
+from dotshell.events import (FrameCaptured, Message, ScanStarted, StepStarted, ViewCaptured,
+                             ViewReconstructed)
+
+if TYPE_CHECKING:
+    from dotshell.plugins import PluginManager
+
+err = Console(stderr=True, highlight=False)
+out = Console(highlight=False)
+
+
+def plugin_manager(args: argparse.Namespace) -> PluginManager:
+    """The plugin manager (``--strict-plugins`` from ``args``); load errors printed as warnings."""
+    from dotshell.plugins import get_plugin_manager
+
+    pm = get_plugin_manager(strict=args.strict_plugins)
+    for e in pm.load_errors:
+        err.print(f"[yellow]warning:[/] {escape(str(e))}")
+    return pm
+
+
+class StallAwareRemaining(TimeRemainingColumn):
+    """The ETA, or ``stalled N s`` when a task has not advanced for ``STALL_S`` seconds (a device
+    or a step that hangs is shown as such, not as an ETA of one second)."""
+
+    STALL_S = 30.0
+
+    def __init__(self, last_advance: dict[Any, float]) -> None:
+        super().__init__()
+        self.last_advance = last_advance
+
+    def render(self, task):
+        from rich.text import Text
+
+        last = self.last_advance.get(task.id)
+        if last is not None and not task.finished:
+            idle = time.monotonic() - last
+            if idle > self.STALL_S:
+                return Text(f"stalled {idle:.0f} s", style="bold yellow")
+        return super().render(task)
+
+
+class ScanProgress:
+    """Renders scan events as progress bars (views, frames, ETA) and log lines."""
+
+    def __init__(self, console: Console) -> None:
+        self.last_advance: dict[Any, float] = {}
+        self.progress = Progress(TextColumn("{task.description:<12}"), BarColumn(),
+                                 MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("ETA"),
+                                 StallAwareRemaining(self.last_advance), console=console,
+                                 transient=False)
+        self.tasks: dict[str, Any] = {}
+        self.console = console
+
+    def __call__(self, ev) -> None:
+        p = self.progress
+        if isinstance(ev, ScanStarted):
+            self.tasks["views"] = p.add_task("views", total=ev.n_views)
+            self.tasks["frames"] = p.add_task("frames", total=ev.n_views * ev.frames_per_view)
+            for t in self.tasks.values():
+                self.last_advance[t] = time.monotonic()
+        elif isinstance(ev, FrameCaptured) and "frames" in self.tasks:
+            p.advance(self.tasks["frames"])
+            self.last_advance[self.tasks["frames"]] = time.monotonic()
+        elif isinstance(ev, ViewCaptured) and "views" in self.tasks:
+            p.advance(self.tasks["views"])
+            self.last_advance[self.tasks["views"]] = time.monotonic()
+        elif isinstance(ev, ViewReconstructed):
+            p.console.print(f"  view {ev.view + 1:3d}: {ev.n_points:8d} points")
+        elif isinstance(ev, StepStarted) and ev.step not in ("acquire",):
+            p.console.print(f"[dim]→ {ev.step}[/]")
+        elif isinstance(ev, Message):
+            style = {"warning": "yellow", "error": "red"}.get(ev.level, "dim")
+            p.console.print(f"[{style}]{ev.level}:[/] {escape(ev.text)}")
 
 
 def print_as_is(console: Console, text: str) -> None:

@@ -51,10 +51,10 @@ def _fish_positionals(parser: argparse.ArgumentParser, condition: str) -> list[s
     if any(a.dest == "profile" for a in positionals):  # shipped names, and files
         from dotshell.shipped import shipped_names
 
-        return [f"complete -c dotshell -n {_quote(condition)} -F -a "
-                f"{_quote(' '.join(shipped_names('profiles')))}"]
+        return [(f"complete -c dotshell -n {_quote(condition)} -F -a "
+                 f"{_quote(' '.join(shipped_names('profiles')))}")]
     if choices:
-        words = " ".join(str(c) for a in choices for c in a.choices)
+        words = " ".join(str(c) for a in choices for c in a.choices or ())
         return [f"complete -c dotshell -n {_quote(condition)} -xa {_quote(words)}"]
     return [f"complete -c dotshell -n {_quote(condition)} -F"] if positionals else []
 
@@ -110,7 +110,7 @@ def _mark_profile_arguments(parser: argparse.ArgumentParser) -> None:
     for child in (sub.choices.values() if sub is not None else ()):
         for action in child._actions:
             if not action.option_strings and action.dest == "profile":
-                action.complete = _profile_completer()  # type: ignore[attr-defined]
+                action.complete = _profile_completer()
 
 
 def completion_script(parser: argparse.ArgumentParser, shell: str) -> str:
@@ -124,15 +124,14 @@ def completion_script(parser: argparse.ArgumentParser, shell: str) -> str:
 
 
 def cmd_completion(args: argparse.Namespace) -> int:
-    from dotshell.cli.app import _parser
-
-    print(completion_script(_parser(), args.shell), end="")
+    print(completion_script(args.root_parser, args.shell), end="")
     return 0
 
 
-def add_completion_parser(sub: Any) -> None:
+def add_completion_parser(sub: Any, root: argparse.ArgumentParser) -> None:
+    """``dotshell completion SHELL``: the script completes every command of ``root``."""
     sp = sub.add_parser("completion", help="print a shell completion script (bash, zsh, fish)",
                         description="Print a completion script for your shell; install it with "
                         "one of: " + "; ".join(INSTALL.values()) + ".")
     sp.add_argument("shell", choices=SHELLS, help="the shell")
-    sp.set_defaults(func=cmd_completion)
+    sp.set_defaults(func=cmd_completion, root_parser=root)

@@ -38,7 +38,7 @@ def refuse_layout_overrides(overrides: list[str], layout: str | None) -> None:
     source = "the layout file"
     if layout:
         from dotshell.errors import RunError
-        from dotshell.pipeline.captures import resolve_layout_path
+        from dotshell.run.capture_layouts import resolve_layout_path
 
         try:
             source = str(resolve_layout_path(layout))
@@ -94,11 +94,11 @@ def add_decode_parser(sub) -> None:
 
 
 def cmd_decode(args: argparse.Namespace) -> int:
-    from dotshell.cli.app import _pm, out
+    from dotshell.cli.common import out, plugin_manager
     from dotshell.errors import RunError
     from dotshell.pipeline.decode_maps import decode_captures, decode_run
 
-    pm = _pm(args)
+    pm = plugin_manager(args)
     if args.captures:
         if not args.layout:
             raise RunError("dotshell decode --captures DIR needs --layout LAYOUT (a layout TOML "

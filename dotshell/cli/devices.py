@@ -14,7 +14,6 @@ from rich.table import Table
 
 from dotshell.errors import PluginError
 
-EMULATOR_GROUP = "dotshell_emulators"
 out = Console(highlight=False)
 err = Console(stderr=True, highlight=False)
 
@@ -74,7 +73,7 @@ def cmd_ports(args: argparse.Namespace, pm_of: Callable[[argparse.Namespace], An
             u.add_column(col)
         for vid_pid, name in usb:
             fits = [f"{role}:{n}" for role, found in backends.items()
-                    for n, info in sorted(found.items()) if vid_pid in info.backend.usb_ids]
+                    for n, info in sorted(found.items()) if vid_pid in info.usb_ids]
             u.add_row(vid_pid, escape(name or "-"), escape(", ".join(fits) or "-"))
         out.print(u)
     else:
@@ -86,7 +85,8 @@ def cmd_ports(args: argparse.Namespace, pm_of: Callable[[argparse.Namespace], An
 
 def _held_by(device: str) -> str:
     """Who holds the device at ``device`` (:mod:`dotshell.rig.owners`), or ``-``."""
-    from dotshell.rig.owners import describe, device_identities, device_lock_dir, holder, lock_name
+    from dotshell.rig.owners import device_identities, device_lock_dir, lock_name
+    from dotshell.runtime.locks import describe, holder
 
     for ident in device_identities({"port": device}) if device else []:
         info = holder(device_lock_dir() / lock_name(ident))
@@ -95,22 +95,9 @@ def _held_by(device: str) -> str:
     return "-"
 
 
-def emulator_class(name: str) -> type:
-    """The emulator registered as ``name`` in the ``dotshell_emulators`` entry-point group."""
-    import importlib.metadata as md
-
-    eps = {ep.name: ep for ep in md.entry_points(group=EMULATOR_GROUP)}
-    if name not in eps:
-        raise PluginError(f"no emulator named {name!r}; installed emulators: "
-                          f"{', '.join(sorted(eps)) or '(none)'}.")
-    try:
-        return eps[name].load()
-    except Exception as exc:
-        raise PluginError(f"emulator {name!r} ({eps[name].value}) failed to load: "
-                          f"{type(exc).__name__}: {exc}") from None
-
-
 def cmd_emulate(args: argparse.Namespace) -> int:
+    from dotshell.plugins import emulator_class
+
     cls = emulator_class(args.name)
     link = args.link or f"/tmp/dotshell-emu-{args.name}"
     emu = cls(link=link, speed_deg_s=args.speed)
@@ -154,7 +141,7 @@ def _show_errors(emu: Any, shown: int) -> int:
 def _list_emulator(name: str, emu: Any) -> Any:
     """Record the running emulator (name, pty, link) under a lock in the runtime directory,
     for `dotshell ports`; the record dies with this process."""
-    from dotshell.rig.owners import OwnerLock
+    from dotshell.runtime.locks import OwnerLock
     from dotshell.rig.ports import emulator_dir
 
     lock = OwnerLock(emulator_dir() / f"{name}-{os.getpid()}.lock")

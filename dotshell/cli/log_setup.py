@@ -29,7 +29,7 @@ class StderrHandler(logging.StreamHandler):
     def __init__(self) -> None:
         super().__init__(sys.stderr)
 
-    @property  # type: ignore[override]
+    @property
     def stream(self):  # noqa: D102
         return sys.stderr
 
@@ -37,7 +37,7 @@ class StderrHandler(logging.StreamHandler):
     def stream(self, value) -> None:
         pass
 
-    def filter(self, record: logging.LogRecord) -> bool:  # type: ignore[override]
+    def filter(self, record: logging.LogRecord) -> bool:
         if record.name.startswith("dotshell.devices") and not self.verbose:
             return False
         return bool(super().filter(record))
@@ -84,6 +84,10 @@ def configure_logging(args: argparse.Namespace) -> int:
         handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
         root.addHandler(handler)
     handler.verbose = level <= logging.INFO
+    # the handler holds the chosen level too: a library that sets its own logger's level lower
+    # (Dask sets ``distributed`` to INFO and, finding this handler on the root, propagates to
+    # it) would otherwise print every INFO line, tracebacks included, at the default level
+    handler.setLevel(level)
     root.setLevel(level)
     logging.captureWarnings(True)
     logging.getLogger("py.warnings").setLevel(logging.WARNING if level <= logging.INFO

@@ -35,7 +35,7 @@ def mesh_table(section: dict[str, Any]) -> Table:
 
 
 def cmd_mesh(args: argparse.Namespace, pm) -> int:
-    from dotshell.cli.app import ScanProgress
+    from dotshell.cli.common import ScanProgress
     from dotshell.events import EventBus
     from dotshell.pipeline.commands import mesh_run
 

@@ -55,7 +55,7 @@ def print_section(section: dict[str, Any], run_dir) -> None:
 
 
 def cmd_normalize(args: argparse.Namespace, pm) -> int:
-    from dotshell.cli.app import ScanProgress
+    from dotshell.cli.common import ScanProgress
     from dotshell.events import EventBus
     from dotshell.pipeline.commands import normalize_run
 

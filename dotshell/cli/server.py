@@ -89,7 +89,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 def _refuse_a_second_server(sock: Path) -> None:
     """A ServerError naming the holder when a server holds ``sock``'s lock (even one that does
     not answer at the moment) or answers on it."""
-    from dotshell.rig.owners import describe, holder, server_lock_path
+    from dotshell.runtime.locks import describe, holder, server_lock_path
 
     info = holder(server_lock_path(sock))
     if info is not None:
@@ -273,13 +273,13 @@ def cmd_status(args: argparse.Namespace) -> int:
 
 def _silent_servers(socks: list[Path]) -> list[tuple[Path, dict[str, Any]]]:
     """Of ``socks`` (none answered), the servers that hold their lock: busy or stalled."""
-    from dotshell.rig.owners import holder, server_lock_path
+    from dotshell.runtime.locks import holder, server_lock_path
 
     return [(s, info) for s in socks if (info := holder(server_lock_path(s))) is not None]
 
 
 def _print_silent(servers: list[tuple[Path, dict[str, Any]]]) -> None:
-    from dotshell.rig.owners import describe
+    from dotshell.runtime.locks import describe
 
     for sock, info in servers:
         out.print(escape(f"{sock.stem}: held by {describe(info)} on {sock}, but it does not "

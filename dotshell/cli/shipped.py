@@ -68,9 +68,9 @@ def referenced_files(raw: Any, base: Path) -> list[str]:
     elif isinstance(raw, list):
         for value in raw:
             found += referenced_files(value, base)
-    elif isinstance(raw, str) and raw and not Path(raw).is_absolute() and ".." not in raw:
-        if (base / raw).is_file():
-            found.append(raw)
+    elif (isinstance(raw, str) and raw and not Path(raw).is_absolute() and ".." not in raw
+          and (base / raw).is_file()):
+        found.append(raw)
     return found
 
 

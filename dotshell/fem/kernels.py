@@ -28,7 +28,7 @@ from dotshell.runtime import numba_cache
 
 numba_cache.install()  # cache files safe for processes compiling at once
 
-_OPTS = dict(nogil=True, cache=True)
+_OPTS: dict = dict(nogil=True, cache=True)  # dict, not dict[str, bool]: njit's keywords differ in type
 
 #: the four faces of a positively oriented tetrahedron (a, b, c, d), each ordered so its
 #: right-hand normal points out of it: opposite to d, c, b, a

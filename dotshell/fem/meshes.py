@@ -146,12 +146,13 @@ def unique_rows(rows: np.ndarray, return_inverse: bool = False,
     n_cols = rows.shape[1] if rows.ndim == 2 else 0
     base = int(rows.max()) + 1 if rows.size else 0
     if rows.size == 0 or rows.min() < 0 or base ** n_cols >= 1 << 62:
-        return np.unique(rows, axis=0, return_inverse=return_inverse,
+        # numpy's overloads take only literal True/False flags, not a bool variable
+        return np.unique(rows, axis=0, return_inverse=return_inverse,  # type: ignore[call-overload]
                          return_counts=return_counts)
     keys = np.zeros(len(rows), np.int64)
     for j in range(n_cols):
         keys = keys * base + rows[:, j]
-    found = (np.unique(keys, return_inverse=return_inverse, return_counts=return_counts)
+    found = (np.unique(keys, return_inverse=return_inverse, return_counts=return_counts)  # type: ignore[call-overload]
              if return_inverse or return_counts else (unique_values(keys),))
     cols, rest = [], found[0]
     for _ in range(n_cols):
@@ -163,7 +164,8 @@ def unique_rows(rows: np.ndarray, return_inverse: bool = False,
 def edge_use(triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Undirected edges (E, 2) and how many triangles use each."""
     e = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    return unique_rows(e, return_counts=True)
+    edges, counts = unique_rows(e, return_counts=True)
+    return edges, counts
 
 
 def closed_manifold_problems(surface: TriangleSurface) -> list[str]:

@@ -42,14 +42,14 @@ def fresnel_transmittance_out(cos_inside: np.ndarray, n: float) -> np.ndarray:
     return np.where(ok, np.nan_to_num(t, nan=0.0), 0.0)
 
 
-def cos_inside(cos_outside: np.ndarray, n: float) -> np.ndarray:
+def cos_inside(cos_outside: np.ndarray | float, n: float) -> np.ndarray:
     """cos θi of the internal ray that leaves at exit angle θo (cos θo given, Snell's law)."""
     co = np.clip(np.asarray(cos_outside, float), 0.0, 1.0)
     so = np.sqrt(1.0 - co * co)
     return np.sqrt(np.clip(1.0 - (so / n) ** 2, 0.0, 1.0))
 
 
-def exit_radiance_per_fluence(cos_outside: np.ndarray, n: float) -> np.ndarray:
+def exit_radiance_per_fluence(cos_outside: np.ndarray | float, n: float) -> np.ndarray:
     """Exiting radiance L(θo) per unit fluence φ just inside the surface (1/sr), for exit
     directions with cos θo = ``cos_outside`` measured from the outward normal."""
     from dotshell.fem.forward import robin_A  # here: the FEM module loads scipy.sparse

@@ -123,7 +123,7 @@ class RigCalibration:
         }
 
     @classmethod
-    def from_dict(cls, d: dict, where: str = "calibration") -> "RigCalibration":
+    def from_dict(cls, d: dict, where: str = "calibration") -> RigCalibration:
         if not isinstance(d, dict):
             raise CalibrationError(f"{where}: a calibration is a JSON object, not a "
                                    f"{type(d).__name__}. Write one with `dotshell calibrate`.")
@@ -175,7 +175,7 @@ class RigCalibration:
         atomic_write_text(Path(path), json.dumps(self.to_dict(), indent=2))
 
     @classmethod
-    def load(cls, path: Path) -> "RigCalibration":
+    def load(cls, path: Path) -> RigCalibration:
         path = Path(path)
         if path.is_dir():
             raise CalibrationError(f"calibration file {path} is a directory, not a file. Give "

@@ -108,7 +108,8 @@ def fit_cylinder(points: np.ndarray, axis_guess=(0.0, 0.0, 1.0)) -> CylinderFit:
         weight = 1.0 / np.sqrt(1.0 + np.square(r / LOSS_SCALE_MM))  # the loss's d/d(r²)
         wj = np.multiply(jac, weight[:, None], out=model.weighted)
         step = np.linalg.lstsq(wj.T @ jac, -(wj.T @ r), rcond=None)[0]
-        r_trial, jac_trial = model.linearized(p + step)  # accepted steps (all but a few) need it
+        r_trial, jac_new = model.linearized(p + step)  # accepted steps (all but a few) need it
+        jac_trial: np.ndarray | None = jac_new
         cost_trial = _soft_l1_cost(r_trial)
         while cost_trial > cost and np.abs(step).max() >= STEP_TOLERANCE:
             step /= 2.0

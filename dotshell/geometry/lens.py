@@ -66,7 +66,7 @@ class Lens:
         """Points (N, 3) in the lens frame (mm) → distorted pixel coordinates (N, 2)."""
         return project_points(self.K, self.dist, points)
 
-    def scaled(self, factor: float) -> "Lens":
+    def scaled(self, factor: float) -> Lens:
         """The same lens seen at ``factor`` times the resolution (for reduced-size tests)."""
         K = self.K.copy()
         K[0, 0] *= factor
@@ -84,7 +84,7 @@ class Lens:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Lens":
+    def from_dict(cls, d: dict) -> Lens:
         return cls(np.array(d["K"], float), np.array(d.get("dist", [0] * 5), float),
                    d["width"], d["height"])
 

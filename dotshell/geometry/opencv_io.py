@@ -42,15 +42,17 @@ def is_opencv_file(path: Path | str) -> bool:
     return Path(path).suffix.lower() in OPENCV_SUFFIXES
 
 
-def _matrix(fs: cv2.FileStorage, key: str, shape: tuple[int, ...], where: str,
-            required: bool = True) -> np.ndarray | None:
+def _optional_matrix(fs: cv2.FileStorage, key: str, shape: tuple[int, ...], where: str
+                     ) -> np.ndarray | None:
+    return None if fs.getNode(key).empty() else _matrix(fs, key, shape, where)
+
+
+def _matrix(fs: cv2.FileStorage, key: str, shape: tuple[int, ...], where: str) -> np.ndarray:
     node = fs.getNode(key)
     if node.empty():
-        if required:
-            raise CalibrationError(f"{where}: OpenCV calibration has no {key!r} entry; it needs "
-                                   "Kc, kc, Kp, kp, Rp, Tp, frameWidth, frameHeight, screenResX "
-                                   "and screenResY.")
-        return None
+        raise CalibrationError(f"{where}: OpenCV calibration has no {key!r} entry; it needs "
+                               "Kc, kc, Kp, kp, Rp, Tp, frameWidth, frameHeight, screenResX "
+                               "and screenResY.")
     if not _whole_matrix(node):  # OpenCV's mat() overruns memory on a malformed matrix node
         raise CalibrationError(f"{where}: {key!r} is not a whole opencv-matrix (rows, cols, dt "
                                "and rows x cols numbers in data); save the file again with "
@@ -79,7 +81,7 @@ def _distortion(fs: cv2.FileStorage, key: str, where: str) -> np.ndarray:
     node = fs.getNode(key)
     rows, cols = (node.getNode(k) for k in ("rows", "cols")) if node.isMap() else (None, None)
     size = 5  # a missing or malformed entry: _matrix says what is wrong
-    if rows is not None and rows.isInt() and cols.isInt():
+    if rows is not None and cols is not None and rows.isInt() and cols.isInt():
         size = int(rows.real()) * int(cols.real())
     if size not in OPENCV_DISTORTION_LENGTHS:
         raise CalibrationError(f"{where}: {key!r} has {size} distortion terms; OpenCV's models "
@@ -93,7 +95,7 @@ def _distortion(fs: cv2.FileStorage, key: str, where: str) -> np.ndarray:
 
 def _int(fs: cv2.FileStorage, key: str, where: str) -> int:
     node = fs.getNode(key)
-    if node.empty() or not node.isReal() and not node.isInt():
+    if node.empty() or (not node.isReal() and not node.isInt()):
         raise CalibrationError(f"{where}: OpenCV calibration has no number {key!r} (the image "
                                "size of the camera or projector in pixels).")
     return int(round(node.real()))
@@ -123,8 +125,8 @@ def read_opencv_calibration(path: Path | str) -> RigCalibration:
                          _int(fs, "screenResX", where), _int(fs, "screenResY", where))
         R = _matrix(fs, "Rp", (3, 3), where)
         T = _matrix(fs, "Tp", (3,), where)
-        point = _matrix(fs, "axis_point", (3,), where, required=False)
-        direction = _matrix(fs, "axis_direction", (3,), where, required=False)
+        point = _optional_matrix(fs, "axis_point", (3,), where)
+        direction = _optional_matrix(fs, "axis_direction", (3,), where)
         rms = {}
         for key, name in _RMS_KEYS.items():
             node = fs.getNode(key)
@@ -139,8 +141,9 @@ def read_opencv_calibration(path: Path | str) -> RigCalibration:
         fs.release()
     source = where
     measured = point is not None and direction is not None
-    if not measured:
-        point, direction = PLACEHOLDER_AXIS_POINT, PLACEHOLDER_AXIS_DIRECTION
+    if point is None or direction is None:
+        point = np.asarray(PLACEHOLDER_AXIS_POINT, float)
+        direction = np.asarray(PLACEHOLDER_AXIS_DIRECTION, float)
         source = f"{where} (no turntable axis: placeholder)"
     calib = RigCalibration(camera, projector, R, T, point, direction, source=source,
                            rms=rms or None, axis_measured=measured)

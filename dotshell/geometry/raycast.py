@@ -33,7 +33,7 @@ class TriangleScene:
         return {k: hit[k].numpy() for k in ("t_hit", "primitive_ids", "primitive_uvs",
                                             "primitive_normals")}
 
-    def closest(self, points: np.ndarray) -> "ClosestPoints":
+    def closest(self, points: np.ndarray) -> ClosestPoints:
         """The closest surface point to each of ``points`` (N, 3)."""
         p = np.asarray(points, float).reshape(-1, 3)
         ans = self._scene.compute_closest_points(self._o3d.core.Tensor(p.astype(np.float32)))

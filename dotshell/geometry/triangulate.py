@@ -105,7 +105,7 @@ class _Rig:
     sin2_min: float
 
     @classmethod
-    def of(cls, calib: RigCalibration, tolerance_px: float, min_angle_deg: float) -> "_Rig":
+    def of(cls, calib: RigCalibration, tolerance_px: float, min_angle_deg: float) -> _Rig:
         return cls(np.ascontiguousarray(calib.R, np.float64),
                    np.ascontiguousarray(calib.T, np.float64).ravel(),
                    calib.projector.K, _twelve_terms(calib.projector.dist),
@@ -199,7 +199,8 @@ def triangulate_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | N
     to the output frame, ``p_out = A @ p + b``; default the camera frame."""
     sol = solve_image(valid, column, row, calib, row_tolerance_px, min_ray_angle_deg, to_frame,
                       iterations)
-    return ImagePoints(*select(sol.kept, sol.pixels, sol.points, sol.depth), sol.counts)
+    pixels, points, depth = select(sol.kept, sol.pixels, sol.points, sol.depth)
+    return ImagePoints(pixels, points, depth, sol.counts)
 
 
 def solve_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
@@ -251,9 +252,9 @@ def select(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
 # ---- compiled solves ------------------------------------------------------------------------
 
 KEPT, DROPPED, ROW_REJECTED, GRAZING = 0, 1, 2, 3
-_OPTS = dict(nogil=True, cache=True, error_model="numpy")
+_OPTS: dict = dict(nogil=True, cache=True, error_model="numpy")  # njit's keywords differ in type
 #: per-point helpers are inlined: a compiled call passing arrays pays reference counting
-_INNER = dict(_OPTS, inline="always")
+_INNER: dict = dict(_OPTS, inline="always")
 MAX_UNDISTORT_STEPS = 50
 #: undistortion steps every pixel of a row takes together (:func:`_ideal_batch`), the first
 #: :data:`FIRST_UNDISTORT_STEPS` without looking, the rest while one of them still moves; 4-6

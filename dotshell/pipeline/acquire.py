@@ -1,6 +1,9 @@
-"""The acquisition runner: moves the stage, shows each pattern, captures and stores frames.
+"""The acquisition runner: moves the stage, takes each shot's frame through its engine and
+stores frames.
 
-The runner owns the loop, events, retries and abort; the devices own the hardware. A
+The runner owns the loop, events, retries, frame checks and abort; its engine
+(:mod:`dotshell.pipeline.engines`: show-capture or hardware-sequenced, chosen once from the
+devices' capabilities) takes the frames; the devices own the hardware. A
 :class:`~dotshell.errors.DeviceError` from a move or a capture is a recoverable per-step
 failure, retried ``scan.retries`` times before the scan fails (a lost device has already been
 reconnected once by the rig, and a stopped one is never retried). Frames go to a writer thread
@@ -20,13 +23,12 @@ import queue
 import threading
 import time
 from pathlib import Path
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, Mapping, TypeVar, cast
 
 import numpy as np
 
 from dotshell.coding import PatternFrame
-from dotshell.devices import (AngleReadback, ExposureControl, FrameInfoSource, accepted_kwargs,
-                              implements)
+from dotshell.devices import AngleReadback, ExposureControl, implements
 from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, FrameError,
                              ProfileError, RunError)
 from dotshell.events import (EventBus, FrameCaptured, Message, ScanPaused, ScanResumed,
@@ -35,10 +37,11 @@ from dotshell.run.frames import FrameStore
 from dotshell.run.framecheck import FrameSpec
 from dotshell.run.integrity import ViewIntegrity, check_view
 from dotshell.run.lifecycle import signals_deferred
+from dotshell.pipeline.engines import AcquisitionEngine, choose_engine
 from dotshell.pipeline.pdi import Shot, plan_shots
-from dotshell.pipeline.sequenced import SequencedCapture, uses_sequenced
 from dotshell.rig.assembly import Rig
 from dotshell.rig.checks import refused_controls
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore
 
 T = TypeVar("T")
@@ -64,7 +67,7 @@ def with_retries(action: Callable[[], T], retries: int, what: str, bus: EventBus
 
 def check_frame(rig: Rig, spec: FrameSpec, frame: object, what: str) -> np.ndarray:
     """A frame just captured, checked against the run's frames (:mod:`dotshell.run.framecheck`)."""
-    backend = rig.profile.role("camera")["backend"]
+    backend = rig.profile.required_role("camera")["backend"]
     return spec.check(frame, f"{what} from the camera ({backend})",
                       "Fix the camera's settings or its plugin; frames already written are "
                       "kept.")
@@ -128,9 +131,9 @@ class FrameWriter:
                 frames.sync()
         elif kind == "end":  # one view, or all (None)
             for view in [args[0]] if args[0] is not None else list(self._views):
-                frames = self._views.pop(view, None)
-                if frames is not None:
-                    frames.close()
+                stack = self._views.pop(view, None)
+                if stack is not None:
+                    stack.close()
 
     def put(self, view: int, index: int, name: str, image: np.ndarray) -> None:
         """Queue a fringe frame of a view."""
@@ -175,7 +178,7 @@ class Acquisition:
     """Captures views of a scan into a :class:`RunStore`."""
 
     def __init__(self, rig: Rig, patterns: list[PatternFrame], store: RunStore,
-                 scan: dict[str, Any], bus: EventBus, stop: threading.Event | None = None,
+                 scan: Mapping[str, Any], bus: EventBus, stop: threading.Event | None = None,
                  running: threading.Event | None = None, shots: list[Shot] | None = None) -> None:
         self.rig = rig
         self.patterns = patterns
@@ -189,7 +192,6 @@ class Acquisition:
         self.stop = stop or threading.Event()
         self.running = running  # cleared = pause before the next frame; None = never pause
         self.seconds = 0.0
-        self._analyzer_deg: float | None = None
         self._device_lines: queue.SimpleQueue = queue.SimpleQueue()
         self._unlisten = rig.listen(lambda *line: self._device_lines.put(line))
         for line in rig.messages:  # logged while connecting, before this run listened
@@ -201,23 +203,20 @@ class Acquisition:
         self.writer = FrameWriter(store)
         self.spec = FrameSpec.of_camera(rig.camera)
         if implements(rig.camera, ExposureControl):
-            rig.camera.set_exposure(scan["exposure_ms"])
-        for line in refused_controls(rig):
-            bus.warn(line)
-        self._show_kwargs = accepted_kwargs(rig.projector.show, ("name", "index"))
-        self.sequenced = (SequencedCapture(rig, patterns, self.shots, scan, bus, with_retries)
-                          if uses_sequenced(rig, scan) else None)
+            cast(ExposureControl, rig.camera).set_exposure(scan["exposure_ms"])
+        for refusal in refused_controls(rig):
+            bus.warn(refusal)
+        self.engine: AcquisitionEngine = choose_engine(rig, patterns, self.shots, scan, bus,
+                                                       self._retry)
         for role, policy in rig.policies.items():
             if policy.home == "before_scan":
                 self.bus.info(f"homing the {role} before the scan")
                 rig.home(role)
         self.flush_device_log()
 
-    def _set_analyzer(self, degrees: float) -> None:
-        if degrees != self._analyzer_deg:
-            self._analyzer_deg = None  # unknown until the move succeeds
-            self.rig.analyzer.set_angle(degrees)
-            self._analyzer_deg = degrees
+    def _retry(self, action: Callable[[], T], what: str) -> T:
+        """``action()`` under the scan's retry policy (:func:`with_retries`)."""
+        return with_retries(action, self.scan["retries"], what, self.bus)
 
     def _stop_watch(self) -> None:
         """Stop moving devices as soon as the scan is asked to stop (abort from any thread)."""
@@ -235,26 +234,6 @@ class Acquisition:
                 return
             self.bus.emit(Message(level=level, text=text, time=when))
 
-    def _capture(self, shot: Shot, view: int) -> np.ndarray:
-        pattern = self.patterns[shot.pattern]
-
-        def attempt() -> np.ndarray:
-            try:
-                if shot.analyzer_deg is not None:
-                    self._set_analyzer(shot.analyzer_deg)
-                ident = {"name": pattern.name, "index": shot.pattern}
-                self.rig.projector.show(pattern.image, **{k: ident[k] for k in self._show_kwargs})
-                if self.scan["settle_ms"] > 0:
-                    time.sleep(self.scan["settle_ms"] / 1000.0)
-                return self.rig.camera.capture()
-            except DeviceError:
-                self._analyzer_deg = None  # unknown after a failure: set it again
-                raise
-
-        what = f"view {view}, frame {shot.name!r}"
-        return check_frame(self.rig, self.spec,
-                           with_retries(attempt, self.scan["retries"], what, self.bus), what)
-
     def _move(self, view: int, angle_deg: float) -> dict[str, Any]:
         """Move the stage for a view (retried like captures); what the stage read back."""
         self.rig.where.update(view=view, angle_deg=angle_deg)
@@ -262,7 +241,7 @@ class Acquisition:
                      f"view {view}: stage move to {angle_deg:g}°", self.bus)
         reached: dict[str, Any] = {}
         if implements(self.rig.stage, AngleReadback):
-            reached["angle_read_deg"] = float(self.rig.stage.read_angle())
+            reached["angle_read_deg"] = float(cast(AngleReadback, self.rig.stage).read_angle())
         return reached
 
     def _wait_if_paused(self, view: int, index: int) -> bool:
@@ -306,9 +285,9 @@ class Acquisition:
 
     def _set_aside(self, view: int) -> None:
         """Move a failed capture of ``view`` out of the way (kept) before it is captured again."""
-        from dotshell.pipeline.scan import _set_aside_partial  # the run's one way to do it
+        from dotshell.run.frames import set_aside_partial  # the run's one way to do it
 
-        _set_aside_partial(self.store, view)
+        set_aside_partial(self.store.root, view)
         self.writer.written[view] = 0
         self.store.mark_view(view, 0, False)
 
@@ -327,24 +306,17 @@ class Acquisition:
         frames: list[np.ndarray] = []
         infos: list[dict[str, Any]] = []
         reached: dict[str, Any] = {}
-        frame_info = implements(self.rig.camera, FrameInfoSource)
         try:
             reached = self._move(view, angle_deg)
             self.flush_device_log()
             for i, shot in enumerate(self.shots):
-                captured = self.sequenced is not None and self.sequenced.pending()
+                captured = self.engine.holds_frames()
                 if (self.stop.is_set() and not captured) or not self._wait_if_paused(view, i):
                     return None
-                if self.sequenced is not None:
-                    frame = check_frame(self.rig, self.spec,
-                                        self.sequenced.frame(view, i, self._set_analyzer),
-                                        f"view {view}, frame {shot.name!r}")
-                    info = self.sequenced.infos[i].to_dict()
-                else:
-                    frame = self._capture(shot, view)
-                    info = self.rig.camera.last_frame_info().to_dict() if frame_info else None
+                raw, info = self.engine.frame(view, i)
+                frame = check_frame(self.rig, self.spec, raw, f"view {view}, frame {shot.name!r}")
                 if info is not None:
-                    infos.append({"index": i, "name": shot.name, **info})
+                    infos.append({"index": i, "name": shot.name, **info.to_dict()})
                 self.writer.put(view, i, shot.name, frame)
                 frames.append(frame)
                 self.flush_device_log()
@@ -385,7 +357,7 @@ class Acquisition:
                 m["views"][view]["frame_info"] = frame_info_path(view)
             if verdict is not None:
                 m["views"][view]["integrity"] = {**verdict.to_dict(), "captures": attempt}
-            self.store.write_json("manifest.json", m)
+            self.store.write_json(RunLayout.MANIFEST, m)
 
     def close(self) -> None:
         """Stop the writer thread (after it wrote everything queued) and the stop watcher."""
@@ -397,7 +369,7 @@ class Acquisition:
 
 def frame_info_path(view: int) -> str:
     """Where a view's frame metadata goes, relative to the run."""
-    return f"frames/view_{view:03d}/frame_info.json"
+    return RunLayout.frame_info(view)
 
 
 def record_frame_info(store: RunStore, view: int, infos: list[dict[str, Any]]) -> Path:

@@ -36,7 +36,8 @@ from dotshell.pipeline.batch_tasks import (TaskOutcome, executing_keys, head_tas
 from dotshell.pipeline.commands import check_calibration_for_run
 from dotshell.pipeline.engine import JobWork, RunJob, outcome_of, prepare, publish
 from dotshell.run.generations import current_number
-from dotshell.pipeline.steps import view_angle
+from dotshell.run.layout import RunLayout
+from dotshell.pipeline.steps import complete_views, view_angle
 from dotshell.plugins import PluginManager
 from dotshell.run.store import RunStore
 
@@ -133,20 +134,20 @@ def find_runs(patterns: list[str]) -> list[Path]:
     for pattern in patterns:
         if any(c in pattern for c in "*?[") and not Path(pattern).exists():
             found = [Path(m) for m in sorted(glob.glob(pattern))]
-            found = [p for p in found if (p / "manifest.json").is_file()]
+            found = [p for p in found if (p / RunLayout.MANIFEST).is_file()]
             if not found:
                 raise RunError(f"{pattern} matches no run directory (a directory holding "
                                "manifest.json); check the pattern and the current directory.")
-        elif Path(pattern).is_dir() and not (Path(pattern) / "manifest.json").is_file():
-            found = sorted(p for p in Path(pattern).iterdir() if (p / "manifest.json").is_file())
+        elif Path(pattern).is_dir() and not (Path(pattern) / RunLayout.MANIFEST).is_file():
+            found = sorted(p for p in Path(pattern).iterdir() if (p / RunLayout.MANIFEST).is_file())
             if not found:
                 raise RunError(f"{pattern} is neither a run directory nor a study directory "
                                "holding runs; give run directories, a study directory or a "
                                "glob such as 'runs/2026*'.")
         else:
             found = [RunStore.open(Path(pattern)).root]
-        for p in found:
-            p = p.absolute()
+        for path in found:
+            p = path.absolute()
             if p not in runs:
                 runs.append(p)
     return runs
@@ -210,8 +211,16 @@ WORKER_MODULES = ("dotshell.pipeline.batch_tasks", "dotshell.pipeline.reconstruc
                   "dotshell.pipeline.validate")
 
 
+#: where a local cluster's scheduler serves its HTTP routes (health, metrics; no dashboard):
+#: a free port of the loopback interface. Without it the scheduler takes port 8787 whatever
+#: ``dashboard_address`` says, and a second cluster on the host (another batch, the test
+#: suite's other worker) warns "Port 8787 is already in use" and moves elsewhere
+SCHEDULER_HTTP_ADDRESS = "127.0.0.1:0"
+
+
 def local_cluster(workers: int) -> Any:
-    """A Dask ``LocalCluster`` of ``workers`` processes, one thread each, no dashboard.
+    """A Dask ``LocalCluster`` of ``workers`` processes, one thread each, no dashboard (its
+    scheduler's HTTP routes on a free loopback port, :data:`SCHEDULER_HTTP_ADDRESS`).
 
     Its workers are forked from a forkserver (where the platform has one and Dask's
     ``distributed.worker.multiprocessing-method`` is left at its default, ``spawn``): the
@@ -230,7 +239,19 @@ def local_cluster(workers: int) -> Any:
         if method == "forkserver":
             _preload_in_forkserver()
         return LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                            dashboard_address=None, silence_logs=logging.ERROR)
+                            dashboard_address=None, silence_logs=worker_log_level(),
+                            scheduler_kwargs={"dashboard_address": SCHEDULER_HTTP_ADDRESS})
+
+
+def worker_log_level() -> int:
+    """The level of a local cluster's worker processes' own log lines (printed straight to
+    the terminal, not through this process's logging): CRITICAL, unless this process logs at
+    INFO or below (``-v``), then that level. What a worker logs at ERROR is Dask's comm noise
+    (under load a heartbeat that meets the closing scheduler, with its traceback); a run's
+    fault reaches the batch through its task's outcome, a dead worker through its nanny, which
+    logs in this process."""
+    level = logging.getLogger().getEffectiveLevel()
+    return level if level <= logging.INFO else logging.CRITICAL
 
 
 def _preload_in_forkserver() -> None:
@@ -374,7 +395,8 @@ class StudyBatch:
                 return False
         except DotshellError:  # a damaged manifest: the run's own job says what is wrong
             return False
-        report = store.read_json("report.json") if store.path("report.json").is_file() else {}
+        report = (store.read_json(RunLayout.REPORT) if store.path(RunLayout.REPORT).is_file()
+                  else {})
         self._finish(RunOutcome(root, "skipped", "finished by an earlier run of this batch",
                                 report))
         return True
@@ -452,7 +474,7 @@ class StudyBatch:
         if "views" in steps:
             views = [client.submit(view_task, work, v["index"], view_angle(v), version, head,
                                    key=f"view-{name}-{v['index']:03d}", **opts)
-                     for v in store.manifest["views"] if v.get("complete")]
+                     for v in complete_views(store)]  # not those marked lost
         tail = client.submit(tail_task, work, tail_names, version, head, views,
                              key=f"tail-{name}", **opts)
         futures = [f for f in (head, *views, tail) if f is not None]

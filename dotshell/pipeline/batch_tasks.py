@@ -29,6 +29,7 @@ from dotshell.events import Event, EventBus
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.pipeline.engine import JobWork, StepsDone, outcome_of, run_steps
 from dotshell.run.generations import ProductStore
+from dotshell.run.layout import RunLayout
 from dotshell.pipeline.steps import make_coding, reconstruct_one_view
 from dotshell.plugins import get_plugin_manager
 from dotshell.profile.loader import Profile
@@ -67,7 +68,7 @@ def identity() -> dict[str, str]:
 
 def missing_runs(roots: list[str]) -> list[str]:
     """The run directories of ``roots`` this worker cannot see (no ``manifest.json``)."""
-    return [r for r in roots if not (Path(r) / "manifest.json").is_file()]
+    return [r for r in roots if not (Path(r) / RunLayout.MANIFEST).is_file()]
 
 
 def executing_keys(dask_worker: Any) -> list[str]:
@@ -132,7 +133,7 @@ def _failed_before(run_root: Path, kind: str, view: int | None,
 def _profile(run_root: Path) -> Profile:
     """The run's own profile (read and validated once per worker process and run)."""
     try:
-        stamp = (run_root / "profile.toml").stat().st_mtime_ns
+        stamp = (run_root / RunLayout.PROFILE).stat().st_mtime_ns
     except OSError:
         stamp = 0  # load_run_profile says what is wrong
     return _profile_as_of(run_root, stamp)
@@ -161,7 +162,7 @@ def view_task(work: JobWork, view: int, angle_deg: float, client_version: str,
         profile = _profile(work.run_root)
         run = RunStore(work.run_root)
         store = ProductStore(run, work.generation_of(run).dir)
-        calib = RigCalibration.load(store.path("calibration.json"))
+        calib = RigCalibration.load(store.path(RunLayout.CALIBRATION))
         return reconstruct_one_view(store, view, angle_deg, profile, make_coding(profile, pm),
                                     calib, bus)
 

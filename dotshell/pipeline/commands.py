@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
+from typing import TYPE_CHECKING, Any, Iterable
 
 from dotshell.errors import CalibrationError, RunError
 from dotshell.events import EventBus
@@ -16,7 +16,11 @@ from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.engine import RunJob, process
 from dotshell.pipeline.steps import require_turntable_axis
 from dotshell.plugins import PluginManager
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore
+
+if TYPE_CHECKING:
+    from dotshell.pipeline.scan import ScanResult
 
 
 def reprocess(run_dir: Path | str, pm: PluginManager, command: str, targets: Iterable[str],
@@ -32,7 +36,8 @@ def reprocess(run_dir: Path | str, pm: PluginManager, command: str, targets: Ite
     try:
         profile = load_run_profile(store, pm)
         if options.get("calibration_file"):
-            check_calibration_for_run(options["calibration_file"], store)
+            options["calibration"] = check_calibration_for_run(options["calibration_file"],
+                                                               store)
             targets = targets_if_calibration or targets
         with RunJob(store, command, bus) as job:
             return process(job, profile, pm, targets, options)
@@ -41,11 +46,24 @@ def reprocess(run_dir: Path | str, pm: PluginManager, command: str, targets: Ite
         store.close()
 
 
+def reconstruct_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
+                    calibration_file: str | None = None) -> ScanResult:
+    """Re-process a run from its frames on disk into a new generation (views not fully
+    captured are skipped with a warning); with ``calibration_file``, that calibration is
+    validated first and used for the new generation. Nothing of earlier generations changes."""
+    from dotshell.pipeline.scan import ScanResult
+
+    report = reprocess(run_dir, pm, "reconstruct", ("views",), bus,
+                       {"calibration_file": calibration_file} if calibration_file else {},
+                       targets_if_calibration=("calibration",))
+    return ScanResult(Path(run_dir), report.get("status", "completed"), report)
+
+
 def check_calibration_for_run(path: str | Path, store: RunStore) -> RigCalibration:
     """A calibration file that can re-process this run: valid, and its camera the size of the
     run's frames. Checked before anything is written."""
     calib = load_any_calibration(path)
-    captured = RigCalibration.load(store.path("calibration.json"))
+    captured = RigCalibration.load(store.path(RunLayout.CALIBRATION))
     if calib.camera.size != captured.camera.size:
         raise CalibrationError(
             f"{path}: its camera is {calib.camera.size[0]}x{calib.camera.size[1]} px but the run's "

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from dotshell.errors import RunError
+from dotshell.run.layout import RunLayout
 from dotshell.run.ply import read_ply
 from dotshell.run.store import RunStore, atomic_write_bytes, atomic_write_text
 
@@ -26,7 +27,7 @@ def run_row(store: RunStore) -> dict[str, Any]:
     """The comparison row of one run; rejected = low contrast + uncertain + row-inconsistent
     + speckle pixels, as a share of pixels that were decoded or classified uncertain / low
     contrast (i.e. saw projector light)."""
-    report = store.read_json("report.json")
+    report = store.read_json(RunLayout.REPORT)
     v = report.get("validation") or {}
     if "mean_rel_error_pct" not in v:
         v = validation_of(store)
@@ -36,7 +37,7 @@ def run_row(store: RunStore) -> dict[str, Any]:
                    + x.get("speckle", 0) for x in views)
     seen = decoded + sum(x.get("low_contrast", 0) + x.get("uncertain", 0) for x in views)
     manifest = store.manifest
-    prof = _run_profile(store)
+    prof = store.read_profile()
     return {
         "run": store.root.name, "profile": report.get("profile", ""),
         "pdi": bool(prof.get("scan", {}).get("pdi", False)),
@@ -50,17 +51,6 @@ def run_row(store: RunStore) -> dict[str, Any]:
     }
 
 
-def _run_profile(store: RunStore) -> dict[str, Any]:
-    """The run's own profile as recorded (defaults filled in when it was scanned)."""
-    import tomllib
-
-    p = store.path("profile.toml")
-    try:
-        return tomllib.loads(p.read_text())
-    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError, RecursionError) as exc:
-        raise RunError(f"{p} cannot be read ({exc}); restore it from a backup.") from None
-
-
 def validation_of(store: RunStore) -> dict[str, Any]:
     """The shape validation of a run whose report lacks it (a generation made before it was
     kept, or a report written elsewhere), measured now from its cloud and calibration, when
@@ -68,23 +58,23 @@ def validation_of(store: RunStore) -> dict[str, Any]:
     from dotshell.geometry.calibration import RigCalibration
     from dotshell.pipeline.validate import cylinder_report
 
-    prof = _run_profile(store)
+    prof = store.read_profile()
     v = prof.get("validation") or {}
     if v.get("shape") != "cylinder":
         raise RunError(f"{store.root}: no shape validation (its profile's [validation] shape is "
                        f"{v.get('shape', 'none')!r}); give runs scanned with [validation] shape "
                        "= \"cylinder\".")
-    if not store.path("cloud.ply").is_file():
+    if not store.path(RunLayout.CLOUD).is_file():
         raise RunError(f"{store.root} has no cloud.ply to validate; make it with `dotshell "
                        "reconstruct RUN`.")
     try:
         roi = prof["processing"]["roi"]
-        calib = RigCalibration.load(store.path("current", "calibration.json")
-                                    if store.path("current", "calibration.json").is_file()
-                                    else store.path("calibration.json"))
-        return cylinder_report(read_ply(store.path("cloud.ply"))[0], calib, v, roi)
+        published = store.path(RunLayout.CURRENT, RunLayout.CALIBRATION)
+        calib = RigCalibration.load(published if published.is_file()
+                                    else store.path(RunLayout.CALIBRATION))
+        return cylinder_report(read_ply(store.path(RunLayout.CLOUD))[0], calib, v, roi)
     except KeyError as exc:
-        raise RunError(f"{store.path('profile.toml')} lacks {exc} needed to validate the run; "
+        raise RunError(f"{store.path(RunLayout.PROFILE)} lacks {exc} needed to validate the run; "
                        "re-process it with `dotshell reconstruct RUN`.") from None
 
 
@@ -112,7 +102,7 @@ def write_plot(stores: list[RunStore], rows: list[dict[str, Any]], path: Path,
                              sharex="col")
     rng = np.random.default_rng(0)
     for k, (store, row) in enumerate(zip(stores, rows)):
-        pts, _ = read_ply(store.path("cloud.ply"))
+        pts, _ = read_ply(store.path(RunLayout.CLOUD))
         lo, hi = row["_band"]
         pts = pts[(pts[:, 2] >= lo) & (pts[:, 2] <= hi)]
         if len(pts) > max_points:

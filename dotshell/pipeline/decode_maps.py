@@ -28,6 +28,7 @@ import numpy as np
 
 from dotshell.coding import Correspondence
 from dotshell.errors import RunError
+from dotshell.run.layout import RunLayout
 
 MAP_FORMATS = ("tiff", "npy")
 #: Preview colours (BGR) of the mask's reasons; unknown reasons are magenta.
@@ -62,10 +63,10 @@ def write_map(path: Path, values: np.ndarray) -> Path:
         np.save(buf, values)
         _write_bytes(path, buf.getvalue())
         return path
-    ok, buf = cv2.imencode(".tiff", values)
+    ok, encoded = cv2.imencode(".tiff", values)
     if not ok:
         raise RunError(f"could not encode {path.name} as a float32 TIFF.")
-    _write_bytes(path, buf.tobytes())
+    _write_bytes(path, encoded.tobytes())
     return path
 
 
@@ -136,7 +137,7 @@ def write_maps(directory: Path, corr: Correspondence, projector_size: tuple[int,
     if fmt not in MAP_FORMATS:
         raise RunError(f"map format {fmt!r} is not one of {', '.join(MAP_FORMATS)}.")
     directory = Path(directory)
-    pdir = directory / "previews"
+    pdir = directory / RunLayout.PREVIEWS
     pdir.mkdir(parents=True, exist_ok=True)
     reason, names = corr.reason, corr.reason_names
     if reason is None:  # a coding that does not say why: decoded or not
@@ -163,7 +164,7 @@ def write_maps(directory: Path, corr: Correspondence, projector_size: tuple[int,
 def decode_captures(captures: Path | str, layout_file: Path | str, pm,
                     out_dir: Path | str = "runs", fmt: str = "tiff") -> DecodeResult:
     """Decode a capture directory through its layout (no calibration needed)."""
-    from dotshell.pipeline.captures import load_layout, read_sequence
+    from dotshell.run.capture_layouts import load_layout, read_sequence
     from dotshell.run.store import RunStore
 
     layout = load_layout(layout_file)
@@ -177,7 +178,7 @@ def decode_captures(captures: Path | str, layout_file: Path | str, pm,
               "coding": {"backend": layout.coding, "settings": layout.coding_settings()},
               **write_maps(store.root, corr, layout.projector_size, seq.frames[0], fmt),
               "timings_s": {"read": round(t1 - t0, 3), "decode": round(t2 - t1, 3)}}
-    store.write_json("report.json", report)
+    store.write_json(RunLayout.REPORT, report)
     return DecodeResult(store.root, report)
 
 
@@ -192,7 +193,7 @@ def decode_run(run_dir: Path | str, pm, out_dir: Path | str = "runs",
 
     run = RunStore.open(Path(run_dir))
     profile = load_run_profile(run, pm)
-    c = profile.role("coding")
+    c = profile.required_role("coding")
     coding = pm.create("coding", c["backend"], c["settings"], None, profile.source)
     manifest = run.manifest
     shots = shots_from_manifest(manifest)
@@ -203,17 +204,17 @@ def decode_run(run_dir: Path | str, pm, out_dir: Path | str = "runs",
     out = RunStore.create(Path(out_dir), f"decode-{run.root.name}")
     views: dict[str, Any] = {}
     for v in complete:
-        name = f"view_{v['index']:03d}"
+        name = RunLayout.view_stem(v["index"])
         frames = combine(run.read_frames(v["index"]), shots)
         corr = coding.decode(frames, projector_size)
         views[name] = {"angle_deg": v["angle_deg"],
                        **write_maps(out.path(name), corr, projector_size, frames[0], fmt)}
-    skipped = {f"view_{v['index']:03d}": f"{v['frames']} of {len(manifest['frame_names'])} "
+    skipped = {RunLayout.view_stem(v["index"]): f"{v['frames']} of {len(manifest['frame_names'])} "
                "frames on disk" for v in manifest["views"] if not v["complete"]}
     report = {"run": str(run.root.resolve()),
               "coding": {"backend": c["backend"], "settings": c["settings"]},
               "views": views, "skipped": skipped}
-    out.write_json("report.json", report)
+    out.write_json(RunLayout.REPORT, report)
     return DecodeResult(out.root, report)
 
 
@@ -221,4 +222,4 @@ def _projector_size(store) -> tuple[int, int]:
     """The projector size the run's patterns were made for (its calibration.json's)."""
     from dotshell.geometry.calibration import RigCalibration
 
-    return RigCalibration.load(store.path("calibration.json")).projector.size
+    return RigCalibration.load(store.path(RunLayout.CALIBRATION)).projector.size

@@ -29,7 +29,9 @@ from dotshell.errors import DotshellError, RunError
 from dotshell.events import EventBus, StepStarted
 from dotshell.run.generations import (Generation, ProductStore, current_number,
                                            published, remove_unpublished)
+from dotshell.run.layout import RunLayout
 from dotshell.run.lifecycle import Interrupted, RunLock, effective_status
+from dotshell.run.lost import finished, lost_reason
 from dotshell.pipeline.steps import STEP_BY_NAME, STEPS, StepContext, import_ahead
 from dotshell.plugins import PluginManager
 from dotshell.profile.loader import Profile
@@ -57,13 +59,13 @@ class RunJob:
         self.previous: tuple[str, str] = ("unknown", "")
         self.started = 0.0
 
-    def __enter__(self) -> "RunJob":
+    def __enter__(self) -> RunJob:
         return self.open()
 
     def __exit__(self, exc_type: Any, exc: BaseException | None, tb: Any) -> None:
         self.close(exc)
 
-    def open(self) -> "RunJob":
+    def open(self) -> RunJob:
         """Take the run's lock and record ``running`` (what ``with RunJob(...)`` does first)."""
         self.lock.acquire(self.command)
         try:
@@ -133,12 +135,17 @@ class RunJob:
     def run_state(self) -> dict[str, str]:
         """The run's status after this job: a capturing job's own outcome; after a
         re-processing job the run keeps its state, except that a successful one makes a run
-        whose every view is captured ``completed`` (its products are now whole)."""
+        whose every view is captured (or marked lost) ``completed`` (its products are now
+        whole). A completed run with lost views says so in its reason."""
+        manifest = self.store.manifest
         if self.captures:
-            return {"status": self.status or "failed", "reason": self.reason}
-        status, reason = self.previous
-        if self.status == "completed" and all(v["complete"] for v in self.store.manifest["views"]):
-            return {"status": "completed", "reason": ""}
+            status, reason = self.status or "failed", self.reason
+        else:
+            status, reason = self.previous
+            if self.status == "completed" and all(finished(v) for v in manifest["views"]):
+                status, reason = "completed", ""
+        if status == "completed":
+            reason = reason or lost_reason(manifest)
         return {"status": status, "reason": reason}
 
     def _batch_entry(self) -> dict[str, str]:
@@ -241,7 +248,8 @@ def prepare(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
     gen = generation or Generation.start(job.store)
     job.generation = gen.number
     if gen.missing_base is not None:
-        job.bus.warn(f"{job.store.root}/current points to gen/{gen.missing_base:03d}, which is "
+        job.bus.warn(f"{job.store.root}/{RunLayout.CURRENT} points to "
+                     f"{RunLayout.generation_dir(gen.missing_base)}, which is "
                      f"missing (deleted?); generation {gen.number} makes every product again "
                      "from the frames.")
     options = dict(options or {})
@@ -335,10 +343,13 @@ def process(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
     """Make ``targets`` (and whatever they need) in a new generation of ``job``'s run and
     publish it, all in this process; returns the published report. ``generation``: one the
     caller already started writing into (a scan writes views while it captures). Options
-    ``reconstructed``, ``prewritten`` and ``timings`` are as in :func:`run_steps`."""
+    ``reconstructed``, ``prewritten`` and ``timings`` are as in :func:`run_steps`; option
+    ``calibration`` is the generation's calibration the caller already loaded and checked (a
+    :class:`RigCalibration`, so that the file is read once)."""
     options = dict(options or {})
-    extra = {k: options.pop(k) for k in ("reconstructed", "prewritten", "timings")
-             if k in options}
+    extra: dict[str, Any] = {k: options.pop(k) for k in ("reconstructed", "prewritten", "timings",
+                                                               "calibration")
+                             if k in options}
     work = prepare(job, profile, pm, targets, options, generation)
     return publish(job, work, [run_steps(work, profile, pm, job.bus, extra=extra)],
                    final_status)
@@ -350,7 +361,7 @@ REPORT_ONLY = ("validation",)
 
 def sections_of(product: str) -> tuple[str, ...]:
     """The report.json sections a product's step writes."""
-    return {"calibration": ("calibration",), "views": ("views",), "cloud": ("cloud",),
+    return {"calibration": ("calibration",), "views": ("views", "lost_views"), "cloud": ("cloud",),
             "validation": ("validation",), "previews": ("previews",), "mesh": ("mesh",),
             "normalize": ("normalize",), "exports": ("exports",),
             "forward": ("forward",)}.get(product, ())

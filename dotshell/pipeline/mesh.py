@@ -29,9 +29,11 @@ from dotshell.profile.mesh import MESH_SCHEMA
 from dotshell.fem.meshfiles import (optodes_from_settings, read_optodes, read_volume, write_optodes,
                                 write_surface, write_volume)
 from dotshell.plugins import PluginManager
+from dotshell.run.layout import RunLayout
 from dotshell.pipeline.mesh_process import picklable, run_in_child
 from dotshell.run.ply import map_ply
 from dotshell.profile.loader import Profile
+from dotshell.profile.sections import MeshSettings
 from dotshell.run.store import RunStore
 
 DEFAULT_BACKENDS = {"surface_mesher": "open3d-poisson", "volume_mesher": "tetgen"}
@@ -72,10 +74,11 @@ class ViewCentres:
     centres_mm: np.ndarray
 
     @classmethod
-    def of_run(cls, store: RunStore) -> ViewCentres | None:
-        """From the run's calibration and stage angles; None without them."""
+    def of_run(cls, store: RunStore, calib: RigCalibration | None = None) -> ViewCentres | None:
+        """From the run's calibration (``calib``, else read from the run) and stage angles;
+        None without them."""
         try:
-            calib = RigCalibration.load(store.path("calibration.json"))
+            calib = calib or RigCalibration.load(store.path(RunLayout.CALIBRATION))
             angles = {v["index"]: v["angle_deg"] for v in store.manifest["views"]}
         except Exception:  # a cloud without its run's calibration: orient by the centroid
             return None
@@ -103,7 +106,7 @@ class MeshJob:
     bottom_z_mm: float | None
     surface_mesher: Any
     volume_mesher: Any
-    cfg: dict[str, Any]
+    cfg: MeshSettings
     optodes: Any
 
 
@@ -130,38 +133,37 @@ def mesh_cloud(job: MeshJob, node_distance_mm: float) -> tuple[TriangleSurface, 
     return mesh_volume(result, t_surface, node_distance_mm, job.volume_mesher, job.cfg)
 
 
-def mesh_dir_name(node_distance_mm: float) -> str:
-    return f"{node_distance_mm:g}mm"
-
 
 def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
-               node_distance_mm: float | None = None) -> dict[str, Any]:
+               node_distance_mm: float | None = None,
+               calib: RigCalibration | None = None) -> dict[str, Any]:
     """Mesh the run's cloud at the profile's node distance(s); returns the report section.
+    ``calib``: the run's calibration when the caller has it loaded (else read from the run).
 
     Each node distance is meshed in a process of its own (:func:`run_in_child`), unless a
     plugin's mesher cannot be handed to one (it does not pickle): then in this process."""
-    cfg = profile.data["mesh"]
-    primary = cfg["node_distance_mm"] if node_distance_mm is None else node_distance_mm
+    cfg = profile.mesh
+    primary = cfg.node_distance_mm if node_distance_mm is None else node_distance_mm
     if not (isinstance(primary, (int, float)) and math.isfinite(primary) and primary > 0):
         raise MeshError(f"node distance must be a positive number of mm, got {primary!r}; set "
                         "[mesh] node_distance_mm or pass --node-distance (e.g. 1.0).")
     smallest = MESH_SCHEMA["node_distance_mm"].min
-    if node_distance_mm is not None and node_distance_mm < smallest:
+    if node_distance_mm is not None and smallest is not None and node_distance_mm < smallest:
         raise MeshError(f"--node-distance {node_distance_mm:g} mm is below the smallest node "
                         f"distance [mesh] node_distance_mm allows ({smallest:g} mm); give a "
                         "larger one (e.g. 1.0).")
-    extras = [d for d in cfg["also_node_distances_mm"] if d != primary]
-    job = MeshJob(store.path("cloud.ply"), ViewCentres.of_run(store), [primary, *extras],
-                  cfg["bottom_z_mm"] if cfg["close_bottom"] else None,
+    extras = [d for d in cfg.also_node_distances_mm if d != primary]
+    job = MeshJob(store.path(RunLayout.CLOUD), ViewCentres.of_run(store, calib),
+                  [primary, *extras], cfg.bottom_z_mm if cfg.close_bottom else None,
                   _mesher(profile, pm, "surface_mesher"), _mesher(profile, pm, "volume_mesher"),
-                  cfg, optodes_from_settings(cfg["optodes"], profile.source))
+                  cfg, optodes_from_settings(cfg.optodes.as_table(), profile.source))
     in_child = picklable(job)
     if not in_child:
         bus.info("meshing in this process: a mesher of the profile cannot be handed to a "
                  "process of its own (it does not pickle)")
     out: dict[str, Any] = {"meshes": []}
     for d in job.node_distances_mm:
-        target = store.root if d == primary else store.path("meshes", mesh_dir_name(d))
+        target = store.root if d == primary else store.path(RunLayout.mesh_dir(d))
         bus.emit(StepStarted(step=f"mesh {d:g} mm"))
         surface, volume, entry = (run_in_child(mesh_cloud, job, d) if in_child
                                   else mesh_cloud(job, d))
@@ -169,7 +171,7 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
         del surface, volume
         entry["dir"] = "." if target == store.root else str(target.relative_to(store.root))
         _validate_volume(entry, profile)
-        if cfg["previews"]:
+        if cfg.previews:
             entry["previews"] = _previews(store, target, d, bus)
         out["meshes"].append(entry)
     return out
@@ -194,19 +196,19 @@ def refuse_huge_mesh(points: np.ndarray, node_distance_mm: float) -> None:
 
 
 def mesh_volume(result: SurfaceResult, t_surface: float, node_distance_mm: float, volume_mesher,
-                cfg: dict[str, Any]) -> tuple[TriangleSurface, TetMesh, dict[str, Any]]:
+                cfg: MeshSettings) -> tuple[TriangleSurface, TetMesh, dict[str, Any]]:
     """The volume of a surface mesher's ``result`` (made in ``t_surface`` s) at one node
     distance, with ``[mesh.optics]`` per node; the surface, the volume and the report entry."""
     t0 = time.perf_counter()
     volume = volume_mesher.volume(result.surface, node_distance_mm)
     t_volume = time.perf_counter() - t0
     n = len(volume.nodes)
-    optics = cfg["optics"]
+    optics = cfg.optics
     volume.point_data = {
         "region": np.ones(n, np.int32),
-        "mua_per_mm": np.full(n, optics["mua_per_mm"]),
-        "musp_per_mm": np.full(n, optics["musp_per_mm"]),
-        "refractive_index": np.full(n, optics["refractive_index"]),
+        "mua_per_mm": np.full(n, optics.mua_per_mm),
+        "musp_per_mm": np.full(n, optics.musp_per_mm),
+        "refractive_index": np.full(n, optics.refractive_index),
     }
     return result.surface, volume, {
         "node_distance_mm": node_distance_mm,
@@ -221,33 +223,33 @@ def mesh_volume(result: SurfaceResult, t_surface: float, node_distance_mm: float
 def write_meshes(target: Path, surface: TriangleSurface, volume: TetMesh, optodes) -> None:
     """``surface.ply``, ``volume.vtu`` and ``optodes.json`` (or none) into ``target``."""
     target.mkdir(parents=True, exist_ok=True)
-    write_surface(target / "surface.ply", surface)
-    write_volume(target / "volume.vtu", volume)
+    write_surface(target / RunLayout.SURFACE, surface)
+    write_volume(target / RunLayout.VOLUME, volume)
     if not optodes.empty:
-        write_optodes(target / "optodes.json", optodes)
-    elif (target / "optodes.json").exists():
-        os.unlink(target / "optodes.json")
+        write_optodes(target / RunLayout.OPTODES, optodes)
+    elif (target / RunLayout.OPTODES).exists():
+        os.unlink(target / RunLayout.OPTODES)
 
 
 def _validate_volume(entry: dict[str, Any], profile: Profile) -> None:
     """Against a known cylinder standing on the plate: the solid from the bottom plane to the
     top (the region of interest dropped the lowest band; the surface closes it at the plate)."""
-    v = profile.data["validation"]
-    if v["shape"] != "cylinder" or not profile.data["mesh"]["close_bottom"]:
+    v = profile.validation
+    if v.shape != "cylinder" or not profile.mesh.close_bottom:
         return
-    bottom = profile.data["mesh"]["bottom_z_mm"]
-    true = math.pi * v["radius_mm"] ** 2 * (v["height_mm"] - bottom)
+    bottom = profile.mesh.bottom_z_mm
+    true = math.pi * v.radius_mm ** 2 * (v.height_mm - bottom)
     got = entry["volume"]["volume_mm3"]
     entry["validation"] = {"true_volume_mm3": true, "volume_error_pct": 100 * (got - true) / true,
-                           "section_mm": [bottom, v["height_mm"]]}
+                           "section_mm": [bottom, v.height_mm]}
 
 
 def _previews(store: RunStore, target: Path, node_distance_mm: float, bus: EventBus) -> dict:
     from dotshell.render.mesh_previews import render_mesh_previews
 
     try:
-        files = render_mesh_previews(target, store.path("previews"),
-                                     f"_{mesh_dir_name(node_distance_mm)}")
+        files = render_mesh_previews(target, store.path(RunLayout.PREVIEWS),
+                                     f"_{RunLayout.mesh_dir_name(node_distance_mm)}")
     except Exception as exc:  # rendering depends on the machine's OpenGL; degrade
         bus.warn(f"mesh previews skipped: 3-D rendering is not available here "
                  f"({type(exc).__name__}: {exc}). The meshes are written.")
@@ -264,7 +266,7 @@ def forward_stage(store: RunStore, source_mm: list[float] | None = None,
     from dotshell.fem.meshfiles import _atomic_meshio
 
     d = store.path(mesh_dir)
-    mesh = read_volume(d / "volume.vtu")
+    mesh = read_volume(d / RunLayout.VOLUME)
     source = _default_source(mesh, d) if source_mm is None else np.asarray(source_mm, float)
     if not np.all(np.isfinite(source)) or source.shape != (3,):
         raise RunError(f"--source must be three finite numbers (x y z in mm), got {source_mm!r}.")
@@ -277,7 +279,7 @@ def forward_stage(store: RunStore, source_mm: list[float] | None = None,
     import meshio
 
     data = {**mesh.point_data, "fluence": res.fluence}
-    _atomic_meshio(d / "forward.vtu", meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)],
+    _atomic_meshio(d / RunLayout.FORWARD, meshio.Mesh(mesh.nodes, [("tetra", mesh.tets)],
                                                   point_data=data), "vtu")
     b = mesh.boundary_nodes
     fb = res.fluence[b]
@@ -286,8 +288,8 @@ def forward_stage(store: RunStore, source_mm: list[float] | None = None,
            "boundary_fluence_per_mm2": {"min": float(fb.min()), "median": float(np.median(fb)),
                                         "max": float(fb.max())},
            "negative_nodes": int((res.fluence < 0).sum()),
-           "file": str(Path(mesh_dir) / "forward.vtu")}
-    optodes = read_optodes(d / "optodes.json")
+           "file": str(Path(mesh_dir) / RunLayout.FORWARD)}
+    optodes = read_optodes(d / RunLayout.OPTODES)
     if len(optodes.detectors_mm):
         from scipy.spatial import cKDTree
 
@@ -308,7 +310,7 @@ def _inside(mesh: TetMesh, point: np.ndarray) -> bool:
 
 def _default_source(mesh: TetMesh, d: Path) -> np.ndarray:
     """The first optode source, else the centroid of the mesh volume."""
-    optodes = read_optodes(d / "optodes.json")
+    optodes = read_optodes(d / RunLayout.OPTODES)
     if len(optodes.sources_mm):
         return optodes.sources_mm[0]
     from dotshell.fem.meshes import signed_volumes_mm3

@@ -5,28 +5,29 @@ For every view and source position: dark-subtract and flat-field the frame (DN p
 exposure, relative to the principal point), map it onto the run's ``surface.ply`` nodes
 (:mod:`dotshell.geometry.surface_map`: occlusion by ray casting, sin β per node, masks), and
 divide the node intensities by the orientation factor of the profile's ``[normalizer]`` backend
-(default ``diffuse-fresnel``) and of each ``[normalize] compare`` backend. When the rig knows
-the true light (the simulator), every backend is scored against it. Outputs are written by
-:mod:`dotshell.pipeline.normalize_outputs`; the figures go to ``normalize/report.json`` and the
+(default ``diffuse-fresnel``) and of each ``[normalize] compare`` backend. When the run recorded
+the true light (a simulated rig writes it to ``truth.json``, :mod:`dotshell.run.truth`), every
+backend is scored against it. Outputs are written by
+:mod:`dotshell.pipeline.normalize_outputs` (whose ``normalize_stage`` runs the whole step); the figures go to ``normalize/report.json`` and the
 ``normalize`` section of ``report.json``.
 """
 
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
 import cv2
 import numpy as np
 
-from dotshell.devices import TransilluminationTruth
+from dotshell.devices import SurfaceRadiance
 from dotshell.errors import CalibrationError, DotshellError, RunError
 from dotshell.events import EventBus, StepProgress, StepStarted
 from dotshell.fem.meshes import TriangleSurface
 from dotshell.run.framecheck import FrameSpec
 from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.raycast import ClosestPoints, TriangleScene
 from dotshell.geometry.surface_map import (OK, NodeLight, SurfaceView, mask_counts,
                                            node_intensities, normal_spread_deg, view_surface)
 from dotshell.normalizer import Normalizer
@@ -35,7 +36,9 @@ from dotshell.pipeline.transillum import source_names
 from dotshell.profile.loader import Profile
 from dotshell.settings import validate_settings
 from dotshell.profile.transillum import NORMALIZE_SCHEMA
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore
+from dotshell.run.truth import TRUTH_FILE, read_transillumination_truth
 
 DEFAULT_NORMALIZER = "diffuse-fresnel"
 ViewCallback = Callable[[SurfaceView, list[tuple["SourceResult", np.ndarray]]], None]
@@ -54,7 +57,7 @@ class SourceResult:
     light: NodeLight
     sin_beta: np.ndarray                 # (N,) per node, this view
     normalized: dict[str, np.ndarray]    # backend name → I0 estimate per node (NaN masked)
-    truth: np.ndarray | None             # true I0 per node, if the rig knows it
+    truth: np.ndarray | None             # true I0 per node, if the run recorded it
     stats: dict[str, Any]
 
 
@@ -62,7 +65,7 @@ def normalizers(profile: Profile, pm: PluginManager, override: str | None) -> di
     """The primary normalizer first, then the ``compare`` ones (each once)."""
     section = profile.role("normalizer")
     primary = override or (section["backend"] if section else DEFAULT_NORMALIZER)
-    names = [primary] + [n for n in profile.data["normalize"]["compare"] if n != primary]
+    names = [primary] + [n for n in profile.normalize.compare if n != primary]
     out = {}
     for name in dict.fromkeys(names):
         settings = dict(section["settings"]) if section and section["backend"] == name else {}
@@ -70,7 +73,7 @@ def normalizers(profile: Profile, pm: PluginManager, override: str | None) -> di
         settings = validate_settings(info.backend.settings_schema, settings, profile.source,
                                      "normalizer.settings")
         if settings.get("refractive_index") == 0.0:  # documented: 0 = the sample's [mesh.optics]
-            settings["refractive_index"] = profile.data["mesh"]["optics"]["refractive_index"]
+            settings["refractive_index"] = profile.mesh.optics.refractive_index
         out[name] = pm.create("normalizer", name, settings, None, profile.source)
     return out
 
@@ -87,7 +90,7 @@ def _load_surface(store: RunStore) -> TriangleSurface:
     from dotshell.fem.meshfiles import read_surface
 
     return read_surface(_required(
-        store, "surface.ply", RunError, "normalization maps the images onto the scanned "
+        store, RunLayout.SURFACE, RunError, "normalization maps the images onto the scanned "
         f"surface. Run `dotshell mesh {store.root}` first, or scan with [mesh] after_scan = true."))
 
 
@@ -100,7 +103,7 @@ def unscanned_nodes(store: RunStore, surface: TriangleSurface,
     from dotshell.run.ply import read_ply
 
     points, _ = read_ply(_required(
-        store, "cloud.ply", RunError, "the surface's nodes cannot be checked against the "
+        store, RunLayout.CLOUD, RunError, "the surface's nodes cannot be checked against the "
         f"scanned points. Re-run `dotshell reconstruct {store.root}`."))
     dist, _ = cKDTree(points).query(surface.vertices, distance_upper_bound=max_distance_mm)
     return ~np.isfinite(dist)
@@ -108,7 +111,7 @@ def unscanned_nodes(store: RunStore, surface: TriangleSurface,
 
 def _load_calibration(store: RunStore) -> RigCalibration:
     return RigCalibration.load(_required(
-        store, "calibration.json", CalibrationError, "its views cannot be mapped onto the "
+        store, RunLayout.CALIBRATION, CalibrationError, "its views cannot be mapped onto the "
         f"surface. Give one with `dotshell reconstruct {store.root} --calibration FILE`."))
 
 
@@ -165,19 +168,37 @@ def _checked(img: np.ndarray, calib: RigCalibration, bit_depth: int, path: Path)
                       "run's frames from a backup, or capture the trans-illumination again.")
 
 
-def _truth_source(profile: Profile, pm: PluginManager) -> TransilluminationTruth | None:
-    """The rig's light source if it knows the true light (the simulator); devices are built but
-    not connected."""
-    if profile.role("light_source") is None:
-        return None
-    from dotshell.rig.assembly import Rig
+class TruthAtNodes:
+    """The true I0 a run recorded (:mod:`dotshell.run.truth`), read at the nodes of the scanned
+    surface: each node takes the value at its closest point of the true surface, NaN farther
+    than the field's ``max_snap_mm``."""
 
-    try:
-        rig = Rig(profile, pm)
-    except DotshellError:
-        return None
-    light = rig.light_source
-    return light if isinstance(light, TransilluminationTruth) else None
+    def __init__(self, store: RunStore, nodes_mm: np.ndarray, bus: EventBus) -> None:
+        self.nodes_mm = nodes_mm
+        self.recorded = read_transillumination_truth(store.run_root)
+        self._closest: tuple[SurfaceRadiance, ClosestPoints] | None = None
+        if self.recorded is None:
+            bus.info(f"{store.run_root} has no {TRUTH_FILE} with the true trans-illumination "
+                     "light (only a simulated rig records it): the normalization is not scored "
+                     "against the truth.")
+
+    def at(self, view: int, source: str) -> np.ndarray | None:
+        """True I0 per node for ``source`` at ``view``; None if the run recorded none."""
+        field = self.recorded.field(view, source) if self.recorded is not None else None
+        if field is None:
+            return None
+        at = self._closest_points(field)
+        return np.where(at.distance_mm <= field.max_snap_mm, at.interpolate(field.radiance),
+                        np.nan)
+
+    def _closest_points(self, field: SurfaceRadiance) -> ClosestPoints:
+        """The nodes' closest points on the field's surface (found once per surface)."""
+        last = self._closest
+        if last is None or not (np.array_equal(last[0].vertices_mm, field.vertices_mm)
+                                and np.array_equal(last[0].triangles, field.triangles)):
+            scene = TriangleScene(field.vertices_mm, field.triangles)
+            last = self._closest = (field, scene.closest(self.nodes_mm))
+        return last[1]
 
 
 def error_stats(estimate: np.ndarray, truth: np.ndarray) -> dict[str, float]:
@@ -212,19 +233,20 @@ class Normalization:
 
     def __init__(self, store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
                  normalizer: str | None = None, min_sin_beta: float | None = None,
-                 max_normal_spread_deg: float | None = None) -> None:
+                 max_normal_spread_deg: float | None = None,
+                 calib: RigCalibration | None = None) -> None:
         self.store, self.profile, self.bus = store, profile, bus
-        self.cfg = {**profile.data["normalize"],
-                    **checked_overrides(min_sin_beta, max_normal_spread_deg)}
+        overrides: dict[str, Any] = checked_overrides(min_sin_beta, max_normal_spread_deg)
+        self.cfg = replace(profile.normalize, **overrides)
         self.entry = transillumination_entry(store)
         self.surface = _load_surface(store)
-        self.unscanned = unscanned_nodes(store, self.surface, self.cfg["max_cloud_distance_mm"])
-        self.crease = normal_spread_deg(self.surface) > self.cfg["max_normal_spread_deg"]
-        self.calib = _load_calibration(store)
+        self.unscanned = unscanned_nodes(store, self.surface, self.cfg.max_cloud_distance_mm)
+        self.crease = normal_spread_deg(self.surface) > self.cfg.max_normal_spread_deg
+        self.calib = calib or _load_calibration(store)
         self.models = normalizers(profile, pm, normalizer)
         self.primary = next(iter(self.models))
         self.flat = flat_field(store, self.entry, self.calib, bus)
-        self.truth = _truth_source(profile, pm)
+        self.truth = TruthAtNodes(store, self.surface.vertices, bus)
         self.bit_depth = int(self.entry.get("camera_bit_depth", 16))
         self.full_scale = (1 << self.bit_depth) - 1
         self.angles = {v["index"]: v["angle_deg"] for v in store.manifest["views"]}
@@ -242,7 +264,7 @@ class Normalization:
                 raise RunError(f"{self.store.root}: trans-illumination view {view} is not a view "
                                "of this run's manifest; the run is damaged.")
             geometry = view_surface(self.surface, self.calib, self.angles[view],
-                                    self.cfg["min_sin_beta"], self.unscanned, self.crease)
+                                    self.cfg.min_sin_beta, self.unscanned, self.crease)
             pairs = [self._source(geometry, view, name)
                      for name in self.entry["views"][str(view)] if name != "dark"]
             if each_view is not None:
@@ -256,7 +278,7 @@ class Normalization:
         path = self.store.trans_path(name, view)
         raw = _checked(self.store.read_image(path, f"view {view} cannot be normalized"),
                        self.calib, self.bit_depth, path)
-        saturated = raw >= self.cfg["saturation_fraction"] * self.full_scale
+        saturated = raw >= self.cfg.saturation_fraction * self.full_scale
         img = _float(raw)
         if "dark" in self.entry["views"][str(view)]:
             dark = self.store.trans_path("dark", view)
@@ -271,7 +293,7 @@ class Normalization:
     def _source(self, geometry: SurfaceView, view: int,
                 name: str) -> tuple[SourceResult, np.ndarray]:
         img, saturated = self._image(view, name)
-        light = node_intensities(geometry, img, saturated, self.cfg["min_pixels"])
+        light = node_intensities(geometry, img, saturated, self.cfg.min_pixels)
         self._warn_saturation(view, name, saturated, geometry)
         estimates = {}
         good = light.mask == OK
@@ -279,11 +301,8 @@ class Normalization:
             factor = model.orientation_factor(np.clip(geometry.sin_beta, 1e-6, 1.0))
             estimates[backend] = np.where(good, light.intensity / factor, np.nan)
         target = self.targets.get(name)
-        truth = None
-        if self.truth is not None:
-            truth = np.asarray(self.truth.true_normal_radiance(
-                geometry.angle_deg, tuple(target) if target else None, self.surface.vertices),
-                float)
+        truth = self.truth.at(view, name)
+        if truth is not None:
             truth = np.where(good, truth, np.nan)
         stats = self._stats(light, geometry, estimates, truth)
         return SourceResult(view, geometry.angle_deg, name, target, light, geometry.sin_beta,
@@ -313,19 +332,3 @@ class Normalization:
 
 def _r(x: float) -> float:
     return round(float(x), 4)
-
-
-def normalize_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
-                    normalizer: str | None = None, min_sin_beta: float | None = None,
-                    max_normal_spread_deg: float | None = None) -> dict[str, Any]:
-    """Normalize a run and write its outputs; returns the report section."""
-    from dotshell.pipeline.normalize_outputs import OutputWriter
-
-    t0 = time.perf_counter()
-    job = Normalization(store, profile, pm, bus, normalizer, min_sin_beta, max_normal_spread_deg)
-    writer = OutputWriter(store, profile, job)
-    results = job.run(writer.view)
-    section = writer.summary(results)
-    section["seconds"] = round(time.perf_counter() - t0, 3)
-    store.write_json("normalize/report.json", section)
-    return section

@@ -9,12 +9,16 @@
 * ``view_VVV_src_SS.png`` — preview: flat-fielded frame, node intensities and normalized I0;
 * ``nirfast_vVVV_src_SS.paa`` — NIRFAST "standard" measurement data (source, det, active,
   amplitude, phase) at the ``[mesh.optodes]`` detectors, when the profile defines them.
+
+:func:`normalize_stage` is the pipeline's normalize step: the normalization
+(:mod:`dotshell.pipeline.normalize`) with these files written as it goes.
 """
 
 from __future__ import annotations
 
 import csv
 import io
+import time
 from typing import TYPE_CHECKING, Any
 
 import cv2
@@ -22,18 +26,22 @@ import numpy as np
 
 from dotshell.geometry.raycast import TriangleScene
 from dotshell.geometry.surface_map import MASK_REASONS, SurfaceView, resample_to_image
+from dotshell.pipeline.normalize import Normalization, SourceResult, error_stats
 from dotshell.profile.loader import Profile
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore, atomic_write_bytes, atomic_write_text
 
 if TYPE_CHECKING:
-    from dotshell.pipeline.normalize import Normalization, SourceResult
+    from dotshell.geometry.calibration import RigCalibration
+    from dotshell.events import EventBus
+    from dotshell.plugins import PluginManager
 
 
-def stem(r: "SourceResult") -> str:
-    return f"view_{r.view:03d}_{r.source}"
+def stem(r: SourceResult) -> str:
+    return f"{RunLayout.view_stem(r.view)}_{r.source}"
 
 
-def write_csv(store: RunStore, job: "Normalization", r: "SourceResult") -> str:
+def write_csv(store: RunStore, job: Normalization, r: SourceResult) -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
     backends = list(r.normalized)
@@ -49,7 +57,7 @@ def write_csv(store: RunStore, job: "Normalization", r: "SourceResult") -> str:
         if r.truth is not None:
             row.append(_g(r.truth[k]))
         w.writerow(row)
-    name = f"normalize/{stem(r)}.csv"
+    name = RunLayout.normalize_file(f"{stem(r)}.csv")
     atomic_write_text(store.path(name), buf.getvalue())
     return name
 
@@ -58,7 +66,7 @@ def _g(x: float) -> str:
     return "" if not np.isfinite(x) else f"{x:.6g}"
 
 
-def write_vtu(store: RunStore, job: "Normalization", results: list["SourceResult"]) -> str:
+def write_vtu(store: RunStore, job: Normalization, results: list[SourceResult]) -> str:
     import meshio
 
     from dotshell.fem.meshfiles import _atomic_meshio
@@ -75,21 +83,21 @@ def write_vtu(store: RunStore, job: "Normalization", results: list["SourceResult
             data[f"i0_true_{key}"] = r.truth
     mesh = meshio.Mesh(job.surface.vertices, [("triangle", job.surface.triangles)],
                        point_data=data)
-    name = "normalize/surface_normalized.vtu"
+    name = RunLayout.normalize_file("surface_normalized.vtu")
     _atomic_meshio(store.path(name), mesh, "vtu")
     return name
 
 
-def write_flat_image(store: RunStore, r: "SourceResult", image: np.ndarray) -> str:
+def write_flat_image(store: RunStore, r: SourceResult, image: np.ndarray) -> str:
     ok, buf = cv2.imencode(".tiff", image.astype(np.float32))
     if not ok:
         raise OSError("could not encode the flattened image as TIFF")
-    name = f"normalize/{stem(r)}_flat.tiff"
+    name = RunLayout.normalize_file(f"{stem(r)}_flat.tiff")
     atomic_write_bytes(store.path(name), buf.tobytes())
     return name
 
 
-def write_preview(store: RunStore, r: "SourceResult", frame: np.ndarray, raw_img: np.ndarray,
+def write_preview(store: RunStore, r: SourceResult, frame: np.ndarray, raw_img: np.ndarray,
                   flat_img: np.ndarray, primary: str) -> str:
     import matplotlib
 
@@ -115,12 +123,12 @@ def write_preview(store: RunStore, r: "SourceResult", frame: np.ndarray, raw_img
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90)
     plt.close(fig)
-    name = f"normalize/{stem(r)}.png"
+    name = RunLayout.normalize_file(f"{stem(r)}.png")
     atomic_write_bytes(store.path(name), buf.getvalue())
     return name
 
 
-def write_paa(store: RunStore, r: "SourceResult", amplitudes: np.ndarray) -> str:
+def write_paa(store: RunStore, r: SourceResult, amplitudes: np.ndarray) -> str:
     """NIRFAST standard data: header ``source det active amplitude phase``, one row per
     detector (1-based indices; this image is source 1; inactive where no value; phase 0 for
     continuous-wave light)."""
@@ -128,15 +136,13 @@ def write_paa(store: RunStore, r: "SourceResult", amplitudes: np.ndarray) -> str
     for d, a in enumerate(amplitudes, 1):
         active = int(np.isfinite(a))
         lines.append("\t".join(f"{x:<10g}" for x in (1, d, active, a if active else 0.0, 0.0)))
-    name = f"normalize/nirfast_v{r.view:03d}_{r.source}.paa"
+    name = RunLayout.normalize_file(f"nirfast_v{r.view:03d}_{r.source}.paa")
     atomic_write_text(store.path(name), "\n".join(lines) + "\n")
     return name
 
 
-def pooled(results: list["SourceResult"]) -> dict[str, Any]:
+def pooled(results: list[SourceResult]) -> dict[str, Any]:
     """Error statistics over all views and sources together, per normalizer."""
-    from dotshell.pipeline.normalize import error_stats
-
     if not results or results[0].truth is None:
         return {}
     truth = np.concatenate([r.truth for r in results])
@@ -147,24 +153,24 @@ def pooled(results: list["SourceResult"]) -> dict[str, Any]:
 class OutputWriter:
     """Writes each view's files as the normalization produces them, then the summary."""
 
-    def __init__(self, store: RunStore, profile: Profile, job: "Normalization") -> None:
+    def __init__(self, store: RunStore, profile: Profile, job: Normalization) -> None:
         self.store, self.profile, self.job = store, profile, job
-        detectors = np.asarray(profile.data["mesh"]["optodes"]["detectors_mm"],
+        detectors = np.asarray(profile.mesh.optodes.detectors_mm,
                                float).reshape(-1, 3)
         # the surface point nearest to each detector (sample frame), found once for all images
         self.at_detectors = TriangleScene(job.surface.vertices, job.surface.triangles).closest(
             detectors) if len(detectors) else None
         self.entries: list[dict[str, Any]] = []
-        store.path("normalize").mkdir(exist_ok=True)
+        store.path(RunLayout.NORMALIZE).mkdir(exist_ok=True)
 
-    def view(self, geometry: SurfaceView, pairs: list[tuple["SourceResult", np.ndarray]]) -> None:
+    def view(self, geometry: SurfaceView, pairs: list[tuple[SourceResult, np.ndarray]]) -> None:
         job, store = self.job, self.store
         for r, frame in pairs:
             primary = r.normalized[job.primary]
             flat_img = resample_to_image(geometry, primary)
             files = {"csv": write_csv(store, job, r),
                      "flattened": write_flat_image(store, r, flat_img)}
-            if self.profile.data["outputs"]["previews"]:
+            if self.profile.outputs.previews:
                 raw_img = resample_to_image(geometry, r.light.intensity)
                 files["preview"] = write_preview(store, r, frame, raw_img, flat_img, job.primary)
             if self.at_detectors is not None:
@@ -172,12 +178,12 @@ class OutputWriter:
             self.entries.append({"view": r.view, "angle_deg": r.angle_deg, "source": r.source,
                                  "target_mm": r.target_mm, **r.stats, "files": files})
 
-    def summary(self, results: list["SourceResult"]) -> dict[str, Any]:
+    def summary(self, results: list[SourceResult]) -> dict[str, Any]:
         job = self.job
         section = {"normalizer": job.primary,
                    "compare": [b for b in job.models if b != job.primary],
-                   "min_sin_beta": job.cfg["min_sin_beta"],
-                   "max_normal_spread_deg": job.cfg["max_normal_spread_deg"],
+                   "min_sin_beta": job.cfg.min_sin_beta,
+                   "max_normal_spread_deg": job.cfg.max_normal_spread_deg,
                    "flat_field": job.flat is not None,
                    "mask_reasons": list(MASK_REASONS), "sources": self.entries,
                    "masked_total": _sum_masks(self.entries),
@@ -194,3 +200,20 @@ def _sum_masks(entries: list[dict[str, Any]]) -> dict[str, int]:
         for r, n in e["masked"].items():
             total[r] += n
     return total
+
+
+def normalize_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
+                    normalizer: str | None = None, min_sin_beta: float | None = None,
+                    max_normal_spread_deg: float | None = None,
+                    calib: RigCalibration | None = None) -> dict[str, Any]:
+    """Normalize a run and write its outputs; returns the report section. ``calib``: the run's
+    calibration when the caller has it loaded (else read from the run)."""
+    t0 = time.perf_counter()
+    job = Normalization(store, profile, pm, bus, normalizer, min_sin_beta, max_normal_spread_deg,
+                        calib)
+    writer = OutputWriter(store, profile, job)
+    results = job.run(writer.view)
+    section = writer.summary(results)
+    section["seconds"] = round(time.perf_counter() - t0, 3)
+    store.write_json(RunLayout.normalize_file(RunLayout.REPORT), section)
+    return section

@@ -12,7 +12,7 @@ camera's own dtype.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -34,7 +34,7 @@ class Shot:
         return {"name": self.name, "pattern": self.pattern, "analyzer_deg": self.analyzer_deg}
 
 
-def plan_shots(patterns: Sequence[PatternFrame], scan: dict[str, Any]) -> list[Shot]:
+def plan_shots(patterns: Sequence[PatternFrame], scan: Mapping[str, Any]) -> list[Shot]:
     """The frames of one view, in capture order."""
     if not scan.get("pdi"):
         return [Shot(p.name, i) for i, p in enumerate(patterns)]
@@ -50,7 +50,7 @@ def shots_from_manifest(manifest: dict[str, Any]) -> list[Shot]:
     return [Shot(n, i) for i, n in enumerate(manifest["frame_names"])]
 
 
-def combine(frames: Sequence[np.ndarray], shots: Sequence[Shot]) -> list[np.ndarray]:
+def combine(frames: Sequence[np.ndarray] | np.ndarray, shots: Sequence[Shot]) -> list[np.ndarray]:
     """Frames in shot order → one image per pattern (|I∥ − I⊥| for PDI shots)."""
     if len(frames) != len(shots):
         raise RunError(f"{len(frames)} frames for a plan of {len(shots)} shots; the view is "

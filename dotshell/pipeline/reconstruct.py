@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numba
 import numpy as np
@@ -33,7 +33,7 @@ class ViewCloud:
     seconds: dict[str, float] = field(default_factory=dict)
 
 
-def in_roi(points: np.ndarray, roi: dict[str, float]) -> np.ndarray:
+def in_roi(points: np.ndarray, roi: Mapping[str, float]) -> np.ndarray:
     """Mask of sample-frame points (N, 3) inside the cylindrical region of interest."""
     out = np.empty(len(points), bool)
     split(_in_cylinder, len(points), np.ascontiguousarray(points, np.float64),
@@ -71,7 +71,7 @@ def depth_image(pixels: np.ndarray, depth_mm: np.ndarray, kept: np.ndarray,
 
 
 def view_points(sol: ImageSolve, shape: tuple[int, int], max_jump_mm: float,
-                roi: dict[str, float]) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+                roi: Mapping[str, float]) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """The kept points of :func:`keep_points` gathered: their camera pixels (N, 2) int32,
     points (N, 3) float64 (mm) and the counts. Each band of the keep pass copies its own
     kept points to where the bands before it end, both cores at once."""
@@ -85,7 +85,7 @@ def view_points(sol: ImageSolve, shape: tuple[int, int], max_jump_mm: float,
 
 
 def keep_points(sol: ImageSolve, shape: tuple[int, int], max_jump_mm: float,
-                roi: dict[str, float]) -> tuple[np.ndarray, dict[str, int]]:
+                roi: Mapping[str, float]) -> tuple[np.ndarray, dict[str, int]]:
     """The points of a view to keep — solved (``sol.kept``), inside the region of interest
     and, if ``max_jump_mm`` > 0, not speckles (:func:`speckle_mask`) — and the counts
     ``outside_roi`` (solved, outside), ``speckle`` (solved, inside, failing the speckle test)
@@ -98,7 +98,7 @@ def keep_points(sol: ImageSolve, shape: tuple[int, int], max_jump_mm: float,
     return keep, counts
 
 
-def _keep(sol: ImageSolve, shape: tuple[int, int], max_jump_mm: float, roi: dict[str, float]
+def _keep(sol: ImageSolve, shape: tuple[int, int], max_jump_mm: float, roi: Mapping[str, float]
           ) -> tuple[np.ndarray, dict[str, int], list[int], np.ndarray]:
     """:func:`keep_points`, and the bounds of the bands it was cut into with their kept
     points."""
@@ -211,7 +211,7 @@ def check_frames(frames: Sequence[np.ndarray], calib: RigCalibration, view: int)
             "at this resolution.")
 
 
-def solve_pixels(corr: Correspondence, calib: RigCalibration, processing: dict[str, Any],
+def solve_pixels(corr: Correspondence, calib: RigCalibration, processing: Mapping[str, Any],
                  to_frame: np.ndarray | None = None, depth_image: bool = False) -> ImageSolve:
     """Solve every valid pixel of a correspondence (points in the camera frame, or in the frame
     of the (3, 4) affine map ``to_frame``), kept or not (:func:`solve_image`; ``depth_image``:
@@ -223,7 +223,7 @@ def solve_pixels(corr: Correspondence, calib: RigCalibration, processing: dict[s
 
 
 def triangulate_correspondence(corr: Correspondence, calib: RigCalibration,
-                               processing: dict[str, Any]
+                               processing: Mapping[str, Any]
                                ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """Triangulate every valid pixel of a correspondence.
 
@@ -298,7 +298,7 @@ def no_points_error(where: str, stats: dict[str, int], calib: RigCalibration, ha
     decoded = int(stats.get("decoded", 0))
     stage = ("grazing", "row_rejected") if decoded else ("shadow", "low_contrast", "uncertain",
                                                          "out_of_range")
-    worst = max(stage, key=counts.get)
+    worst = max(stage, key=counts.__getitem__)
     why = (explain_grazing(calib, has_rows, min_angle_deg) if worst == "grazing"
            else LOSSES[worst])
     listing = ", ".join(f"{k} {v}" for k, v in counts.items() if v)
@@ -311,7 +311,7 @@ def no_points_error(where: str, stats: dict[str, int], calib: RigCalibration, ha
 
 def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
                      coding: PatternCoding, calib: RigCalibration,
-                     processing: dict[str, Any]) -> ViewCloud:
+                     processing: Mapping[str, Any]) -> ViewCloud:
     """Decode one view's frames and triangulate them into sample-frame points (mm)."""
     check_frames(frames, calib, view)
     t0 = time.perf_counter()

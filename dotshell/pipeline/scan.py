@@ -1,8 +1,9 @@
 """Scans: capture every view (reconstructing each one while the next is captured), then the
-rest of the processing steps; ``resume`` finishes an interrupted or failed scan; ``reconstruct``
-re-processes a run from its frames as a new generation.
+rest of the processing steps; ``resume`` finishes an interrupted or failed scan (``reconstruct``,
+which re-processes a run from its frames as a new generation, is in
+:mod:`dotshell.pipeline.commands`).
 
-Front ends call :func:`scan`, :func:`resume_run` and :func:`reconstruct_run` and listen to the
+Front ends call :func:`scan` and :func:`resume_run` and listen to the
 :class:`EventBus`. The lifecycle (lock, status, reason) belongs to
 :class:`dotshell.pipeline.engine.RunJob`; the steps after acquisition to
 :func:`dotshell.pipeline.engine.process`.
@@ -29,6 +30,7 @@ from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.acquire import Acquisition
 from dotshell.pipeline.engine import RunJob, process
+from dotshell.run.frames import set_aside_partial
 from dotshell.run.generations import Generation, ProductStore
 from dotshell.run.lifecycle import connected, describe_holder, lock_holder
 from dotshell.pipeline.pdi import plan_shots
@@ -38,6 +40,7 @@ from dotshell.pipeline.transillum import TransilluminationCapture
 from dotshell.plugins import PluginManager
 from dotshell.profile.loader import Profile, validate_profile
 from dotshell.rig.assembly import Rig
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore
 
 #: What a scan makes: everything downstream of the calibration.
@@ -149,8 +152,7 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
     bus = bus or EventBus()
     coding = make_coding(profile, pm)  # a bad coding or calibration is refused before a run
     calibration = calibration_file or profile.calibration_path()  # is made
-    if calibration is not None and rig is None:
-        load_any_calibration(calibration)
+    calib = load_any_calibration(calibration) if calibration is not None and rig is None else None
     store = RunStore.create(Path(out_dir), profile.name)
 
     def create() -> None:
@@ -158,7 +160,7 @@ def scan(profile: Profile, pm: PluginManager, out_dir: Path | str = "runs",
         store.init_manifest(profile.name, profile.angles_deg(), [])
 
     return _capture_and_process(store, profile, pm, bus, "scan", coding, stop, running, rig,
-                                calibration_file, create)
+                                calibration_file, create, calib=calib)
 
 
 def resume_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
@@ -184,13 +186,14 @@ def resume_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = No
                        "`dotshell reconstruct RUN`.")
     profile = load_run_profile(store, pm)
     coding = make_coding(profile, pm)
-    if store.path("calibration.json").is_file():
-        RigCalibration.load(store.path("calibration.json"))  # checked before the job starts
+    calib = None
+    if store.path(RunLayout.CALIBRATION).is_file():
+        calib = RigCalibration.load(store.path(RunLayout.CALIBRATION))  # checked before the job
     elif any(v["frames"] for v in store.manifest["views"]):
         raise RunError(f"{store.root} has frames but no calibration.json; restore the run's "
                        "calibration.json from a backup to resume it.")
     return _capture_and_process(store, profile, pm, bus, "resume", coding, stop, running, rig,
-                                None, None, recapture)
+                                None, None, recapture, calib)
 
 
 def _views_asked(store: RunStore, views: list[int]) -> frozenset[int]:
@@ -211,17 +214,23 @@ def _refuse_damaged_views(store: RunStore, recapture: frozenset[int]) -> None:
     if damaged:
         named = "; ".join(f"view {v} has {n} of its {rec} frames on disk" for v, n, rec in damaged)
         flags = " ".join(f"--view {v}" for v, _, _ in damaged)
+        views = " ".join(str(v) for v, _, _ in damaged)
         raise RunError(f"{store.root}: {named} (its frame stack was cut or deleted after the "
                        f"scan). Re-capture it with `dotshell resume {store.root} {flags}` (the "
                        "rig set up as for the scan; the damaged frames are kept aside as "
-                       "view_NNN.partial-K), or restore the stack from a backup.")
+                       "view_NNN.partial-K), restore the stack from a backup, or, if it cannot "
+                       "be re-captured, mark it lost so the run completes from the other views: "
+                       f"`dotshell lose-view {store.root} {views} --reason TEXT`.")
 
 
 def _capture_and_process(store: RunStore, profile: Profile, pm: PluginManager, bus: EventBus,
                          command: str, coding: Any, stop: threading.Event | None,
                          running: threading.Event | None, rig: Rig | None,
                          calibration_file: str | None, create,
-                         recapture: frozenset[int] = frozenset()) -> ScanResult:
+                         recapture: frozenset[int] = frozenset(),
+                         calib: RigCalibration | None = None) -> ScanResult:
+    """Acquire and process in a run job. ``calib``: the calibration the caller loaded (and
+    so checked) before the job, used as is (the file is read once)."""
     unsubs = [bus.subscribe(lambda ev: store.append_event(ev.to_dict())),
               _forward_to_plugins(bus, pm, profile, str(store.root))]
     job = RunJob(store, command, bus, create)
@@ -229,7 +238,7 @@ def _capture_and_process(store: RunStore, profile: Profile, pm: PluginManager, b
     try:
         with job:
             report = _acquire_then_process(job, profile, pm, coding, stop, running, rig,
-                                           calibration_file, recapture)
+                                           calibration_file, recapture, calib)
     finally:
         if job.status is not None:
             bus.emit(ScanFinished(status=job.status, run_dir=str(store.root),
@@ -243,30 +252,31 @@ def _capture_and_process(store: RunStore, profile: Profile, pm: PluginManager, b
 def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, coding: Any,
                           stop: threading.Event | None, running: threading.Event | None,
                           rig: Rig | None, calibration_file: str | None,
-                          recapture: frozenset[int] = frozenset()) -> dict[str, Any]:
+                          recapture: frozenset[int] = frozenset(),
+                          loaded: RigCalibration | None = None) -> dict[str, Any]:
     store, bus = job.store, job.bus
     # a resumed run continues with its own calibration; one killed before it recorded any
     # (nothing was captured yet) starts as a new scan would
-    resuming = job.command == "resume" and store.path("calibration.json").is_file()
+    resuming = job.command == "resume" and store.path(RunLayout.CALIBRATION).is_file()
     gen = Generation.start(store)
     job.generation = gen.number
     products = ProductStore(store, gen.dir)
     with _stoppable_rig(profile, pm, rig) as rig:
         if resuming:
-            calib = RigCalibration.load(store.path("calibration.json"))
+            calib = loaded or RigCalibration.load(store.path(RunLayout.CALIBRATION))
         else:
-            calib = rig.calibration(calibration_file)
+            calib = loaded or rig.calibration(calibration_file)
             require_turntable_axis(calib, profile.angles_deg(), profile.source)
         _check_devices(store, rig, calib, resuming)
         if not resuming:
-            calib.save(store.path("calibration.json"))
+            calib.save(store.path(RunLayout.CALIBRATION))
         patterns = coding.patterns(rig.projector.resolution)
-        shots = plan_shots(patterns, profile.data["scan"])
+        shots = plan_shots(patterns, profile.scan)
         _record_sequence(store, shots, patterns, resuming)
         angles = profile.angles_deg()
         bus.emit(ScanStarted(run_dir=str(store.root), profile=profile.name,
                              n_views=len(angles), frames_per_view=len(shots)))
-        acq = Acquisition(rig, patterns, store, profile.data["scan"], bus, stop, running,
+        acq = Acquisition(rig, patterns, store, profile.scan, bus, stop, running,
                           shots=shots)
         pipeline = ViewPipeline(products, profile, coding, calib, bus)
         try:
@@ -276,7 +286,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
             for view, fringes in todo:
                 angle = angles[view]
                 if fringes:
-                    _set_aside_partial(store, view)
+                    set_aside_partial(store.root, view)
                     frames = acq.run_view(view, angle)
                     if frames is None:
                         job.finish("aborted", "aborted by the user")
@@ -287,7 +297,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
                     rig.stage.move_to(angle)
                 if trans is not None and trans.covers(view):
                     trans.run_view(view)
-                if fringes:
+                if fringes and frames is not None:  # None: stopped, the loop has ended
                     pipeline.submit(view, view_angle(store.manifest["views"][view]), frames)
                     del frames  # the pipeline holds them only until the view is reconstructed
             last_frame_at = time.monotonic() if todo else None  # last frames stored
@@ -298,7 +308,8 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
     if not any(v["complete"] for v in store.manifest["views"]) and job.status == "aborted":
         return {}
     options = {"reconstructed": reconstructed, "prewritten": {"views": gen.listing()},
-               "timings": {"acquire": acq.seconds}, "last_frame_at": last_frame_at}
+               "timings": {"acquire": acq.seconds}, "last_frame_at": last_frame_at,
+               "calibration": calib}
     return process(job, profile, pm, SCAN_TARGETS, options,
                    final_status=job.status or "completed", generation=gen)
 
@@ -312,7 +323,7 @@ def _check_devices(store: RunStore, rig: Rig, calib: RigCalibration, resuming: b
         if tuple(lens.size) != tuple(size):
             raise CalibrationError(
                 f"{calib.source}: the calibration's {role} is {lens.width}x{lens.height} px but "
-                f"the {role} ({rig.profile.role(role)['backend']}) is {size[0]}x{size[1]} px; "
+                f"the {role} ({rig.profile.required_role(role)['backend']}) is {size[0]}x{size[1]} px; "
                 f"give the calibration of this {role} at this resolution (or set the {role}'s "
                 "resolution to the calibrated one).")
     if not resuming:
@@ -323,7 +334,7 @@ def _check_devices(store: RunStore, rig: Rig, calib: RigCalibration, resuming: b
         was = FrameSpec.from_dict(recorded)
         raise FrameError(
             f"{store.root} was captured at {was.bit_depth} bit, {was.width}x{was.height} px, but "
-            f"the camera ({rig.profile.role('camera')['backend']}) now reports {spec.bit_depth} "
+            f"the camera ({rig.profile.required_role('camera')['backend']}) now reports {spec.bit_depth} "
             f"bit, {spec.width}x{spec.height} px: a resumed view must match the others. Set the "
             f"camera's bit_depth and resolution as they were (in {store.path('profile.toml')}).")
 
@@ -343,7 +354,9 @@ def _record_sequence(store: RunStore, shots, patterns, resuming: bool) -> None:
 def _views_to_capture(store: RunStore, trans: TransilluminationCapture | None,
                       recapture: frozenset[int] = frozenset()) -> list[tuple[int, bool]]:
     """(view, fringes needed) for every view that misses fringe or trans-illumination frames,
-    and those of ``recapture`` (captured again whole)."""
+    and those of ``recapture`` (captured again whole); not those marked lost, unless asked."""
+    from dotshell.run.lost import is_lost
+
     m = store.manifest
     done_trans = (m.get("transillumination") or {}).get("views", {})
     todo = []
@@ -351,70 +364,34 @@ def _views_to_capture(store: RunStore, trans: TransilluminationCapture | None,
         needs_trans = trans is not None and trans.covers(v["index"]) and \
             done_trans.get(str(v["index"])) != trans.expected_names()
         again = v["index"] in recapture
+        if is_lost(v) and not again:  # the operator gave it up (`dotshell lose-view`)
+            continue
         if not v["complete"] or needs_trans or again:
             todo.append((v["index"], not v["complete"] or again))
     return todo
-
-
-def _set_aside_partial(store: RunStore, view: int) -> None:
-    """Move the frames of an unfinished view out of the way (kept, never deleted): its frame
-    stack ``frames/view_NNN.tif`` and directory ``frames/view_NNN/`` (frame metadata; PNG frames
-    of runs before TIFF stacks) become ``view_NNN.partial-K.tif`` and ``view_NNN.partial-K/``."""
-    stem = f"view_{view:03d}"
-    found = [p for p in (store.path("frames", stem), store.path("frames", f"{stem}.tif"))
-             if p.is_file() or (p.is_dir() and any(p.iterdir()))]
-    if not found:
-        return
-    k = 1
-    while any(store.path("frames", f"{stem}.partial-{k}{s}").exists() for s in ("", ".tif")):
-        k += 1
-    for p in found:
-        p.rename(store.path("frames", f"{stem}.partial-{k}{p.suffix}"))
 
 
 def _transillumination(rig: Rig, store: RunStore, profile: Profile, acq: Acquisition,
                        bus: EventBus) -> TransilluminationCapture | None:
     """The scan's trans-illumination step (flat field captured now, unless a resumed run
     already has it), or None if disabled."""
-    t = profile.data["transillumination"]
-    if not t["enabled"]:
+    t = profile.transillumination
+    if not t.enabled:
         return None
-    trans = TransilluminationCapture(rig, store, t, profile.data["scan"], acq.writer, bus,
+    trans = TransilluminationCapture(rig, store, t, profile.scan, acq.writer, bus,
                                      profile.base_dir)
     entry = store.manifest.get("transillumination")
     if entry is None:
         store.update_manifest(transillumination=trans.manifest_entry())
-    if entry is None or (entry.get("flat_field") is None and t["flat_field"] != "none"):
+    if entry is None or (entry.get("flat_field") is None and t.flat_field != "none"):
         trans.capture_flat_field()
     return trans
 
 
 def load_run_profile(store: RunStore, pm: PluginManager) -> Profile:
     """The exact profile a run was made with."""
-    import tomllib
-
-    p = store.path("profile.toml")
-    try:
-        raw = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise RunError(f"{p} is missing; this run cannot be re-processed.") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError, RecursionError) as exc:
-        raise RunError(f"{p} is damaged ({exc}); it is written by dotshell only — restore it "
-                       "from a backup or copy the profile the run was made with.") from None
-    return validate_profile(raw, pm, str(p), store.root)
-
-
-def reconstruct_run(run_dir: Path | str, pm: PluginManager, bus: EventBus | None = None,
-                    calibration_file: str | None = None) -> ScanResult:
-    """Re-process a run from its frames on disk into a new generation (views not fully
-    captured are skipped with a warning); with ``calibration_file``, that calibration is
-    validated first and used for the new generation. Nothing of earlier generations changes."""
-    from dotshell.pipeline.commands import reprocess
-
-    report = reprocess(run_dir, pm, "reconstruct", ("views",), bus,
-                       {"calibration_file": calibration_file} if calibration_file else {},
-                       targets_if_calibration=("calibration",))
-    return ScanResult(Path(run_dir), report.get("status", "completed"), report)
+    return validate_profile(store.read_profile(), pm, str(store.path(RunLayout.PROFILE)),
+                            store.root)
 
 
 def _summary(report: dict[str, Any]) -> dict[str, Any]:

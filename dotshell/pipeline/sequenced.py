@@ -21,7 +21,7 @@ at least the exposure, the camera's minimum trigger period and whatever the proj
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -51,7 +51,7 @@ def sequenced_capable(rig: Any) -> list[str]:
     return why
 
 
-def uses_sequenced(rig: Any, scan: dict[str, Any]) -> bool:
+def uses_sequenced(rig: Any, scan: Mapping[str, Any]) -> bool:
     """Whether a scan with ``scan`` settings acquires sequenced on ``rig``; a ProfileError when
     ``acquisition = "sequenced"`` is asked of devices that cannot."""
     mode = scan.get("acquisition", "auto")
@@ -102,46 +102,49 @@ def pattern_period_ms(projector: Any, camera: Any, exposure_ms: float,
 
 
 class SequencedCapture:
-    """Takes the frames of a view's shots as hardware-sequenced runs, a run at a time.
+    """The hardware-sequenced acquisition engine
+    (:class:`~dotshell.pipeline.engines.AcquisitionEngine`): takes the frames of a view's shots
+    as hardware-sequenced runs, a run at a time.
 
     :meth:`frame` hands the runner one shot's frame; the first request of a run captures the
-    whole run. :meth:`pending` tells the runner that frames of a captured run are still to be
-    written (a stop must not drop them)."""
+    whole run. :meth:`holds_frames` tells the runner that frames of a captured run are still to
+    be written (a stop must not drop them). ``retry(action, what)`` is the runner's retry
+    policy; ``set_analyzer(degrees)`` turns the analyzer before a run."""
+
+    name = "sequenced"
 
     def __init__(self, rig: Any, patterns: Sequence[PatternFrame], shots: Sequence[Shot],
-                 scan: dict[str, Any], bus: EventBus,
-                 retry: Callable[[Callable[[], Any], int, str, EventBus], Any]) -> None:
+                 scan: Mapping[str, Any], bus: EventBus,
+                 retry: Callable[[Callable[[], Any], str], Any],
+                 set_analyzer: Callable[[float], None]) -> None:
         self.rig = rig
         self.patterns = patterns
         self.shots = list(shots)
         self.runs = plan_runs(self.shots)
         self.exposure_ms = float(scan["exposure_ms"])
-        self.retries = int(scan["retries"])
         self.bus = bus
         self.retry = retry
+        self.set_analyzer = set_analyzer
         self.period_ms = pattern_period_ms(rig.projector, rig.camera, self.exposure_ms,
                                            float(scan.get("pattern_period_ms", 0.0)))
         self.loaded: tuple[int, ...] | None = None  # pattern indices stored on the projector
         self.buffer: dict[int, tuple[np.ndarray, FrameInfo]] = {}
-        self.infos: dict[int, FrameInfo] = {}
 
-    def pending(self) -> bool:
+    def holds_frames(self) -> bool:
         return bool(self.buffer)
 
-    def frame(self, view: int, index: int,
-              set_analyzer: Callable[[float], None]) -> np.ndarray:
-        """The frame of shot ``index`` of ``view``; runs its sequence if not yet captured."""
+    def frame(self, view: int, index: int) -> tuple[np.ndarray, FrameInfo]:
+        """The frame of shot ``index`` of ``view`` and its metadata; runs its sequence if not
+        yet captured."""
         if index not in self.buffer:
             run = next(r for r in self.runs if index in r.shots)
             if run.analyzer_deg is not None:
-                set_analyzer(run.analyzer_deg)
+                self.set_analyzer(run.analyzer_deg)
             what = (f"view {view}, sequence of {len(run.shots)} patterns"
                     + ("" if run.analyzer_deg is None else f" at analyzer {run.analyzer_deg}°"))
-            got = self.retry(lambda: self._run(run), self.retries, what, self.bus)
+            got = self.retry(lambda: self._run(run), what)
             self.buffer.update(zip(run.shots, got))
-        frame, info = self.buffer.pop(index)
-        self.infos[index] = info
-        return frame
+        return self.buffer.pop(index)
 
     def _load(self, run: Run) -> None:
         wanted = tuple(self.shots[i].pattern for i in run.shots)

@@ -31,10 +31,12 @@ from dotshell.runtime import hugepages
 from dotshell.errors import CalibrationError, ReconstructionError, RunError
 from dotshell.events import EventBus, StepProgress, StepStarted, ViewReconstructed
 from dotshell.run.framecheck import FrameSpec
+from dotshell.run.lost import is_lost, lost_views, usable
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.pdi import combine, shots_from_manifest
 from dotshell.plugins import PluginManager
+from dotshell.run.layout import RunLayout
 from dotshell.run.ply import read_ply, write_ply
 from dotshell.profile.loader import Profile
 from dotshell.run.store import RunStore, atomic_write_text, dumps
@@ -54,6 +56,7 @@ class StepContext:
     bus: EventBus
     options: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    #: the calibration once loaded (by the calibration step or on first use); steps reuse it
     _calib: RigCalibration | None = None
     #: the merged cloud as ``cloud.ply`` holds it ((N, 3) float32, mm), kept by the merge for
     #: the steps after it in this process (reading the 5.5 M-point file again cost ~0.5 s each)
@@ -63,7 +66,7 @@ class StepContext:
     def calibration(self) -> RigCalibration:
         """The calibration of this generation (``calibration.json`` in it)."""
         if self._calib is None:
-            self._calib = RigCalibration.load(self.store.path("calibration.json"))
+            self._calib = RigCalibration.load(self.store.path(RunLayout.CALIBRATION))
         return self._calib
 
 
@@ -80,7 +83,7 @@ class Step:
 
 
 def make_coding(profile: Profile, pm: PluginManager):
-    c = profile.role("coding")
+    c = profile.required_role("coding")
     return pm.create("coding", c["backend"], c["settings"], None, profile.source)
 
 
@@ -88,10 +91,14 @@ def make_coding(profile: Profile, pm: PluginManager):
 
 def calibration_step(ctx: StepContext) -> dict[str, Any]:
     """This generation's calibration: the command's ``--calibration`` file (validated before
-    anything is written) or the one the run was captured with."""
-    source = ctx.options.get("calibration_file") or ctx.store.path("..", "..", "calibration.json")
-    calib = load_any_calibration(source)  # a user's file may be an OpenCV .yml/.xml
-    calib.save(ctx.store.path("calibration.json"))
+    anything is written) or the one the run was captured with; option ``calibration``: that
+    calibration, already loaded by the command."""
+    calib = ctx.options.get("calibration")
+    if calib is None:
+        source = ctx.options.get("calibration_file") or ctx.store.path("..", "..",
+                                                                        RunLayout.CALIBRATION)
+        calib = load_any_calibration(source)  # a user's file may be an OpenCV .yml/.xml
+    calib.save(ctx.store.path(RunLayout.CALIBRATION))
     ctx._calib = calib
     return {"calibration": calib.source}
 
@@ -110,32 +117,29 @@ def require_turntable_axis(calib: RigCalibration, angles_deg: Sequence[float],
 
 # ---- views ---------------------------------------------------------------------------------
 
-def view_stem(view: int) -> str:
-    return f"view_{view:03d}"
-
-
 def store_view(store: RunStore, vc: ViewCloud, first_frame: np.ndarray | None,
                profile: Profile, calib: RigCalibration, bus: EventBus) -> dict[str, Any]:
     """Write one reconstructed view (``views/view_NNN.ply`` + ``.json``; frame and column
     previews for the profile's preview view) and return its report record."""
-    write_ply(store.path("views", f"{view_stem(vc.view)}.ply"), vc.points)
+    write_ply(store.path(RunLayout.view_cloud(vc.view)), vc.points)
     record: dict[str, Any] = {"view": vc.view, "angle_deg": vc.angle_deg, **vc.stats}
     integrity = getattr(store, "run", store).manifest["views"][vc.view].get("integrity")
     if integrity is not None:  # the capture's frame checks (dotshell.run.integrity)
         record["integrity"] = integrity
-    out = profile.data["outputs"]
-    if out["previews"] and vc.view == out["preview_view"] and vc.correspondence is not None:
+    out = profile.outputs
+    if out.previews and vc.view == out.preview_view and vc.correspondence is not None:
         from dotshell.render.previews import column_map_preview, frame_preview
 
-        pdir = store.path("previews")
-        pdir.mkdir(parents=True, exist_ok=True)
+        store.path(RunLayout.PREVIEWS).mkdir(parents=True, exist_ok=True)
+        columns = store.path(RunLayout.view_preview("columns", vc.view))
         previews = {"columns": column_map_preview(vc.correspondence.column,
                                                   vc.correspondence.valid, calib.projector.width,
-                                                  pdir / f"columns_{view_stem(vc.view)}.png")}
+                                                  columns)}
         if first_frame is not None:
-            previews["frame"] = frame_preview(first_frame, pdir / f"frame_{view_stem(vc.view)}.png")
+            previews["frame"] = frame_preview(first_frame,
+                                              store.path(RunLayout.view_preview("frame", vc.view)))
         record["previews"] = {k: str(Path(p).relative_to(store.root)) for k, p in previews.items()}
-    atomic_write_text(store.path("views", f"{view_stem(vc.view)}.json"),
+    atomic_write_text(store.path(RunLayout.view_record(vc.view)),
                       dumps({**record, "seconds": {k: round(s, 4) for k, s in vc.seconds.items()}}))
     bus.emit(ViewReconstructed(view=vc.view, n_points=len(vc.points),
                                decoded_pixels=int(vc.stats.get("decoded", 0))))
@@ -144,7 +148,8 @@ def store_view(store: RunStore, vc: ViewCloud, first_frame: np.ndarray | None,
 
 def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: Profile,
                          coding: Any, calib: RigCalibration, bus: EventBus,
-                         frames: Sequence[np.ndarray] | None = None) -> dict[str, Any]:
+                         frames: Sequence[np.ndarray] | np.ndarray | None = None
+                         ) -> dict[str, Any]:
     """Decode and triangulate one view (frames given, or read from the run) into its
     products; returns its report record."""
     # here, not at the top: the decoding and triangulation (numba, 0.5-1 s to import) load with
@@ -157,7 +162,7 @@ def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: 
         frames = stored_frames(store, view, calib)
     shots = shots_from_manifest(manifest)
     vc = reconstruct_view(view, angle_deg, combine(frames, shots), coding, calib,
-                          profile.data["processing"])
+                          profile.processing)
     return store_view(store, vc, frames[0] if len(frames) else None, profile, calib, bus)
 
 
@@ -173,8 +178,10 @@ def stored_frames(store: RunStore, view: int, calib: RigCalibration,
     else:
         first = store.frames(view).read_one(0)
         spec = FrameSpec(*calib.camera.size, 8 if first.dtype == np.uint8 else 16)
-    return store.read_frames(view, spec, "Restore the run's frames from a backup, or "
-                             "re-capture the view.", out)
+    root = store.run_root
+    return store.read_frames(view, spec, "Restore the run's frames from a backup, re-capture "
+                             f"the view (`dotshell resume {root} --view {view}`), or mark it "
+                             f"lost (`dotshell lose-view {root} {view} --reason TEXT`).", out)
 
 
 def view_angle(view: dict[str, Any]) -> float:
@@ -184,22 +191,28 @@ def view_angle(view: dict[str, Any]) -> float:
 
 
 def complete_views(store: RunStore) -> list[dict[str, Any]]:
-    return [v for v in store.manifest["views"] if v.get("complete")]
+    """The views processing reads: captured whole and not marked lost."""
+    return [v for v in store.manifest["views"] if usable(v)]
 
 
 def views_step(ctx: StepContext) -> dict[str, Any]:
     store, manifest = ctx.store, ctx.store.manifest
     views = manifest["views"]
     done: dict[int, dict[str, Any]] = ctx.options.get("reconstructed", {})
-    if not any(v.get("complete") for v in views):
+    if not any(usable(v) for v in views):
+        n_lost = sum(is_lost(v) for v in views)
         raise ReconstructionError(
             f"no view of {store.run_root} is completely captured ({len(views)} views, "
-            f"{sum(v['frames'] for v in views)} frames on disk): there is nothing to "
+            f"{sum(v['frames'] for v in views)} frames on disk" +
+            (f", {n_lost} marked lost" if n_lost else "") + "): there is nothing to "
             f"reconstruct. Capture the missing views with `dotshell resume {store.run_root}`.")
     coding = None
     frames = None  # one view's frames at a time, read over the previous view's (same array)
     ctx.bus.emit(StepStarted(step="reconstruct", total=len(views)))
     for n, v in enumerate(views, 1):
+        if is_lost(v):
+            ctx.bus.info(f"view {v['index']} is marked lost ({v['lost']['reason']}); skipped")
+            continue
         if not v.get("complete"):
             ctx.bus.warn(f"view {v['index'] + 1} of {len(views)} has {v['frames']} of "
                          f"{len(manifest['frame_names'])} frames; skipped")
@@ -216,11 +229,12 @@ def views_step(ctx: StepContext) -> dict[str, Any]:
     seconds = [read_view_record(store, r["view"]).get("seconds", {}) for r in records]
     ctx.timings["decode"] = sum(s.get("decode", 0.0) for s in seconds)
     ctx.timings["triangulate"] = sum(s.get("triangulate", 0.0) for s in seconds)
-    return {"views": records}
+    lost = lost_views(manifest)
+    return {"views": records, **({"lost_views": lost} if lost else {})}
 
 
 def read_view_record(store: RunStore, view: int) -> dict[str, Any]:
-    p = store.path("views", f"{view_stem(view)}.json")
+    p = store.path(RunLayout.view_record(view))
     try:
         return json.loads(p.read_text())
     except (OSError, ValueError) as exc:
@@ -231,13 +245,14 @@ def read_view_record(store: RunStore, view: int) -> dict[str, Any]:
 # ---- cloud, validation, previews -----------------------------------------------------------
 
 def stored_views(store: RunStore) -> list[int]:
-    return sorted(int(p.stem.split("_")[1]) for p in store.path("views").glob("view_*.ply"))
+    return sorted(RunLayout.view_index(p.stem)
+                  for p in store.path(RunLayout.VIEWS).glob(f"{RunLayout.VIEW_GLOB}.ply"))
 
 
 def cloud_step(ctx: StepContext) -> dict[str, Any]:
     ctx.bus.emit(StepStarted(step="merge"))
     views = stored_views(ctx.store)
-    parts = [read_ply(ctx.store.path("views", f"{view_stem(v)}.ply"), float_type=np.float32)[0]
+    parts = [read_ply(ctx.store.path(RunLayout.view_cloud(v)), float_type=np.float32)[0]
              for v in views]  # float32 as stored: the merged file holds the same values
     n = sum(len(p) for p in parts)
     if n == 0:
@@ -245,12 +260,12 @@ def cloud_step(ctx: StepContext) -> dict[str, Any]:
     points = np.concatenate(parts)
     ids = np.repeat(np.asarray(views, np.float32), [len(p) for p in parts])
     del parts
-    write_ply(ctx.store.path("cloud.ply"), points, view=ids)
+    write_ply(ctx.store.path(RunLayout.CLOUD), points, view=ids)
     last_frame_at = ctx.options.get("last_frame_at")
     if last_frame_at is not None:  # a scan: the latency from its last stored frame (s)
         ctx.timings["last_frame_to_cloud"] = time.monotonic() - last_frame_at
     ctx.cloud = points
-    return {"cloud": {"path": "cloud.ply", "points": int(n)}}
+    return {"cloud": {"path": RunLayout.CLOUD, "points": int(n)}}
 
 
 def pixel_totals(records: Sequence[dict[str, Any]]) -> dict[str, int]:
@@ -273,7 +288,7 @@ def _no_points(ctx: StepContext, views: list[int]) -> ReconstructionError:
     if totals.get("triangulated", 0) == 0:
         has_rows = totals.get("refined_row", 0) > 0 or totals.get("row_rejected", 0) > 0
         return no_points_error(where, totals, ctx.calibration, has_rows,
-                               ctx.profile.data["processing"]["min_ray_angle_deg"])
+                               ctx.profile.processing.min_ray_angle_deg)
     return ReconstructionError(
         f"{where}: {totals['triangulated']} pixels were triangulated but no point is left: "
         f"{totals.get('speckle', 0)} removed as speckle, {totals.get('outside_roi', 0)} outside "
@@ -286,27 +301,26 @@ def load_cloud(ctx: StepContext) -> np.ndarray:
     ``cloud.ply`` read as float64 (the same values; the steps' arithmetic is float64)."""
     if ctx.cloud is not None:
         return ctx.cloud
-    return read_ply(ctx.store.path("cloud.ply"))[0]
+    return read_ply(ctx.store.path(RunLayout.CLOUD))[0]
 
 
 def validation_step(ctx: StepContext) -> dict[str, Any]:
     from dotshell.pipeline.validate import cylinder_report
 
     ctx.bus.emit(StepStarted(step="validate"))
-    v = ctx.profile.data["validation"]
-    return {"validation": cylinder_report(load_cloud(ctx), ctx.calibration, v,
-                                          ctx.profile.data["processing"]["roi"])}
+    return {"validation": cylinder_report(load_cloud(ctx), ctx.calibration,
+                                          ctx.profile.validation, ctx.profile.processing.roi)}
 
 
 def previews_step(ctx: StepContext) -> dict[str, Any]:
     from dotshell.render.previews import cloud_previews
 
     ctx.bus.emit(StepStarted(step="previews"))
-    out = {}
+    out: dict[str, Any] = {}
     for v in stored_views(ctx.store):
         out.update(read_view_record(ctx.store, v).get("previews") or {})
     if not out:
-        ctx.bus.warn(f"frame previews skipped: view {ctx.profile.data['outputs']['preview_view']}"
+        ctx.bus.warn(f"frame previews skipped: view {ctx.profile.outputs.preview_view}"
                      " ([outputs] preview_view) was not reconstructed")
     out.update(cloud_previews(ctx.store, load_cloud(ctx), ctx.profile, ctx.bus))
     return {"previews": out}
@@ -318,21 +332,21 @@ def mesh_step(ctx: StepContext) -> dict[str, Any]:
     from dotshell.pipeline.mesh import mesh_stage
 
     return {"mesh": mesh_stage(ctx.store, ctx.profile, ctx.pm, ctx.bus,
-                               ctx.options.get("node_distance_mm"))}
+                               ctx.options.get("node_distance_mm"), ctx._calib)}
 
 
 def normalize_step(ctx: StepContext) -> dict[str, Any]:
-    from dotshell.pipeline.normalize import normalize_stage
+    from dotshell.pipeline.normalize_outputs import normalize_stage
 
     o = ctx.options
     return {"normalize": normalize_stage(ctx.store, ctx.profile, ctx.pm, ctx.bus,
                                          o.get("normalizer"), o.get("min_sin_beta"),
-                                         o.get("max_normal_spread_deg"))}
+                                         o.get("max_normal_spread_deg"), ctx._calib)}
 
 
 def exports_step(ctx: StepContext) -> dict[str, Any]:
     out = {}
-    for name, settings in ctx.profile.data["export"].items():
+    for name, settings in ctx.profile.export.items():
         ctx.bus.emit(StepStarted(step=f"export {name}"))
         exporter = ctx.pm.create("exporter", name, settings, None, ctx.profile.source)
         paths = exporter.export(ctx.store.root)
@@ -367,17 +381,17 @@ STEPS: tuple[Step, ...] = (
     Step("views", ("calibration",), views_step),
     Step("cloud", ("views",), cloud_step),
     Step("validation", ("cloud", "calibration"), validation_step,
-         lambda ctx, base: ctx.profile.data["validation"]["shape"] == "cylinder", _import_fit),
+         lambda ctx, base: ctx.profile.validation.shape == "cylinder", _import_fit),
     Step("previews", ("cloud", "views"), previews_step,
-         lambda ctx, base: bool(ctx.profile.data["outputs"]["previews"]), _import_renderer),
+         lambda ctx, base: ctx.profile.outputs.previews, _import_renderer),
     Step("mesh", ("cloud", "calibration"), mesh_step,
-         lambda ctx, base: "mesh" in base or bool(ctx.profile.data["mesh"]["after_scan"])),
+         lambda ctx, base: "mesh" in base or ctx.profile.mesh.after_scan),
     Step("normalize", ("mesh", "calibration"), normalize_step,
          lambda ctx, base: "normalize" in base or (
-             _has_transillumination(ctx) and bool(ctx.profile.data["mesh"]["after_scan"])
-             and bool(ctx.profile.data["normalize"]["after_scan"]))),
+             _has_transillumination(ctx) and ctx.profile.mesh.after_scan
+             and ctx.profile.normalize.after_scan)),
     Step("exports", ("cloud", "mesh"), exports_step,
-         lambda ctx, base: bool(ctx.profile.data["export"]) and ctx.options.get("export", True)),
+         lambda ctx, base: bool(ctx.profile.export) and ctx.options.get("export", True)),
     Step("forward", ("mesh",), forward_step, lambda ctx, base: "forward" in base),
 )
 STEP_BY_NAME = {s.name: s for s in STEPS}
@@ -391,7 +405,7 @@ def import_ahead(names: Sequence[str], current: str) -> threading.Thread | None:
     step itself to meet and report. Returns the thread, or None when there is nothing to do."""
     order = list(names)
     later = order[order.index(current) + 1:]
-    work = [STEP_BY_NAME[n].imports for n in later if STEP_BY_NAME[n].imports is not None
+    work = [imports for n in later if (imports := STEP_BY_NAME[n].imports) is not None
             and current == max((r for r in STEP_BY_NAME[n].reads if r in order),
                                key=order.index, default=None)]
     if not work:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -31,8 +31,8 @@ def field_band_mm(calib: RigCalibration, height_mm: float, step_mm: float = 0.25
     return float(z[ok].min()), float(z[ok].max())
 
 
-def cylinder_report(points: np.ndarray, calib: RigCalibration, v: dict[str, Any],
-                    roi: dict[str, float]) -> dict[str, Any]:
+def cylinder_report(points: np.ndarray, calib: RigCalibration, v: Mapping[str, Any],
+                    roi: Mapping[str, float]) -> dict[str, Any]:
     """Relative radius error of every lateral-surface point about the turntable axis (as the
     paper does), a free cylinder fit, and the covered share of the measurable lateral area.
     ``points`` (N, 3, mm) float32 or float64; the arithmetic is float64 either way (float32

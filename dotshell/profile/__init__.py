@@ -1,5 +1,6 @@
-"""Profiles: the TOML file, validated (``loader``), and the schemas of its sections
-(``calibration``, ``mesh``, ``transillum``)."""
+"""Profiles: the TOML file, validated (``loader``), its core sections as typed objects
+(``sections``: ``ScanSettings``, ...), and the schemas of its sections (``calibration``,
+``mesh``, ``transillum``)."""
 
 from dotshell.runtime.moved import forward_to
 

@@ -11,20 +11,30 @@ from __future__ import annotations
 
 import copy
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from dotshell.profile.calibration import CALIBRATE_SCHEMA
 from dotshell.errors import ProfileError
-from dotshell.rig.handles import TIMEOUT_DEFAULTS_S
 from dotshell.profile.mesh import MESH_SCHEMA
 from dotshell.plugins import PluginManager
+from dotshell.profile.sections import (CalibrateSettings, CalibrationSource,
+                                       MeshSettings, NormalizeSettings, OutputsSettings,
+                                       ProcessingSettings, ProfileInfo, ScanSettings,
+                                       TransilluminationSettings, ValidationSettings)
 from dotshell.settings import REQUIRED, Setting, validate_settings
 from dotshell.profile.transillum import NORMALIZE_SCHEMA, TRANSILLUMINATION_SCHEMA
 
 DEVICE_ROLES = ("camera", "projector", "stage", "analyzer", "light_source")
 REQUIRED_ROLES = ("camera", "projector", "stage", "coding")
+#: Default timeout of each device call in seconds (``[ROLE.timeouts]``, used by
+#: :mod:`dotshell.rig.handles`); ``other`` covers every method not listed.
+TIMEOUT_DEFAULTS_S: dict[str, float] = {
+    "connect": 30.0, "close": 10.0, "status": 5.0, "capture": 30.0, "show": 10.0,
+    "move_to": 120.0, "set_angle": 60.0, "home": 300.0, "set": 10.0, "read_angle": 10.0,
+    "other": 30.0,
+}
 
 
 def _role(required: bool) -> Setting:
@@ -161,47 +171,90 @@ SCHEMA: dict[str, Setting] = {
 }
 
 
-@dataclass
+@dataclass(frozen=True)
 class Profile:
-    """A validated profile.
+    """A validated profile: its core sections as typed objects (:mod:`.sections`), its
+    backend roles and exports as the plugins' own settings.
 
     Attributes:
-        data: the full profile with defaults filled in (backend settings included).
         source: the file it came from (or ``"<dict>"``), named in errors.
         base_dir: directory relative paths in the profile are resolved against.
+        info, scan, processing, validation, outputs, mesh, transillumination, normalize,
+        calibration, calibrate: the sections of the same name (``[profile]`` is ``info``).
     """
 
-    data: dict[str, Any]
     source: str
     base_dir: Path
+    info: ProfileInfo
+    scan: ScanSettings
+    processing: ProcessingSettings
+    validation: ValidationSettings
+    outputs: OutputsSettings
+    mesh: MeshSettings
+    transillumination: TransilluminationSettings
+    normalize: NormalizeSettings
+    calibration: CalibrationSource
+    calibrate: CalibrateSettings
+    _data: dict[str, Any] = field(repr=False)
+
+    @classmethod
+    def from_validated(cls, data: dict[str, Any], source: str, base_dir: Path) -> Profile:
+        """The profile of a dict :func:`validate_settings` filled in against :data:`SCHEMA`."""
+        return cls(source=source, base_dir=base_dir, _data=data,
+                   info=ProfileInfo.from_table(data["profile"]),
+                   scan=ScanSettings.from_table(data["scan"]),
+                   processing=ProcessingSettings.from_table(data["processing"]),
+                   validation=ValidationSettings.from_table(data["validation"]),
+                   outputs=OutputsSettings.from_table(data["outputs"]),
+                   mesh=MeshSettings.from_table(data["mesh"]),
+                   transillumination=TransilluminationSettings.from_table(
+                       data["transillumination"]),
+                   normalize=NormalizeSettings.from_table(data["normalize"]),
+                   calibration=CalibrationSource.from_table(data["calibration"]),
+                   calibrate=CalibrateSettings.from_table(data["calibrate"]))
+
+    @property
+    def data(self) -> dict[str, Any]:
+        """The raw validated TOML (defaults filled in, backend settings included), for
+        third-party plugins; a copy, so changing it changes nothing. Core code reads the
+        typed sections instead."""
+        return copy.deepcopy(self._data)
 
     @property
     def name(self) -> str:
-        return self.data["profile"]["name"]
+        return self.info.name
+
+    @property
+    def export(self) -> dict[str, dict[str, Any]]:
+        """``[export.NAME]`` tables: exporter backend name → its validated settings."""
+        return self._data["export"]
 
     def role(self, role: str) -> dict[str, Any] | None:
         """``{"backend": ..., "settings": {...}}`` for a role, or None when not configured."""
-        return self.data.get(role)
+        return self._data.get(role)
+
+    def required_role(self, role: str) -> dict[str, Any]:
+        """:meth:`role` for a role the profile must configure (camera, projector, stage,
+        coding) or one the caller checked; a ProfileError naming the missing table otherwise."""
+        section = self.data.get(role)
+        if section is None:
+            raise ProfileError(f"{self.source}: no [{role}] table; add one naming its backend.")
+        return section
 
     def angles_deg(self) -> list[float]:
         """Stage angles of the scan's views in degrees."""
-        scan = self.data["scan"]
-        if scan["angles_deg"]:
-            return list(scan["angles_deg"])
-        n = scan["views"]
-        return [360.0 * i / n for i in range(n)]
+        return self.scan.view_angles_deg()
 
     def calibration_path(self) -> Path | None:
-        cal = self.data["calibration"]
-        if cal["source"] != "file":
+        if self.calibration.source != "file":
             return None
-        return (self.base_dir / cal["file"]).resolve()
+        return (self.base_dir / self.calibration.file).resolve()
 
     def raw(self) -> dict[str, Any]:
         """The profile as a plain dict, writable back to TOML. TOML has no null: keys whose
         value is None (absent roles, "automatic" settings) are left out, which reads back as
         the same defaults."""
-        return _drop_none(self.data)
+        return _drop_none(self._data)
 
 
 def _drop_none(d: dict[str, Any]) -> dict[str, Any]:
@@ -255,7 +308,7 @@ def validate_profile(raw: dict[str, Any], pm: PluginManager, where: str,
                            "simulated rig.")
     _check_transillumination(data, where)
     _check_roi(data["processing"]["roi"], where)
-    return Profile(data, where, Path(base_dir))
+    return Profile.from_validated(data, where, Path(base_dir))
 
 
 def _check_roi(roi: dict[str, Any], where: str) -> None:

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from dotshell.fem.meshfiles import read_surface, read_volume
+from dotshell.run.layout import RunLayout
 
 
 def _plotter():
@@ -16,7 +17,7 @@ def _plotter():
         os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     import pyvista as pv
 
-    pl = pv.Plotter(off_screen=True, window_size=(900, 900))
+    pl = pv.Plotter(off_screen=True, window_size=[900, 900])
     pl.set_background("white")
     return pv, pl
 
@@ -35,7 +36,7 @@ def render_mesh_previews(mesh_dir: Path, out_dir: Path, suffix: str = "") -> dic
     """``surface{suffix}.png`` and ``volume{suffix}.png`` in ``out_dir``."""
     mesh_dir, out_dir = Path(mesh_dir), Path(out_dir)
     out: dict[str, Path] = {}
-    surf = read_surface(mesh_dir / "surface.ply")
+    surf = read_surface(mesh_dir / RunLayout.SURFACE)
     pv, pl = _plotter()
     try:
         faces = np.hstack([np.full((len(surf.triangles), 1), 3), surf.triangles]).ravel()
@@ -46,7 +47,7 @@ def render_mesh_previews(mesh_dir: Path, out_dir: Path, suffix: str = "") -> dic
                                 f"{len(surf.triangles)} triangles")
     finally:
         pl.close()
-    vol = read_volume(mesh_dir / "volume.vtu")
+    vol = read_volume(mesh_dir / RunLayout.VOLUME)
     pv, pl = _plotter()
     try:
         cells = np.hstack([np.full((len(vol.tets), 1), 4), vol.tets]).ravel()

@@ -15,6 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import atomic_write_bytes
 
 
@@ -78,7 +79,7 @@ def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
         points = points[pick]
         scalars = None if scalars is None else np.asarray(scalars)[pick]
     cloud = pv.PolyData(np.asarray(points, np.float32))
-    pl = pv.Plotter(off_screen=True, window_size=(900, 900))
+    pl = pv.Plotter(off_screen=True, window_size=[900, 900])
     try:
         pl.set_background("white")
         cloud[scalar_name] = np.asarray(points[:, 2] if scalars is None else scalars, np.float64)
@@ -119,19 +120,18 @@ def cloud_previews(store, points: np.ndarray, profile, bus) -> dict[str, Any]:
     by radius error for a cylinder, by height otherwise); returns {name: path relative to the
     run's products} and warns if skipped."""
     out: dict[str, Any] = {}
-    pdir = store.path("previews")
-    pdir.mkdir(parents=True, exist_ok=True)
-    v = profile.data["validation"]
+    store.path(RunLayout.PREVIEWS).mkdir(parents=True, exist_ok=True)
+    v = profile.validation
     style: dict[str, Any] = {}
-    if v["shape"] == "cylinder":  # float64 arithmetic on float32 or float64 points (mm)
+    if v.shape == "cylinder":  # float64 arithmetic on float32 or float64 points (mm)
         scal, name = np.hypot(points[:, 0], points[:, 1], dtype=np.float64), "radius error [mm]"
-        scal -= v["radius_mm"]
+        scal -= v.radius_mm
         c = max(0.01, 4 * float(np.median(np.abs(scal), overwrite_input=True)))  # the cap saturates
         style = {"clim": (-c, c), "cmap": "coolwarm"}
     else:
         scal, name = points[:, 2], "z [mm]"
     try:
-        out["cloud"] = cloud_preview(points, scal, pdir / "cloud.png",
+        out["cloud"] = cloud_preview(points, scal, store.path(RunLayout.preview("cloud")),
                                      f"{profile.name}: {len(points)} points", name, **style)
     except Exception as exc:  # rendering depends on the machine's OpenGL; degrade, don't crash
         bus.warn(f"cloud preview skipped: 3-D rendering is not available here "

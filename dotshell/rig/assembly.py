@@ -98,26 +98,26 @@ class Rig:
 
     @property
     def camera(self) -> devices.Camera:
-        return self.devices["camera"]  # type: ignore[return-value]
+        return self.devices["camera"]
 
     @property
     def projector(self) -> devices.Projector:
-        return self.devices["projector"]  # type: ignore[return-value]
+        return self.devices["projector"]
 
     @property
     def stage(self) -> devices.Stage:
-        return self.devices["stage"]  # type: ignore[return-value]
+        return self.devices["stage"]
 
     @property
     def analyzer(self) -> devices.Analyzer | None:
-        return self.devices.get("analyzer")  # type: ignore[return-value]
+        return self.devices.get("analyzer")
 
     @property
     def light_source(self) -> devices.LightSource | None:
-        return self.devices.get("light_source")  # type: ignore[return-value]
+        return self.devices.get("light_source")
 
     def backend(self, role: str) -> str:
-        return self.profile.role(role)["backend"]
+        return self.profile.required_role(role)["backend"]
 
     # ---- log ----------------------------------------------------------------------------------
 
@@ -159,16 +159,16 @@ class Rig:
             self._claim(role)
             self._guarded(role, dev.connect)
             self.connected.append(role)
-            self._guarded(role, lambda: self._record(role))
+            self._guarded(role, lambda: self._record(role))  # noqa: B023 (called at once)
         for role, policy in self.policies.items():
             if policy.home == "on_connect":
-                self._guarded(role, lambda: self.home(role))
+                self._guarded(role, lambda: self.home(role))  # noqa: B023 (called at once)
 
     def _claim(self, role: str) -> None:
         """Hold the hardware the role's settings name (one process per device,
         :mod:`dotshell.rig.owners`); refused naming the holder, every device of this rig closed."""
         try:
-            self.owners.claim(role, self.backend(role), self.profile.role(role)["settings"])
+            self.owners.claim(role, self.backend(role), self.profile.required_role(role)["settings"])
         except DeviceInUse:
             self.close()
             raise
@@ -244,7 +244,7 @@ class Rig:
             if devices.implements(dev, devices.Stoppable):
                 dev.stop_now()
 
-    def __enter__(self) -> "Rig":
+    def __enter__(self) -> Rig:
         self.connect()
         return self
 

@@ -43,13 +43,8 @@ from typing import Any, Callable
 from dotshell.backends import RigContext
 from dotshell.errors import (DeviceError, DeviceLostError, DeviceStopped, DeviceTimeout,
                              DotshellError, PluginFault)
+from dotshell.profile.loader import TIMEOUT_DEFAULTS_S
 
-#: Default timeout of each device call in seconds; ``other`` covers every method not listed.
-TIMEOUT_DEFAULTS_S: dict[str, float] = {
-    "connect": 30.0, "close": 10.0, "status": 5.0, "capture": 30.0, "show": 10.0,
-    "move_to": 120.0, "set_angle": 60.0, "home": 300.0, "set": 10.0, "read_angle": 10.0,
-    "other": 30.0,
-}
 #: How long past a call's timeout the rig waits for the driver's own timeout error before it
 #: declares the device unresponsive (seconds).
 GRACE_S = 2.0
@@ -163,12 +158,6 @@ class _Worker:
         job = self.current
         return job if job is not None and job.overdue() else None
 
-    def release(self) -> None:
-        """End the worker thread without closing the device (it was never connected)."""
-        worker, self._worker = self._worker, None
-        if worker is not None:
-            worker.shutdown()
-
     def shutdown(self) -> None:
         self.jobs.put(None)
 
@@ -212,7 +201,7 @@ class DeviceHandle:
         if name.startswith("_"):
             raise AttributeError(name)
         if name == "stop":
-            getattr(self._device, "stop")  # AttributeError if the driver cannot stop
+            getattr(self._device, "stop")  # noqa: B009 (a probe: AttributeError if it cannot stop)
             return self.stop_now
         try:
             value = getattr(self._device, name)

@@ -114,14 +114,14 @@ def matching_backends(port: SerialPortInfo, backends: dict[str, dict[str, object
         return []
     return [f"{role}:{name}" for role, found in backends.items()
             for name, info in sorted(found.items())
-            if vp in getattr(info.backend, "usb_ids", ())]  # type: ignore[attr-defined]
+            if vp in getattr(info, "usb_ids", ())]
 
 
 def emulator_dir() -> Path:
     """Where running ``dotshell emulate`` processes record themselves (private runtime dir)."""
-    from dotshell.rig.owners import device_lock_dir
+    from dotshell.runtime.paths import runtime_dir  # the private runtime directory
 
-    d = device_lock_dir().parent / "emulators"
+    d = runtime_dir() / "emulators"
     d.mkdir(mode=0o700, exist_ok=True)
     return d
 
@@ -129,7 +129,7 @@ def emulator_dir() -> Path:
 def running_emulators() -> list[dict[str, object]]:
     """What each running ``dotshell emulate`` recorded (``emulator``, ``pty``, ``link``,
     ``pid``), found by its held lock, sorted by link."""
-    from dotshell.rig.owners import holder
+    from dotshell.runtime.locks import holder
 
     found = [holder(p) for p in sorted(emulator_dir().glob("*.lock"))]
     return sorted((i for i in found if i), key=lambda i: str(i.get("link")))

@@ -34,13 +34,13 @@ class FrameSpec:
     bit_depth: int
 
     @classmethod
-    def of_camera(cls, camera: Any) -> "FrameSpec":
+    def of_camera(cls, camera: Any) -> FrameSpec:
         """What ``camera`` says its frames are (its hardware-free properties)."""
         w, h = camera.resolution
         return cls(int(w), int(h), int(camera.bit_depth))
 
     @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> "FrameSpec":
+    def from_dict(cls, d: dict[str, Any]) -> FrameSpec:
         return cls(int(d["width"]), int(d["height"]), int(d["bit_depth"]))
 
     def to_dict(self) -> dict[str, int]:

@@ -37,6 +37,8 @@ import tifffile
 from dotshell.run import tiffpages
 from dotshell.errors import FrameError, RunError
 from dotshell.run.framecheck import FrameSpec, dtype_for
+from dotshell.run.lost import is_lost
+from dotshell.run.layout import RunLayout
 
 TIFF_STACK = "tiff-stack/1"
 PNG_FILES = "png/1"
@@ -140,7 +142,9 @@ class FrameStore:
         return RunError(f"{what} of view {self.view} is missing or unreadable in {self.path}; "
                         f"the view cannot be reconstructed from it. Re-capture it with "
                         f"`dotshell resume {self.root} --view {self.view}` (the damaged frames "
-                        "are kept aside).")
+                        "are kept aside), or, if it cannot be, mark it lost so the run completes "
+                        f"from the other views: `dotshell lose-view {self.root} {self.view} "
+                        "--reason TEXT`.")
 
     def _check_index(self, index: int) -> str:
         if not 0 <= index < len(self.names):
@@ -192,7 +196,7 @@ class TiffFrameStore(FrameStore):
 
     @property
     def path(self) -> Path:
-        return self.root / "frames" / f"view_{self.view:03d}.tif"
+        return self.root / RunLayout.frame_stack(self.view)
 
     def count(self) -> int:
         if not self.path.is_file():
@@ -239,7 +243,7 @@ class TiffFrameStore(FrameStore):
     def _label(self, index: int) -> str:
         return f"frame {self.names[index]!r} (page {index}) of {self.path}"
 
-    def _open_read(self) -> BinaryIO:
+    def _open_read(self) -> io.FileIO:
         try:
             return open(self.path, "rb", buffering=0)
         except FileNotFoundError:
@@ -266,11 +270,12 @@ class TiffFrameStore(FrameStore):
         if index != self._written:
             raise RunError(f"view {self.view}: frame {index} ({name!r}) arrived after "
                            f"{self._written} frames; frames are stored in capture order.")
-        if self._tiff is None:
+        if self._tiff is None or self._file is None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file = open(self.path, "wb")
+            self._file = open(self.path, "wb")  # noqa: SIM115 (held open until close())
             big = image.nbytes * len(self.names) > _TIFF_LIMIT_BYTES
-            self._tiff = tifffile.TiffWriter(_WriteThrough(self._file), bigtiff=big)
+            # tifffile writes to any object with write/seek/tell; its annotation names IO[bytes]
+            self._tiff = tifffile.TiffWriter(_WriteThrough(self._file), bigtiff=big)  # type: ignore[arg-type]
         self._tiff.write(image, contiguous=False, metadata=None, description=name,
                          software="dotshell")
         self._file.flush()  # in the OS's hands: a crash of this process keeps the frame
@@ -283,7 +288,7 @@ class TiffFrameStore(FrameStore):
             fsync_path(self.path.parent)
 
     def close(self) -> None:
-        if self._tiff is None:
+        if self._tiff is None or self._file is None:
             return
         try:
             self._tiff.close()
@@ -300,10 +305,10 @@ class PngFrameStore(FrameStore):
 
     @property
     def path(self) -> Path:
-        return self.root / "frames" / f"view_{self.view:03d}"
+        return self.root / RunLayout.frame_folder(self.view)
 
     def frame_path(self, index: int) -> Path:
-        return self.path / f"{index:03d}_{self._check_index(index)}.png"
+        return self.path / RunLayout.png_frame(index, self._check_index(index))
 
     def count(self) -> int:
         return sum(self.frame_path(i).is_file() for i in range(len(self.names)))
@@ -352,20 +357,37 @@ def frames_on_disk(root: Path, manifest: dict) -> list[int]:
 
 def damaged_views(root: Path, manifest: dict) -> list[tuple[int, int, int]]:
     """(view, frames on disk, frames recorded) of every view recorded complete whose frames
-    on disk are fewer (cut or deleted after the scan)."""
+    on disk are fewer (cut or deleted after the scan), unless it is marked lost."""
     return [(v["index"], n, v["frames"]) for v, n in zip(manifest["views"],
                                                          frames_on_disk(root, manifest))
-            if v.get("complete") and n < v["frames"]]
+            if v.get("complete") and not is_lost(v) and n < v["frames"]]
+
+
+def set_aside_partial(root: Path, view: int) -> None:
+    """Move the frames of an unfinished view of the run at ``root`` out of the way (kept, never
+    deleted): its frame stack ``frames/view_NNN.tif`` and directory ``frames/view_NNN/`` (frame
+    metadata; PNG frames of runs before TIFF stacks) become ``view_NNN.partial-K.tif`` and
+    ``view_NNN.partial-K/``."""
+    root, L = Path(root), RunLayout
+    found = [p for p in (root / L.frame_folder(view), root / L.frame_stack(view))
+             if p.is_file() or (p.is_dir() and any(p.iterdir()))]
+    if not found:
+        return
+    k = 1
+    while any((root / f"{L.set_aside(view, k)}{s}").exists() for s in ("", ".tif")):
+        k += 1
+    for p in found:
+        p.rename(root / f"{L.set_aside(view, k)}{p.suffix}")
 
 
 def export_png(frames: FrameStore, out_dir: Path) -> list[Path]:
     """Write the view's frames losslessly as ``out_dir/view_NNN/III_NAME.png`` (the PNG layout,
     same bit depth); returns the files written."""
-    d = Path(out_dir) / f"view_{frames.view:03d}"
+    d = Path(out_dir) / RunLayout.view_stem(frames.view)
     d.mkdir(parents=True, exist_ok=True)
     paths = []
     for i, name in enumerate(frames.names[:frames.count()]):
-        p = d / f"{i:03d}_{name}.png"
+        p = d / RunLayout.png_frame(i, name)
         if not cv2.imwrite(str(p), frames.read_one(i), [cv2.IMWRITE_PNG_COMPRESSION, 1]):
             raise RunError(f"could not write {p}; check that {out_dir} is writable.")
         paths.append(p)

@@ -26,19 +26,21 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from dotshell.errors import RunError
+from dotshell.run.layout import RunLayout
 from dotshell.run.store import RunStore, atomic_write_text, dumps
 
-GEN_DIR = "gen"
-CURRENT = "current"
-PRODUCTS_FILE = "products.json"
+L = RunLayout
+GEN_DIR = L.GEN
+CURRENT = L.CURRENT
+PRODUCTS_FILE = L.PRODUCTS
 #: Top-level names that are the capture (or bookkeeping), never products.
-CAPTURE_ITEMS = frozenset({"manifest.json", "profile.toml", "calibration.json", "events.jsonl",
-                           ".lock", "frames", "transillumination", GEN_DIR, CURRENT,
-                           "server.log", "snapshots", "live"})
+CAPTURE_ITEMS = frozenset({L.MANIFEST, L.PROFILE, L.CALIBRATION, L.EVENTS, L.LOCK, L.FRAMES,
+                           L.TRANSILLUMINATION, GEN_DIR, CURRENT, L.SERVER_LOG, L.SNAPSHOTS,
+                           L.LIVE, L.TRUTH, L.TRUTH_DIR})
 #: Where products of runs made before generations existed (format dotshell-run/1) are found.
-LEGACY_PRODUCTS = {"views": "views", "cloud.ply": "cloud", "report.json": "report",
-                   "surface.ply": "mesh", "volume.vtu": "mesh", "optodes.json": "mesh",
-                   "meshes": "mesh", "normalize": "normalize", "forward.vtu": "forward"}
+LEGACY_PRODUCTS = {L.VIEWS: "views", L.CLOUD: "cloud", L.REPORT: "report", L.SURFACE: "mesh",
+                   L.VOLUME: "mesh", L.OPTODES: "mesh", L.MESHES: "mesh",
+                   L.NORMALIZE: "normalize", L.FORWARD: "forward"}
 
 
 def _number(name: str) -> int | None:
@@ -84,19 +86,19 @@ class Generation:
         self.run = run
         self.number = number
         self.base = base
-        self.dir = run.path(GEN_DIR, f"{number:03d}")
+        self.dir = run.path(L.generation_dir(number))
         self.files: dict[str, list[str]] = {}
         self.report: dict[str, Any] = {}
         #: the published generation, when its directory is missing (deleted)
         self.missing_base: int | None = None
 
     @classmethod
-    def start(cls, run: RunStore) -> "Generation":
+    def start(cls, run: RunStore) -> Generation:
         """A new, empty generation after the highest existing one, based on the published one."""
         adopt_legacy_products(run)
         base = current_number(run.root)
         missing = None
-        if base is not None and not run.path(GEN_DIR, f"{base:03d}").is_dir():
+        if base is not None and not run.path(L.generation_dir(base)).is_dir():
             missing, base = base, None  # deleted: everything is made again from the frames
         number = max(generation_numbers(run.root), default=0) + 1
         gen = cls(run, number, base)
@@ -107,7 +109,7 @@ class Generation:
     # ---- the base generation ---------------------------------------------------------------
 
     def base_dir(self) -> Path | None:
-        return None if self.base is None else self.run.path(GEN_DIR, f"{self.base:03d}")
+        return None if self.base is None else self.run.path(L.generation_dir(self.base))
 
     def base_products(self) -> dict[str, list[str]]:
         d = self.base_dir()
@@ -122,7 +124,7 @@ class Generation:
 
     def base_report(self) -> dict[str, Any]:
         d = self.base_dir()
-        p = None if d is None else d / "report.json"
+        p = None if d is None else d / L.REPORT
         if p is None or not p.is_file():
             return {}
         try:
@@ -150,7 +152,7 @@ class Generation:
 
     def record(self, product: str, before: set[str]) -> None:
         """Assign the files written since ``before`` (a :meth:`listing`) to ``product``."""
-        new = sorted(self.listing() - before - {PRODUCTS_FILE, "report.json"})
+        new = sorted(self.listing() - before - {PRODUCTS_FILE, L.REPORT})
         if new:
             self.files[product] = sorted(set(self.files.get(product, [])) | set(new))
 
@@ -166,7 +168,7 @@ class Generation:
     def publish(self) -> None:
         """Write ``report.json`` and ``products.json`` (last), then make this generation the
         run's ``current`` in one atomic rename, and link new product names at the top."""
-        atomic_write_text(self.dir / "report.json", dumps(self.report))
+        atomic_write_text(self.dir / L.REPORT, dumps(self.report))
         atomic_write_text(self.dir / PRODUCTS_FILE,
                           dumps({"generation": self.number, "based_on": self.base,
                                  "files": self.files}))
@@ -176,7 +178,7 @@ class Generation:
 
 def published(root: Path, number: int) -> bool:
     """Whether generation ``number`` was ever published (it has its ``products.json``)."""
-    return (Path(root) / GEN_DIR / f"{number:03d}" / PRODUCTS_FILE).is_file()
+    return (Path(root) / L.generation_dir(number) / PRODUCTS_FILE).is_file()
 
 
 def remove_unpublished(root: Path, only: int | None = None) -> list[Path]:
@@ -186,7 +188,7 @@ def remove_unpublished(root: Path, only: int | None = None) -> list[Path]:
     gone = []
     for n in generation_numbers(root):
         if (only is None or n == only) and n != cur and not published(root, n):
-            d = Path(root) / GEN_DIR / f"{n:03d}"
+            d = Path(root) / L.generation_dir(n)
             shutil.rmtree(d)
             gone.append(d)
     return gone
@@ -196,7 +198,7 @@ def point_current(root: Path, number: int) -> None:
     tmp = Path(root) / f".{CURRENT}.{os.getpid()}.tmp"
     if tmp.is_symlink() or tmp.exists():
         tmp.unlink()
-    os.symlink(f"{GEN_DIR}/{number:03d}", tmp)
+    os.symlink(L.generation_dir(number), tmp)
     os.replace(tmp, Path(root) / CURRENT)
 
 
@@ -208,7 +210,7 @@ def link_top_level(root: Path, gen_dir: Path) -> None:
         if name in CAPTURE_ITEMS or name.startswith(".") or name == PRODUCTS_FILE:
             continue
         top = Path(root) / name
-        if name == "previews":
+        if name == L.PREVIEWS:
             _move_live_frame(Path(root), top)
         if not os.path.lexists(top):
             os.symlink(f"{CURRENT}/{name}", top)
@@ -221,11 +223,11 @@ def _move_live_frame(root: Path, top: Path) -> None:
     if top.is_symlink() or not top.is_dir():
         return
     entries = list(top.iterdir())
-    if any(p.name != "latest_frame.png" for p in entries):
+    if any(p.name != Path(L.LATEST_FRAME).name for p in entries):
         return  # someone's own files: left where they are
-    (root / "live").mkdir(exist_ok=True)
+    (root / L.LIVE).mkdir(exist_ok=True)
     for p in entries:
-        os.replace(p, root / "live" / p.name)
+        os.replace(p, root / L.LIVE / p.name)
     top.rmdir()
 
 
@@ -246,18 +248,18 @@ def adopt_legacy_products(run: RunStore) -> None:
               and not p.is_symlink()]
     if not legacy:
         return
-    gen0 = root / GEN_DIR / "000"
+    gen0 = root / L.generation_dir(0)
     gen0.mkdir(parents=True, exist_ok=True)
     for p in legacy:
         os.replace(p, gen0 / p.name)
-    if (root / "calibration.json").is_file() and not (gen0 / "calibration.json").exists():
-        _link_or_copy(root / "calibration.json", gen0 / "calibration.json")
+    if (root / L.CALIBRATION).is_file() and not (gen0 / L.CALIBRATION).exists():
+        _link_or_copy(root / L.CALIBRATION, gen0 / L.CALIBRATION)
     files: dict[str, list[str]] = {}
     for p in sorted(gen0.iterdir()):
         if p.name == PRODUCTS_FILE:
             continue
-        product = LEGACY_PRODUCTS.get(p.name, p.name if p.name in ("previews", "calibration.json")
-                                      else "exports").replace("calibration.json", "calibration")
+        product = LEGACY_PRODUCTS.get(p.name, p.name if p.name in (L.PREVIEWS, L.CALIBRATION)
+                                      else "exports").replace(L.CALIBRATION, "calibration")
         if product == "report":
             continue
         files.setdefault(product, []).extend(_files_under(gen0, p.name))
@@ -283,7 +285,7 @@ class ProductStore(RunStore):
     def path(self, *parts: str) -> Path:
         names = Path(*parts).parts if parts else ()
         first = names[0] if names else ""
-        if first in CAPTURE_ITEMS and first != "calibration.json":
+        if first in CAPTURE_ITEMS and first != L.CALIBRATION:
             return self.run.path(*parts)
         return super().path(*parts)
 

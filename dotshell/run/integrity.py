@@ -193,8 +193,8 @@ def _in_order(name: str, plane: np.ndarray, planes: dict[str, tuple[str, np.ndar
 
 
 def _check_ids(infos: Sequence[dict[str, Any]], names: Sequence[str], out: ViewIntegrity) -> None:
-    ids = [i.get("frame_id") for i in infos]
-    stamps = [i.get("timestamp_s") for i in infos]
+    ids: list[Any] = [i.get("frame_id") for i in infos]  # ints when the camera counts frames
+    stamps: list[Any] = [i.get("timestamp_s") for i in infos]
     problems: list[str] = []
     if len(infos) == len(names) and all(isinstance(i, int) for i in ids):
         for k in range(1, len(ids)):

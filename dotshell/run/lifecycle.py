@@ -26,26 +26,13 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
-from dotshell.errors import RunError
-from dotshell.rig.owners import holder, try_flock
+from dotshell.errors import Interrupted, RunError
+from dotshell.run.layout import RunLayout
+from dotshell.runtime.locks import holder, try_flock
 
 #: Final states; ``running`` is the only other one.
 FINAL_STATES = ("completed", "failed", "aborted", "interrupted")
-LOCK_NAME = ".lock"
-
-
-class Interrupted(KeyboardInterrupt):
-    """The process was asked to stop (Ctrl-C, SIGTERM, SIGHUP): ``signame`` says which."""
-
-    def __init__(self, signame: str = "SIGINT") -> None:
-        super().__init__(signame)
-        self.signame = signame
-
-    @property
-    def reason(self) -> str:
-        what = {"SIGINT": "Ctrl-C (SIGINT)", "SIGTERM": "SIGTERM", "SIGHUP":
-                "SIGHUP (the terminal or SSH session closed)"}.get(self.signame, self.signame)
-        return f"stopped by {what}"
+LOCK_NAME = RunLayout.LOCK
 
 
 def interrupt_reason(exc: BaseException) -> str:
@@ -95,7 +82,7 @@ class RunLock:
     def held(self) -> bool:
         return self._fd is not None
 
-    def __enter__(self) -> "RunLock":
+    def __enter__(self) -> RunLock:
         return self
 
     def __exit__(self, *exc: Any) -> None:

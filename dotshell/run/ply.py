@@ -30,7 +30,7 @@ def write_ply(path: Path, points: np.ndarray, **scalars: np.ndarray) -> Path:
         rec[n] = points[:, i]
     for n, v in scalars.items():
         rec[n] = np.asarray(v).ravel()
-    atomic_write_bytes(Path(path), data)
+    atomic_write_bytes(Path(path), data.tobytes())
     return Path(path)
 
 
@@ -47,7 +47,7 @@ def read_ply(path: Path, finite: bool = True,
     path = Path(path)
     vertex = _cloud_vertices(path)
     names = vertex.dtype.names or ()
-    pts = np.empty((len(vertex), 3), dtype=float_type)
+    pts: np.ndarray = np.empty((len(vertex), 3), dtype=float_type)
     for i, axis in enumerate("xyz"):
         pts[:, i] = vertex[axis]
     if finite and not np.isfinite(pts).all():

@@ -3,11 +3,8 @@
 arrive, and ``events.jsonl`` is appended and flushed per event — a crash loses nothing already
 written.
 
-Layout (see ``docs/run-directory.md``)::
-
-    <run>/profile.toml  calibration.json  manifest.json  events.jsonl  report.json
-    <run>/frames/view_000.tif ...   (runs before frame_format "tiff-stack/1": view_000/*.png)
-    <run>/views/view_000.ply   <run>/cloud.ply   <run>/previews/*.png
+Every name in the run directory is :class:`~dotshell.run.layout.RunLayout`'s (see
+``docs/run-directory.md``).
 """
 
 from __future__ import annotations
@@ -19,9 +16,10 @@ import os
 import platform
 import re
 import secrets
+import tomllib
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import cv2
 import numpy as np
@@ -30,6 +28,8 @@ import tomli_w
 from dotshell.errors import RunError
 from dotshell.run.framecheck import FrameSpec
 from dotshell.run.frames import CURRENT_FORMAT, FrameStore, check_image, open_frames
+from dotshell.run.lost import check_lost_entry
+from dotshell.run.layout import RunLayout
 
 RUN_FORMAT = "dotshell-run/1"
 
@@ -37,7 +37,7 @@ RUN_FORMAT = "dotshell-run/1"
 TMP_SUFFIX = ".tmp"
 #: A run's reserve: space held back so the manifest can still be written when the disk fills
 #: up (deleted by the first manifest write that meets a full disk, and at the end of each job).
-RESERVE = ".reserve"
+RESERVE = RunLayout.RESERVE
 RESERVE_BYTES = 256 * 1024
 FULL = (errno.ENOSPC, errno.EDQUOT)
 
@@ -113,7 +113,7 @@ def versions() -> dict[str, str]:
 
 
 _MANIFEST_KEYS = {"status": str, "frame_names": list, "views": list}
-_VIEW_KEYS = {"index": int, "angle_deg": (int, float), "frames": int, "complete": bool}
+_VIEW_KEYS: dict[str, type | tuple[type, ...]] = {"index": int, "angle_deg": (int, float), "frames": int, "complete": bool}
 
 
 def _number(v: Any, integer: bool = False) -> bool:
@@ -141,12 +141,15 @@ def check_manifest(m: Any, path: Path) -> dict[str, Any]:
     for i, v in enumerate(m["views"]):
         if not isinstance(v, dict):
             raise bad(f"views[{i}] is not an object")
-        for key, kind in _VIEW_KEYS.items():
+        for key, kinds in _VIEW_KEYS.items():
             val = v.get(key)
-            if not isinstance(val, kind) or (key != "complete" and isinstance(val, bool)):
+            if not isinstance(val, kinds) or (key != "complete" and isinstance(val, bool)):
                 raise bad(f"views[{i}].{key} is missing or of the wrong type")
         if not math.isfinite(v["angle_deg"]) or v["index"] != i:
             raise bad(f"views[{i}] has index {v['index']} / angle {v['angle_deg']}")
+        lost_problem = check_lost_entry(v.get("lost"))
+        if lost_problem is not None:
+            raise bad(f"views[{i}].{lost_problem}")
         if "angle_read_deg" in v and not _number(v["angle_read_deg"]):
             raise bad(f"views[{i}].angle_read_deg = {v['angle_read_deg']!r} is not a finite "
                       "number of degrees")
@@ -228,7 +231,7 @@ class RunStore:
     # ---- creation ---------------------------------------------------------------------------
 
     @classmethod
-    def create(cls, parent: Path, profile_name: str) -> "RunStore":
+    def create(cls, parent: Path, profile_name: str) -> RunStore:
         """A new, empty run directory ``<parent>/<YYYYmmdd-HHMMSS>_<profile>``."""
         safe = re.sub(r"[^A-Za-z0-9_.-]+", "-", profile_name) or "run"
         stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
@@ -247,10 +250,10 @@ class RunStore:
         raise RunError(f"cannot create a run directory under {parent}: too many runs this second.")
 
     @classmethod
-    def open(cls, root: Path) -> "RunStore":
+    def open(cls, root: Path) -> RunStore:
         """An existing run; raises :class:`RunError` if it is not one."""
         root = Path(root)
-        if not (root / "manifest.json").is_file():
+        if not (root / RunLayout.MANIFEST).is_file():
             raise RunError(f"{root} is not a dotshell run directory (no manifest.json). Give the "
                            "directory `dotshell scan` printed at the end of a scan.")
         return cls(root)
@@ -314,17 +317,30 @@ class RunStore:
         return True
 
     def read_json(self, name: str) -> Any:
+        return self._parse(name, json.loads, json.JSONDecodeError, "is missing from the run.",
+                           "is not valid JSON ({exc}); it is written by dotshell only: restore "
+                           "it from a backup.")
+
+    def read_profile(self) -> dict[str, Any]:
+        """The run's ``profile.toml`` as recorded (validated and defaults filled in when it was
+        written), parsed; RunError naming the file when it is missing or damaged."""
+        return self._parse(RunLayout.PROFILE, tomllib.loads, tomllib.TOMLDecodeError,
+                           "is missing; this run cannot be re-processed.",
+                           "is damaged ({exc}); it is written by dotshell only — restore it "
+                           "from a backup or copy the profile the run was made with.")
+
+    def _parse(self, name: str, parse: Callable[[str], Any], error: type[Exception],
+               missing: str, damaged: str) -> Any:
         p = self.path(name)
         try:
-            return json.loads(p.read_text())
+            return parse(p.read_text())
         except FileNotFoundError:
-            raise RunError(f"{p} is missing from the run.") from None
-        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
-            raise RunError(f"{p} is not valid JSON ({exc}); it is written by dotshell only: "
-                           "restore it from a backup.") from None
+            raise RunError(f"{p} {missing}") from None
+        except (error, UnicodeDecodeError, RecursionError) as exc:
+            raise RunError(f"{p} {damaged.format(exc=exc)}") from None
 
     def write_profile(self, data: dict[str, Any]) -> Path:
-        p = self.path("profile.toml")
+        p = self.path(RunLayout.PROFILE)
         atomic_write_bytes(p, tomli_w.dumps(data).encode())
         return p
 
@@ -332,7 +348,7 @@ class RunStore:
 
     def init_manifest(self, profile_name: str, angles_deg: list[float],
                       frame_names: list[str]) -> None:
-        self.write_json("manifest.json", {
+        self.write_json(RunLayout.MANIFEST, {
             "format": RUN_FORMAT,
             "profile": profile_name,
             "created": datetime.now().isoformat(timespec="seconds"),
@@ -346,7 +362,7 @@ class RunStore:
 
     @property
     def manifest(self) -> dict[str, Any]:
-        return check_manifest(self.read_json("manifest.json"), self.path("manifest.json"))
+        return check_manifest(self.read_json(RunLayout.MANIFEST), self.path(RunLayout.MANIFEST))
 
     def status(self) -> tuple[str, str]:
         """(status, reason) as it truly is (a ``running`` run whose process is gone is
@@ -358,23 +374,25 @@ class RunStore:
     def update_manifest(self, **changes: Any) -> None:
         m = self.manifest
         m.update(changes)
-        self.write_json("manifest.json", m)
+        self.write_json(RunLayout.MANIFEST, m)
 
     def update_report(self, timings_s: dict[str, float] | None = None,
                       **sections: Any) -> dict[str, Any]:
         """Set ``sections`` of ``report.json`` (made if missing) and merge ``timings_s`` (s) into
         its timings, for a stage re-run on an existing run; returns the report."""
-        report = self.read_json("report.json") if self.path("report.json").is_file() else {}
+        report = self.read_json(RunLayout.REPORT) if self.path(RunLayout.REPORT).is_file() else {}
         report.update(sections)
         if timings_s:
             report.setdefault("timings_s", {}).update(timings_s)
-        self.write_json("report.json", report)
+        self.write_json(RunLayout.REPORT, report)
         return report
 
     def mark_view(self, view: int, frames: int, complete: bool) -> None:
         m = self.manifest
         m["views"][view].update(frames=frames, complete=complete)
-        self.write_json("manifest.json", m)
+        if complete:  # captured whole again (`resume --view N`): no longer lost
+            m["views"][view].pop("lost", None)
+        self.write_json(RunLayout.MANIFEST, m)
 
     # ---- frames -----------------------------------------------------------------------------
 
@@ -411,9 +429,7 @@ class RunStore:
     def trans_path(self, name: str, view: int | None = None) -> Path:
         """Path of a trans-illumination image: ``transillumination/view_VVV/NAME.png`` for a
         view's frames, ``transillumination/NAME.png`` for the flat field."""
-        if view is None:
-            return self.path("transillumination", f"{name}.png")
-        return self.path("transillumination", f"view_{view:03d}", f"{name}.png")
+        return self.path(RunLayout.trans_frame(name, view))
 
     def read_frames(self, view: int, spec: FrameSpec | None = None, fix: str = "",
                     out: np.ndarray | None = None) -> np.ndarray:
@@ -432,7 +448,7 @@ class RunStore:
             return
         try:
             if self._events is None:
-                self._events = open(self.path("events.jsonl"), "a+b")
+                self._events = open(self.path(RunLayout.EVENTS), "a+b")  # noqa: SIM115 (held open)
                 if self._events.tell() > 0:
                     self._events.seek(-1, os.SEEK_END)
                     if self._events.read(1) != b"\n":
@@ -443,7 +459,7 @@ class RunStore:
         except OSError as exc:
             self.close()
             self._events = False
-            raise RunError(f"{self.path('events.jsonl')} cannot be appended ({exc.strerror}); "
+            raise RunError(f"{self.path(RunLayout.EVENTS)} cannot be appended ({exc.strerror}); "
                            "the run's event log misses the events from here on (the manifest "
                            "and frames are still written).") from None
 
@@ -458,7 +474,7 @@ class RunStore:
     def events(self) -> list[dict[str, Any]]:
         """The event log's records; a line that is not a JSON object (cut short by a killed
         writer, or damaged) is skipped."""
-        p = self.path("events.jsonl")
+        p = self.path(RunLayout.EVENTS)
         if not p.is_file():
             return []
         out = []

@@ -12,6 +12,7 @@ frame was written) yields the pages that are complete.
 
 from __future__ import annotations
 
+import io
 import struct
 from dataclasses import dataclass
 from typing import BinaryIO
@@ -127,7 +128,7 @@ def _page(tags: dict[int, tuple | bytes], index: int, order: str) -> Page:
                             "single-channel image")
     offsets, counts = tags.get(_STRIP_OFFSETS, ()), tags.get(_STRIP_BYTES, ())
     shape = (one(_HEIGHT), one(_WIDTH))
-    dtype = np.dtype(np.uint8 if bits == 8 else np.uint16).newbyteorder(order)
+    dtype = np.dtype(np.uint8 if bits == 8 else np.uint16).newbyteorder("<" if order == "<" else ">")
     if len(offsets) != len(counts) or sum(counts) != shape[0] * shape[1] * dtype.itemsize:
         raise TiffPageError(f"page {index}: its strips do not hold a {shape[1]}x{shape[0]} "
                             f"{bits}-bit image")
@@ -136,10 +137,10 @@ def _page(tags: dict[int, tuple | bytes], index: int, order: str) -> Page:
     return Page(description, shape, dtype, tuple(zip(offsets, counts)))
 
 
-def read_into(f: BinaryIO, page: Page, out: np.ndarray) -> None:
+def read_into(f: io.RawIOBase, page: Page, out: np.ndarray) -> None:
     """Read ``page``'s pixels into ``out`` (C-contiguous, ``page.shape``, native uint8/16,
     byte-swapped from a file of the other byte order)."""
-    view = memoryview(out.reshape(-1).view(np.uint8))
+    view = out.reshape(-1).view(np.uint8).data
     at = 0
     for offset, count in page.strips:
         f.seek(offset)

@@ -33,7 +33,7 @@ from collections.abc import Iterator
 try:
     import fcntl
 except ImportError:  # not POSIX: numba's cache as it is
-    fcntl = None
+    fcntl = None  # type: ignore[assignment]  # mypy's idiom for a module that may be missing
 
 #: the lock file made in each cache directory
 LOCK_NAME = "numba-cache.lock"
@@ -74,5 +74,6 @@ def install() -> None:
         with cache_lock(self._cache_path, exclusive=False):
             return load(self, key)
 
-    IndexDataCacheFile.save, IndexDataCacheFile.load = locked_save, locked_load
-    IndexDataCacheFile.dotshell_locked = True
+    # a deliberate patch of numba's class (methods wrapped in the cache lock)
+    IndexDataCacheFile.save, IndexDataCacheFile.load = locked_save, locked_load  # type: ignore[method-assign]
+    setattr(IndexDataCacheFile, "dotshell_locked", True)  # noqa: B010 (a mark numba does not declare)

@@ -11,7 +11,6 @@ a server started without a profile is ``default``.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import re
 import socket
@@ -114,6 +113,8 @@ def server_name(profile: str | Path | None) -> str:
 
     p = resolve("profiles", profile).resolve()  # a bare name may be a shipped profile
     stem = re.sub(r"[^A-Za-z0-9_.-]", "_", p.stem)[:40]
+    import hashlib  # at first use: 9 ms of every start-up
+
     return f"{stem}-{hashlib.sha1(str(p).encode()).hexdigest()[:8]}"
 
 
@@ -148,9 +149,9 @@ def alive(path: Path) -> bool:
 
 
 def running_servers() -> list[Path]:
-    """Sockets of the servers that hold their lock (:mod:`dotshell.rig.owners`: found even while
-    momentarily unresponsive) or answer, sorted by name."""
-    from dotshell.rig.owners import held_servers
+    """Sockets of the servers that hold their lock (:mod:`dotshell.runtime.locks`: found even
+    while momentarily unresponsive) or answer, sorted by name."""
+    from dotshell.runtime.locks import held_servers
 
     d = runtime_dir()
     held = {sock for sock, _ in held_servers(d)}

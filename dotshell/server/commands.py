@@ -46,10 +46,11 @@ def profile_summary(session: Session) -> dict[str, Any] | None:
 
     return {"name": p.name, "source": str(p.source), "device_ids": profile_device_ids(p),
             "path": str(session.profile_path.resolve()) if session.profile_path else None,
-            "views": len(p.angles_deg()), "exposure_ms": p.data["scan"]["exposure_ms"],
-            "pdi": p.data["scan"]["pdi"], "pdi_angles_deg": list(p.data["scan"]["pdi_angles_deg"]),
-            "coding": p.role("coding")["backend"],
-            "roles": {r: p.role(r)["backend"] for r in DEVICE_ROLES if p.role(r) is not None}}
+            "views": len(p.angles_deg()), "exposure_ms": p.scan.exposure_ms,
+            "pdi": p.scan.pdi, "pdi_angles_deg": list(p.scan.pdi_angles_deg),
+            "coding": p.required_role("coding")["backend"],
+            "roles": {r: p.required_role(r)["backend"] for r in DEVICE_ROLES
+                      if p.role(r) is not None}}
 
 
 def _load(ctx: Context, args: dict[str, Any]) -> Any:
@@ -124,7 +125,7 @@ def _plugins(ctx: Context, args: dict[str, Any]) -> Any:
     from dotshell.backends import ROLES
 
     pm = ctx.session.pm
-    rows = [[role, name, info.plugin, info.distribution, info.backend.summary]
+    rows = [[role, name, info.plugin, info.distribution, info.summary]
             for role in ROLES for name, info in sorted(pm.backends(role).items())]
     return {"backends": rows, "errors": [str(e) for e in pm.load_errors]}
 

@@ -80,7 +80,7 @@ class _ThreadRouter(io.TextIOBase):
             self.fallback.write(text)
         return len(text)
 
-    def readline(self, size: int | None = -1) -> str:
+    def readline(self, size: int | None = -1) -> str:  # type: ignore[override]  # typeshed: IOBase's bytes
         if self._mine() and self.source is not None:
             return self.source()
         return self.fallback.readline() if self.fallback is not None else ""

@@ -45,7 +45,7 @@ def _profile_socket(profile: str | Path) -> Path:
     """The socket of ``profile``'s server from any directory: its own name if that server
     runs, else the running server of the same file (device and inode) or, where no such file
     is, of the same profile name; else where its server would listen."""
-    from dotshell.rig.owners import holder, server_lock_path, servers_of_profile
+    from dotshell.runtime.locks import holder, server_lock_path, servers_of_profile
 
     own = socket_path(server_name(profile))
     if holder(server_lock_path(own)) is not None:

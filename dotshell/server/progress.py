@@ -132,7 +132,7 @@ class ScanTracker:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "ScanTracker":
+    def from_dict(cls, data: dict[str, Any]) -> ScanTracker:
         names = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in names})
 

@@ -131,7 +131,8 @@ def raise_remote(reply: dict[str, Any]) -> None:
 def _subclasses(base: type) -> dict[str, type]:
     """Every class below ``base`` imported so far, by name (the first one of a name wins)."""
     found: dict[str, type] = {base.__name__: base}
-    todo = [base]
+    todo: list[type] = [base]
+    sub: type
     while todo:
         for sub in todo.pop().__subclasses__():
             found.setdefault(sub.__name__, sub)

@@ -69,7 +69,7 @@ def _peer(sock: socket.socket) -> tuple[int, int]:
 class Connection:
     """One attached client."""
 
-    def __init__(self, server: "RigServer", sock: socket.socket, cid: int, pid: int) -> None:
+    def __init__(self, server: RigServer, sock: socket.socket, cid: int, pid: int) -> None:
         self.server = server
         self.sock = sock
         self.id = cid
@@ -237,7 +237,7 @@ class RigServer:
         self.clients: list[Connection] = []
         self.controller: Connection | None = None
         self.worker = session if isinstance(session, WorkerSession) else None
-        self.console: Any = (self.worker.console if self.worker is not None
+        self.console: Any = (session.console if isinstance(session, WorkerSession)
                              else ServerConsole(session, self.broadcast, history_file))
         self.context = Context(session, self.console)  # type: ignore[arg-type]
         self._clients_lock = threading.RLock()
@@ -285,8 +285,8 @@ class RigServer:
     def _claim(self, path: Path) -> None:
         """Hold the server lock of ``path`` (one server per socket, so per profile, even while
         a server is momentarily unresponsive); refused naming the holder."""
-        from dotshell.rig.owners import (OwnerLock, describe, held_devices, profile_device_ids,
-                                     profile_identity, server_lock_path)
+        from dotshell.rig.owners import held_devices, profile_device_ids
+        from dotshell.runtime.locks import OwnerLock, describe, profile_identity, server_lock_path
 
         profile = self.session.profile
         self._owner = OwnerLock(server_lock_path(path))
@@ -566,7 +566,7 @@ class RigServer:
                            "version": __version__, "protocol": PROTOCOL_VERSION,
                            "on_hangup": self.on_hangup, "exit_when_idle": self.exit_when_idle,
                            "stopping": self._stopping.is_set()},
-                "profile": self.worker.summary if self.worker else profile_summary(s),
+                "profile": s.summary if isinstance(s, WorkerSession) else profile_summary(s),
                 "out_dir": str(s.out_dir.resolve()),
                 "session": s.state, "connected": s.connected, "projected": s.projected,
                 "run": {"dir": str(run.root), "status": run.status} if run else None,
@@ -602,8 +602,11 @@ class RigServer:
             self.push_state()
         if isinstance(ev, ScanFinished) and self.session.job is not None:
             job = self.session.job  # the session turns idle once scan() has returned
-            threading.Thread(target=lambda: (job.thread.join(), self.push_state()),
-                             daemon=True).start()
+            def after_scan() -> None:
+                job.thread.join()
+                self.push_state()
+
+            threading.Thread(target=after_scan, daemon=True).start()
 
     def _on_worker_change(self) -> None:
         """The worker's mirror (or its health) changed: clients see it at once."""
@@ -654,7 +657,7 @@ class RigServer:
         with self._log_lock:
             self._close_run_log()
             try:
-                self._run_log = open(run_dir / "server.log", "a", encoding="utf-8", buffering=1)
+                self._run_log = open(run_dir / "server.log", "a", encoding="utf-8", buffering=1)  # noqa: SIM115
             except OSError as exc:
                 self._run_log = None
                 self.log(f"cannot write {run_dir / 'server.log'}: {exc}", "warning")

@@ -35,6 +35,7 @@ from dotshell.session.console import Run
 from dotshell.errors import DotshellError
 from dotshell.events import EventBus, Message, ScanFinished, ScanStarted
 from dotshell.server.callboard import CallBoard
+from dotshell.run.layout import RunLayout
 from dotshell.server.protocol import (ServerError, decode, encode, event_from_wire, raise_remote,
                                       read_lines)
 
@@ -63,7 +64,7 @@ class _Pending:
 class WorkerConsole:
     """What the server reads of the console that runs in the worker."""
 
-    def __init__(self, owner: "WorkerSession") -> None:
+    def __init__(self, owner: WorkerSession) -> None:
         from dotshell.server.repl import Transcript
 
         self._owner = owner
@@ -514,7 +515,7 @@ def mark_run_aborted(run_dir: Path, reason: str) -> tuple[str, dict[str, Any]]:
             v["frames"] = n
             total += n
         m.update(status="aborted", reason=reason)
-        store.write_json("manifest.json", m)
+        store.write_json(RunLayout.MANIFEST, m)
         finished = ScanFinished(status="aborted", run_dir=str(run_dir),
                                 summary={"frames": total}, reason=reason)
         store.append_event(finished.to_dict())

@@ -107,8 +107,11 @@ class SessionWorker:
         self.send({"type": "event", "event": ev.to_dict()})
         job = self.session.job
         if isinstance(ev, ScanFinished) and job is not None:  # idle (and its run set) once
-            threading.Thread(target=lambda: (job.thread.join(), self.push_mirror()),  # scan()
-                             daemon=True, name="dotshell-scan-end").start()  # has returned
+            def after_scan() -> None:  # scan() has returned
+                job.thread.join()
+                self.push_mirror()
+
+            threading.Thread(target=after_scan, daemon=True, name="dotshell-scan-end").start()
 
     # ---- requests -------------------------------------------------------------------------------
 

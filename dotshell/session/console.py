@@ -29,10 +29,11 @@ import types
 import weakref
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Literal, Sequence, overload
 
 from dotshell.errors import DeviceError, DotshellError, ProfileError, RunError
 from dotshell.events import Event, EventBus, ScanFinished, ScanStarted, ViewCaptured
+from dotshell.run.layout import RunLayout
 
 if TYPE_CHECKING:
     import numpy as np
@@ -62,9 +63,6 @@ class PreviewSaved(Event):
     stats: dict[str, Any] = field(default_factory=dict)
 
 
-#: The run's folder for what a session shows while a scan runs (``latest_frame.png``): part
-#: of the capture, not of a generation.
-LIVE_DIR = "live"
 #: The lowest level of the session's log lines a console or script shows while it runs
 #: (``debug`` adds a line per frame; ``off`` shows none); :meth:`Session.log_level`.
 LOG_LEVEL = "info"
@@ -73,7 +71,7 @@ LOG_LEVELS = ("debug", "info", "warning", "error", "off")
 HISTOGRAM_BINS = 32
 
 
-def frame_stats(frame: "np.ndarray", bit_depth: int | None = None) -> dict[str, Any]:
+def frame_stats(frame: np.ndarray, bit_depth: int | None = None) -> dict[str, Any]:
     """What a person checks on a raw frame: its size, minimum, maximum and mean (DN), the share
     of saturated pixels (at full scale, ``2**bit_depth - 1``; the dtype's maximum when the bit
     depth is unknown), in percent, and a histogram over 0..full scale (counts)."""
@@ -126,11 +124,11 @@ class Run:
 
     @property
     def manifest(self) -> dict[str, Any]:
-        return self._json("manifest.json")
+        return self._json(RunLayout.MANIFEST)
 
     @property
     def report(self) -> dict[str, Any]:
-        return self._json("report.json")
+        return self._json(RunLayout.REPORT)
 
     @property
     def status(self) -> str:
@@ -142,7 +140,7 @@ class Run:
         """The run's status as it truly is, and why when it is not ``completed``."""
         from dotshell.run.store import RunStore
 
-        if not (self.root / "manifest.json").is_file():
+        if not (self.root / RunLayout.MANIFEST).is_file():
             return "unknown", f"{self.root} has no manifest.json"
         try:
             return RunStore(self.root).status()
@@ -168,7 +166,7 @@ class Run:
         """The merged cloud, (N, 3) float in mm (sample/stage frame)."""
         from dotshell.run.ply import read_ply
 
-        p = self.root / "cloud.ply"
+        p = self.root / RunLayout.CLOUD
         if not p.is_file():
             raise RunError(f"{p} does not exist (status {self.status}); only completed or "
                            "re-processed runs have a merged cloud.")
@@ -474,7 +472,7 @@ class Session:
             self._require_idle("set the exposure")
             cam = self.rig.devices.get("camera") if "camera" in self.rig.connected else None  # type: ignore[union-attr]
             if cam is not None and not isinstance(cam, ExposureControl):
-                raise DeviceError(f"the camera ({prof.role('camera')['backend']}) has no "
+                raise DeviceError(f"the camera ({prof.required_role('camera')['backend']}) has no "
                                   "exposure control.")
             # the value is checked as a profile key first: a refused one never reaches the camera
             self._retune([f"scan.exposure_ms={float(ms)!r}"],
@@ -551,7 +549,7 @@ class Session:
             proj = self._device("projector", "project a pattern")
             pats = self._coding_patterns()
             if name not in pats:
-                raise DeviceError(f"no pattern {name!r} in the {self.profile.role('coding')['backend']} "  # type: ignore[union-attr]
+                raise DeviceError(f"no pattern {name!r} in the {self.profile.required_role('coding')['backend']} "  # type: ignore[union-attr]
                                   f"coding; choose one of {', '.join(pats)}.")
             proj.show(pats[name])
             self.projected = name
@@ -599,10 +597,10 @@ class Session:
             proj = self._device("projector", "decode")
             pats = self._coding_patterns()
             frames = []
-            for name, image in pats.items():
+            for image in pats.values():
                 proj.show(image)
                 frames.append(cam.capture())
-            self.projected = name
+            self.projected = list(pats)[-1]
         corr = self._coding.decode(frames, proj.resolution)
         d = self._snapshot_dir()
         path = column_map_preview(corr.column, corr.valid, proj.resolution[0],
@@ -614,6 +612,14 @@ class Session:
         return result
 
     # ---- scans ----------------------------------------------------------------------------------
+
+    @overload
+    def scan(self, wait: Literal[True] = ..., out: Path | str | None = None,
+             calibration: Path | str | None = None) -> Run: ...
+
+    @overload
+    def scan(self, wait: Literal[False], out: Path | str | None = None,
+             calibration: Path | str | None = None) -> ScanJob: ...
 
     def scan(self, wait: bool = True, out: Path | str | None = None,
              calibration: Path | str | None = None) -> Run | ScanJob:
@@ -651,14 +657,14 @@ class Session:
                 self._state = "idle"
             self._refresh_namespaces()
         run = self.run = Run(result.run_dir)
-        products = run.root / "current"  # the published generation the report belongs to
+        products = run.root / RunLayout.CURRENT  # the published generation the report belongs to
         base = products.resolve() if products.is_symlink() else run.root
         for kind, rel in (result.report.get("previews") or {}).items():
             self.bus.emit(PreviewSaved(kind=kind, path=str(base / rel)))
         self._refresh_namespaces()
         return run
 
-    def normalize(self, run: "Run | str | Path | None" = None,
+    def normalize(self, run: Run | str | Path | None = None,
                   normalizer: str | None = None) -> dict[str, Any]:
         """Normalize a run's trans-illumination frames on its surface (default: the session's
         last run) and return the report section (docs/transillumination.md)."""
@@ -722,8 +728,8 @@ class Session:
                 frame = store.frames(ev.view).read_one(0)
             except RunError:
                 return
-            store.path(LIVE_DIR).mkdir(exist_ok=True)
-            path = frame_preview(frame, store.path(LIVE_DIR, "latest_frame.png"))
+            store.path(RunLayout.LIVE).mkdir(exist_ok=True)
+            path = frame_preview(frame, store.path(RunLayout.LATEST_FRAME))
             bits = getattr(self.rig.camera, "bit_depth", None) if self.rig else None
             self.bus.emit(PreviewSaved(kind="frame", path=str(path), view=ev.view,
                                        stats=frame_stats(frame, bits)))
@@ -738,7 +744,7 @@ class Session:
         if self.rig is not None and self.rig.connected and not self.scanning:
             self.rig.close()
 
-    def __enter__(self) -> "Session":
+    def __enter__(self) -> Session:
         return self
 
     def __exit__(self, *exc: Any) -> None:
@@ -795,14 +801,14 @@ def readable_repr(value: Any) -> str:
     from dotshell.rig.assembly import Rig
 
     if isinstance(value, Rig):
-        devices = ", ".join(f"{role} {value.profile.role(role)['backend']}"
+        devices = ", ".join(f"{role} {value.profile.required_role(role)['backend']}"
                             + ("" if role in value.connected else " (closed)")
                             for role in value.devices)
         return f"<Rig of {value.profile.name}: {devices or 'no devices'}>"
     if isinstance(value, Profile):
-        scan = value.data["scan"]
         return (f"<Profile {value.name} from {value.source}: {len(value.angles_deg())} views, "
-                f"exposure {scan['exposure_ms']:g} ms, coding {value.role('coding')['backend']}>")
+                f"exposure {value.scan.exposure_ms:g} ms, "
+                f"coding {value.required_role('coding')['backend']}>")
     return repr(value)
 
 

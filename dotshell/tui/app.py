@@ -289,7 +289,7 @@ class DotshellApp(App):
     # ---- requests -----------------------------------------------------------------------------
 
     def run_session_action(self, label: str, fn: Callable[..., Any], *args: Any,
-                           reply_to: Any = None, then: Callable[[Any], None] | None = None) -> None:
+                           reply_to: Any = None, then: Callable[[Any], object] | None = None) -> None:
         """Run ``fn(*args)`` (a request to the server) in a worker thread. Its outcome is posted
         as :class:`ActionDone` to ``reply_to`` (a widget); ``then(result)`` runs on the UI thread
         after a success; errors are logged."""
@@ -393,8 +393,8 @@ class DotshellApp(App):
             ("Disconnect the rig", "close every device", rig.action_disconnect),
             ("Start scan", "scan with the loaded profile (Scan: s)", scan.action_start),
             ("Pause or resume the scan", "between frames (Scan: p)", scan.action_pause),
-            ("Stop motion", "pause a scan before its next frame, else stop every moving "
-             "device; never aborts (esc)", self.action_stop),
+            ("Stop motion", ("pause a scan before its next frame, else stop every moving "
+                             "device; never aborts (esc)"), self.action_stop),
             ("Go to stage angle", "absolute, degrees (Rig: g)", rig.action_goto),
             ("Home the stage", "find its reference position (Rig: h)", rig.action_home),
             ("Jog stage +", "by the jog step (Rig: ])", lambda: rig.action_jog(1)),

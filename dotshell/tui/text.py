@@ -27,9 +27,8 @@ def describe_status(role: str, status: dict[str, Any], projected: str | None = N
     shown = {"angle_deg", "exposure_ms", "on", "connected", "simulated"}
     for key, value in ([] if compact else status.items()):
         if key not in shown:
-            if isinstance(value, (list, tuple)):
-                value = "×".join(map(str, value))
-            parts.append(f"{key.replace('_', ' ')} {value}")
+            text = "×".join(map(str, value)) if isinstance(value, (list, tuple)) else value
+            parts.append(f"{key.replace('_', ' ')} {text}")
     return " · ".join(parts)
 
 

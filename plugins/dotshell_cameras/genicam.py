@@ -36,6 +36,7 @@ import numpy as np
 from dotshell.devices import DeviceIdentity, FrameInfo
 from dotshell.errors import DeviceError, DeviceTimeout
 from dotshell.settings import Setting
+from dotshell_cameras.base import CameraBase
 
 SETTINGS_SCHEMA: dict[str, Setting] = {
     "cti": Setting("list[str]", [], "GenTL producer files (.cti); empty = every .cti in the "
@@ -77,27 +78,19 @@ def producer_files(cti: list[str], base_dir: str) -> list[str]:
     return found
 
 
-class GenICamCamera:
+class GenICamCamera(CameraBase):
     """Camera, ExposureControl, TriggeredCamera, FrameInfoSource and Identified."""
 
     def __init__(self, settings: dict[str, Any], base_dir: str = ".",
                  harvester_factory: Callable[[], Any] | None = None) -> None:
-        self.settings = settings
+        super().__init__(settings)
         self.base_dir = base_dir
         self.harvester_factory = harvester_factory
         self.harvester: Any = None
         self.ia: Any = None
-        self.size = (0, 0)
-        self.exposure_ms = float("nan")
         self.readout_ms = 0.0
-        self.refused: dict[str, str] = {}
         self.ident = DeviceIdentity()
-        self._info = FrameInfo(timestamp_s=float("nan"))
         self._armed: int | None = None
-
-    @property
-    def resolution(self) -> tuple[int, int]:
-        return self.size
 
     @property
     def bit_depth(self) -> int:
@@ -236,9 +229,6 @@ class GenICamCamera:
         self.nodes.TriggerSoftware.execute()
         image, self._info = self._fetch(self.settings["timeout_ms"] / 1000.0)
         return image
-
-    def last_frame_info(self) -> FrameInfo:
-        return self._info
 
     def min_trigger_period_ms(self, exposure_ms: float) -> float:
         """Exposure plus the sensor readout (no overlap assumed: safe for every camera)."""

@@ -35,6 +35,7 @@ import numpy as np
 from dotshell.devices import DeviceIdentity, FrameInfo
 from dotshell.errors import DeviceError, DeviceLostError, DeviceTimeout
 from dotshell.settings import Setting
+from dotshell_cameras.base import CameraBase
 
 APIS = {"auto": cv2.CAP_ANY, "v4l2": cv2.CAP_V4L2, "ffmpeg": cv2.CAP_FFMPEG,
         "gstreamer": cv2.CAP_GSTREAMER, "images": cv2.CAP_IMAGES, "dshow": cv2.CAP_DSHOW,
@@ -76,13 +77,13 @@ def _is_file_source(source: str, api: str) -> bool:
         not source.isdigit() and not source.startswith("/dev/"))
 
 
-class OpenCVCamera:
+class OpenCVCamera(CameraBase):
     """Camera, ExposureControl, FrameInfoSource and Identified over ``cv2.VideoCapture``.
 
     ``opener(source, api, params) -> VideoCapture-like`` is for tests of the control logic."""
 
     def __init__(self, settings: dict[str, Any], base_dir: str = ".", opener=None) -> None:
-        self.settings = settings
+        super().__init__(settings, (settings["width"], settings["height"]))
         src = settings["source"]
         self.is_file = _is_file_source(src, settings["api"])
         if self.is_file and "://" not in src and not Path(src).is_absolute():
@@ -91,23 +92,11 @@ class OpenCVCamera:
         self.opener = opener or (lambda s, api, params: cv2.VideoCapture(
             int(s) if s.isdigit() else s, api, params))
         self.cap: Any = None
-        self.size = (settings["width"], settings["height"])
-        self.exposure_ms = float("nan")
-        self.refused: dict[str, str] = {}
         self.frames = 0
-        self._info = FrameInfo(timestamp_s=float("nan"))
         self._pool: ThreadPoolExecutor | None = None
         self._stuck = False
 
     # ---- Device ------------------------------------------------------------------------------
-
-    @property
-    def resolution(self) -> tuple[int, int]:
-        return self.size
-
-    @property
-    def bit_depth(self) -> int:
-        return self.settings["bit_depth"]
 
     @property
     def api_name(self) -> str:
@@ -260,7 +249,3 @@ class OpenCVCamera:
             raise DeviceError(f"opencv camera: frames are {f.dtype}; set bit_depth to the "
                               "source's bits (e.g. 16 for Y16).")
         return np.ascontiguousarray(f)
-
-    def last_frame_info(self) -> FrameInfo:
-        return self._info
-

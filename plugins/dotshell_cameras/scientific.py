@@ -28,6 +28,7 @@ import numpy as np
 from dotshell.devices import DeviceIdentity, FrameInfo
 from dotshell.errors import DeviceError, DeviceTimeout
 from dotshell.settings import Setting
+from dotshell_cameras.base import CameraBase
 
 #: model → (pylablib module, class)
 MODELS = {
@@ -64,29 +65,17 @@ def _pylablib_class(model: str) -> Callable[..., Any]:
                           "install 'dotshell[pylablib]' and the vendor SDK.") from None
 
 
-class ScientificCamera:
+class ScientificCamera(CameraBase):
     """Camera, ExposureControl, TriggeredCamera, FrameInfoSource and Identified over pylablib."""
 
     def __init__(self, settings: dict[str, Any],
                  camera_factory: Callable[[int], Any] | None = None) -> None:
-        self.settings = settings
+        super().__init__(settings)
         self.factory = camera_factory
         self.cam: Any = None
-        self.size = (0, 0)
-        self.exposure_ms = float("nan")
         self.frame_period_ms = 0.0
-        self.refused: dict[str, str] = {}
         self.ident = DeviceIdentity()
-        self._info = FrameInfo(timestamp_s=float("nan"))
         self._armed: int | None = None
-
-    @property
-    def resolution(self) -> tuple[int, int]:
-        return self.size
-
-    @property
-    def bit_depth(self) -> int:
-        return self.settings["bit_depth"]
 
     def _try(self, name: str, action: Callable[[], Any]) -> bool:
         try:
@@ -194,9 +183,6 @@ class ScientificCamera:
                                 f"{self.settings['timeout_ms']} ms.") from None
         self._info = self._frame_info(info)
         return np.asarray(frame, np.uint16)
-
-    def last_frame_info(self) -> FrameInfo:
-        return self._info
 
     def min_trigger_period_ms(self, exposure_ms: float) -> float:
         """The camera's frame period at the current exposure (from get_frame_timings), at

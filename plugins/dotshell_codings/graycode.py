@@ -342,7 +342,7 @@ class GrayCode:
                               valid=valid, stats=stats, reason=reason,
                               reason_names=("decoded", "shadow", poor, "out_of_range"))
 
-    def _with(self, **changes: Any) -> "GrayCode":
+    def _with(self, **changes: Any) -> GrayCode:
         """A copy of this coding with some attributes changed."""
         import copy
 
@@ -353,13 +353,16 @@ class GrayCode:
     def _decode_adaptive(self, frames: Sequence[np.ndarray],
                          projector_size: tuple[int, int]) -> Correspondence:
         """Robust where it decides; where it leaves a pixel uncertain, the contrast rule's code
-        when every bit but the weakest stands ``adaptive_sigmas`` noise sigmas beyond what
-        global light could do to it (``max(L_g − L_d, 0)``; the one weak bit is the stripe edge
-        the decoder tolerates anyway)."""
+        (every bit by its sign, no ``min_contrast``) when every bit but the weakest stands
+        ``adaptive_sigmas`` noise sigmas beyond what global light could do to it
+        (``max(L_g − L_d, 0)``; the one weak bit is the stripe edge the decoder tolerates
+        anyway)."""
         from dotshell_codings.robust import noise_model, second_weakest_sigmas
 
         robust = self._with(classification="robust").decode(frames, projector_size)
-        plain = self._with(classification="contrast").decode(frames,
+        # every bit by its sign: the noise-model test below is the guard (a fixed contrast
+        # share, min_contrast, rejected nearly every pixel robust leaves uncertain first)
+        plain = self._with(classification="contrast", min_contrast=0.0).decode(frames,
                                                                                projector_size)
         floor, gain = noise_model(frames)
         axes = self._axes(projector_size)
@@ -385,7 +388,7 @@ class GrayCode:
                               reason_names=robust.reason_names)
 
     def _decode_rows(self, stack: np.ndarray, axes: list[_Axis], rule: tuple,
-                     words: "ClassifiedBits | None") -> tuple:
+                     words: ClassifiedBits | None) -> tuple:
         """(valid, reason, per-row counts (H, 5), each axis's coordinates, refined counts)
         from one pass over the view (:func:`kernels.decode_rows`, bands of rows taken by the
         cores one at a time, joined in order afterwards); ``words``: the Gray words, when the projected
@@ -476,7 +479,7 @@ class GrayCode:
                 f32(self.min_contrast * (1.0 if self.inverse else 0.5)),
                 f32(1.0 - b), f32(2.0 / (1.0 - b * b)), f32(b))
 
-    def _classify(self, stack: np.ndarray, rule: tuple) -> "ClassifiedBits":
+    def _classify(self, stack: np.ndarray, rule: tuple) -> ClassifiedBits:
         """Every projected bit of every pixel decided in one pass over the frames
         (:func:`kernels.classify`; ``rule``: :meth:`_rule`)."""
         n_axes = len(rule[3])
@@ -504,7 +507,7 @@ class GrayCode:
         spacing in code steps)."""
         return None, _MAX_SUBPIXEL_SPAN
 
-    def _refine_axis(self, d: "AxisDecode", valid: np.ndarray, stack: np.ndarray,
+    def _refine_axis(self, d: AxisDecode, valid: np.ndarray, stack: np.ndarray,
                      rng: np.ndarray, coord: np.ndarray, ok: np.ndarray, flip: np.ndarray,
                      across: bool, done: bool) -> int:
         """Refine ``coord`` (one axis's coarse coordinates) in place to sub-pixel and set it NaN

@@ -23,10 +23,9 @@ from dotshell.fem.meshes import TetMesh
 from dotshell.fem.meshfiles import Optodes
 from dotshell.run.store import atomic_write_text
 
+from dotshell_dotio.optics import kappa_mm, node_optics
 
-def kappa_mm(mua_per_mm: np.ndarray, musp_per_mm: np.ndarray) -> np.ndarray:
-    """Diffusion coefficient κ = 1 / (3 (μa + μs')) in mm."""
-    return 1.0 / (3.0 * (np.asarray(mua_per_mm) + np.asarray(musp_per_mm)))
+__all__ = ["NirfastMesh", "kappa_mm", "read_nirfast", "write_nirfast"]
 
 
 def _rows(array: np.ndarray, fmt: str, sep: str) -> str:
@@ -37,18 +36,14 @@ def write_nirfast(directory: Path, stem: str, mesh: TetMesh, optodes: Optodes) -
     """Write ``stem.node/.elem/.param/.region`` (+ ``.source/.meas/.link`` with optodes)."""
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
-    n = len(mesh.nodes)
-    pd = mesh.point_data
-    mua = pd.get("mua_per_mm", np.full(n, 0.01))
-    musp = pd.get("musp_per_mm", np.full(n, 1.0))
-    ri = pd.get("refractive_index", np.full(n, 1.33))
-    region = pd.get("region", np.ones(n))
+    optics = node_optics(mesh)
     files = {
         "node": _rows(np.column_stack([mesh.boundary_nodes.astype(int), mesh.nodes]),
                       "%.10g", "\t"),
         "elem": _rows(mesh.tets + 1, "%d", "\t"),
-        "param": "stnd\n" + _rows(np.column_stack([mua, kappa_mm(mua, musp), ri]), "%.10g", " "),
-        "region": _rows(np.asarray(region, float)[:, None], "%d", "\t"),
+        "param": "stnd\n" + _rows(np.column_stack(
+            [optics.mua_per_mm, optics.kappa_mm, optics.refractive_index]), "%.10g", " "),
+        "region": _rows(np.asarray(optics.region, float)[:, None], "%d", "\t"),
     }
     if len(optodes.sources_mm):
         num = np.arange(1, len(optodes.sources_mm) + 1)

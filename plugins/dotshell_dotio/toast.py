@@ -38,33 +38,31 @@ from dotshell.fem.meshes import TetMesh
 from dotshell.fem.meshfiles import Optodes
 from dotshell.run.store import atomic_write_text
 
-from dotshell_dotio.nirfast import kappa_mm
+from dotshell_dotio.optics import node_optics
 
 
 def msh_text(mesh: TetMesh) -> str:
     n = len(mesh.nodes)
-    pd = mesh.point_data
-    mua = pd.get("mua_per_mm", np.full(n, 0.01))
-    musp = pd.get("musp_per_mm", np.full(n, 1.0))
-    ri = pd.get("refractive_index", np.full(n, 1.33))
-    region = np.asarray(pd.get("region", np.ones(n)), int) - 1
+    optics = node_optics(mesh)
+    region = np.asarray(optics.region, int) - 1
     flag = np.where(mesh.boundary_nodes, "B", "N")
     lines = ["MeshData 5.0", "", f"NodeList {n} 1"]
     lines += [f"{f}[{x:.10g} {y:.10g} {z:.10g}]R{r}"
               for f, (x, y, z), r in zip(flag, mesh.nodes, region)]
     lines += ["", f"ElementList {len(mesh.tets)}"]
-    lines += ["c %d %d %d %d" % tuple(t) for t in mesh.tets + 1]
+    lines += ["c " + " ".join(str(int(i)) for i in t) for t in mesh.tets + 1]
     lines += ["", "[ParameterList]N", f"Size {n}", "Param1 MUA", "Param2 KAPPA", "Param3 N",
               "Data"]
-    lines += [f"{a:.10g} {k:.10g} {r:.10g}" for a, k, r in zip(mua, kappa_mm(mua, musp), ri)]
+    lines += [f"{a:.10g} {k:.10g} {r:.10g}" for a, k, r in zip(
+        optics.mua_per_mm, optics.kappa_mm, optics.refractive_index)]
     return "\n".join(lines) + "\n"
 
 
 def qm_text(optodes: Optodes) -> str:
     lines = ["QM file 3D", "Dimension 3", "", f"SourceList {len(optodes.sources_mm)}"]
-    lines += ["%.10g %.10g %.10g" % tuple(p) for p in optodes.sources_mm]
+    lines += [" ".join(f"{v:.10g}" for v in p) for p in optodes.sources_mm]
     lines += ["", f"MeasurementList {len(optodes.detectors_mm)}"]
-    lines += ["%.10g %.10g %.10g" % tuple(p) for p in optodes.detectors_mm]
+    lines += [" ".join(f"{v:.10g}" for v in p) for p in optodes.detectors_mm]
     lines += ["", "LinkList"]
     for s in range(len(optodes.sources_mm)):
         dets = optodes.links[optodes.links[:, 0] == s, 1]

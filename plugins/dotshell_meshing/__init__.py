@@ -10,29 +10,22 @@ Registered under the ``dotshell`` entry-point group as ``meshing = "dotshell_mes
   element volume set by the node distance.
 
 Both implement the protocols of :mod:`dotshell.fem.meshes`; factories take ``(settings, context)``
-with ``context=None`` (no hardware).
+with ``context=None`` (no hardware). They are declared in ``dotshell.toml`` and built in
+:mod:`dotshell_meshing.backends`: this module imports no mesher.
 """
 
 from __future__ import annotations
 
 from dotshell import hookimpl
 from dotshell.backends import Backend
-
-from dotshell_meshing import surface, volume
+from dotshell.manifest import backends_of
 
 
 @hookimpl
 def dotshell_surface_meshers() -> list[Backend]:
-    return [Backend("open3d-poisson",
-                    lambda settings, context=None: surface.PoissonSurfaceMesher(settings),
-                    surface.SETTINGS,
-                    "cloud → closed surface: outliers, voxels, outward normals, Poisson, "
-                    "bottom closed at the plate, uniform remesh (pyacvd), repair (pymeshfix)")]
+    return backends_of(__name__, "surface_mesher")
 
 
 @hookimpl
 def dotshell_volume_meshers() -> list[Backend]:
-    return [Backend("tetgen", lambda settings, context=None: volume.TetgenVolumeMesher(settings),
-                    volume.SETTINGS,
-                    "closed surface → quality tetrahedra (TetGen), max volume from the node "
-                    "distance")]
+    return backends_of(__name__, "volume_mesher")

@@ -10,48 +10,19 @@ Backends (docs/hardware.md):
   sequences, exposure and period, TRIG_OUT_1 to the camera, status and error registers;
 * ``lightcrafter4500-sim``, ``framebuffer-sim`` — the same drivers with the simulator as their
   far end (an emulated controller, a file-backed framebuffer), for tests and benchmarks.
+
+The backends are declared in ``dotshell.toml`` and built in :mod:`dotshell_projectors.backends`:
+this module imports no driver.
 """
 
 from __future__ import annotations
 
-from typing import Any
-
 from dotshell import hookimpl
-from dotshell.backends import Backend, RigContext
-from dotshell_projectors.framebuffer import SETTINGS_SCHEMA as FRAMEBUFFER_SCHEMA
-from dotshell_projectors.framebuffer import FramebufferProjector
-from dotshell_projectors.lightcrafter import SETTINGS_SCHEMA as LIGHTCRAFTER_SCHEMA
-from dotshell_projectors.lightcrafter import LightCrafter4500
-from dotshell_projectors.window import SETTINGS_SCHEMA as WINDOW_SCHEMA
-from dotshell_projectors.window import WindowProjector
-
-
-def _framebuffer(settings: dict[str, Any], context: RigContext) -> FramebufferProjector:
-    return FramebufferProjector(settings)
-
-
-def _window(settings: dict[str, Any], context: RigContext) -> WindowProjector:
-    return WindowProjector(settings)
-
-
-def _lightcrafter(settings: dict[str, Any], context: RigContext) -> LightCrafter4500:
-    return LightCrafter4500(settings, context.base_dir if context else ".")
+from dotshell.backends import Backend
+from dotshell.manifest import backends_of
 
 
 @hookimpl
 def dotshell_projectors() -> list[Backend]:
-    out = [
-        Backend("framebuffer", _framebuffer, FRAMEBUFFER_SCHEMA,
-                "second screen through the Linux framebuffer /dev/fbN (sysfs geometry, mmap)"),
-        Backend("window", _window, WINDOW_SCHEMA,
-                "fullscreen window on a named screen with vsync (extra dotshell[window]: pyglet)"),
-        Backend("lightcrafter4500", _lightcrafter, LIGHTCRAFTER_SCHEMA,
-                "TI DLP LightCrafter 4500 (DLPC350) over USB HID: stored pattern sequences, "
-                "trigger out to the camera"),
-    ]
-    try:
-        from dotshell_projectors.simulated import backends
-    except ImportError:  # the simulator is not installed
-        return out
-    return out + [Backend(name, make, schema, summary)
-                  for name, make, schema, summary in backends()]
+    """All projectors, imported (when this package is registered as a plain pluggy plugin)."""
+    return backends_of(__name__, "projector")

@@ -115,7 +115,7 @@ class LightCrafter4500:
                 self.dev.detach_kernel_driver(0)
         except (NotImplementedError, usb.core.USBError):
             pass
-        self._usb(lambda: self.dev.set_configuration(), "configure the USB device")
+        self._usb(self.dev.set_configuration, "configure the USB device")
         self.serial = _serial(self.dev)
         app = struct.unpack_from("<I", self.read(C.GET_VERSION, 16))[0]
         self.firmware = f"{app >> 24}.{app >> 16 & 0xFF}.{app & 0xFFFF}"

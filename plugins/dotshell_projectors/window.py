@@ -49,10 +49,10 @@ def pick_screen(screens: list[Any], wanted: str) -> Any:
     if wanted.isdigit() and int(wanted) < len(screens):
         return screens[int(wanted)]
     for s in screens:
-        name = getattr(s, "get_device_name", lambda: str(s))()
+        name = getattr(s, "get_device_name", lambda s=s: str(s))()
         if wanted.lower() in str(name).lower():
             return s
-    names = ", ".join(f"{i}: {getattr(s, 'get_device_name', lambda: str(s))()} "
+    names = ", ".join(f"{i}: {getattr(s, 'get_device_name', lambda s=s: str(s))()} "
                       f"{s.width}x{s.height}" for i, s in enumerate(screens))
     raise DeviceError(f"window projector: no screen {wanted!r}; the screens are {names}.")
 

@@ -47,7 +47,7 @@ class MotionWatch:
     #: Least change of position that counts as progress (degrees).
     PROGRESS_DEG = 0.005
 
-    def __init__(self, device: "SerialDevice", what: str, log_progress: bool = False) -> None:
+    def __init__(self, device: SerialDevice, what: str, log_progress: bool = False) -> None:
         self.device, self.what, self.log_progress = device, what, log_progress
         now = time.monotonic()
         self.t_moved = self.t_logged = self.t0 = now

@@ -242,10 +242,10 @@ class GrblStage(SerialDevice):
     def _finish_stop(self) -> DeviceError:
         """After the feed hold: wait for Hold:0, reset to drop the rest of the motion."""
         deadline = time.monotonic() + 5.0
-        state, pos = self._status("a status report after the feed hold")
+        state, _ = self._status("a status report after the feed hold")
         while state not in ("Hold:0", "Idle", "Alarm") and time.monotonic() < deadline:
             time.sleep(0.02)
-            state, pos = self._status("a status report after the feed hold")
+            state, _ = self._status("a status report after the feed hold")
         self._reset()
         _, self._position = self._status("a status report after the reset")
         return self._stopped(self._position)

@@ -5,53 +5,45 @@ one rig share a world in ``context.shared["dotshell_sim"]``; the camera renders 
 casting (see :mod:`dotshell_sim.render`, :mod:`dotshell_sim.scene`). Defaults describe the
 reference bench of ``profiles/sim-metal-cylinder.toml``; :func:`dotshell_sim.bench.scale_profile`
 shrinks it for fast tests.
+
+Its backends are declared in ``dotshell.toml`` and built in :mod:`dotshell_sim.backends`: this
+module imports none of the simulator (the names below are imported on first access).
 """
 
 from __future__ import annotations
 
 from dotshell import hookimpl
 from dotshell.backends import Backend
-
-from dotshell_sim.devices import (
-    ANALYZER_SCHEMA, CAMERA_SCHEMA, LASER_SCHEMA, PROJECTOR_SCHEMA, TURNTABLE_SCHEMA, SimAnalyzer,
-    SimCamera, SimLaser, SimProjector, SimTurntable, SimWorld, make_analyzer, make_camera,
-    make_laser, make_projector, make_turntable, world_of)
-from dotshell_sim.faults import FAULTY_CAMERA_SCHEMA, make_faulty_camera
+from dotshell.manifest import backends_of, lazy_exports
 
 __all__ = ["SimAnalyzer", "SimCamera", "SimLaser", "SimProjector", "SimTurntable", "SimWorld",
            "world_of"]
+__getattr__ = lazy_exports(__name__, {name: f"devices:{name}" for name in __all__})
 
+
+# The hooks below serve when this package is registered as a plain pluggy plugin; the plugin
+# manager reads dotshell.toml instead and imports a backend only when it is used.
 
 @hookimpl
 def dotshell_cameras() -> list[Backend]:
-    return [Backend("sim-camera", make_camera, CAMERA_SCHEMA,
-                    "simulated camera: ray-cast scene, supersampling, defocus, shot/read noise, "
-                    "ADC; knows the ground-truth calibration"),
-            Backend("sim-camera-faulty", make_faulty_camera, FAULTY_CAMERA_SCHEMA,
-                    "the simulated camera with one frame fault (late, reset, duplicate) to "
-                    "prove frame-integrity checks")]
+    return backends_of(__name__, "camera")
 
 
 @hookimpl
 def dotshell_projectors() -> list[Backend]:
-    return [Backend("sim-projector", make_projector, PROJECTOR_SCHEMA,
-                    "simulated projector: pose by position/look-at, distortion, defocus")]
+    return backends_of(__name__, "projector")
 
 
 @hookimpl
 def dotshell_stages() -> list[Backend]:
-    return [Backend("sim-turntable", make_turntable, TURNTABLE_SCHEMA,
-                    "simulated turntable carrying the scene (cylinder, plate, background)")]
+    return backends_of(__name__, "stage")
 
 
 @hookimpl
 def dotshell_analyzers() -> list[Backend]:
-    return [Backend("sim-analyzer", make_analyzer, ANALYZER_SCHEMA,
-                    "simulated polarization analyzer (stores its angle; no optics yet)")]
+    return backends_of(__name__, "analyzer")
 
 
 @hookimpl
 def dotshell_light_sources() -> list[Backend]:
-    return [Backend("sim-laser", make_laser, LASER_SCHEMA,
-                    "simulated trans-illumination laser: diffusion FEM through the true sample, "
-                    "aimable beam, flat-field diffuser, true exit radiance")]
+    return backends_of(__name__, "light_source")

@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 from dotshell.backends import RigContext
-from dotshell.devices import FrameInfo, SequencePattern
+from dotshell.devices import FrameInfo, SequencePattern, SurfaceRadiance
 from dotshell.errors import DeviceError, DeviceTimeout
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.lens import Lens, lens_from_fov
@@ -226,7 +226,7 @@ class SimWorld:
         self.laser: SimLaser | None = None
         self._key_memo: tuple[tuple, str] | None = None  # (devices and scene, renderer key)
 
-    def require(self, who: str) -> tuple["SimProjector", "SimTurntable"]:
+    def require(self, who: str) -> tuple[SimProjector, SimTurntable]:
         missing = [(role, name) for role, name, dev in
                    (("projector", "sim-projector", self.projector),
                     ("stage", "sim-turntable", self.stage)) if dev is None]
@@ -291,7 +291,7 @@ class SimWorld:
             memo = self._key_memo = (state, self._geometry_key(projector, stage))
         return memo[1]
 
-    def _geometry_key(self, projector: "SimProjector", stage: "SimTurntable") -> str:
+    def _geometry_key(self, projector: SimProjector, stage: SimTurntable) -> str:
         s = self.camera.settings
         return json.dumps([self.calibration().to_dict(), stage.settings["scene"],
                            stage.settings["plate"], stage.settings["background"],
@@ -876,7 +876,7 @@ class SimLaser(_Device):
 
     # ---- for the camera and the truth --------------------------------------------------------
 
-    def _stage(self) -> "SimTurntable":
+    def _stage(self) -> SimTurntable:
         if self.world.stage is None:
             raise DeviceError(f"{self.name}: no sim-turntable in this rig, so there is no sample "
                               "to trans-illuminate; add [stage] backend = \"sim-turntable\".")
@@ -918,6 +918,23 @@ class SimLaser(_Device):
         when the rig has one: it sits in the light path while scanning); NaN farther than
         1 mm from the true surface. ``target_mm`` None = the current target (an un-aimed
         source). Works on devices that are built but not connected."""
+        model, radiance = self._true_radiance(angle_deg, target_mm)
+        value, dist = model.surface_fluence(radiance, np.asarray(points_mm, float).reshape(-1, 3))
+        return np.where(dist <= transillum.MAX_SNAP_MM, value, np.nan)
+
+    def true_surface_radiance(self, angle_deg: float,
+                              target_mm: tuple[float, float] | None) -> SurfaceRadiance:
+        """See :class:`dotshell.devices.TransilluminationTruth`: the field
+        :meth:`true_normal_radiance` reads, on the boundary of the true sample's FEM mesh."""
+        model, radiance = self._true_radiance(angle_deg, target_mm)
+        faces = np.asarray(model.mesh.boundary_faces, np.int64)
+        used, triangles = np.unique(faces, return_inverse=True)
+        return SurfaceRadiance(model.mesh.nodes[used], triangles.reshape(faces.shape),
+                               radiance[used], transillum.MAX_SNAP_MM)
+
+    def _true_radiance(self, angle_deg: float, target_mm: tuple[float, float] | None
+                       ) -> tuple[transillum.FluenceModel, np.ndarray]:
+        """The true sample's FEM and P · φ · L(0°)/φ per node of it, in DN per ms."""
         if target_mm is None:
             target_mm = self.target
         cam = self.world.camera
@@ -928,12 +945,11 @@ class SimLaser(_Device):
         model = self._model()
         entry, direction = transillum.require_entry(shape, angle_deg, target_mm, self.name)
         phi = model.fluence(model.source_inside(entry, direction))
-        value, dist = model.surface_fluence(phi, np.asarray(points_mm, float).reshape(-1, 3))
         analyzer = self.world.analyzer
         through = analyzer.transmission()[1] if analyzer is not None else 1.0
         scale = (self.settings["power"] * float(exit_radiance_per_fluence(1.0, model.optics.n))
                  * cam.settings["sensitivity_e_per_ms"] * cam.sensor.gain_dn_per_e * through)
-        return np.where(dist <= transillum.MAX_SNAP_MM, value * scale, np.nan)
+        return model, phi * scale
 
 
 # ---- factories ------------------------------------------------------------------------------

@@ -9,7 +9,7 @@ from typing import Callable, Hashable, TypeVar
 T = TypeVar("T")
 
 
-def cached(cache: "OrderedDict[Hashable, T]", key: Hashable, make: Callable[[], T],
+def cached(cache: OrderedDict[Hashable, T], key: Hashable, make: Callable[[], T],
            limit: int) -> T:
     """``cache[key]``, made with ``make()`` on a miss; keeps the ``limit`` most recently used."""
     value = cache.get(key)

@@ -448,7 +448,7 @@ class Renderer:
             raise ValueError("the simulator supports one turbid material per scene")
         return ids[0] if ids else None
 
-    def _subsurface(self, angle_deg: float, material: int, receivers: "_Receivers") -> SubsurfaceView:
+    def _subsurface(self, angle_deg: float, material: int, receivers: _Receivers) -> SubsurfaceView:
         """Projector-pixel sources on the turbid material and the camera receivers."""
         sc = self.scene.materials[material].scattering
         proj = self.calib.projector
@@ -461,7 +461,7 @@ class Renderer:
         pix = np.column_stack([uu.ravel(), vv.ravel()])
         d_p = proj.rays(pix)
         cos_axis = d_p[:, 2]
-        o_s, M = self._camera_to_sample_linear(angle_deg)
+        _, M = self._camera_to_sample_linear(angle_deg)
         centre_s = self.calib.camera_to_sample(self.calib.projector_centre[None], angle_deg)[0]
         d_s = (d_p @ self.calib.R) @ M
         t, nrm, mat = self.scene.at(angle_deg).intersect(np.broadcast_to(centre_s, d_s.shape), d_s)

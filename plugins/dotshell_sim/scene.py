@@ -222,7 +222,7 @@ class Plane:
         nrm = np.asarray(self.normal, float)
         return nrm / np.linalg.norm(nrm)
 
-    def rotated_z(self, angle_deg: float) -> "Plane":
+    def rotated_z(self, angle_deg: float) -> Plane:
         """The plane given in the stage frame, in the sample frame at stage angle θ
         (``p_stage = Rz(θ) p_sample``, so ``n · Rz p = (Rzᵀ n) · p``): a plane again."""
         return Plane(tuple(rot_z(angle_deg).T @ np.asarray(self.normal, float)), self.offset,

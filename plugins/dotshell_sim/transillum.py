@@ -224,7 +224,7 @@ class FluenceModel:
 
     @classmethod
     def build(cls, surface: TriangleSurface, optics: Optics, spacing_mm: float,
-              key: str = "") -> "FluenceModel":
+              key: str = "") -> FluenceModel:
         from dotshell.fem.forward import robin_A, system_matrix
 
         mesh = tetrahedralize(surface, spacing_mm)
@@ -385,7 +385,7 @@ def emission_image(lv: LaserView, phi: np.ndarray) -> np.ndarray:
 
 
 #: Laser views per renderer (renderers are shared by geometry and dropped with it).
-_VIEWS: "weakref.WeakKeyDictionary[Renderer, OrderedDict]" = weakref.WeakKeyDictionary()
+_VIEWS: weakref.WeakKeyDictionary[Renderer, OrderedDict] = weakref.WeakKeyDictionary()
 
 
 def laser_irradiance(renderer: Renderer, view: View, shape, model: FluenceModel,

@@ -182,7 +182,7 @@ class ConsoleInput(TextArea):
         all matches share."""
         if not matches or not self.before_cursor().endswith(token):
             return
-        common = matches[0] if len(matches) == 1 else os.path.commonprefix(matches)
+        common = matches[0] if len(matches) == 1 else os.path.commonprefix(matches)  # noqa: RUF071 (text, not paths)
         if len(common) > len(token):
             row, col = self.cursor_location
             self.replace(common, (row, col - len(token)), (row, col))

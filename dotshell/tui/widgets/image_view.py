@@ -22,7 +22,7 @@ try:  # optional at run time: the fallback below draws half blocks itself
     from textual_image.widget import HalfcellImage as _TIHalfcell
     from textual_image.widget import Image as _TIAuto
 except Exception:  # ImportError, or a terminal query failing in an odd environment
-    _ti_renderable = None
+    _ti_renderable = None  # type: ignore[assignment]  # mypy's idiom for a module that may be missing
 
 
 def cell_aspect() -> float:
@@ -71,6 +71,8 @@ class _HalfBlocks:
         if w == 0:
             return
         px = self.image.convert("RGB").resize((w, h), PILImage.Resampling.BOX).load()
+        if px is None:  # PIL gives no pixel access only to images without pixels
+            return
         for y in range(0, h, 2):
             for x in range(w):
                 top, bottom = px[x, y], px[x, y + 1]

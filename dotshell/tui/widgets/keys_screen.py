@@ -18,8 +18,8 @@ CONSOLE_KEYS = [("enter", "run a complete input (adds a line to an open block)")
                 ("↑ ↓", "history, on the first / last line"),
                 ("tab", "complete the name before the cursor"),
                 ("pgup pgdn", "scroll the output"),
-                ("^c", "interrupt the running input (a scan is aborted cleanly); copy the "
-                        "selection in the box when nothing runs"),
+                ("^c", ("interrupt the running input (a scan is aborted cleanly); copy the "
+                        "selection in the box when nothing runs")),
                 ("^y", "copy the last input's output to the clipboard (OSC 52)"),
                 ("esc", "stop motion, as on every tab"),
                 ("^d", "end of file for a waiting input()")]

@@ -49,7 +49,7 @@ class LogPanel(Vertical):
                          id="log-level")
         yield ReflowLog(max_entries=SHOWN, id="log-view")
 
-    def visible(self) -> list[LogEntry]:
+    def visible_entries(self) -> list[LogEntry]:
         floor = LEVELS.index(self.min_level)
         return [e for e in self.entries if LEVELS.index(e.level) >= floor]
 
@@ -76,7 +76,7 @@ class LogPanel(Vertical):
     def action_copy(self, everything: bool) -> None:
         """``y``: the newest line shown, ``Y``: every line shown (at the chosen level), to the
         clipboard — the terminal's (OSC 52) where it allows it."""
-        shown = self.visible()[-SHOWN:]
+        shown = self.visible_entries()[-SHOWN:]
         if not shown:
             self.app.notify("nothing to copy: no line is shown", severity="warning")
             return
@@ -97,7 +97,7 @@ class LogPanel(Vertical):
         select = self.query_one(Select)
         if select.value != level:
             select.value = level
-        self.query_one(ReflowLog).replace(self._line(e) for e in self.visible()[-SHOWN:])
+        self.query_one(ReflowLog).replace(self._line(e) for e in self.visible_entries()[-SHOWN:])
 
     def on_select_changed(self, event: Select.Changed) -> None:
         if isinstance(event.value, str) and event.value != self.min_level:

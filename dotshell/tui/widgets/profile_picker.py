@@ -16,7 +16,7 @@ from textual.widgets import Input, OptionList, Static
 from dotshell.server.describe import short_path
 
 
-def find_profiles(current: str | Path | None, extra_dirs: list[Path] = ()) -> list[str]:
+def find_profiles(current: str | Path | None, extra_dirs: list[Path] | tuple[Path, ...] = ()) -> list[str]:
     """``*.toml`` next to ``current``, in ./profiles and in ``extra_dirs`` (sorted), then the
     shipped profiles by their bare names (sorted), each file once."""
     from dotshell.shipped import shipped_dir
@@ -39,7 +39,7 @@ class ProfilePicker(ModalScreen[str | None]):
 
     BINDINGS = [Binding("escape", "cancel", "Cancel")]
 
-    def __init__(self, current: str | None, extra_dirs: list[Path] = ()) -> None:
+    def __init__(self, current: str | None, extra_dirs: list[Path] | tuple[Path, ...] = ()) -> None:
         super().__init__()
         self.paths = find_profiles(current, list(extra_dirs))
         self.current = short_path(current) if current else None

@@ -98,11 +98,10 @@ class AptEmulator(PtyEmulator):
                 self._error(0x0443, 10, "homing rejected")
             else:
                 self._homing_until = time.monotonic() + self.home_time_s
-        elif msg_id == 0x0465:
-            if self.moving or self._homing_until is not None:
-                self.halt()
-                self._homing_until = None
-                self.send(long(0x0466, self._status()))
+        elif msg_id == 0x0465 and (self.moving or self._homing_until is not None):
+            self.halt()
+            self._homing_until = None
+            self.send(long(0x0466, self._status()))
 
     def _error(self, about: int, code: int, text: str) -> None:
         self.send(long(0x0081, struct.pack("<HH64s", about, code, text.encode())))

@@ -107,7 +107,7 @@ class PtyEmulator:
         """What a profile names: the stable link if there is one, else the pty path."""
         return str(self.link) if self.link else self.pty_path
 
-    def start(self) -> "PtyEmulator":
+    def start(self) -> PtyEmulator:
         self._plug()
         self._running = True
         self._thread = threading.Thread(target=self._serve, name=f"emulator-{self.name}",
@@ -138,7 +138,7 @@ class PtyEmulator:
             raise ValueError(f"the {self.name} emulator has no fault {name!r}; its faults: "
                              f"{', '.join(self.fault_names())}")
 
-    def __enter__(self) -> "PtyEmulator":
+    def __enter__(self) -> PtyEmulator:
         return self.start()
 
     def __exit__(self, *exc) -> None:

@@ -1,0 +1,101 @@
+"""Decoded share and wrong codes of each gray-code classification against the simulator's
+ground truth (issue 27): ``contrast``, ``robust`` (the default) and ``adaptive`` on the metal
+cylinder (clean; and under room light as strong as the projector's with the camera defocused
+to σ = 1.5 px), the agar cylinder without analyzer under strong room light (ambient light +
+subsurface blur) and the agar cylinder with PDI (|I∥ − I⊥| frames). Per scene and
+classification: pixels decoded on the lit surface (share of the lit pixels), wrong codes there
+(more than 1.5 projector px from the true column or row), pixels decoded off it, and the
+neighbour-reversal estimate of wrong codes (:func:`decode_quality`), with the decode time.
+
+    PYTHONPATH=.:plugins:tests python benchmarks/classification_truth.py [--factor 0.25]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+CLASSIFICATIONS = ("contrast", "robust", "adaptive")
+#: (name, profile, camera settings changed, PDI)
+SCENES = (("clean metal", "sim-metal-cylinder", {}, False),
+          ("metal, room light 1, blur", "sim-metal-cylinder",
+           {"ambient": 1.0, "defocus_sigma_px": 1.5}, False),
+          ("agar, room light 0.5", "sim-agar-cylinder-nopdi", {"ambient": 0.5}, False),
+          ("agar PDI", "sim-agar-cylinder", {}, True))
+
+
+def scene_frames(profile: str, camera: dict, pdi: bool, factor: float):
+    """The gray-code frames of the scene's first view (PDI: |I∥ − I⊥| per pattern), the
+    projector size and the true (column, row, lit) per camera pixel."""
+    from dotshell_codings.graycode import make_graycode
+    from dotshell_sim.bench import scale_profile
+    from sim_sequences import connected_rig, true_projector_coordinates
+
+    raw = scale_profile(tomllib.loads((ROOT / "profiles" / f"{profile}.toml").read_text()),
+                        factor)
+    raw["camera"]["settings"].update(camera)
+    rig = connected_rig(raw)
+    size = rig["projector"].resolution
+    patterns = make_graycode({"axes": "both"}).patterns(size)
+    angles = raw["scan"]["pdi_angles_deg"] if pdi else [None]
+    shots = []
+    for angle in angles:
+        if angle is not None:
+            rig["analyzer"].set_angle(float(angle))
+        shots.append([])
+        for pat in patterns:
+            rig["projector"].show(pat.image)
+            shots[-1].append(rig["camera"].capture())
+    if pdi:
+        frames = [np.abs(a.astype(np.int32) - b.astype(np.int32)).astype(a.dtype)
+                  for a, b in zip(*shots)]
+    else:
+        frames = shots[0]
+    return frames, size, true_projector_coordinates(rig)
+
+
+def score(corr, u, v, lit) -> dict:
+    """Decoded pixels on the lit surface, the wrong ones among them, decoded pixels off it."""
+    from dotshell.pipeline.decode_maps import decode_quality
+
+    on = corr.valid & lit
+    err = np.maximum(np.abs(corr.column - np.nan_to_num(u, nan=-1e6)),
+                     np.abs(corr.row - np.nan_to_num(v, nan=-1e6)))
+    return {"lit": int(lit.sum()), "decoded": int(on.sum()),
+            "wrong": int(np.count_nonzero(on & (err > 1.5))),
+            "off": int(np.count_nonzero(corr.valid & ~lit)),
+            "reversals": decode_quality(corr)["reversals"]}
+
+
+def main() -> None:
+    from dotshell_codings.graycode import make_graycode
+
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--factor", type=float, default=0.25, help="resolution factor (1 = full)")
+    args = ap.parse_args()
+    print(f"== gray-code classifications against ground truth, {args.factor:g}x ==")
+    print(f"  {'scene':26s} {'classification':14s} {'decoded on lit':>18s} {'wrong':>6s} "
+          f"{'off lit':>8s} {'reversals':>9s} {'ms':>7s}")
+    for name, profile, camera, pdi in SCENES:
+        frames, size, (u, v, lit) = scene_frames(profile, camera, pdi, args.factor)
+        for c in CLASSIFICATIONS:
+            coding = make_graycode({"axes": "both", "classification": c})
+            coding.decode(frames, size)  # compiled and warm
+            t0 = time.perf_counter()
+            corr = coding.decode(frames, size)
+            ms = (time.perf_counter() - t0) * 1e3
+            s = score(corr, u, v, lit)
+            print(f"  {name:26s} {c:14s} {s['decoded']:8d} ({100 * s['decoded'] / s['lit']:5.1f} %)"
+                  f" {s['wrong']:6d} {s['off']:8d} {s['reversals']:9d} {ms:7.1f}")
+
+
+if __name__ == "__main__":
+    main()
