@@ -92,10 +92,8 @@ def agar_like_run(metal: Path, dest: Path, per_view: int = 690_000, seed: int = 
 
 
 #: Starts the measured command and prints its CPU seconds and peak RSS (its own or any of its
-#: children's: ``os.wait4``). A small process of its own: on Linux a process's peak RSS starts
-#: at that of the process it was started from (the exec keeps the old memory's high-water
-#: mark), so ``wait4`` in this bench (hundreds of MiB after making the agar-like cloud) set a
-#: floor under every figure.
+#: children's, the mesh process included: ``os.wait4``), from a small process of its own
+#: between this bench (which holds the agar-like cloud) and the command.
 LAUNCHER = """
 import json, os, subprocess, sys
 proc = subprocess.Popen(sys.argv[1:], stdout=subprocess.DEVNULL)
