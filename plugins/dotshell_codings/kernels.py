@@ -389,7 +389,7 @@ def _rescue_row(stack, y, axis_bits, sep, axes, gray_base, rescue, one_minus_b, 
     :func:`_verdict_row` left with a bit undecided (``reason`` 2): such a pixel is decoded by
     the sign of every pattern − inverse (the contrast rule without its threshold) when all its
     bits but the weakest stand ``rescue[SIGMAS]`` noise sigmas beyond what global light could
-    do to them (:func:`_second_weakest`), and its code is on the projector on every axis.
+    do to them (:func:`_all_but_one_sure`), and its code is on the projector on every axis.
     Only those pixels are read again (their frames are still in the cache), so the cost
     follows the pixels robust leaves uncertain. ``gray_base`` (A,) int64: the projected bit
     (MSB-first index) that the other projected bits are XORed with, −1 where the projected
@@ -400,8 +400,7 @@ def _rescue_row(stack, y, axis_bits, sep, axes, gray_base, rescue, one_minus_b, 
     for x in range(reason.shape[0]):
         if reason[x] != 2:
             continue
-        if _second_weakest(stack, y, x, sep, rescue, one_minus_b, lg_scale,
-                           b_level) < rescue[SIGMAS]:
+        if not _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
             continue
         inside = True
         k = 0
@@ -446,13 +445,15 @@ def _sign_code(stack, y, x, first, nb, base):
 
 
 @numba.njit(**_INNER)
-def _second_weakest(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
-    """How far all the bits of pixel (y, x) but the weakest are from undecidable, in noise
-    sigmas: the second smallest ``(|p − q| − max(L_g − L_d, 0)) / σ`` over its
-    pattern/inverse pairs, ``σ² = max(2 floor + gain · max(p + q − 2 black, 0), 1e-6)``;
-    ``L_d``, ``L_g`` from the pairs ``sep`` as the robust rule separates them. A pattern's and
-    its inverse's global light differ by at most ``L_g − L_d``, so beyond it a bit's sign is
-    sure. float32 throughout, as numpy evaluates the documented formula."""
+def _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
+    """Whether all the bits of pixel (y, x) but the weakest stand ``rescue[SIGMAS]`` noise
+    sigmas beyond undecidable: ``z = (|p − q| − max(L_g − L_d, 0)) / σ`` below it in at
+    most one pattern/inverse pair (the second smallest z reaches it), with
+    ``σ² = max(2 floor + gain · max(p + q − 2 black, 0), 1e-6)`` and ``L_d``, ``L_g`` from the
+    pairs ``sep`` as the robust rule separates them. A pattern's and its inverse's global light
+    differ by at most ``L_g − L_d``, so beyond it a bit's sign is sure. float32 throughout, as
+    numpy evaluates the documented formula; the finest pairs (the weakest, mostly) first, and
+    the second pair below the bound ends the test."""
     black = np.float32(stack[1, y, x])
     lmax = np.float32(-np.inf)
     lmin = np.float32(np.inf)
@@ -468,21 +469,19 @@ def _second_weakest(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
         d = lmax
         g = np.float32(0.0)
     ambiguous = max(g - d, np.float32(0.0))
-    low = np.float32(np.inf)
-    second = np.float32(np.inf)
     zero = np.float32(0.0)
-    for k in range(sep.shape[0]):
+    weak = 0
+    for k in range(sep.shape[0] - 1, -1, -1):
         p = np.float32(stack[2 + 2 * k, y, x])
         q = np.float32(stack[3 + 2 * k, y, x])
         var = max(rescue[FLOOR2] + rescue[GAIN] * max(p + q - np.float32(2) * black, zero),
                   np.float32(1e-6))
         z = (abs(p - q) - ambiguous) / np.sqrt(var)
-        if np.isnan(z):
-            z = np.float32(-np.inf)
-        second = min(second, max(low, z))
-        low = min(low, z)
-    return second
-
+        if not z >= rescue[SIGMAS]:  # NaN counts as weak
+            weak += 1
+            if weak == 2:
+                return False
+    return True
 
 @numba.njit(**_ROW)
 def _changes_row(code, valid, y, counts):

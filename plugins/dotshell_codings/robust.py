@@ -231,7 +231,7 @@ def noise_model_counted(stack: np.ndarray) -> tuple[float, float] | None:
     least, most = (np.float32(t) for t in _model_thresholds(stack[0]))
     if stack.shape[0] < 4:
         return None
-    top = int(np.iinfo(stack.dtype).max)
+    top = int(full_scale(stack[0]))  # w − b ≤ w ≤ top
     levels = np.zeros(top + 1, np.int64)
     kernels.model_levels(stack, least, most, levels)
     n = int(levels.sum())
@@ -241,7 +241,7 @@ def noise_model_counted(stack: np.ndarray) -> tuple[float, float] | None:
     rank0 = np.cumsum(levels) - levels  # rank of each level's first pixel
     bins = np.empty(((stack.shape[1] + 1) // 2, (stack.shape[2] + 1) // 2), np.uint8)
     kernels.model_bins(stack, least, most, rank0, ends, bins)
-    width = min(2 * int(full_scale(stack[0])), _MODEL_MAX_RESIDUAL) + 2  # beyond: the last
+    width = min(2 * top, _MODEL_MAX_RESIDUAL) + 2  # beyond: the last
     bounds = bands(bins.shape[0])
     counts = np.zeros((len(bounds) - 1, _MODEL_BINS, width), np.int32)
     split_bands(kernels.model_residuals, bounds, stack, bins, counts)
