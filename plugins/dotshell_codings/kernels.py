@@ -13,6 +13,8 @@ temporary per bit. Row by row it:
 * assembles the coarse code one row behind (:func:`_assemble_row`: gray → binary, the
   one-weak-bit edge tolerance with its 4-neighbour check, out-of-range test) with a flag byte
   per pixel, which :func:`_verdict_row` combines into each pixel's reason and the counts;
+  under the adaptive classification :func:`_rescue_row` then gives the row's undecided
+  pixels their second chance (the noise-model test and the sign code, reading only them);
 * refines to sub-pixel while the row's frames are still in the cache: along the row
   (:func:`_refine_row`) or, one row behind, a step of the scans down the columns
   (:func:`_column_step`). Each scan finds the stripe edges (anchors) between adjacent valid
