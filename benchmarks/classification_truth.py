@@ -5,9 +5,12 @@ to σ = 1.5 px), the agar cylinder without analyzer under strong room light (amb
 subsurface blur) and the agar cylinder with PDI (|I∥ − I⊥| frames). Per scene and
 classification: pixels decoded on the lit surface (share of the lit pixels), wrong codes there
 (more than 1.5 projector px from the true column or row), pixels decoded off it, and the
-neighbour-reversal estimate of wrong codes (:func:`decode_quality`), with the decode time.
+neighbour-reversal estimate of wrong codes (:func:`decode_quality`), and the decode time:
+the classifications decoded in turn, in a rotating order, ``--repeats`` times after a warm-up
+(min / median ms, and the median's ratio to robust's measured in the same rounds).
 
     PYTHONPATH=.:plugins:tests python benchmarks/classification_truth.py [--factor 0.25]
+        [--repeats 3] [--scenes metal]      # --factor 1: full-resolution views
 """
 
 from __future__ import annotations
@@ -75,26 +78,46 @@ def score(corr, u, v, lit) -> dict:
             "reversals": decode_quality(corr)["reversals"]}
 
 
-def main() -> None:
+def timed_decodes(frames, size, repeats: int) -> tuple[dict, dict]:
+    """Each classification's correspondence and decode times (s), decoded in turn in a
+    rotating order ``repeats`` times after a round that compiles and warms up."""
     from dotshell_codings.graycode import make_graycode
 
+    codings = {c: make_graycode({"axes": "both", "classification": c}) for c in CLASSIFICATIONS}
+    times: dict[str, list[float]] = {c: [] for c in CLASSIFICATIONS}
+    out = {}
+    for r in range(repeats + 1):
+        k = r % len(CLASSIFICATIONS)
+        for c in CLASSIFICATIONS[k:] + CLASSIFICATIONS[:k]:
+            t0 = time.perf_counter()
+            out[c] = codings[c].decode(frames, size)
+            if r:
+                times[c].append(time.perf_counter() - t0)
+    return out, times
+
+
+def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--factor", type=float, default=0.25, help="resolution factor (1 = full)")
+    ap.add_argument("--repeats", type=int, default=3, help="timed rounds per scene")
+    ap.add_argument("--scenes", default="", help="only the scenes whose name holds this")
     args = ap.parse_args()
-    print(f"== gray-code classifications against ground truth, {args.factor:g}x ==")
+    print(f"== gray-code classifications against ground truth, {args.factor:g}x "
+          f"(ms: min / median of {args.repeats}) ==")
     print(f"  {'scene':26s} {'classification':14s} {'decoded on lit':>18s} {'wrong':>6s} "
-          f"{'off lit':>8s} {'reversals':>9s} {'ms':>7s}")
+          f"{'off lit':>8s} {'reversals':>9s} {'ms min / median':>17s} {'x robust':>8s}")
     for name, profile, camera, pdi in SCENES:
+        if args.scenes not in name:
+            continue
         frames, size, (u, v, lit) = scene_frames(profile, camera, pdi, args.factor)
+        out, times = timed_decodes(frames, size, args.repeats)
+        base = float(np.median(times["robust"]))
         for c in CLASSIFICATIONS:
-            coding = make_graycode({"axes": "both", "classification": c})
-            coding.decode(frames, size)  # compiled and warm
-            t0 = time.perf_counter()
-            corr = coding.decode(frames, size)
-            ms = (time.perf_counter() - t0) * 1e3
-            s = score(corr, u, v, lit)
+            s = score(out[c], u, v, lit)
+            t = np.array(times[c]) * 1e3
             print(f"  {name:26s} {c:14s} {s['decoded']:8d} ({100 * s['decoded'] / s['lit']:5.1f} %)"
-                  f" {s['wrong']:6d} {s['off']:8d} {s['reversals']:9d} {ms:7.1f}")
+                  f" {s['wrong']:6d} {s['off']:8d} {s['reversals']:9d} "
+                  f"{t.min():7.1f} / {np.median(t):7.1f} {np.median(t) / 1e3 / base:8.2f}")
 
 
 if __name__ == "__main__":

@@ -321,8 +321,6 @@ class GrayCode:
         return stack, full
 
     def decode(self, frames: Sequence[np.ndarray], projector_size: tuple[int, int]) -> Correspondence:
-        if self.classification == "adaptive":
-            return self._decode_adaptive(frames, projector_size)
         axes = self._axes(projector_size)
         stack, full = self._stack(frames, axes)
         rule = self._rule(stack, axes, full)
@@ -331,12 +329,18 @@ class GrayCode:
             words = self._classify(stack, rule)
             for a, ax in enumerate(axes):
                 words.value[a], words.weak[a] = self.gray_words(ax, words.value[a], words.weak[a])
-        valid, reason, counts, coords, refined = self._decode_rows(stack, axes, rule, words)
+        adaptive = self._adaptive(frames, stack, axes)
+        valid, reason, counts, coords, refined = self._decode_rows(stack, axes, rule, words,
+                                                                   adaptive)
         n = [int(c) for c in counts.sum(axis=0)]
-        poor = "uncertain" if self.classification == "robust" else "low_contrast"
+        poor = "low_contrast" if self.classification == "contrast" else "uncertain"
         stats = {"pixels": int(valid.size), "decoded": n[0], "shadow": n[1], "low_contrast": 0,
                  "uncertain": 0, "out_of_range": n[3], "edge_tolerated": n[4]}
         stats[poor] = n[2]
+        if adaptive is not None:
+            stats["adaptive_rescued"] = n[5]
+            stats["noise_floor"] = round(float(np.sqrt(adaptive.floor)), 3)
+            stats["noise_gain"] = round(float(adaptive.gain), 5)
         stats.update(refined)
         return Correspondence(column=coords[0], row=coords[1] if len(coords) > 1 else None,
                               valid=valid, stats=stats, reason=reason,
@@ -350,49 +354,35 @@ class GrayCode:
         other.__dict__.update(changes)
         return other
 
-    def _decode_adaptive(self, frames: Sequence[np.ndarray],
-                         projector_size: tuple[int, int]) -> Correspondence:
-        """Robust where it decides; where it leaves a pixel uncertain, the contrast rule's code
-        (every bit by its sign, no ``min_contrast``) when every bit but the weakest stands
-        ``adaptive_sigmas`` noise sigmas beyond what global light could do to it
-        (``max(L_g − L_d, 0)``; the one weak bit is the stripe edge the decoder tolerates
-        anyway)."""
-        from dotshell_codings.robust import noise_model, second_weakest_sigmas
+    def _adaptive(self, frames: Sequence[np.ndarray], stack: np.ndarray, axes: list[_Axis]
+                  ) -> Rescue | None:
+        """The adaptive classification's second chance for the pixels robust leaves uncertain,
+        with the camera noise model measured from the frames (:func:`robust.noise_model`);
+        None for the other classifications."""
+        if self.classification != "adaptive":
+            return None
+        from dotshell_codings.robust import noise_model
 
-        robust = self._with(classification="robust").decode(frames, projector_size)
-        # every bit by its sign: the noise-model test below is the guard (a fixed contrast
-        # share, min_contrast, rejected nearly every pixel robust leaves uncertain first)
-        plain = self._with(classification="contrast", min_contrast=0.0).decode(frames,
-                                                                               projector_size)
-        floor, gain = noise_model(frames)
-        axes = self._axes(projector_size)
-        firsts = np.cumsum([0] + [ax.nb for ax in axes])[:-1]
-        sep = [int(f) + ax.nb - 1 - i for f, ax in zip(firsts, axes)
-               for i in range(min(self.high_frequency_pairs, ax.nb))]
-        uncertain = robust.reason == robust.reason_names.index("uncertain")
-        rescued = uncertain & plain.valid
-        sure = second_weakest_sigmas(frames, floor, gain, sep, rescued) >= self.adaptive_sigmas
-        rescued[rescued] = sure
-        n = int(rescued.sum())
-        stats = dict(robust.stats)
-        stats["decoded"] += n
-        stats["uncertain"] -= n
-        stats["adaptive_rescued"] = n
-        stats["noise_floor"] = round(float(np.sqrt(floor)), 3)
-        stats["noise_gain"] = round(float(gain), 5)
-        reason = robust.reason.copy()
-        reason[rescued] = 0
-        row = None if robust.row is None else np.where(rescued, plain.row, robust.row)
-        return Correspondence(column=np.where(rescued, plain.column, robust.column), row=row,
-                              valid=robust.valid | rescued, stats=stats, reason=reason,
-                              reason_names=robust.reason_names)
+        floor, gain = noise_model(stack if np.issubdtype(stack.dtype, np.integer) else frames)
+        return Rescue(np.array([self.sign_base(ax) for ax in axes], np.int64),
+                      np.array([2 * floor, gain, self.adaptive_sigmas], np.float32),
+                      floor, gain)
+
+    def sign_base(self, ax: _Axis) -> int:
+        """The projected bit (MSB-first index) whose value is XORed into the other projected
+        bits of ``ax``, −1 where the projected bits are the Gray bits themselves (the adaptive
+        rescue's sign code; :meth:`gray_words` for the decided words)."""
+        return -1
 
     def _decode_rows(self, stack: np.ndarray, axes: list[_Axis], rule: tuple,
-                     words: ClassifiedBits | None) -> tuple:
-        """(valid, reason, per-row counts (H, 5), each axis's coordinates, refined counts)
+                     words: ClassifiedBits | None,
+                     adaptive: Rescue | None = None) -> tuple:
+        """(valid, reason, per-row counts (H, 6), each axis's coordinates, refined counts)
         from one pass over the view (:func:`kernels.decode_rows`, bands of rows taken by the
         cores one at a time, joined in order afterwards); ``words``: the Gray words, when the projected
-        bits are not Gray bits (else they are made in the pass).
+        bits are not Gray bits (else they are made in the pass); ``adaptive``:
+        :meth:`_adaptive`'s (the pixels robust leaves uncertain get their second chance in
+        the same pass).
 
         Each axis is first refined across its stripes the way its projector axis suggests:
         columns along the camera rows, rows down the camera columns. Where the decoded codes
@@ -425,12 +415,17 @@ class GrayCode:
         ok = hugepages.empty((n_axes, h, w), bool)
         valid = hugepages.empty((h, w), bool)
         reason = hugepages.empty((h, w), np.uint8)
-        counts = np.empty((h, 5), np.int64)
+        counts = np.empty((h, 6), np.int64)
         changed = np.empty((n_axes, h, 2), np.int64)
         bounds = bands(h, per_worker=DECODE_BANDS_PER_WORKER)
         scan_i = np.empty((len(bounds) - 1, n_axes, 4, w), np.int64)
         scan_f = np.empty((len(bounds) - 1, n_axes, 4, w), np.float32)
-        args = (*rule, settings, flips, down, self.subpixel, classified, words.value, words.weak,
+        if adaptive is None:
+            adaptive_args = (False, np.full(n_axes, -1, np.int64), np.zeros(3, np.float32))
+        else:
+            adaptive_args = (True, adaptive.bases, adaptive.values)
+        args = (*rule, settings, flips, down, self.subpixel, classified, *adaptive_args,
+                words.value, words.weak,
                 code, coord, ok, valid, reason, counts, changed, words.range, words.shadow,
                 words.no_direct, scan_i, scan_f)
         split_bands(k.decode_rows, bounds, *args, k.BAND)
@@ -463,7 +458,7 @@ class GrayCode:
             high[[first + i for i in self.high_frequency_bits(ax)]] = True
             first += ax.nb
         high |= sep
-        robust = self.classification == "robust"
+        robust = self.classification in ("robust", "adaptive")
         m = 0.0
         if robust:
             m = (self.direct_min * full if self.direct_min > 0
@@ -586,6 +581,24 @@ def _stack_view(frames: list[np.ndarray]) -> np.ndarray | None:
         return None
     return np.lib.stride_tricks.as_strided(first, (len(frames), *first.shape),
                                            (step, *first.strides), writeable=False)
+
+
+@dataclass
+class Rescue:
+    """The adaptive classification's arguments of :func:`kernels.decode_rows`.
+
+    Attributes:
+        bases: (axes,) int64, each axis's :meth:`GrayCode.sign_base`.
+        values: (3,) float32, ``2 floor``, ``gain`` and ``adaptive_sigmas`` (the kernel's
+            :data:`kernels.FLOOR2` …).
+        floor, gain: the camera noise model ``var(I) = floor + gain (I − black)`` (frame
+            units², :func:`robust.noise_model`).
+    """
+
+    bases: np.ndarray
+    values: np.ndarray
+    floor: float
+    gain: float
 
 
 @dataclass

@@ -13,6 +13,8 @@ temporary per bit. Row by row it:
 * assembles the coarse code one row behind (:func:`_assemble_row`: gray → binary, the
   one-weak-bit edge tolerance with its 4-neighbour check, out-of-range test) with a flag byte
   per pixel, which :func:`_verdict_row` combines into each pixel's reason and the counts;
+  under the adaptive classification :func:`_rescue_row` then gives the row's undecided
+  pixels their second chance (the noise-model test and the sign code, reading only them);
 * refines to sub-pixel while the row's frames are still in the cache: along the row
   (:func:`_refine_row`) or, one row behind, a step of the scans down the columns
   (:func:`_column_step`). Each scan finds the stripe edges (anchors) between adjacent valid
@@ -351,10 +353,11 @@ def _verdict_row(shadow, no_direct, flags, fy, valid, reason, counts):
     """Each pixel's fate in one row from the axes' flags (A, R, W) at row ``fy``
     (:func:`_assemble_row`): ``reason`` 0 decoded (``valid``), 1 shadow, 2 a bit undecided
     (weak and not tolerated on any axis, or no direct light), 3 off the projector, the first
-    that holds; ``counts`` (5,): the pixels of each reason and (4) the decoded pixels with a
-    tolerated bit. The other arguments are rows (W,)."""
+    that holds; ``counts`` (6,): the pixels of each reason, (4) the decoded pixels with a
+    tolerated bit and (5) those :func:`_rescue_row` decodes (0 here). The other arguments are
+    rows (W,)."""
     n_axes = flags.shape[0]
-    for k in range(5):
+    for k in range(6):
         counts[k] = 0
     for x in range(shadow.shape[0]):
         f = 0
@@ -374,6 +377,113 @@ def _verdict_row(shadow, no_direct, flags, fy, valid, reason, counts):
         valid[x] = r == 0
         counts[r] += 1
 
+
+#: entries of :func:`decode_rows`' ``rescue`` (float32): the noise model's 2 × floor and gain
+#: (``var(p − q) = 2 floor + gain (p + q − 2 black)``, frame units) and the sigmas a pixel's
+#: bits (all but its weakest) must stand beyond the global-light bound
+FLOOR2, GAIN, SIGMAS = range(3)
+
+
+@numba.njit(**_ROW)
+def _rescue_row(stack, y, axis_bits, sep, axes, gray_base, rescue, one_minus_b, lg_scale,
+                b_level, code, coord, valid, reason, counts):
+    """The adaptive classification's second chance for the pixels of row ``y`` that
+    :func:`_verdict_row` left with a bit undecided (``reason`` 2): such a pixel is decoded by
+    the sign of every pattern − inverse (the contrast rule without its threshold) when all its
+    bits but the weakest stand ``rescue[SIGMAS]`` noise sigmas beyond what global light could
+    do to them (:func:`_all_but_one_sure`), and its code is on the projector on every axis.
+    Only those pixels are read again (their frames are still in the cache), so the cost
+    follows the pixels robust leaves uncertain. ``gray_base`` (A,) int64: the projected bit
+    (MSB-first index) that the other projected bits are XORed with, −1 where the projected
+    bits are the Gray bits; ``code``, ``coord`` (A, H, W); ``valid``, ``reason``, ``counts``:
+    row ``y``'s (as :func:`_verdict_row`'s)."""
+    n_axes = axis_bits.shape[0]
+    codes = np.empty(n_axes, np.int32)
+    for x in range(reason.shape[0]):
+        if reason[x] != 2:
+            continue
+        if not _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
+            continue
+        inside = True
+        k = 0
+        for a in range(n_axes):
+            codes[a] = _sign_code(stack, y, x, k, axis_bits[a], gray_base[a])
+            k += axis_bits[a]
+            lo = np.int64(codes[a]) * axes[a, BLOCK] - axes[a, OFFSET]
+            if lo + (axes[a, BLOCK] - 1) < 0 or lo > axes[a, SIZE] - 1:
+                inside = False
+        if not inside:
+            continue
+        for a in range(n_axes):
+            code[a, y, x] = codes[a]
+            coord[a, y, x] = _centre(codes[a], axes[a, BLOCK], axes[a, OFFSET], axes[a, SIZE])
+        reason[x] = 0
+        valid[x] = True
+        counts[0] += 1
+        counts[2] -= 1
+        counts[5] += 1
+
+
+@numba.njit(**_INNER)
+def _sign_code(stack, y, x, first, nb, base):
+    """Coarse code of pixel (y, x) on the axis whose ``nb`` pairs start at pair ``first``,
+    every projected bit by the sign of pattern − inverse; the projected bits are XORed with
+    bit ``base`` (MSB-first index) back into Gray bits unless ``base`` is −1."""
+    g = np.int64(0)
+    for i in range(nb):
+        d = np.float32(stack[2 + 2 * (first + i), y, x]) - np.float32(
+            stack[3 + 2 * (first + i), y, x])
+        g = (g << 1) | np.int64(d > 0)
+    if base >= 0:
+        shift = nb - 1 - base
+        if (g >> shift) & 1:
+            g ^= ((np.int64(1) << nb) - 1) ^ (np.int64(1) << shift)
+    g ^= g >> 1
+    g ^= g >> 2
+    g ^= g >> 4
+    g ^= g >> 8
+    g ^= g >> 16
+    return np.int32(g)
+
+
+@numba.njit(**_INNER)
+def _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
+    """Whether all the bits of pixel (y, x) but the weakest stand ``rescue[SIGMAS]`` noise
+    sigmas beyond undecidable: ``z = (|p − q| − max(L_g − L_d, 0)) / σ`` below it in at
+    most one pattern/inverse pair (the second smallest z reaches it), with
+    ``σ² = max(2 floor + gain · max(p + q − 2 black, 0), 1e-6)`` and ``L_d``, ``L_g`` from the
+    pairs ``sep`` as the robust rule separates them. A pattern's and its inverse's global light
+    differ by at most ``L_g − L_d``, so beyond it a bit's sign is sure. float32 throughout, as
+    numpy evaluates the documented formula; the finest pairs (the weakest, mostly) first, and
+    the second pair below the bound ends the test."""
+    black = np.float32(stack[1, y, x])
+    lmax = np.float32(-np.inf)
+    lmin = np.float32(np.inf)
+    for k in range(sep.shape[0]):
+        if sep[k]:
+            for j in range(2):
+                v = np.float32(stack[2 + 2 * k + j, y, x]) - black
+                lmax = max(lmax, v)
+                lmin = min(lmin, v)
+    d = (lmax - lmin) / one_minus_b
+    g = lg_scale * (lmin - b_level * lmax)
+    if g < 0:
+        d = lmax
+        g = np.float32(0.0)
+    ambiguous = max(g - d, np.float32(0.0))
+    zero = np.float32(0.0)
+    weak = 0
+    for k in range(sep.shape[0] - 1, -1, -1):
+        p = np.float32(stack[2 + 2 * k, y, x])
+        q = np.float32(stack[3 + 2 * k, y, x])
+        var = max(rescue[FLOOR2] + rescue[GAIN] * max(p + q - np.float32(2) * black, zero),
+                  np.float32(1e-6))
+        z = (abs(p - q) - ambiguous) / np.sqrt(var)
+        if not z >= rescue[SIGMAS]:  # NaN counts as weak
+            weak += 1
+            if weak == 2:
+                return False
+    return True
 
 @numba.njit(**_ROW)
 def _changes_row(code, valid, y, counts):
@@ -616,7 +726,8 @@ def decode_rows(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarr
                 sep: np.ndarray, high: np.ndarray, shadow_thr: np.float32, m: np.float32,
                 min_contrast: np.float32, contrast_scale: np.float32, one_minus_b: np.float32,
                 lg_scale: np.float32, b_level: np.float32, axes: np.ndarray, flips: np.ndarray,
-                down: np.ndarray, refine: bool, classified: bool, value: np.ndarray,
+                down: np.ndarray, refine: bool, classified: bool, adaptive: bool,
+                gray_base: np.ndarray, rescue: np.ndarray, value: np.ndarray,
                 weak: np.ndarray, code: np.ndarray, coord: np.ndarray, ok: np.ndarray,
                 valid: np.ndarray, reason: np.ndarray, counts: np.ndarray, changed: np.ndarray,
                 rng: np.ndarray, shadow: np.ndarray, no_direct: np.ndarray, scan_i: np.ndarray,
@@ -641,9 +752,12 @@ def decode_rows(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarr
             ``shadow``, ``no_direct`` (a coding whose projected bits are not Gray bits:
             :func:`classify`, then its own conversion), else they are made here
             (``value``/``weak`` unused).
+        adaptive: the pixels left with a bit undecided get :func:`_rescue_row`'s second
+            chance (``mode`` is then :data:`ROBUST`), with ``gray_base`` (A,) int64 and
+            ``rescue`` (3,) float32 (:data:`FLOOR2` …).
         code, coord, ok: (A, H, W) int32 / float32 / bool outputs: coarse code, projector
             coordinate (sub-pixel where refined, NaN where not decoded), refined.
-        valid, reason, counts: (H, W) bool, (H, W) uint8, (H, 5) int64 (:func:`_verdict_row`).
+        valid, reason, counts: (H, W) bool, (H, W) uint8, (H, 6) int64 (:func:`_verdict_row`).
         changed: (A, H, 2) int64 code changes per row (:func:`_changes_row`).
         rng, shadow, no_direct: (H, W) as :func:`classify`'s (outputs unless ``classified``).
         scan_i, scan_f: (B, A, 4, W) the column scans' state per band (:func:`_column_step`).
@@ -688,6 +802,9 @@ def decode_rows(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarr
                           coord[a, y], flags[a, 0])
             ok[a, y, :] = False
         _verdict_row(shadow[y], no_direct[y], flags, 0, valid[y], reason[y], counts[y])
+        if adaptive:
+            _rescue_row(stack, y, axis_bits, sep, axes, gray_base, rescue, one_minus_b,
+                        lg_scale, b_level, code, coord, valid[y], reason[y], counts[y])
         for a in range(n_axes):
             if not refine:
                 for x in range(W):
@@ -764,3 +881,70 @@ def difference_histogram(image: np.ndarray) -> tuple[int, np.ndarray]:
         for x in range(W - 1):
             counts[np.int64(image[y, x + 1]) - np.int64(image[y, x]) - low] += 1
     return low, counts
+
+
+@numba.njit(**_OPTS)
+def model_levels(stack: np.ndarray, least: np.float32, most: np.float32,
+                 levels: np.ndarray) -> None:
+    """The noise model's pixels (every second each way; ``w − b > least`` and ``w < most``,
+    float32 as numpy compares them) counted by their level ``w − b`` into ``levels`` (an
+    integer stack's levels are integers)."""
+    for y in range(0, stack.shape[1], 2):
+        for x in range(0, stack.shape[2], 2):
+            w = np.float32(stack[0, y, x])
+            r = w - np.float32(stack[1, y, x])
+            if r > least and w < most:
+                levels[np.int64(r)] += 1
+
+
+@numba.njit(**_OPTS)
+def model_bins(stack: np.ndarray, least: np.float32, most: np.float32, rank0: np.ndarray,
+               ends: np.ndarray, bins: np.ndarray) -> None:
+    """Each model pixel's bin (``bins`` (⌈H/2⌉, ⌈W/2⌉) uint8, 255 for none): its rank among
+    the model pixels ordered by level, equal levels in raster order as a stable sort orders
+    them (``rank0``: each level's first rank, :func:`model_levels`), and the bin whose ranks
+    end after it (``ends``, cumulative)."""
+    seen = np.zeros(rank0.shape[0], np.int64)
+    for y in range(0, stack.shape[1], 2):
+        for x in range(0, stack.shape[2], 2):
+            w = np.float32(stack[0, y, x])
+            r = w - np.float32(stack[1, y, x])
+            if not (r > least and w < most):
+                bins[y // 2, x // 2] = 255
+                continue
+            v = np.int64(r)
+            rank = rank0[v] + seen[v]
+            seen[v] += 1
+            j = 0
+            while ends[j] <= rank:
+                j += 1
+            bins[y // 2, x // 2] = j
+
+
+@numba.njit(**_OPTS)
+def model_residuals(stack: np.ndarray, bins: np.ndarray, counts: np.ndarray, band: int,
+                    start: int, stop: int) -> None:
+    """``|p + q − w − b|`` of every pair at the model pixels of ``bins``' rows ``start`` to
+    ``stop`` counted per bin into ``counts[band]`` (B, bins, width) (integers; from width − 1
+    on into the last column). Each row's model pixels are listed first, then read a pair at a
+    time (two streams; a test per pixel and pair, taken half the time and mispredicted, cost
+    as much as the reading)."""
+    last = counts.shape[2] - 1
+    out = counts[band]
+    xs = np.empty(bins.shape[1], np.int64)
+    bin_of = np.empty(bins.shape[1], np.int64)
+    base = np.empty(bins.shape[1], np.float32)
+    for sy in range(start, stop):
+        y = 2 * sy
+        m = 0
+        for sx in range(bins.shape[1]):
+            if bins[sy, sx] != 255:
+                xs[m] = 2 * sx
+                bin_of[m] = bins[sy, sx]
+                base[m] = np.float32(stack[0, y, 2 * sx]) + np.float32(stack[1, y, 2 * sx])
+                m += 1
+        for k in range(2, stack.shape[0] - 1, 2):
+            p, q = stack[k, y], stack[k + 1, y]
+            for i in range(m):
+                r = abs(np.float32(p[xs[i]]) + np.float32(q[xs[i]]) - base[i])
+                out[bin_of[i], min(np.int64(r), last)] += 1

@@ -157,59 +157,116 @@ def robust_bits(pattern: np.ndarray, inverse: np.ndarray, ld: np.ndarray, lg: np
 _MODEL_MIN_RANGE = 0.03
 
 
-def noise_model(frames: Sequence[np.ndarray]) -> tuple[float, float]:
+def noise_model(frames: Sequence[np.ndarray] | np.ndarray) -> tuple[float, float]:
     """The camera's noise, ``var(I) = floor + gain · (I − black)`` (frame units²), measured
     from a pattern/inverse sequence (white, black, then pairs).
 
     Light adds linearly, so pattern + inverse = white + black at every pixel, global light
     included: ``r = p + q − w − b`` is pure noise with ``var(r) = 4 floor + 2 gain (w − b)``.
     The fit is a line through the medians of ``r²`` (÷ 0.4549, the median of χ²₁) in ten
-    equal-count bins of ``w − b``, on every second pixel each way."""
+    equal-count bins of ``w − b`` (ranked stably: equal levels in raster order), on every
+    second pixel each way. An 8- or 16-bit (F, H, W) stack is counted in compiled passes
+    (:func:`noise_model_counted`, the same figures), anything else sorted
+    (:func:`noise_model_sorted`)."""
+    if (isinstance(frames, np.ndarray) and frames.ndim == 3
+            and frames.dtype in (np.uint8, np.uint16)):
+        model = noise_model_counted(frames)
+        if model is not None:
+            return model
+    return noise_model_sorted(frames)
+
+
+def _model_thresholds(white: np.ndarray) -> tuple[float, float]:
+    """Noise-model fit: the least ``w − b`` (shadow) and the largest ``w`` (saturation)."""
+    top = full_scale(np.asarray(white))
+    return _MODEL_MIN_RANGE * top, 0.99 * top
+
+
+def _model_line(xs: Sequence[float], ys: Sequence[float]) -> tuple[float, float]:
+    """(floor, gain) from the bins' levels ``w − b`` and medians of ``r²`` / 0.4549."""
+    slope, intercept = np.polyfit(xs, ys, 1)
+    return max(float(intercept), 0.0) / 4.0, max(float(slope), 0.0) / 2.0
+
+
+#: the noise model's bins of w − b
+_MODEL_BINS = 10
+#: counted noise model: |p + q − w − b| counted one by one up to this (a median beyond it, a
+#: noise σ of thousands of frame units, is sorted instead)
+_MODEL_MAX_RESIDUAL = 8190
+
+
+def noise_model_sorted(frames: Sequence[np.ndarray]) -> tuple[float, float]:
+    """:func:`noise_model` by sorting (any frame type)."""
 
     def sub(k: int) -> np.ndarray:
         return np.asarray(frames[k])[::2, ::2].astype(np.float32)
 
     white, black = sub(0), sub(1)
     rng = white - black
-    top = full_scale(np.asarray(frames[0]))
-    ok = (rng > _MODEL_MIN_RANGE * top) & (white < 0.99 * top) & np.isfinite(rng)
+    least, most = _model_thresholds(frames[0])
+    ok = (rng > least) & (white < most) & np.isfinite(rng)
     if ok.sum() < 100 or len(frames) < 4:
         return float(noise_sigma(np.asarray(frames[1])) ** 2), 0.0
     level, base = rng[ok], (white + black)[ok]
     order = np.argsort(level, kind="stable")
     sq = np.stack([(sub(k)[ok] + sub(k + 1)[ok] - base) ** 2
                    for k in range(2, len(frames) - 1, 2)], axis=1)[order]
-    chunks = np.array_split(np.arange(len(order)), 10)
+    chunks = np.array_split(np.arange(len(order)), _MODEL_BINS)
     xs = [float(np.median(level[order][c])) for c in chunks]
     ys = [float(np.median(sq[c])) / 0.4549 for c in chunks]
-    slope, intercept = np.polyfit(xs, ys, 1)
-    return max(float(intercept), 0.0) / 4.0, max(float(slope), 0.0) / 2.0
+    return _model_line(xs, ys)
 
 
-def second_weakest_sigmas(frames: Sequence[np.ndarray], floor: float, gain: float,
-                          separation_pairs: Sequence[int], where: np.ndarray) -> np.ndarray:
-    """For the pixels ``where`` (H, W bool) is true, how far all their bits but the weakest are
-    from undecidable, in noise sigmas (1-D, in ``np.nonzero(where)`` order): the second
-    smallest ``(|p − q| − max(L_g − L_d, 0)) / σ(p − q)`` over the pattern/inverse pairs.
-    ``L_d``, ``L_g``: :func:`direct_global` of the pairs numbered ``separation_pairs`` (0 = the
-    first pair); where global light exceeds direct light a bit's sign is sure only beyond
-    ``L_g − L_d`` (a pattern's and its inverse's global light differ by at most that);
-    ``σ² = 2 floor + gain (p + q − 2 black)`` (:func:`noise_model`)."""
-    ys, xs = np.nonzero(where)
+def noise_model_counted(stack: np.ndarray) -> tuple[float, float] | None:
+    """:func:`noise_model` of an 8- or 16-bit (F, H, W) stack by counting, the same figures as
+    :func:`noise_model_sorted` (equal to the last bit, ``tests/test_decode_adaptive.py``): the
+    levels ``w − b`` and ``|r|`` are integers, so histograms give the bins (a level's pixels
+    ranked in raster order, as a stable sort ranks them) and the medians (``r²`` grows with
+    ``|r|``) in three compiled passes that read each frame once (:mod:`kernels`: a sort of
+    1.5 M values and ten medians of 3 M took ~80 ms a full view, these ~10). None when the
+    median ``|r|`` is beyond the counted range (then sort)."""
+    from dotshell.runtime.parallel import bands, split_bands
+    from dotshell_codings import kernels
 
-    def at(k: int) -> np.ndarray:
-        return np.asarray(frames[k])[ys, xs].astype(np.float32)
+    least, most = (np.float32(t) for t in _model_thresholds(stack[0]))
+    if stack.shape[0] < 4:
+        return None
+    top = int(full_scale(stack[0]))  # w − b ≤ w ≤ top
+    levels = np.zeros(top + 1, np.int64)
+    kernels.model_levels(stack, least, most, levels)
+    n = int(levels.sum())
+    if n < 100:
+        return None
+    ends = np.cumsum([len(c) for c in np.array_split(np.arange(n), _MODEL_BINS)])
+    rank0 = np.cumsum(levels) - levels  # rank of each level's first pixel
+    bins = np.empty(((stack.shape[1] + 1) // 2, (stack.shape[2] + 1) // 2), np.uint8)
+    kernels.model_bins(stack, least, most, rank0, ends, bins)
+    width = min(2 * top, _MODEL_MAX_RESIDUAL) + 2  # beyond: the last
+    bounds = bands(bins.shape[0])
+    counts = np.zeros((len(bounds) - 1, _MODEL_BINS, width), np.int32)
+    split_bands(kernels.model_residuals, bounds, stack, bins, counts)
+    residuals = counts.sum(axis=0)
+    starts = np.concatenate([[0], ends[:-1]])
+    xs, ys = [], []
+    for j in range(_MODEL_BINS):
+        xs.append(_middle(np.arange(top + 1), levels, rank0, int(starts[j]), int(ends[j])))
+        c = residuals[j]
+        total = int(c.sum())
+        r_lo, r_hi = (int(np.searchsorted(np.cumsum(c), k, side="right"))
+                      for k in ((total - 1) // 2, total // 2))
+        if r_hi >= width - 1:
+            return None
+        sq = np.float32([r_lo, r_hi]) ** 2
+        ys.append(float(np.median(sq)) / 0.4549)
+    return _model_line(xs, ys)
 
-    black = at(1)
-    sep = [at(2 + 2 * k + j) - black for k in separation_pairs for j in (0, 1)]
-    ld, lg = direct_global(sep) if sep else (np.zeros_like(black), np.zeros_like(black))
-    ambiguous = np.maximum(lg - ld, 0.0)
-    low = np.full(black.shape, np.inf, np.float32)
-    second = np.full(black.shape, np.inf, np.float32)
-    for k in range(2, len(frames) - 1, 2):
-        p, q = at(k), at(k + 1)
-        var = np.maximum(2 * floor + gain * np.maximum(p + q - 2 * black, 0.0), 1e-6)
-        z = np.nan_to_num((np.abs(p - q) - ambiguous) / np.sqrt(var), nan=-np.inf)
-        second = np.minimum(second, np.maximum(low, z))
-        low = np.minimum(low, z)
-    return second
+
+def _middle(values: np.ndarray, counts: np.ndarray, rank0: np.ndarray, lo: int, hi: int
+            ) -> float:
+    """The median (float32, as ``np.median`` of float32) of the ranks ``lo`` to ``hi`` of
+    ``values`` occurring ``counts`` times (``rank0``: the rank of each value's first)."""
+    m = hi - lo
+    ends = rank0 + counts
+    pick = [lo + (m - 1) // 2, lo + m // 2]
+    mid = values[np.searchsorted(ends, pick, side="right")].astype(np.float32)
+    return float(np.median(mid))

@@ -64,6 +64,10 @@ class XorCode(GrayCode):
         patterns have stripes as narrow as half the base stripe next to their own edges."""
         return self.base_bit(ax), 1 << BASE_FROM_END[self.base_stripe_px]
 
+    def sign_base(self, ax: _Axis) -> int:
+        """The base bit: every other projected bit is the Gray bit XOR the base."""
+        return self.base_bit(ax)
+
     def gray_words(self, ax: _Axis, value: np.ndarray, weak: np.ndarray
                    ) -> tuple[np.ndarray, np.ndarray]:
         """Gray bits = projected bits XOR the base bit, bit by bit (:func:`_unxor`)."""
