@@ -14,7 +14,8 @@ temporary per bit. Row by row it:
   one-weak-bit edge tolerance with its 4-neighbour check, out-of-range test) with a flag byte
   per pixel, which :func:`_verdict_row` combines into each pixel's reason and the counts;
   under the adaptive classification :func:`_rescue_row` then gives the row's undecided
-  pixels their second chance (the noise-model test and the sign code, reading only them);
+  pixels their second chance (the noise-model test, the sign code and the one-step test of
+  the weakest bit, reading only them);
 * refines to sub-pixel while the row's frames are still in the cache: along the row
   (:func:`_refine_row`) or, one row behind, a step of the scans down the columns
   (:func:`_column_step`). Each scan finds the stripe edges (anchors) between adjacent valid
@@ -391,24 +392,38 @@ def _rescue_row(stack, y, axis_bits, sep, axes, gray_base, rescue, one_minus_b, 
     :func:`_verdict_row` left with a bit undecided (``reason`` 2): such a pixel is decoded by
     the sign of every pattern − inverse (the contrast rule without its threshold) when all its
     bits but the weakest stand ``rescue[SIGMAS]`` noise sigmas beyond what global light could
-    do to them (:func:`_all_but_one_sure`), and its code is on the projector on every axis.
-    Only those pixels are read again (their frames are still in the cache), so the cost
-    follows the pixels robust leaves uncertain. ``gray_base`` (A,) int64: the projected bit
-    (MSB-first index) that the other projected bits are XORed with, −1 where the projected
-    bits are the Gray bits; ``code``, ``coord`` (A, H, W); ``valid``, ``reason``, ``counts``:
-    row ``y``'s (as :func:`_verdict_row`'s)."""
+    do to them (:func:`_all_but_one_sure`), flipping that weakest bit (if one falls below)
+    moves its axis's code by one step, and its code is on the projector on every axis. The
+    one-step test is the edge tolerance robust gives a single weak bit (:func:`_assemble_row`):
+    a weak bit of the finest stripes' edge costs at most one code step, a weak coarse bit
+    would throw the pixel blocks away (on the clean metal cylinder at full resolution such
+    pixels on the silhouette's outer ring were 14 of the 16 wrong codes the rescue added).
+    Robust's other half of that tolerance, a 4-neighbour with the bit surely 1 and one with
+    it surely 0 in robust's words, is not asked: the pixels robust leaves uncertain lie in
+    runs, and with it the rescue kept 2 of those 1 062 pixels (docs/codings.md). Only those
+    pixels are read again (their frames are still in the cache), so the cost follows the
+    pixels robust leaves uncertain. ``gray_base`` (A,) int64: the projected bit (MSB-first
+    index) that the other projected bits are XORed with, −1 where the projected bits are the
+    Gray bits (the XOR codings' base bit flips every Gray bit: never one step); ``code``,
+    ``coord`` (A, H, W); ``valid``, ``reason``, ``counts``: row ``y``'s (as
+    :func:`_verdict_row`'s)."""
     n_axes = axis_bits.shape[0]
     codes = np.empty(n_axes, np.int32)
     for x in range(reason.shape[0]):
         if reason[x] != 2:
             continue
-        if not _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
+        weakest = _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level)
+        if weakest < 0:
             continue
         inside = True
         k = 0
         for a in range(n_axes):
-            codes[a] = _sign_code(stack, y, x, k, axis_bits[a], gray_base[a])
-            k += axis_bits[a]
+            nb = axis_bits[a]
+            codes[a] = _sign_code(stack, y, x, k, nb, gray_base[a], -1)
+            if k <= weakest < k + nb and abs(_sign_code(stack, y, x, k, nb, gray_base[a],
+                                                         weakest - k) - codes[a]) != 1:
+                inside = False  # the weakest bit is not a one-step bit: robust's tolerance
+            k += nb
             lo = np.int64(codes[a]) * axes[a, BLOCK] - axes[a, OFFSET]
             if lo + (axes[a, BLOCK] - 1) < 0 or lo > axes[a, SIZE] - 1:
                 inside = False
@@ -425,15 +440,16 @@ def _rescue_row(stack, y, axis_bits, sep, axes, gray_base, rescue, one_minus_b, 
 
 
 @numba.njit(**_INNER)
-def _sign_code(stack, y, x, first, nb, base):
+def _sign_code(stack, y, x, first, nb, base, flip):
     """Coarse code of pixel (y, x) on the axis whose ``nb`` pairs start at pair ``first``,
-    every projected bit by the sign of pattern − inverse; the projected bits are XORed with
-    bit ``base`` (MSB-first index) back into Gray bits unless ``base`` is −1."""
+    every projected bit by the sign of pattern − inverse, projected bit ``flip`` (MSB-first
+    index; −1: none) taken the other way; the projected bits are XORed with bit ``base``
+    (MSB-first index) back into Gray bits unless ``base`` is −1."""
     g = np.int64(0)
     for i in range(nb):
         d = np.float32(stack[2 + 2 * (first + i), y, x]) - np.float32(
             stack[3 + 2 * (first + i), y, x])
-        g = (g << 1) | np.int64(d > 0)
+        g = (g << 1) | np.int64((d > 0) != (i == flip))
     if base >= 0:
         shift = nb - 1 - base
         if (g >> shift) & 1:
@@ -448,14 +464,14 @@ def _sign_code(stack, y, x, first, nb, base):
 
 @numba.njit(**_INNER)
 def _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
-    """Whether all the bits of pixel (y, x) but the weakest stand ``rescue[SIGMAS]`` noise
-    sigmas beyond undecidable: ``z = (|p − q| − max(L_g − L_d, 0)) / σ`` below it in at
-    most one pattern/inverse pair (the second smallest z reaches it), with
-    ``σ² = max(2 floor + gain · max(p + q − 2 black, 0), 1e-6)`` and ``L_d``, ``L_g`` from the
-    pairs ``sep`` as the robust rule separates them. A pattern's and its inverse's global light
-    differ by at most ``L_g − L_d``, so beyond it a bit's sign is sure. float32 throughout, as
-    numpy evaluates the documented formula; the finest pairs (the weakest, mostly) first, and
-    the second pair below the bound ends the test."""
+    """The index of pixel (y, x)'s one weak pair when all its bits but that one stand
+    ``rescue[SIGMAS]`` noise sigmas beyond undecidable: ``z = (|p − q| − max(L_g − L_d, 0))
+    / σ`` below it in at most one pattern/inverse pair (the second smallest z reaches it), with ``σ² = max(2 floor + gain · max(p + q − 2 black, 0), 1e-6)`` and
+    ``L_d``, ``L_g`` from the pairs ``sep`` as the robust rule separates them. A pattern's and
+    its inverse's global light differ by at most ``L_g − L_d``, so beyond it a bit's sign is
+    sure. −1 when two pairs fall below, ``sep.shape[0]`` when none does (every bit is sure).
+    float32 throughout, as numpy evaluates the documented formula; the finest pairs (the
+    weakest, mostly) first, and the second pair below the bound ends the test."""
     black = np.float32(stack[1, y, x])
     lmax = np.float32(-np.inf)
     lmin = np.float32(np.inf)
@@ -472,7 +488,7 @@ def _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
         g = np.float32(0.0)
     ambiguous = max(g - d, np.float32(0.0))
     zero = np.float32(0.0)
-    weak = 0
+    weakest = sep.shape[0]
     for k in range(sep.shape[0] - 1, -1, -1):
         p = np.float32(stack[2 + 2 * k, y, x])
         q = np.float32(stack[3 + 2 * k, y, x])
@@ -480,10 +496,11 @@ def _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
                   np.float32(1e-6))
         z = (abs(p - q) - ambiguous) / np.sqrt(var)
         if not z >= rescue[SIGMAS]:  # NaN counts as weak
-            weak += 1
-            if weak == 2:
-                return False
-    return True
+            if weakest < sep.shape[0]:
+                return -1
+            weakest = k
+    return weakest
+
 
 @numba.njit(**_ROW)
 def _changes_row(code, valid, y, counts):
