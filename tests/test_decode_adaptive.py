@@ -140,10 +140,11 @@ def test_adaptive_decodes_more_under_ambient_light_and_blur(ambient_blur_scene):
 
 
 def second_weakest_sigmas(frames, floor: float, gain: float, separation_pairs, where):
-    """The rescue's rule in numpy, as the adaptive decoder applied it before its one-pass
-    kernel (the reference): for the pixels ``where``, the second smallest
+    """The rescue's noise test in numpy, as the adaptive decoder applied it before its
+    one-pass kernel (the reference): for the pixels ``where``, the second smallest
     ``(|p − q| − max(L_g − L_d, 0)) / σ(p − q)`` over the pairs, ``σ² = 2 floor +
-    gain (p + q − 2 black)``, ``L_d``, ``L_g`` from the pairs ``separation_pairs``."""
+    gain (p + q − 2 black)``, ``L_d``, ``L_g`` from the pairs ``separation_pairs``; and the
+    index of the pair with the smallest."""
     ys, xs = np.nonzero(where)
 
     def at(k: int) -> np.ndarray:
@@ -154,19 +155,38 @@ def second_weakest_sigmas(frames, floor: float, gain: float, separation_pairs, w
     ambiguous = np.maximum(lg - ld, 0.0)
     low = np.full(black.shape, np.inf, np.float32)
     second = np.full(black.shape, np.inf, np.float32)
+    weakest = np.zeros(black.shape, np.int64)
     for k in range(2, len(frames) - 1, 2):
         p, q = at(k), at(k + 1)
         var = np.maximum(2 * floor + gain * np.maximum(p + q - 2 * black, 0.0), 1e-6)
         z = np.nan_to_num((np.abs(p - q) - ambiguous) / np.sqrt(var), nan=-np.inf)
         second = np.minimum(second, np.maximum(low, z))
+        weakest = np.where(z < low, (k - 2) // 2, weakest)
         low = np.minimum(low, z)
-    return second
+    return second, weakest, low
+
+
+def sign_code(frames, ys, xs, first: int, nb: int, base: int, flip=None) -> np.ndarray:
+    """Binary codes of the pixels (ys, xs) on the axis whose ``nb`` pairs start at ``first``,
+    every projected bit by its sign (bit ``flip[i]`` of pixel i, MSB-first, the other way),
+    XORed back with projected bit ``base`` (−1: none) into Gray bits, then Gray → binary."""
+    bits = np.stack([np.asarray(frames[2 + 2 * (first + i)])[ys, xs].astype(np.float32)
+                     > np.asarray(frames[3 + 2 * (first + i)])[ys, xs].astype(np.float32)
+                     for i in range(nb)], axis=1)
+    if flip is not None:
+        bits ^= np.arange(nb)[None, :] == flip[:, None]
+    if base >= 0:
+        others = np.arange(nb) != base
+        bits[:, others] ^= bits[:, [base]]
+    return np.bitwise_xor.accumulate(bits.astype(np.int64), axis=1) @ (1 << np.arange(nb)[::-1])
 
 
 def two_decode_adaptive(make, frames, size):
     """The adaptive classification as it was decoded before the one-pass kernel: robust, the
     contrast rule without threshold, and the noise-model test on the pixels robust leaves
-    uncertain that the contrast rule decodes. Returns (robust, contrast, rescued mask)."""
+    uncertain that the contrast rule decodes; then the one-step test: where one bit falls
+    below the bound, flipping it must move its axis's code by one step (robust's edge
+    tolerance). Returns (robust, contrast, rescued mask)."""
     robust = make({"axes": "both", "classification": "robust"}).decode(frames, size)
     plain = make({"axes": "both", "classification": "contrast", "min_contrast": 0.0}
                  ).decode(frames, size)
@@ -177,22 +197,47 @@ def two_decode_adaptive(make, frames, size):
            for i in range(min(coding.high_frequency_pairs, ax.nb))]
     floor, gain = noise_model_sorted(frames)
     rescued = (robust.reason == robust.reason_names.index("uncertain")) & plain.valid
-    rescued[rescued] = second_weakest_sigmas(frames, floor, gain, sep, rescued) >= 6.0
+    second, weakest, low = second_weakest_sigmas(frames, floor, gain, sep, rescued)
+    keep = second >= 6.0
+    ys, xs = np.nonzero(rescued)
+    for first, ax in zip(firsts, axes):
+        on = (low < 6.0) & (weakest >= first) & (weakest < first + ax.nb)
+        base = coding.sign_base(ax)
+        code = sign_code(frames, ys[on], xs[on], int(first), ax.nb, base)
+        flipped = sign_code(frames, ys[on], xs[on], int(first), ax.nb, base, weakest[on] - first)
+        keep[on] &= np.abs(flipped - code) == 1
+    rescued[rescued] = keep
     return robust, plain, rescued
 
 
+def ring_scene(make):
+    """:func:`silhouette_ring_frames` as :func:`bench_scene` returns a scene."""
+    frames, size, x, y, *_rings = silhouette_ring_frames(make)
+    return frames, size, x, y, np.hypot(x - 31.5, y - 31.5) < 26
+
+
+@pytest.mark.parametrize("scene", ["blurred", "ring"])
 @pytest.mark.parametrize("make", [make_graycode, xor_factory(4)], ids=["graycode", "xor04"])
-def test_one_pass_adaptive_decodes_what_two_decodes_did(make, ambient_blur_scene):
+def test_one_pass_adaptive_decodes_what_two_decodes_did(make, scene, ambient_blur_scene):
     """The one-pass decoder (the rescue reads only the pixels robust leaves uncertain) rescues
     exactly the pixels the two-decode implementation rescued, with their codes: the same
     decoded and wrong counts against the truth (gray code, blurred scene: 27 748 decoded, 194
     wrong, 251 rescued). Only sub-pixel placement may differ, where the rescued pixels join
-    the refinement's runs of valid pixels."""
-    frames, size, u, v, lit = (ambient_blur_scene if make is make_graycode
-                               else bench_scene(make, ambient=1.0, defocus_sigma_px=1.5))
+    the refinement's runs of valid pixels. The reference applies the one-step test of the
+    weakest bit too; in the blurred scene it refuses nothing (every rescued pixel there has
+    its bits sure or a one-step weak bit), on the silhouette ring
+    (:func:`silhouette_ring_frames`) it refuses the outer ring's pixels away from the coarse
+    bit's edges, so the ring is where the two must agree on it."""
+    if scene == "ring":
+        frames, size, u, v, lit = ring_scene(make)
+    else:
+        frames, size, u, v, lit = (ambient_blur_scene if make is make_graycode
+                                   else bench_scene(make, ambient=1.0, defocus_sigma_px=1.5))
     robust, plain, rescued = two_decode_adaptive(make, frames, size)
     adaptive = make({"axes": "both", "classification": "adaptive"}).decode(frames, size)
     print(int(rescued.sum()), adaptive.stats)
+    # measured: blurred 251 (XOR-04: 748); ring 184 of the 484 that pass the noise test, the
+    # one-step test refusing 300 of the outer ring's 320 (gray code and XOR-04 alike)
     assert rescued.sum() > 50
     assert np.array_equal(adaptive.valid, robust.valid | rescued)
     assert adaptive.stats["adaptive_rescued"] == int(rescued.sum())
@@ -224,3 +269,63 @@ def test_counted_noise_model_equals_the_sorted_one(ambient_scene, ambient_blur_s
     floor, gain = noise_model_counted(np.stack(frames))
     assert (floor, gain) == noise_model_sorted(frames)
     assert np.sqrt(floor) == pytest.approx(3.0 / np.sqrt(2), rel=0.1)  # σ(p + q − w − b) = 2 σ
+
+
+def silhouette_ring_frames(make=make_graycode, seed: int = 3):
+    """A 64 × 64 camera seeing a 64 × 64 projector pixel for pixel (true column x, row y): a
+    disk of radius 26 px on shadow, 12-bit frames (pedestal 100, direct light 1 000, read
+    noise σ 2). Two rings carry global light 1 200 (above the direct: robust decides each bit
+    only where pattern and inverse clear the ambiguous band between L_d and L_g) with one
+    column pair cancelled (pattern ≈ inverse, 20 apart): the silhouette's outer ring (radius
+    24–26, mixed pixels) in the second coarsest pair with its sign the wrong way, an inner ring
+    (radius 16–18) in the finest pair with its sign right. Returns (frames, size, x, y,
+    outer ring, inner ring); the coding ``make`` makes the patterns (gray code)."""
+    rng = np.random.default_rng(seed)
+    size = (64, 64)
+    y, x = np.mgrid[0:64, 0:64]
+    r = np.hypot(x - 31.5, y - 31.5)
+    disk = r < 26
+    outer, inner = disk & (r >= 24), (r >= 16) & (r < 18)
+    direct = np.where(disk, 1000.0, 0.0)
+    glob = np.where(outer | inner, 1200.0, 0.0)
+    coding = make({"axes": "both"})
+    nb = coding._axes(size)[0].nb
+    frames = [100 + direct + glob, np.full(size, 100.0)]
+    patterns = coding.patterns(size)[2:]
+    for pair in range(len(patterns) // 2):
+        lit = np.asarray(patterns[2 * pair].image, float) / 255.0
+        pattern, inverse = (100 + direct * on + glob / 2 for on in (lit, 1 - lit))
+        for ring, right, cancelled in ((outer, -1.0, 1), (inner, 1.0, nb - 1)):
+            if pair == cancelled:  # pattern − inverse = ± 20, its sign right or wrong
+                side = right * np.where(lit[ring] > 0.5, 10.0, -10.0)
+                pattern[ring] = 100 + (1000 + 1200) / 2 + side
+                inverse[ring] = 100 + (1000 + 1200) / 2 - side
+        frames += [pattern, inverse]
+    frames = [np.clip(np.round(f + rng.normal(0, 2, size)), 0, 4095).astype(np.uint16)
+              for f in frames]
+    return frames, size, x.astype(float), y.astype(float), outer, inner
+
+
+def test_rescue_takes_a_weak_bit_only_where_robust_would_tolerate_it():
+    """The rescue's weakest bit must be a one-step bit, as robust's edge tolerance asks: a
+    mixed pixel on the silhouette's ring whose second coarsest bit is cancelled is refused
+    (taken by its wrong sign it would land ~16–32 projector px off), except next to that
+    bit's own stripe edge (one step off at most); a pixel whose finest bit is cancelled is
+    rescued. Before the one-step test adaptive took the outer ring by its signs: on the clean
+    metal cylinder at full resolution 14 of its 16 extra wrong codes."""
+    frames, size, x, y, outer, inner = silhouette_ring_frames()
+    out = {}
+    for cl in ("robust", "adaptive"):
+        corr = make_graycode({"axes": "both", "classification": cl}).decode(frames, size)
+        err = np.maximum(np.abs(corr.column - x), np.abs(corr.row - y))
+        wrong = corr.valid & (err > 1.5)
+        out[cl] = corr, wrong
+        print(cl, corr.stats.get("adaptive_rescued"), [int((corr.valid & m).sum())
+                                                       for m in (outer, inner)],
+              int(wrong.sum()))
+    (robust, robust_wrong), (adaptive, adaptive_wrong) = out["robust"], out["adaptive"]
+    rescued = adaptive.valid & ~robust.valid
+    assert (rescued & inner).sum() > 0.5 * (inner & ~robust.valid).sum()
+    assert not adaptive_wrong.any() and not robust_wrong.any()
+    # on the outer ring only the columns beside the coarse bit's edges (15 | 16, 47 | 48)
+    assert np.all(np.isin(x[rescued & outer], (15, 16, 47, 48)))
