@@ -1,6 +1,7 @@
 """The adaptive classification (issue 27): robust where robust decides; a pixel robust leaves
 uncertain is decoded as the contrast rule decodes it when every bit but its weakest stands
-``adaptive_sigmas`` camera-noise sigmas beyond what global light could do to it. Both failure
+``adaptive_sigmas`` camera-noise sigmas beyond what global light could do to it and flipping
+its weakest, if it falls short, moves the code by one step (robust's edge tolerance). Both failure
 modes are measured against ground truth: contrast's wrong codes under long-range global light,
 robust's lost pixels under strong ambient light. The noise model is measured from the frames
 (pattern + inverse = white + black, light being additive), and the decoded share and the

@@ -72,8 +72,9 @@ SETTINGS_SCHEMA: dict[str, Setting] = {
              "direct/global separation (bit decided or uncertain); 'adaptive' = robust, and "
              "a pixel robust leaves uncertain is decoded as 'contrast' decodes it when all its "
              "bits but one also stand out of the camera noise by adaptive_sigmas (the noise "
-             "model is measured from the frames) and beyond what global light could do; "
-             "without inverses 'contrast' is used"),
+             "model is measured from the frames) and beyond what global light could do, and "
+             "flipping the one that does not moves the code by one step (robust's edge "
+             "tolerance); without inverses 'contrast' is used"),
     "adaptive_sigmas": Setting(
         "float", 6.0, min=1.0,
         help="adaptive classification: the least |pattern - inverse| of a pixel's bits (all "
