@@ -466,7 +466,8 @@ def _sign_code(stack, y, x, first, nb, base, flip):
 def _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
     """The index of pixel (y, x)'s one weak pair when all its bits but that one stand
     ``rescue[SIGMAS]`` noise sigmas beyond undecidable: ``z = (|p − q| − max(L_g − L_d, 0))
-    / σ`` below it in at most one pattern/inverse pair (the second smallest z reaches it), with ``σ² = max(2 floor + gain · max(p + q − 2 black, 0), 1e-6)`` and
+    / σ`` below it in at most one pattern/inverse pair (the second smallest z reaches it), with
+    ``σ² = max(2 floor + gain · max(p + q − 2 black, 0), 1e-6)`` and
     ``L_d``, ``L_g`` from the pairs ``sep`` as the robust rule separates them. A pattern's and
     its inverse's global light differ by at most ``L_g − L_d``, so beyond it a bit's sign is
     sure. −1 when two pairs fall below, ``sep.shape[0]`` when none does (every bit is sure).
