@@ -298,11 +298,11 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
                         break
                 else:
                     rig.stage.move_to(angle)
-                if trans is not None and trans.covers(view):
-                    trans.run_view(view)
                 if fringes and frames is not None:  # None: stopped, the loop has ended
                     pipeline.submit(view, view_angle(store.manifest["views"][view]), frames)
-                    del frames  # the pipeline holds them only until the view is reconstructed
+                    del frames  # the pipeline holds their pattern images until reconstructed
+                if trans is not None and trans.covers(view):
+                    trans.run_view(view)
             last_frame_at = time.monotonic() if todo else None  # last frames stored
             reconstructed = pipeline.results()
         finally:
