@@ -415,7 +415,8 @@ def test_symmetric_sample_shares_one_view_across_angles():
 def test_renderer_drops_its_large_view_before_making_the_next(monkeypatch):
     """Issue 33: a renderer keeping ``cache_views`` = 1 large view forgets it before it traces
     the next angle's (at full resolution each is ~0.1 GB; a scan never turns back), so two
-    views are never held at once; small views (below SMALL_VIEWS_BYTES) stay cached."""
+    views are never held at once, and its camera rays once the view is made (made again the
+    same); small views (below SMALL_VIEWS_BYTES) stay cached."""
     import dotshell_sim.render as render
 
     prof = scale_profile(load_profile(), FACTOR)
@@ -442,3 +443,7 @@ def test_renderer_drops_its_large_view_before_making_the_next(monkeypatch):
     renderer.view(40.0)
     assert held_while_tracing and set(held_while_tracing) == {0}
     assert list(renderer._views) == [40.0]
+    assert renderer._rays is None  # large: made again for the next view
+    rays = renderer.camera_rays().copy()
+    renderer.forget_large_rays()
+    assert np.array_equal(renderer.camera_rays(), rays)

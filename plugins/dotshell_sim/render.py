@@ -410,7 +410,15 @@ class Renderer:
         view.seconds = time.perf_counter() - t0
         self._views[key] = view
         self._forget_views()
+        self.forget_large_rays()
         return view
+
+    def forget_large_rays(self) -> None:
+        """Forget the camera rays when the views hold more than :data:`SMALL_VIEWS_BYTES`:
+        at 1280×1024, 2× supersampled, they are 120 MiB of float64 that a scan needs once a
+        view (made again in ~1.2 s of CPU, the same to the bit; issue 33)."""
+        if self.cached_bytes() > SMALL_VIEWS_BYTES:
+            self._rays = None
 
     def _forget_views(self, keep: int | None = None) -> None:
         """Drop the oldest cached views beyond ``keep`` (default ``cache_views``) unless

@@ -372,6 +372,8 @@ def laser_view(renderer: Renderer, view: View, shape, model: FluenceModel) -> La
     parts = [_laser_samples(k[s:s + LASER_CHUNK], rays, o_s, M, view.ss, cam.width, shape,
                             model) for s in range(0, len(k), LASER_CHUNK)] or [
         _laser_samples(k, rays, o_s, M, view.ss, cam.width, shape, model)]
+    del rays
+    renderer.forget_large_rays()
     pixel, nodes, weights, base = (np.concatenate(p) for p in zip(*parts))
     return LaserView(pixel, nodes, weights, base, (cam.height, cam.width))
 
