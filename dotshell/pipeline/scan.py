@@ -103,8 +103,8 @@ class ViewPipeline:
         self.futures: dict[int, Future] = {}
 
     def submit(self, view: int, angle_deg: float, frames: list[np.ndarray]) -> None:
+        self._wait(keep_pending=1)  # first: the view it waits for lets go of its images
         images = pattern_images(self.store, frames)
-        self._wait(keep_pending=1)
         self.futures[view] = self.pool.submit(self._reconstruct, view, angle_deg, images)
 
     def _reconstruct(self, view: int, angle_deg: float, images: PatternImages
