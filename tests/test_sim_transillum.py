@@ -312,6 +312,15 @@ def test_laser_view_in_chunks_is_the_one_pass_view_and_one_angle_is_kept(agar, m
         a, b = getattr(one_pass, name), getattr(chunked, name)
         assert a.dtype == b.dtype and np.array_equal(a, b), name
 
+    held_while_tracing = []
+
+    def counting_laser_view(*args):
+        held_while_tracing.append(len(T._VIEWS[renderer]))
+        return laser_view(*args)
+
+    laser_view = T.laser_view
+    monkeypatch.setattr(T, "laser_view", counting_laser_view)
     for angle in (ANGLE, ANGLE + 40.0):
         T.laser_irradiance(renderer, renderer.view(angle), shape, model, TARGET)
     assert [key[1] for key in T._VIEWS[renderer]] == [ANGLE + 40.0]
+    assert held_while_tracing[-1] == 0  # the old angle's went before the new was traced

@@ -413,8 +413,11 @@ def laser_irradiance(renderer: Renderer, view: View, shape, model: FluenceModel,
                      target_mm) -> np.ndarray:
     """Relative image irradiance (H, W) float32 from a unit-power beam at ``target_mm``
     with the stage at ``view.angle_deg`` (cached per renderer, angle and target)."""
-    lv = cached(_VIEWS.setdefault(renderer, OrderedDict()), (model.key, view.angle_deg),
-                lambda: laser_view(renderer, view, shape, model), 1)
+    views = _VIEWS.setdefault(renderer, OrderedDict())
+    key = (model.key, view.angle_deg)
+    if key not in views:  # one angle's at a time, dropped before the next is traced (~0.1 GB)
+        views.clear()
+    lv = cached(views, key, lambda: laser_view(renderer, view, shape, model), 1)
 
     def image() -> np.ndarray:
         entry, direction = require_entry(shape, view.angle_deg, target_mm)
