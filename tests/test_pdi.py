@@ -50,6 +50,26 @@ def test_shot_plan_and_exact_difference():
     assert plan_shots(pats, {"pdi": False}) == [Shot("white", 0), Shot("col_00", 1)]
 
 
+def test_a_waiting_view_keeps_its_pattern_images_not_its_frames():
+    """Issue 33: the scan's pipeline keeps a captured PDI view as one |I∥ − I⊥| image per
+    pattern and its first frame (the preview): half the frames' bytes, the same images as
+    the reconstruction of the frames read back makes."""
+    from types import SimpleNamespace
+
+    from dotshell.pipeline.steps import pattern_images
+
+    pats = [PatternFrame(f"p{i}", np.zeros((2, 2), np.uint8)) for i in range(3)]
+    shots = plan_shots(pats, {"pdi": True, "pdi_angles_deg": [0.0, 90.0]})
+    store = SimpleNamespace(manifest={"shots": [s.to_dict() for s in shots]})
+    frames = list(np.random.default_rng(3).integers(0, 4096, (6, 8, 8), dtype=np.uint16))
+    images, first = pattern_images(store, frames)
+    assert first is frames[0]
+    assert sum(i.nbytes for i in images) * 2 == sum(f.nbytes for f in frames)
+    for got, want in zip(images, combine(frames, shots)):
+        assert np.array_equal(got, want)
+    assert np.array_equal(images[1], np.abs(frames[1].astype(int) - frames[4]))
+
+
 def test_analyzer_follows_malus_and_pdi_keeps_the_surface_light():
     raw = _raw("sim-agar-cylinder", 0.2, 1)
     rig = build_rig(raw)

@@ -145,13 +145,15 @@ def test_a_scan_gives_each_views_maps_back_before_the_next_view(monkeypatch):
 
     idle_at_start = []
 
-    def reconstruct(store, view, angle_deg, profile, coding, calib, bus, frames):
+    def reconstruct(store, view, angle_deg, profile, coding, calib, bus, frames=None,
+                    images=None):
         idle_at_start.append(hugepages.idle_bytes())
         maps = hugepages.empty((1024, 1280), np.float32)  # freed on return: lent back
         maps.fill(view)
         return {"view": view}
 
     monkeypatch.setattr(scan_module, "reconstruct_one_view", reconstruct)
+    monkeypatch.setattr(scan_module, "pattern_images", lambda store, frames: (list(frames), None))
     hugepages.release()
     pipeline = scan_module.ViewPipeline(None, None, None, None, None)
     try:

@@ -410,3 +410,40 @@ def test_symmetric_sample_shares_one_view_across_angles():
     assert not off_renderer.scene.turns_into_itself()
     w0 = off_renderer.view(0.0)
     assert off_renderer.view(137.0).map_x is not w0.map_x
+
+
+def test_renderer_drops_its_large_view_before_making_the_next(monkeypatch):
+    """Issue 33: a renderer keeping ``cache_views`` = 1 large view forgets it before it traces
+    the next angle's (at full resolution each is ~0.1 GB; a scan never turns back), so two
+    views are never held at once, and its camera rays once the view is made (made again the
+    same); small views (below SMALL_VIEWS_BYTES) stay cached."""
+    import dotshell_sim.render as render
+
+    prof = scale_profile(load_profile(), FACTOR)
+    prof["stage"]["settings"]["scene"]["offset_mm"] = [2.0, 0.0]  # a view per angle
+    rig = build_rig(prof, RigContext())
+    for dev in rig.values():
+        dev.connect()
+    renderer = rig["camera"].world.renderer()
+    renderer.release()  # renderers are shared by geometry: start from none cached
+    renderer.view(0.0)
+    held_while_tracing: list[int] = []
+    trace = renderer.trace
+
+    def counting_trace(*args, **kwargs):
+        held_while_tracing.append(len(renderer._views))
+        return trace(*args, **kwargs)
+
+    monkeypatch.setattr(renderer, "trace", counting_trace)
+    renderer.view(20.0)  # small views: kept
+    assert held_while_tracing and set(held_while_tracing) == {1}
+    assert list(renderer._views) == [0.0, 20.0]
+    monkeypatch.setattr(render, "SMALL_VIEWS_BYTES", 0)  # every view counts as large
+    held_while_tracing.clear()
+    renderer.view(40.0)
+    assert held_while_tracing and set(held_while_tracing) == {0}
+    assert list(renderer._views) == [40.0]
+    assert renderer._rays is None  # large: made again for the next view
+    rays = renderer.camera_rays().copy()
+    renderer.forget_large_rays()
+    assert np.array_equal(renderer.camera_rays(), rays)

@@ -293,3 +293,34 @@ def test_optics_keys_on_a_turbid_sample_are_an_error():
     rig = _connected(raw)
     with pytest.raises(DeviceError, match="'agar' is turbid"):
         rig["light_source"].aim((0.0, 10.0))
+
+
+def test_laser_view_in_chunks_is_the_one_pass_view_and_one_angle_is_kept(agar, monkeypatch):
+    """Issue 33: :func:`laser_view` traces its sub-samples a chunk at a time (bounded float64
+    temporaries) and gives the arrays of one pass bit for bit; a renderer keeps the laser view
+    of one stage angle (a scan never turns back)."""
+    cam, laser = agar["rig"]["camera"], agar["rig"]["light_source"]
+    renderer = cam.world.renderer()
+    view = renderer.view(ANGLE)
+    shape, _ = laser._sample()
+    model = laser._model()
+    one_pass = T.laser_view(renderer, view, shape, model)
+    monkeypatch.setattr(T, "LASER_CHUNK", 997)
+    chunked = T.laser_view(renderer, view, shape, model)
+    assert len(one_pass.pixel) > 10 * 997  # many chunks
+    for name in ("pixel", "nodes", "weights", "base"):
+        a, b = getattr(one_pass, name), getattr(chunked, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b), name
+
+    held_while_tracing = []
+
+    def counting_laser_view(*args):
+        held_while_tracing.append(len(T._VIEWS[renderer]))
+        return laser_view(*args)
+
+    laser_view = T.laser_view
+    monkeypatch.setattr(T, "laser_view", counting_laser_view)
+    for angle in (ANGLE, ANGLE + 40.0):
+        T.laser_irradiance(renderer, renderer.view(angle), shape, model, TARGET)
+    assert [key[1] for key in T._VIEWS[renderer]] == [ANGLE + 40.0]
+    assert held_while_tracing[-1] == 0  # the old angle's went before the new was traced

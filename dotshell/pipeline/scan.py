@@ -34,8 +34,8 @@ from dotshell.run.frames import set_aside_partial
 from dotshell.run.generations import Generation, ProductStore
 from dotshell.run.lifecycle import connected, describe_holder, lock_holder
 from dotshell.pipeline.pdi import plan_shots
-from dotshell.pipeline.steps import (make_coding, reconstruct_one_view,
-                                     require_turntable_axis, view_angle)
+from dotshell.pipeline.steps import (PatternImages, make_coding, pattern_images,
+                                     reconstruct_one_view, require_turntable_axis, view_angle)
 from dotshell.pipeline.transillum import TransilluminationCapture
 from dotshell.plugins import PluginManager
 from dotshell.profile.loader import Profile, validate_profile
@@ -91,7 +91,9 @@ def _stoppable_rig(profile: Profile, pm: PluginManager, rig: Rig | None) -> Iter
 
 class ViewPipeline:
     """Reconstructs captured views on one worker thread while the next view is captured. At
-    most one view waits, so memory holds at most three views' frames."""
+    most one view waits; views wait and are reconstructed as their pattern images
+    (:func:`~dotshell.pipeline.steps.pattern_images`: with PDI, half their frames), so memory
+    holds the frames of the view being captured and the pattern images of two others."""
 
     def __init__(self, store: RunStore, profile: Profile, coding: Any, calib: RigCalibration,
                  bus: EventBus) -> None:
@@ -101,10 +103,11 @@ class ViewPipeline:
         self.futures: dict[int, Future] = {}
 
     def submit(self, view: int, angle_deg: float, frames: list[np.ndarray]) -> None:
-        self._wait(keep_pending=1)
-        self.futures[view] = self.pool.submit(self._reconstruct, view, angle_deg, frames)
+        self._wait(keep_pending=1)  # first: the view it waits for lets go of its images
+        images = pattern_images(self.store, frames)
+        self.futures[view] = self.pool.submit(self._reconstruct, view, angle_deg, images)
 
-    def _reconstruct(self, view: int, angle_deg: float, frames: list[np.ndarray]
+    def _reconstruct(self, view: int, angle_deg: float, images: PatternImages
                      ) -> dict[str, Any]:
         """One view, its maps' memory then given back (:func:`dotshell.runtime.hugepages.release`):
         a scan's reconstruction hides behind the capture, and until the next view the
@@ -112,7 +115,7 @@ class ViewPipeline:
         profile, coding, calib, bus = self.args
         try:
             return reconstruct_one_view(self.store, view, angle_deg, profile, coding, calib, bus,
-                                        frames)
+                                        images=images)
         finally:
             hugepages.release()
 
@@ -295,11 +298,11 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
                         break
                 else:
                     rig.stage.move_to(angle)
-                if trans is not None and trans.covers(view):
-                    trans.run_view(view)
                 if fringes and frames is not None:  # None: stopped, the loop has ended
                     pipeline.submit(view, view_angle(store.manifest["views"][view]), frames)
-                    del frames  # the pipeline holds them only until the view is reconstructed
+                    del frames  # the pipeline holds their pattern images until reconstructed
+                if trans is not None and trans.covers(view):
+                    trans.run_view(view)
             last_frame_at = time.monotonic() if todo else None  # last frames stored
             reconstructed = pipeline.results()
         finally:

@@ -355,15 +355,36 @@ class LaserView:
     images: OrderedDict = field(default_factory=OrderedDict)
 
 
+#: Sub-samples traced at a time by :func:`laser_view`: its float64 temporaries (~0.25 KB a
+#: sample) stay ~60 MB, where the ~2.7 M samples of a full-resolution agar view at once took
+#: ~0.7 GB above the rest of the scan (issue 33; the arrays are the same bit for bit).
+LASER_CHUNK = 1 << 18
+
+
 def laser_view(renderer: Renderer, view: View, shape, model: FluenceModel) -> LaserView:
     """Trace the camera sub-samples that see the sample (first hit, from ``view``) to the true
-    sample surface and locate them on the FEM boundary."""
+    sample surface and locate them on the FEM boundary, :data:`LASER_CHUNK` at a time."""
     cam = renderer.calib.camera
-    ss = view.ss
     k = np.flatnonzero(view.material.ravel() == shape.material)
-    d_c = renderer.camera_rays()[k]
     o_s = renderer.calib.camera_to_sample(np.zeros((1, 3)), view.angle_deg)[0]
-    d_s = d_c @ renderer.calib.sample_rotation(view.angle_deg)
+    M = renderer.calib.sample_rotation(view.angle_deg)
+    rays = renderer.camera_rays()
+    parts = [_laser_samples(k[s:s + LASER_CHUNK], rays, o_s, M, view.ss, cam.width, shape,
+                            model) for s in range(0, len(k), LASER_CHUNK)] or [
+        _laser_samples(k, rays, o_s, M, view.ss, cam.width, shape, model)]
+    del rays
+    renderer.forget_large_rays()
+    pixel, nodes, weights, base = (np.concatenate(p) for p in zip(*parts))
+    return LaserView(pixel, nodes, weights, base, (cam.height, cam.width))
+
+
+def _laser_samples(k: np.ndarray, rays: np.ndarray, o_s: np.ndarray, M: np.ndarray, ss: int,
+                   width: int, shape, model: FluenceModel
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`laser_view`'s (pixel, nodes, weights, base) of the sub-samples ``k`` (flat
+    indices on the supersampled grid) that hit the true surface."""
+    d_c = rays[k]
+    d_s = d_c @ M
     t, normals = shape.intersect(np.broadcast_to(o_s, d_s.shape), d_s)
     ok = np.isfinite(t)
     k, d_c, d_s, t, normals = k[ok], d_c[ok], d_s[ok], t[ok], normals[ok]
@@ -371,10 +392,10 @@ def laser_view(renderer: Renderer, view: View, shape, model: FluenceModel) -> La
     cos_out = np.clip(-np.einsum("ij,ij->i", normals, d_s), 0.0, 1.0)  # towards the camera
     at = model.boundary.closest(points)
     base = exit_radiance_per_fluence(cos_out, model.optics.n) * d_c[:, 2] ** 4 / ss ** 2
-    row, col = divmod(k, cam.width * ss)
-    pixel = (row // ss) * cam.width + col // ss
-    return LaserView(pixel, at.nodes.astype(np.int32), at.weights.astype(np.float32),
-                     base.astype(np.float32), (cam.height, cam.width))
+    row, col = divmod(k, width * ss)
+    pixel = (row // ss) * width + col // ss
+    return (pixel, at.nodes.astype(np.int32), at.weights.astype(np.float32),
+            base.astype(np.float32))
 
 
 def emission_image(lv: LaserView, phi: np.ndarray) -> np.ndarray:
@@ -392,8 +413,11 @@ def laser_irradiance(renderer: Renderer, view: View, shape, model: FluenceModel,
                      target_mm) -> np.ndarray:
     """Relative image irradiance (H, W) float32 from a unit-power beam at ``target_mm``
     with the stage at ``view.angle_deg`` (cached per renderer, angle and target)."""
-    lv = cached(_VIEWS.setdefault(renderer, OrderedDict()), (model.key, view.angle_deg),
-                lambda: laser_view(renderer, view, shape, model), 2)
+    views = _VIEWS.setdefault(renderer, OrderedDict())
+    key = (model.key, view.angle_deg)
+    if key not in views:  # one angle's at a time, dropped before the next is traced (~0.1 GB)
+        views.clear()
+    lv = cached(views, key, lambda: laser_view(renderer, view, shape, model), 1)
 
     def image() -> np.ndarray:
         entry, direction = require_entry(shape, view.angle_deg, target_mm)

@@ -1,0 +1,211 @@
+"""Where the memory of the agar scan goes (issue 33): ``dotshell scan sim-agar-cylinder`` at full
+resolution in a child process, with the resident size (VmRSS, VmHWM of /proc/self/status) and,
+with ``--trace``, the largest tracemalloc holders printed at every view boundary.
+
+Usage::
+
+    python benchmarks/agar_memory.py [--views 3] [--trace] [--mesh] [--out DIR] [--before REF]
+
+``--views N`` scans N views (transillumination at view 0 only, unless N = 12); ``--mesh`` keeps
+the profile's mesh and normalization after the scan (they run in a child process of their own).
+``--before REF`` measures the dotshell of git revision REF (``git archive``, e.g. ``main``) in
+the same run, before this tree: one child process per side, the figures side by side.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from io import BytesIO
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def status_mib() -> tuple[float, float]:
+    """(VmRSS, VmHWM) of this process, MiB."""
+    fields = {}
+    for line in Path("/proc/self/status").read_text().splitlines():
+        key, _, value = line.partition(":")
+        if key in ("VmRSS", "VmHWM"):
+            fields[key] = int(value.split()[0]) / 1024.0
+    return fields["VmRSS"], fields["VmHWM"]
+
+
+class StageSampler:
+    """Samples VmRSS every ``period_s`` on a thread and keeps the largest per stage: the
+    innermost stage the main thread is in (:meth:`wrap`), ``+ reconstruct`` while the
+    reconstruction worker is busy."""
+
+    def __init__(self, period_s: float = 0.05) -> None:
+        import threading
+
+        self.stack: list[str] = ["start"]
+        self.busy = 0
+        self.peaks: dict[str, float] = {}
+        self.period_s = period_s
+        self.done = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        while not self.done.wait(self.period_s):
+            label = self.stack[-1] + (" + reconstruct" if self.busy else "")
+            rss = status_mib()[0]
+            self.peaks[label] = max(self.peaks.get(label, 0.0), rss)
+
+    def wrap(self, owner: object, name: str, label: str, worker: bool = False) -> None:
+        """Label the time spent in ``owner.name`` (a function or method)."""
+        import functools
+
+        fn = getattr(owner, name)
+
+        @functools.wraps(fn)
+        def labelled(*a, **kw):
+            if worker:
+                self.busy += 1
+            else:
+                self.stack.append(label)
+            try:
+                return fn(*a, **kw)
+            finally:
+                if worker:
+                    self.busy -= 1
+                else:
+                    self.stack.pop()
+        setattr(owner, name, labelled)
+
+
+def child(args: argparse.Namespace) -> None:
+    """The scan, in this process, with a probe at every view boundary."""
+    import tracemalloc
+
+    import dotshell_sim.render as render
+    import dotshell_sim.transillum as transillum
+    from dotshell.cli.app import main
+    from dotshell.pipeline import acquire
+    from dotshell.pipeline import scan as scan_module
+    from dotshell.pipeline import transillum as pipeline_transillum
+
+    sampler = StageSampler()
+    sampler.wrap(acquire.Acquisition, "run_view", "capture fringes")
+    sampler.wrap(pipeline_transillum.TransilluminationCapture, "run_view", "trans-illumination")
+    sampler.wrap(render.Renderer, "view", "render: new view")
+    sampler.wrap(transillum, "laser_view", "laser view")
+    sampler.wrap(scan_module, "process", "merge, validate, previews")
+    sampler.wrap(scan_module, "_transillumination", "flat field")
+    sampler.wrap(scan_module.ViewPipeline, "_reconstruct", "", worker=True)
+
+    if args.trace:
+        tracemalloc.start(6)
+    records: list[dict] = []
+    submit = scan_module.ViewPipeline.submit
+
+    def probe(self, view, angle_deg, frames):  # the moment a view's frames are all captured
+        rss, hwm = status_mib()
+        rec: dict = {"view": view, "rss_mib": rss, "hwm_mib": hwm, "t_s": time.monotonic()}
+        if args.trace:
+            snap = tracemalloc.take_snapshot()
+            traced = sum(s.size for s in snap.statistics("filename")) / 2**20
+            rec["traced_mib"] = traced
+            rec["top"] = [(" <- ".join(f"{Path(f.filename).name}:{f.lineno}"
+                                       for f in list(s.traceback)[:4]),
+                           s.size / 2**20, s.count)
+                          for s in snap.statistics("traceback")[:args.top]]
+        records.append(rec)
+        print(json.dumps(rec), flush=True, file=sys.stderr)
+        return submit(self, view, angle_deg, frames)
+
+    scan_module.ViewPipeline.submit = probe  # type: ignore[method-assign]
+    sets = [f"scan.views={args.views}"]
+    if args.views != 12:
+        sets.append("transillumination.views=[0]")
+    if not args.mesh:
+        sets.append("mesh.after_scan=false")
+    argv = ["scan", "sim-agar-cylinder", "--out", args.out, "-q"]
+    for s in sets:
+        argv += ["--set", s]
+    t0 = time.monotonic()
+    code = main(argv)
+    rss, hwm = status_mib()
+    sampler.done.set()
+    out = {"exit": code, "wall_s": time.monotonic() - t0, "rss_end_mib": rss, "hwm_mib": hwm,
+           "views": records, "stages": sampler.peaks}
+    Path(args.result).write_text(json.dumps(out))
+
+
+def tree_of(ref: str, where: Path) -> Path:
+    """The tree of git revision ``ref`` extracted under ``where``."""
+    blob = subprocess.run(["git", "-C", str(ROOT), "archive", ref], check=True,
+                          capture_output=True).stdout
+    with tarfile.open(fileobj=BytesIO(blob)) as tar:
+        tar.extractall(where, filter="data")
+    return where
+
+
+def run_side(label: str, tree: Path, args: argparse.Namespace, tmp: Path) -> dict:
+    """One child process scanning with the dotshell of ``tree``."""
+    result = tmp / f"{label}.json"
+    env = dict(os.environ, PYTHONPATH=f"{tree}:{tree / 'plugins'}", OMP_NUM_THREADS="1",
+               OPENBLAS_NUM_THREADS="1")
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--views", str(args.views),
+           "--out", str(tmp / label), "--result", str(result), "--top", str(args.top)]
+    cmd += ["--trace"] if args.trace else []
+    cmd += ["--mesh"] if args.mesh else []
+    subprocess.run(cmd, check=True, env=env, cwd=tree)
+    return json.loads(result.read_text())
+
+
+def report(label: str, res: dict) -> None:
+    print(f"\n== {label}: exit {res['exit']}, wall {res['wall_s']:.0f} s, "
+          f"peak RSS (VmHWM) {res['hwm_mib']:.0f} MiB, RSS at the end {res['rss_end_mib']:.0f} MiB")
+    print("  peak RSS by stage (sampled every 50 ms; main thread's stage, + the reconstruction "
+          "worker when busy):")
+    for label, mib in sorted(res["stages"].items(), key=lambda kv: -kv[1]):
+        print(f"    {mib:7.0f} MiB  {label}")
+    t0 = res["views"][0]["t_s"] if res["views"] else 0.0
+    for rec in res["views"]:
+        traced = f", traced {rec['traced_mib']:.0f} MiB" if "traced_mib" in rec else ""
+        print(f"  view {rec['view']} captured at {rec['t_s'] - t0:5.0f} s: RSS "
+              f"{rec['rss_mib']:.0f} MiB, HWM {rec['hwm_mib']:.0f} MiB{traced}")
+        for where, mib, count in rec.get("top", []):
+            print(f"      {mib:7.1f} MiB {count:6d} blocks  {where}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--views", type=int, default=3)
+    ap.add_argument("--trace", action="store_true")
+    ap.add_argument("--mesh", action="store_true")
+    ap.add_argument("--top", type=int, default=12)
+    ap.add_argument("--before", default=None)
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--result", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        child(args)
+        return
+    with tempfile.TemporaryDirectory(prefix="agar-mem-", dir=args.out) as tmp_name:
+        tmp = Path(tmp_name)
+        sides = []
+        if args.before:
+            sides.append((f"before ({args.before})", tree_of(args.before, tmp / "before-tree")))
+        sides.append(("this tree", ROOT))
+        results = {label: run_side(label.split()[0], tree, args, tmp) for label, tree in sides}
+        for label, res in results.items():
+            report(label, res)
+        if len(results) == 2:
+            (b, a) = results.values()
+            print(f"\npeak RSS {b['hwm_mib']:.0f} -> {a['hwm_mib']:.0f} MiB "
+                  f"({a['hwm_mib'] / b['hwm_mib']:.2f}x)")
+
+
+if __name__ == "__main__":
+    main()
