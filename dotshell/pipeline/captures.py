@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 from dotshell.errors import CalibrationError
 from dotshell.run.capture_layouts import load_layout, read_sequence
+from dotshell.run.layout import RunLayout
 
 if TYPE_CHECKING:  # numpy, OpenCV and the calibration readers load when captures are read
     import numpy as np
@@ -78,12 +79,12 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
         raise no_points_error(str(captures), {**corr.stats, **stats}, calib, corr.row is not None,
                               proc["min_ray_angle_deg"])
     store = RunStore.create(Path(out_dir), f"captures-{layout.name}")
-    write_ply(store.path("cloud.ply"), points)
-    calib.save(store.path("calibration.json"))
+    write_ply(store.path(RunLayout.CLOUD), points)
+    calib.save(store.path(RunLayout.CALIBRATION))
     report: dict[str, Any] = {
         "captures": str(Path(captures).resolve()), "layout": layout.source,
         "calibration": calib.source, "frame": "camera (mm)",
-        "decode": corr.stats, **stats, "cloud": {"path": "cloud.ply", "points": int(len(points))},
+        "decode": corr.stats, **stats, "cloud": {"path": RunLayout.CLOUD, "points": int(len(points))},
     }
     if ref_points is not None:
         from dotshell.geometry.cloud_compare import compare_clouds
@@ -95,7 +96,7 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
         report["previews"] = _previews(store, frames[0], corr, calib, points, layout.name, report)
     report["timings_s"] = {"read": round(t1 - t0, 3), "decode": round(t2 - t1, 3),
                            "triangulate": round(t3 - t2, 3), "compare": round(t4 - t3, 3)}
-    store.write_json("report.json", report)
+    store.write_json(RunLayout.REPORT, report)
     return CapturesResult(store.root, report)
 
 
@@ -103,7 +104,7 @@ def _previews(store, white: np.ndarray, corr, calib: RigCalibration, points: np.
               name: str, report: dict[str, Any]) -> dict[str, str]:
     from dotshell.render.previews import column_map_preview, frame_preview
 
-    pdir = store.path("previews")
+    pdir = store.path(RunLayout.PREVIEWS)
     pdir.mkdir(exist_ok=True)
     out = {"frame": frame_preview(white, pdir / "frame.png"),
            "columns": column_map_preview(corr.column, corr.valid, calib.projector.width,
