@@ -164,3 +164,15 @@ def test_the_tool_refuses_a_profile_without_a_second_camera(tmp_path):
     assert done.returncode == 2
     assert "[camera2]" in done.stderr and "sim-camera" in done.stderr
     assert "Traceback" not in done.stderr and not (tmp_path / "out").exists()
+
+
+def test_check_names_the_second_camera_and_what_uses_it(capsys):
+    """`dotshell check` validates [camera2] (its backend's settings) and says that scan uses
+    camera 1 only; a bad camera-2 setting names its key path (exit code 2)."""
+    from dotshell.cli.app import main
+
+    assert main(["check", PROFILE]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "camera2 sim-camera" in text and "camera 1 only" in text
+    assert main(["check", PROFILE, "--set", "camera2.settings.look_at_mm=[1.0, 2.0]"]) == 2
+    assert "camera2.settings.look_at_mm" in " ".join(capsys.readouterr().err.split())

@@ -158,7 +158,7 @@ def write_captures(raw: dict[str, Any], pm, out: Path, where: str) -> dict[str, 
             "projector_poses": min(PROJECTOR_POSES, len(poses))}
 
 
-def next_commands(profile: str, out: Path, board: str) -> list[str]:
+def next_commands(out: Path, board: str) -> list[str]:
     """The documented commands that calibrate and reconstruct what was written."""
     o = str(out)
     return [
@@ -169,7 +169,8 @@ def next_commands(profile: str, out: Path, board: str) -> list[str]:
         "  with the projector calibrated too (fused):",
         f"dotshell calibrate --captures {o}/poses/pose* --layout {o}/layout.toml {board} "
         "--out runs",
-        "  and add --calibration runs/<time>_calibrate-captures/calibration.json to reconstruct",
+        "  and add --calibration runs/<time>_calibrate-opencv-graycode/calibration.json to "
+        "reconstruct",
     ]
 
 
@@ -206,7 +207,7 @@ def main(argv: Sequence[str] | None = None) -> int:
           f"{counts['projector_poses']} board sequences of camera 1 (poses/), layout.toml, "
           "truth/")
     print("next:")
-    for line in next_commands(args.profile, Path(args.out),
+    for line in next_commands(Path(args.out),
                               f"--board {c.columns}x{c.rows} --square {c.square_mm:g}"):
         print(f"  {line}")
     return 0
