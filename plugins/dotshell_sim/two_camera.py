@@ -105,44 +105,56 @@ def render_sequence(rig: dict[str, Any], frames: list[tuple[str, np.ndarray]],
         cv2.imwrite(str(folder / name), rig["camera"].capture())
 
 
-def write_captures(raw: dict[str, Any], pm, out: Path, where: str) -> dict[str, int]:
-    """Everything :mod:`this tool <dotshell_sim.two_camera>` writes; returns the counts."""
+def place_board(rig: dict[str, Any], board: dict[str, Any], pose: list[float]) -> None:
+    """The board on the stage at ``[roll, tilt, pan (deg), x, y, z (mm)]`` (sample frame)."""
+    rig["stage"].place_target(board, {"rotation_deg": pose[:3], "centre_mm": pose[3:]})
+
+
+def write_board_photos(rigs: list[dict[str, Any]], offsets: tuple[float, float], profile,
+                       out: Path) -> int:
+    """Each camera's photo of the board (projector white) in every ``[calibrate]`` pose,
+    ``out/boardK/photo_NN.png``; returns the number of poses."""
     import cv2
-    import tomli_w
 
     from dotshell.calibration.board import Board
-    from dotshell.calibration.camera_only import PAIR_FORMAT
-    from dotshell.profile.loader import validate_profile
-    from dotshell.run.capture_layouts import load_layout
 
-    profile = validate_profile(raw, pm, where)
-    rigs = sim_rigs(raw, where)
-    size = rigs[0]["projector"].resolution
-    layout = dataclasses.replace(load_layout("opencv-graycode"), projector_size=size)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "layout.toml").write_text(tomli_w.dumps(layout.as_dict()))
-    (out / "profile.toml").write_text(tomli_w.dumps(profile.raw()))
-    frames = layout_images(layout, pm)
-    offsets = stage_offsets_deg(rigs)
-    for k, (rig, offset) in enumerate(zip(rigs, offsets)):
-        rig["camera"].set_exposure(profile.scan.exposure_ms)
-        rig["stage"].move_to(offset)
-        render_sequence(rig, frames, out / f"cam{k + 1}")
     board = Board.from_settings(profile.calibrate.as_table()).sim_dict()
-    poses = [list(map(float, p)) for p in profile.calibrate.poses]
-    white = np.full((size[1], size[0]), 255, np.uint8)
+    w, h = rigs[0]["projector"].resolution
     for k, (rig, offset) in enumerate(zip(rigs, offsets)):
         rig["camera"].set_exposure(profile.calibrate.exposure_ms)
         rig["stage"].move_to(offset)
+        rig["projector"].show(np.full((h, w), 255, np.uint8))
         (out / f"board{k + 1}").mkdir(exist_ok=True)
-        for i, pose in enumerate(poses):
-            rig["stage"].place_target(board, {"rotation_deg": pose[:3], "centre_mm": pose[3:]})
-            rig["projector"].show(white)
+        for i, pose in enumerate(profile.calibrate.poses):
+            place_board(rig, board, list(map(float, pose)))
             cv2.imwrite(str(out / f"board{k + 1}" / f"photo_{i:02d}.png"),
                         rig["camera"].capture())
-    for i, pose in enumerate(poses[:PROJECTOR_POSES]):
-        rigs[0]["stage"].place_target(board, {"rotation_deg": pose[:3], "centre_mm": pose[3:]})
-        render_sequence(rigs[0], frames, out / "poses" / f"pose{i + 1}")
+    return len(profile.calibrate.poses)
+
+
+def write_board_sequences(rig: dict[str, Any], frames: list[tuple[str, np.ndarray]], profile,
+                          out: Path) -> int:
+    """Camera 1's sequence of the board in the first :data:`PROJECTOR_POSES` poses,
+    ``out/poses/poseN/``; returns how many."""
+    from dotshell.calibration.board import Board
+
+    board = Board.from_settings(profile.calibrate.as_table()).sim_dict()
+    poses = profile.calibrate.poses[:PROJECTOR_POSES]
+    rig["camera"].set_exposure(profile.calibrate.exposure_ms)
+    rig["stage"].move_to(0.0)
+    for i, pose in enumerate(poses):
+        place_board(rig, board, list(map(float, pose)))
+        render_sequence(rig, frames, out / "poses" / f"pose{i + 1}")
+    rig["stage"].place_target(None, None)
+    return len(poses)
+
+
+def write_truth(rigs: list[dict[str, Any]], out: Path) -> None:
+    """``out/truth/calibration.json`` (camera 1, projector, turntable axis) and
+    ``out/truth/camera-pair.json`` (both lenses, camera 2's pose), in the formats of
+    ``calibrate --captures`` and ``calibrate --camera-pair``."""
+    from dotshell.calibration.camera_only import PAIR_FORMAT
+
     truth = [rig["camera"].ground_truth_calibration() for rig in rigs]
     (out / "truth").mkdir(exist_ok=True)
     truth[0].save(out / "truth" / "calibration.json")
@@ -151,27 +163,50 @@ def write_captures(raw: dict[str, Any], pm, out: Path, where: str) -> dict[str, 
         "format": PAIR_FORMAT, "camera1": truth[0].camera.to_dict(),
         "camera2": truth[1].camera.to_dict(), "R": R.tolist(), "T": T.tolist(), "rms_px": 0.0},
         indent=1))
-    for rig in rigs:
-        for device in rig.values():
-            device.close()
-    return {"frames": len(frames), "photos": len(poses),
-            "projector_poses": min(PROJECTOR_POSES, len(poses))}
+
+
+def write_captures(raw: dict[str, Any], pm, out: Path, where: str) -> dict[str, int]:
+    """Everything :mod:`this tool <dotshell_sim.two_camera>` writes; returns the counts."""
+    import tomli_w
+
+    from dotshell.profile.loader import validate_profile
+    from dotshell.run.capture_layouts import load_layout
+
+    profile = validate_profile(raw, pm, where)
+    rigs = sim_rigs(raw, where)
+    try:
+        size = rigs[0]["projector"].resolution
+        layout = dataclasses.replace(load_layout("opencv-graycode"), projector_size=size)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "layout.toml").write_text(tomli_w.dumps(layout.as_dict()))
+        (out / "profile.toml").write_text(tomli_w.dumps(profile.raw()))
+        frames = layout_images(layout, pm)
+        offsets = stage_offsets_deg(rigs)
+        for k, (rig, offset) in enumerate(zip(rigs, offsets)):
+            rig["camera"].set_exposure(profile.scan.exposure_ms)
+            rig["stage"].move_to(offset)
+            render_sequence(rig, frames, out / f"cam{k + 1}")
+        photos = write_board_photos(rigs, offsets, profile, out)
+        sequences = write_board_sequences(rigs[0], frames, profile, out)
+        write_truth(rigs, out)
+    finally:
+        for rig in rigs:
+            for device in rig.values():
+                device.close()
+    return {"frames": len(frames), "photos": photos, "projector_poses": sequences}
 
 
 def next_commands(out: Path, board: str) -> list[str]:
     """The documented commands that calibrate and reconstruct what was written."""
-    o = str(out)
-    return [
-        f"dotshell calibrate --camera-pair {o}/board1 {o}/board2 {board} --out runs",
-        f"dotshell reconstruct --captures {o}/cam1 --captures2 {o}/cam2 --camera-pair "
-        "runs/<time>_calibrate-camera-pair/camera-pair.json --layout "
-        f"{o}/layout.toml --out runs",
-        "  with the projector calibrated too (fused):",
-        f"dotshell calibrate --captures {o}/poses/pose* --layout {o}/layout.toml {board} "
-        "--out runs",
-        "  and add --calibration runs/<time>_calibrate-opencv-graycode/calibration.json to "
-        "reconstruct",
-    ]
+    pair = "runs/<time>_calibrate-camera-pair/camera-pair.json"
+    calib = "runs/<time>_calibrate-opencv-graycode/calibration.json"
+    layout = f"--layout {out}/layout.toml"
+    both = f"--captures {out}/cam1 --captures2 {out}/cam2 --camera-pair {pair} {layout}"
+    return [f"dotshell calibrate --camera-pair {out}/board1 {out}/board2 {board} --out runs",
+            f"dotshell reconstruct {both} --out runs",
+            "  with the projector calibrated too (fused):",
+            f"dotshell calibrate --captures {out}/poses/pose* {layout} {board} --out runs",
+            f"dotshell reconstruct {both} --calibration {calib} --out runs"]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
