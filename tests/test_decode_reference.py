@@ -143,3 +143,33 @@ def test_the_one_pass_decoder_joins_its_bands_as_one_scan(threads, monkeypatch):
         assert not redone
         both(GrayCode, before.GrayCode, turned)
     assert sum(redone) == 2 * turned[0].shape[0]  # both axes, every row
+
+
+@pytest.mark.parametrize("shape", [(6, 9), (5, 1), (4, 2)])
+def test_the_needed_runs_are_the_lit_pixels_and_their_shadow_neighbours(shape):
+    """The runs of a row whose bits are classified (``kernels._needed``, the row's and its
+    neighbours' shadow tested in loops without branches) are the pixels that are lit or have a
+    lit 4-neighbour, borders included, on random shadow (NaN range counts as shadow)."""
+    from dotshell_codings import kernels
+
+    h, w = shape
+    rng = np.random.default_rng(7)
+    thr = np.float32(10.0)
+    for _ in range(20):
+        white = rng.integers(0, 20, (h, w)).astype(np.float32)
+        white[rng.random((h, w)) < 0.1] = np.nan
+        stack = np.stack([white, np.zeros((h, w), np.float32)])
+        r = np.nan_to_num(white, nan=0.0)
+        lit = ~(r < thr)
+        grown = lit.copy()
+        grown[:, 1:] |= lit[:, :-1]
+        grown[:, :-1] |= lit[:, 1:]
+        grown[1:] |= lit[:-1]
+        grown[:-1] |= lit[1:]
+        spans = np.empty(w + 2, np.int64)
+        for y in range(h):
+            n = kernels._needed(stack, y, thr, ~lit[y], spans)
+            got = np.zeros(w, bool)
+            for s in range(n):
+                got[spans[2 * s]:spans[2 * s + 1]] = True
+            assert np.array_equal(got, grown[y]), (y, lit)

@@ -163,31 +163,47 @@ def _classify_row(stack, y, inverse, mode, axis_bits, sep, high, shadow_thr, m, 
 
 
 @numba.njit(**_INNER)
-def _shadow_at(stack, y, x, shadow_thr):
-    r = np.float32(stack[0, y, x]) - np.float32(stack[1, y, x])
-    if not np.isfinite(r):
-        r = np.float32(0.0)
-    return r < shadow_thr
+def _lit_row(stack, y, shadow_thr, lit):
+    """``lit`` (W,) = row ``y`` is not shadow (white − black, float32, NaN as 0, reaches
+    ``shadow_thr``), as :func:`_levels` decides it."""
+    zero = np.float32(0.0)
+    for x in range(lit.shape[0]):
+        r = np.float32(stack[0, y, x]) - np.float32(stack[1, y, x])
+        r = r if np.isfinite(r) else zero
+        lit[x] = not r < shadow_thr
 
 
 @numba.njit(**_INNER)
 def _needed(stack, y, shadow_thr, shadow, spans):
     """Runs [x0, x1) of row ``y`` whose bits matter, as pairs in ``spans``; returns how many.
     A shadow pixel's bits matter only to a lit 4-neighbour (its edge-tolerance check): shadow
-    pixels with shadow all around are never decoded, and their bits are left 0."""
+    pixels with shadow all around are never decoded, and their bits are left 0. The rows
+    above and below are tested whole and the neighbourhood in a loop without branches (the
+    compiler vectorizes both; pixel by pixel this took ~2.4 ms a view), then the runs are
+    read off."""
     H, W = stack.shape[1], stack.shape[2]
+    lit = np.empty((3, W), np.bool_)  # above, below, needed
+    above, below, need = lit[0], lit[1], lit[2]
+    if y > 0:
+        _lit_row(stack, y - 1, shadow_thr, above)
+    else:
+        above[:] = False
+    if y + 1 < H:
+        _lit_row(stack, y + 1, shadow_thr, below)
+    else:
+        below[:] = False
+    for x in range(1, W - 1):
+        need[x] = (not shadow[x]) | (not shadow[x - 1]) | (not shadow[x + 1]) | above[x] | below[x]
+    need[0] = not shadow[0] or (W > 1 and not shadow[1]) or above[0] or below[0]
+    if W > 1:
+        need[W - 1] = not shadow[W - 1] or not shadow[W - 2] or above[W - 1] or below[W - 1]
     n = 0
     inside = False
     for x in range(W):
-        need = not shadow[x]
-        if not need:
-            need = ((x > 0 and not shadow[x - 1]) or (x + 1 < W and not shadow[x + 1])
-                    or (y > 0 and not _shadow_at(stack, y - 1, x, shadow_thr))
-                    or (y + 1 < H and not _shadow_at(stack, y + 1, x, shadow_thr)))
-        if need and not inside:
+        if need[x] and not inside:
             spans[2 * n] = x
             inside = True
-        elif not need and inside:
+        elif not need[x] and inside:
             spans[2 * n + 1] = x
             n += 1
             inside = False
