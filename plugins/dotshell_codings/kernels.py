@@ -372,27 +372,33 @@ def _verdict_row(shadow, no_direct, flags, fy, valid, reason, counts):
     (weak and not tolerated on any axis, or no direct light), 3 off the projector, the first
     that holds; ``counts`` (6,): the pixels of each reason, (4) the decoded pixels with a
     tolerated bit and (5) those :func:`_rescue_row` decodes (0 here). The other arguments are
-    rows (W,)."""
+    rows (W,). The axes' flags are combined into ``flags[0, fy]``."""
     n_axes = flags.shape[0]
-    for k in range(6):
-        counts[k] = 0
-    for x in range(shadow.shape[0]):
-        f = 0
-        for a in range(n_axes):
-            f |= flags[a, fy, x]
-        if shadow[x]:
-            r = 1
-        elif f & BAD or no_direct[x]:
-            r = 2
-        elif f & OUT_OF_RANGE:
-            r = 3
-        else:
-            r = 0
-            if f & TOLERATED:
-                counts[4] += 1
+    W = shadow.shape[0]
+    f = flags[0, fy]
+    for a in range(1, n_axes):  # the axes' flags combined into the first's row
+        other = flags[a, fy]
+        for x in range(W):
+            f[x] |= other[x]
+    # without branches, each reason counted in a sum of its own: the compiler vectorizes it
+    n_shadow = n_bad = n_off = n_tolerated = 0
+    for x in range(W):
+        sh = shadow[x]
+        bad = ((f[x] & BAD) != 0) | no_direct[x]
+        off = (f[x] & OUT_OF_RANGE) != 0
+        r = 1 if sh else 2 if bad else 3 if off else 0
         reason[x] = r
         valid[x] = r == 0
-        counts[r] += 1
+        n_shadow += sh
+        n_bad += bad & (not sh)
+        n_off += off & (not sh) & (not bad)
+        n_tolerated += (r == 0) & ((f[x] & TOLERATED) != 0)
+    counts[0] = W - n_shadow - n_bad - n_off
+    counts[1] = n_shadow
+    counts[2] = n_bad
+    counts[3] = n_off
+    counts[4] = n_tolerated
+    counts[5] = 0
 
 
 #: entries of :func:`decode_rows`' ``rescue`` (float32): the noise model's 2 × floor and gain
@@ -526,13 +532,13 @@ def _changes_row(code, valid, y, counts):
     H, W = code.shape
     along_rows = 0
     along_cols = 0
-    for x in range(W):
-        if not valid[y, x]:
-            continue
-        if x + 1 < W and valid[y, x + 1] and code[y, x + 1] != code[y, x]:
-            along_rows += 1
-        if y + 1 < H and valid[y + 1, x] and code[y + 1, x] != code[y, x]:
-            along_cols += 1
+    here, valid_here = code[y], valid[y]
+    for x in range(W - 1):  # without branches (vectorized)
+        along_rows += valid_here[x] & valid_here[x + 1] & (here[x + 1] != here[x])
+    if y + 1 < H:
+        below, valid_below = code[y + 1], valid[y + 1]
+        for x in range(W):
+            along_cols += valid_here[x] & valid_below[x] & (below[x] != here[x])
     counts[0] = along_rows
     counts[1] = along_cols
 
