@@ -175,7 +175,7 @@ def _window_extremes(img, y, col_lo, col_hi, lo, hi):
     """``lo``/``hi`` (W,): the least and greatest of ``img`` over rows y − 2 … y and columns
     x − 2 … x + 2 (indices clamped to the image, as :func:`_within` reads them), in loops
     without branches (vectorized); ``col_lo``/``col_hi``: scratch (W,)."""
-    h, w = img.shape
+    w = img.shape[1]
     a, b, c = img[max(y - 2, 0)], img[max(y - 1, 0)], img[y]
     for x in range(w):
         col_lo[x] = min(a[x], b[x], c[x])
