@@ -143,3 +143,56 @@ def test_the_one_pass_decoder_joins_its_bands_as_one_scan(threads, monkeypatch):
         assert not redone
         both(GrayCode, before.GrayCode, turned)
     assert sum(redone) == 2 * turned[0].shape[0]  # both axes, every row
+
+
+@pytest.mark.parametrize("shape", [(6, 9), (5, 1), (4, 2)])
+def test_the_needed_runs_are_the_lit_pixels_and_their_shadow_neighbours(shape):
+    """The runs of a row whose bits are classified (``kernels._needed``, the row's and its
+    neighbours' shadow tested in loops without branches) are the pixels that are lit or have a
+    lit 4-neighbour, borders included, on random shadow (NaN range counts as shadow)."""
+    from dotshell_codings import kernels
+
+    h, w = shape
+    rng = np.random.default_rng(7)
+    thr = np.float32(10.0)
+    for _ in range(20):
+        white = rng.integers(0, 20, (h, w)).astype(np.float32)
+        white[rng.random((h, w)) < 0.1] = np.nan
+        stack = np.stack([white, np.zeros((h, w), np.float32)])
+        r = np.nan_to_num(white, nan=0.0)
+        lit = ~(r < thr)
+        grown = lit.copy()
+        grown[:, 1:] |= lit[:, :-1]
+        grown[:, :-1] |= lit[:, 1:]
+        grown[1:] |= lit[:-1]
+        grown[:-1] |= lit[1:]
+        spans = np.empty(w + 2, np.int64)
+        for y in range(h):
+            n = kernels._needed(stack, y, thr, ~lit[y], spans)
+            got = np.zeros(w, bool)
+            for s in range(n):
+                got[spans[2 * s]:spans[2 * s + 1]] = True
+            assert np.array_equal(got, grown[y]), (y, lit)
+
+
+@pytest.mark.parametrize("dtype", [np.uint16, np.float32])
+def test_two_robust_bits_a_pass_decide_as_one_at_a_time(dtype):
+    """``kernels._robust_two`` (two pattern/inverse pairs in one loop) sets the same value and
+    weak bits as ``kernels._robust`` once per pair, ties and the rule's boundaries included."""
+    from dotshell_codings import kernels
+
+    rng = np.random.default_rng(11)
+    n = 4000
+    p, q, p2, q2 = (rng.integers(0, 12, n).astype(dtype) for _ in range(4))
+    black = rng.integers(0, 3, n).astype(np.float32)
+    ld = rng.integers(0, 10, n).astype(np.float32)
+    lg = rng.integers(0, 10, n).astype(np.float32)
+    m = np.float32(3.0)
+    start = rng.integers(0, 1 << 20, n).astype(np.uint32)
+    val1, wk1, val2, wk2 = start.copy(), start.copy() ^ 5, start.copy(), start.copy() ^ 5
+    shift = np.uint32(7)
+    kernels._robust(p, q, black, ld, lg, m, shift, val1, wk1)
+    kernels._robust(p2, q2, black, ld, lg, m, np.uint32(6), val1, wk1)
+    kernels._robust_two(p, q, p2, q2, black, ld, lg, m, shift, val2, wk2)
+    assert np.array_equal(val1, val2) and np.array_equal(wk1, wk2)
+    assert len(np.unique(val1 >> 6 & 3)) == 4 and len(np.unique(wk1 >> 6 & 3)) == 4

@@ -248,3 +248,17 @@ def test_opencv_file_with_a_rational_model_reads_back_whole(tmp_path):
     back = read_opencv_calibration(write_opencv_calibration(cal, tmp_path / "cal.yml"))
     assert np.array_equal(back.camera.dist, cal.camera.dist)
     assert np.array_equal(back.projector.dist[:8], RATIONAL)
+
+
+def test_camera_ideal_grid_is_the_ray_grid_without_its_constant_third_component():
+    """The image solves read the (H, W, 2) grid of ideal camera coordinates; the (H, W, 3) rays
+    are that grid with z = 1, value for value."""
+    from dotshell.geometry import triangulate as tr
+
+    cam = lens_from_fov(96, 64, 300.0, (-0.08, 0.04, 0.0, 0.0, 0.0))
+    xy, rays = tr.camera_ideal_grid(cam), tr.camera_ray_grid(cam)
+    assert xy.shape == (64, 96, 2) and xy.flags.c_contiguous
+    assert np.array_equal(rays[..., :2], xy) and np.all(rays[..., 2] == 1.0)
+    ys, xs = np.mgrid[0:64, 0:96]
+    px = np.column_stack([xs.ravel(), ys.ravel()]).astype(float)
+    assert np.array_equal(xy.reshape(-1, 2), cam.undistort(px))

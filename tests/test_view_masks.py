@@ -115,3 +115,27 @@ def test_select_is_boolean_indexing_done_in_place() -> None:
     for g, a in zip(got, (pixels, points)):
         assert g.dtype == a.dtype and np.array_equal(g, a[mask])
     assert select(np.zeros(n, bool), points.copy())[0].shape == (0, 3)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_speckle_tests_shortcut_decides_as_the_full_count(seed: int) -> None:
+    """``keep_points`` accepts a point at once when the 15 depths of the upper three rows of
+    its 5×5 neighbourhood lie within the jump; on rows of a few depth levels, some rows nearly
+    empty and the image's borders, it keeps exactly the points the full count keeps
+    (``speckle_mask``, itself OpenCV's median test above)."""
+    rng = np.random.default_rng(seed)
+    h, w = 40, 50
+    level = 300.0 + rng.integers(0, 3, h)[:, None] + np.zeros((1, w))  # each row one of 3
+    have = rng.random((h, w)) < rng.uniform(0.2, 1.0, h)[:, None]  # rows full to sparse
+    have[:, -2:] = rng.random((h, 2)) < 0.5
+    depth_img = level + rng.normal(0, 0.1, (h, w)) * (rng.random((h, w)) < 0.3)
+    ys, xs = np.nonzero(have)
+    pixels = np.column_stack([xs, ys]).astype(np.int32)
+    depth = depth_img[ys, xs]
+    kept = np.ones(len(depth), bool)
+    pts = np.zeros((len(depth), 3))
+    roi = {"radius_mm": 1.0, "z_min_mm": -1.0, "z_max_mm": 1.0}
+    keep, counts = keep_points(ImageSolve(pixels, pts, depth, kept, {}), (h, w), 0.5, roi)
+    want = speckle_mask(pixels, depth, (h, w), 0.5)
+    assert counts["speckle"] > 20 and counts["points"] > 20
+    assert np.array_equal(keep, want)

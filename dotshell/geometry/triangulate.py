@@ -75,22 +75,29 @@ class Triangulation:
 
 
 @lru_cache(maxsize=4)
-def _ray_grid(key: tuple) -> np.ndarray:
+def _ideal_grid(key: tuple) -> np.ndarray:
     K, dist, w, h = key
     lens = Lens(np.array(K).reshape(3, 3), np.array(dist), w, h)
     ys, xs = np.mgrid[0:h, 0:w]
     px = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
-    n = lens.undistort(px)
-    return np.column_stack([n, np.ones(len(n))]).reshape(h, w, 3)
+    return np.ascontiguousarray(lens.undistort(px).reshape(h, w, 2))
 
 
 def _lens_key(lens: Lens) -> tuple:
     return (tuple(lens.K.ravel()), tuple(lens.dist), lens.width, lens.height)
 
 
+def camera_ideal_grid(lens: Lens) -> np.ndarray:
+    """(H, W, 2) ideal normalized coordinates (x_n, y_n) of every camera pixel centre: the
+    camera rays' directions without their third component, which is 1 (what the image solves
+    read: a third less memory traffic than :func:`camera_ray_grid`)."""
+    return _ideal_grid(_lens_key(lens))
+
+
 def camera_ray_grid(lens: Lens) -> np.ndarray:
     """(H, W, 3) un-normalized ray directions (x_n, y_n, 1) for every camera pixel centre."""
-    return _ray_grid(_lens_key(lens))
+    xy = camera_ideal_grid(lens)
+    return np.concatenate([xy, np.ones((*xy.shape[:2], 1))], axis=2)
 
 
 @dataclass
@@ -211,7 +218,7 @@ def solve_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
     caller that filters the points further and selects once (``depth_image``: also the
     image of the kept points' depths, :class:`ImageSolve`)."""
     h, w = valid.shape
-    rays = camera_ray_grid(calib.camera)
+    rays = camera_ideal_grid(calib.camera)
     if rays.shape[:2] != (h, w):
         raise ValueError(f"decoded maps are {w}x{h} px but the calibration's camera is "
                          f"{calib.camera.width}x{calib.camera.height} px")
@@ -481,7 +488,7 @@ def _solve_image(valid, column, row, has_rows, iterations, rays, start, affine, 
         for xx in range(valid.shape[1]):
             if not valid[yy, xx]:
                 continue
-            x, y, z = rays[yy, xx, 0], rays[yy, xx, 1], rays[yy, xx, 2]
+            x, y, z = rays[yy, xx, 0], rays[yy, xx, 1], 1.0
             s, f = _columns(x, y, z, np.float64(column[yy, xx]), iterations, R, T, K, dist,
                             sin2_min)
             _store(i, xx, yy, x, y, z, s, f, _affine(affine), pts, depth, pixels, kept)
@@ -525,7 +532,8 @@ def _solve_rows_both(valid, column, row, rays, start, affine, R, T, K, dist, tol
     got each flag."""
     W = valid.shape[1]
     u, v, xs, ys, last = np.empty(W), np.empty(W), np.empty(W), np.empty(W), np.empty(W)
-    rx, ry, rz = np.empty(W), np.empty(W), np.empty(W)
+    rx, ry, scale = np.empty(W), np.empty(W), np.empty(W)
+    flag = np.empty(W, np.int64)
     at = np.empty(W, np.int64)
     pose = _pose(R, T, K)
     aff = _affine(affine)
@@ -536,18 +544,22 @@ def _solve_rows_both(valid, column, row, rays, start, affine, R, T, K, dist, tol
                 at[n] = xx
                 u[n] = column[yy, xx]
                 v[n] = row[yy, xx]
-                rx[n], ry[n], rz[n] = rays[yy, xx, 0], rays[yy, xx, 1], rays[yy, xx, 2]
+                rx[n], ry[n] = rays[yy, xx, 0], rays[yy, xx, 1]
                 n += 1
         _ideal_batch(K, dist, u, v, n, xs, ys, last)
         i0 = start[yy]
         n_kept = n_row = n_grazing = 0
+        # the solves alone in one loop (it vectorizes: ~2x faster than with the stores in it)
         for j in range(n):
-            x, y, z = rx[j], ry[j], rz[j]
-            s, f = _both_ideal(x, y, z, xs[j], ys[j], pose, tolerance2, sin2_min)
-            _store(i0 + j, at[j], yy, x, y, z, s, f, aff, pts, depth, pixels, kept)
+            s, f = _both_ideal(rx[j], ry[j], 1.0, xs[j], ys[j], pose, tolerance2, sin2_min)
+            scale[j] = s
+            flag[j] = f
             n_kept += f == KEPT
             n_row += f == ROW_REJECTED
             n_grazing += f == GRAZING
+        for j in range(n):
+            _store(i0 + j, at[j], yy, rx[j], ry[j], 1.0, scale[j], flag[j], aff, pts, depth,
+                   pixels, kept)
         counts[KEPT] += n_kept
         counts[ROW_REJECTED] += n_row
         counts[GRAZING] += n_grazing

@@ -136,7 +136,16 @@ def _in_cylinder(points, radius, z_min, z_max, out, start, stop):
 @numba.njit(nogil=True, cache=True)
 def _keep_points(kept, pixels, depth, points, radius, z_min, z_max, img, test, max_jump, keep,
                  counts, band, start, stop):
+    """Points ``start`` to ``stop`` kept or counted (:func:`keep_points`). The speckle test
+    first asks whether the 15 depths of the upper three rows of a point's 5×5 neighbourhood
+    all lie within ``max_jump`` (their least and greatest, :func:`_window_extremes`, once per
+    image row): then the median does (15 of 25 on each side of it), as the full count
+    (:func:`_within`), which the other points take, would decide it."""
     outside = speckle = n = 0
+    w = img.shape[1]
+    lo, hi = np.empty(w, np.float32), np.empty(w, np.float32)
+    col_lo, col_hi = np.empty(w, np.float32), np.empty(w, np.float32)
+    row = -1
     for i in range(start, stop):
         keep[i] = False
         if not kept[i]:
@@ -144,14 +153,51 @@ def _keep_points(kept, pixels, depth, points, radius, z_min, z_max, img, test, m
         if not _inside(points, i, radius, z_min, z_max):
             outside += 1
             continue
-        if test and not _within(img, pixels[i, 0], pixels[i, 1], depth[i], max_jump):
-            speckle += 1
-            continue
+        if test:
+            x, y, d = pixels[i, 0], pixels[i, 1], depth[i]
+            if y != row:
+                row = y
+                _window_extremes(img, y, col_lo, col_hi, lo, hi)
+            # float64(v) − d grows with v: the extremes bound all 15 differences
+            sure = np.float64(hi[x]) - d <= max_jump and np.float64(lo[x]) - d >= -max_jump
+            if not sure and not _within(img, x, y, d, max_jump):
+                speckle += 1
+                continue
         keep[i] = True
         n += 1
     counts[band, 0] = outside
     counts[band, 1] = speckle
     counts[band, 2] = n
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _window_extremes(img, y, col_lo, col_hi, lo, hi):
+    """``lo``/``hi`` (W,): the least and greatest of ``img`` over rows y − 2 … y and columns
+    x − 2 … x + 2 (indices clamped to the image, as :func:`_within` reads them), in loops
+    without branches (vectorized); ``col_lo``/``col_hi``: scratch (W,)."""
+    w = img.shape[1]
+    a, b, c = img[max(y - 2, 0)], img[max(y - 1, 0)], img[y]
+    for x in range(w):
+        col_lo[x] = min(a[x], b[x], c[x])
+        col_hi[x] = max(a[x], b[x], c[x])
+    for x in range(2, w - 2):
+        lo[x] = min(col_lo[x - 2], col_lo[x - 1], col_lo[x], col_lo[x + 1], col_lo[x + 2])
+        hi[x] = max(col_hi[x - 2], col_hi[x - 1], col_hi[x], col_hi[x + 1], col_hi[x + 2])
+    for x in range(min(2, w)):
+        lo[x], hi[x] = _clamped_extremes(col_lo, col_hi, x, w)
+    for x in range(max(w - 2, 2), w):
+        lo[x], hi[x] = _clamped_extremes(col_lo, col_hi, x, w)
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _clamped_extremes(col_lo, col_hi, x, w):
+    """The least of ``col_lo`` and the greatest of ``col_hi`` over columns x − 2 … x + 2
+    clamped to [0, w − 1] (near the border)."""
+    least, most = col_lo[x], col_hi[x]
+    for k in range(max(x - 2, 0), min(x + 2, w - 1) + 1):
+        least = min(least, col_lo[k])
+        most = max(most, col_hi[k])
+    return least, most
 
 
 @numba.njit(nogil=True, cache=True)

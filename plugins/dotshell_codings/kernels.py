@@ -146,11 +146,20 @@ def _classify_row(stack, y, inverse, mode, axis_bits, sep, high, shadow_thr, m, 
             nb = axis_bits[a]
             val = value[a, vy, x0:x1]
             wk = weak[a, vy, x0:x1]
-            for i in range(nb):
+            i = 0
+            while i < nb:
                 shift = np.uint32(nb - 1 - i)
                 p = stack[2 + per_bit * k, y, x0:x1]
                 q = stack[3 + per_bit * k, y, x0:x1] if inverse else stack[1, y, x0:x1]
                 b_, t_, n_ = black[x0:x1], thr[x0:x1], nd[x0:x1]
+                if mode == ROBUST and i + 1 < nb and not high[k] and not high[k + 1]:
+                    # two bits a pass: the words and the levels read once for both
+                    _robust_two(p, q, stack[2 + per_bit * (k + 1), y, x0:x1],
+                                stack[3 + per_bit * (k + 1), y, x0:x1], b_, ld[x0:x1],
+                                lg[x0:x1], m, shift, val, wk)
+                    i += 2
+                    k += 2
+                    continue
                 if mode == ROBUST and high[k]:
                     _high_frequency(p, q, b_, t_, n_, shift, val, wk)
                 elif mode == ROBUST:
@@ -159,35 +168,52 @@ def _classify_row(stack, y, inverse, mode, axis_bits, sep, high, shadow_thr, m, 
                     _contrast(p, q, t_, shift, val, wk)
                 else:
                     _contrast_mid(p, lg[x0:x1], t_, shift, val, wk)
+                i += 1
                 k += 1
 
 
 @numba.njit(**_INNER)
-def _shadow_at(stack, y, x, shadow_thr):
-    r = np.float32(stack[0, y, x]) - np.float32(stack[1, y, x])
-    if not np.isfinite(r):
-        r = np.float32(0.0)
-    return r < shadow_thr
+def _lit_row(stack, y, shadow_thr, lit):
+    """``lit`` (W,) = row ``y`` is not shadow (white − black, float32, NaN as 0, reaches
+    ``shadow_thr``), as :func:`_levels` decides it."""
+    zero = np.float32(0.0)
+    for x in range(lit.shape[0]):
+        r = np.float32(stack[0, y, x]) - np.float32(stack[1, y, x])
+        r = r if np.isfinite(r) else zero
+        lit[x] = not r < shadow_thr
 
 
 @numba.njit(**_INNER)
 def _needed(stack, y, shadow_thr, shadow, spans):
     """Runs [x0, x1) of row ``y`` whose bits matter, as pairs in ``spans``; returns how many.
     A shadow pixel's bits matter only to a lit 4-neighbour (its edge-tolerance check): shadow
-    pixels with shadow all around are never decoded, and their bits are left 0."""
+    pixels with shadow all around are never decoded, and their bits are left 0. The rows
+    above and below are tested whole and the neighbourhood in a loop without branches (the
+    compiler vectorizes both; pixel by pixel this took ~2.4 ms a view), then the runs are
+    read off."""
     H, W = stack.shape[1], stack.shape[2]
+    lit = np.empty((3, W), np.bool_)  # above, below, needed
+    above, below, need = lit[0], lit[1], lit[2]
+    if y > 0:
+        _lit_row(stack, y - 1, shadow_thr, above)
+    else:
+        above[:] = False
+    if y + 1 < H:
+        _lit_row(stack, y + 1, shadow_thr, below)
+    else:
+        below[:] = False
+    for x in range(1, W - 1):
+        need[x] = (not shadow[x]) | (not shadow[x - 1]) | (not shadow[x + 1]) | above[x] | below[x]
+    need[0] = not shadow[0] or (W > 1 and not shadow[1]) or above[0] or below[0]
+    if W > 1:
+        need[W - 1] = not shadow[W - 1] or not shadow[W - 2] or above[W - 1] or below[W - 1]
     n = 0
     inside = False
     for x in range(W):
-        need = not shadow[x]
-        if not need:
-            need = ((x > 0 and not shadow[x - 1]) or (x + 1 < W and not shadow[x + 1])
-                    or (y > 0 and not _shadow_at(stack, y - 1, x, shadow_thr))
-                    or (y + 1 < H and not _shadow_at(stack, y + 1, x, shadow_thr)))
-        if need and not inside:
+        if need[x] and not inside:
             spans[2 * n] = x
             inside = True
-        elif not need and inside:
+        elif not need[x] and inside:
             spans[2 * n + 1] = x
             n += 1
             inside = False
@@ -232,15 +258,37 @@ def _high_frequency(p, q, black, thr, nd, shift, val, wk):
 def _robust(p, q, black, ld, lg, m, shift, val, wk):
     """Xu & Aliaga's rule (see ``robust.robust_bits``), without branches."""
     for x in range(p.shape[0]):
-        pv = np.float32(p[x]) - black[x]
-        qv = np.float32(q[x]) - black[x]
-        d, g = ld[x], lg[x]
-        enough = d >= m
-        wins = enough & (d > g)
-        is_zero = (wins & (pv <= qv)) | (~wins & enough & (pv <= d) & (qv >= g))
-        one = ((wins & (pv > qv)) | (~wins & enough & (pv >= g) & (qv <= d))) & ~is_zero
+        one, is_zero = _robust_bit(np.float32(p[x]) - black[x], np.float32(q[x]) - black[x],
+                                   ld[x], lg[x], m)
         val[x] |= np.uint32(one) << shift
         wk[x] |= np.uint32(~(one | is_zero)) << shift
+
+
+@numba.njit(**_INNER)
+def _robust_two(p, q, p2, q2, black, ld, lg, m, shift, val, wk):
+    """:func:`_robust` for two successive pairs (bits ``shift`` and ``shift − 1``) in one loop:
+    the words read and written, the levels read, once for both (the classification 18 → 15 ms
+    of CPU a view)."""
+    next_bit = shift - np.uint32(1)
+    for x in range(p.shape[0]):
+        b, d, g = black[x], ld[x], lg[x]
+        one, is_zero = _robust_bit(np.float32(p[x]) - b, np.float32(q[x]) - b, d, g, m)
+        one2, is_zero2 = _robust_bit(np.float32(p2[x]) - b, np.float32(q2[x]) - b, d, g, m)
+        val[x] |= (np.uint32(one) << shift) | (np.uint32(one2) << next_bit)
+        wk[x] |= (np.uint32(~(one | is_zero)) << shift) | (
+            np.uint32(~(one2 | is_zero2)) << next_bit)
+
+
+@numba.njit(**_INNER)
+def _robust_bit(pv, qv, d, g, m):
+    """(1, 0) of one bit by the robust rule from pattern and inverse less black (``pv``,
+    ``qv``), the direct and global light L_d, L_g and the least usable direct light ``m``; a
+    bit that is neither is undecided."""
+    enough = d >= m
+    wins = enough & (d > g)
+    is_zero = (wins & (pv <= qv)) | (~wins & enough & (pv <= d) & (qv >= g))
+    one = ((wins & (pv > qv)) | (~wins & enough & (pv >= g) & (qv <= d))) & ~is_zero
+    return one, is_zero
 
 
 @numba.njit(**_INNER)
@@ -356,27 +404,33 @@ def _verdict_row(shadow, no_direct, flags, fy, valid, reason, counts):
     (weak and not tolerated on any axis, or no direct light), 3 off the projector, the first
     that holds; ``counts`` (6,): the pixels of each reason, (4) the decoded pixels with a
     tolerated bit and (5) those :func:`_rescue_row` decodes (0 here). The other arguments are
-    rows (W,)."""
+    rows (W,). The axes' flags are combined into ``flags[0, fy]``."""
     n_axes = flags.shape[0]
-    for k in range(6):
-        counts[k] = 0
-    for x in range(shadow.shape[0]):
-        f = 0
-        for a in range(n_axes):
-            f |= flags[a, fy, x]
-        if shadow[x]:
-            r = 1
-        elif f & BAD or no_direct[x]:
-            r = 2
-        elif f & OUT_OF_RANGE:
-            r = 3
-        else:
-            r = 0
-            if f & TOLERATED:
-                counts[4] += 1
+    W = shadow.shape[0]
+    f = flags[0, fy]
+    for a in range(1, n_axes):  # the axes' flags combined into the first's row
+        other = flags[a, fy]
+        for x in range(W):
+            f[x] |= other[x]
+    # without branches, each reason counted in a sum of its own: the compiler vectorizes it
+    n_shadow = n_bad = n_off = n_tolerated = 0
+    for x in range(W):
+        sh = shadow[x]
+        bad = ((f[x] & BAD) != 0) | no_direct[x]
+        off = (f[x] & OUT_OF_RANGE) != 0
+        r = 1 if sh else 2 if bad else 3 if off else 0
         reason[x] = r
         valid[x] = r == 0
-        counts[r] += 1
+        n_shadow += sh
+        n_bad += bad & (not sh)
+        n_off += off & (not sh) & (not bad)
+        n_tolerated += (r == 0) & ((f[x] & TOLERATED) != 0)
+    counts[0] = W - n_shadow - n_bad - n_off
+    counts[1] = n_shadow
+    counts[2] = n_bad
+    counts[3] = n_off
+    counts[4] = n_tolerated
+    counts[5] = 0
 
 
 #: entries of :func:`decode_rows`' ``rescue`` (float32): the noise model's 2 × floor and gain
@@ -510,13 +564,13 @@ def _changes_row(code, valid, y, counts):
     H, W = code.shape
     along_rows = 0
     along_cols = 0
-    for x in range(W):
-        if not valid[y, x]:
-            continue
-        if x + 1 < W and valid[y, x + 1] and code[y, x + 1] != code[y, x]:
-            along_rows += 1
-        if y + 1 < H and valid[y + 1, x] and code[y + 1, x] != code[y, x]:
-            along_cols += 1
+    here, valid_here = code[y], valid[y]
+    for x in range(W - 1):  # without branches (vectorized)
+        along_rows += valid_here[x] & valid_here[x + 1] & (here[x + 1] != here[x])
+    if y + 1 < H:
+        below, valid_below = code[y + 1], valid[y + 1]
+        for x in range(W):
+            along_cols += valid_here[x] & valid_below[x] & (below[x] != here[x])
     counts[0] = along_rows
     counts[1] = along_cols
 
