@@ -382,12 +382,6 @@ def _import_fit() -> None:
     import dotshell.pipeline.validate  # noqa: F401
 
 
-def _import_renderer() -> None:
-    from dotshell.render.previews import import_renderer
-
-    import_renderer()
-
-
 STEPS: tuple[Step, ...] = (
     Step("calibration", (), calibration_step),
     Step("views", ("calibration",), views_step),
@@ -395,7 +389,7 @@ STEPS: tuple[Step, ...] = (
     Step("validation", ("cloud", "calibration"), validation_step,
          lambda ctx, base: ctx.profile.validation.shape == "cylinder", _import_fit),
     Step("previews", ("cloud", "views"), previews_step,
-         lambda ctx, base: ctx.profile.outputs.previews, _import_renderer),
+         lambda ctx, base: ctx.profile.outputs.previews),
     Step("mesh", ("cloud", "calibration"), mesh_step,
          lambda ctx, base: "mesh" in base or ctx.profile.mesh.after_scan),
     Step("normalize", ("mesh", "calibration"), normalize_step,
@@ -411,9 +405,8 @@ STEP_BY_NAME = {s.name: s for s in STEPS}
 
 def import_ahead(names: Sequence[str], current: str) -> threading.Thread | None:
     """Start importing, in one background thread, what the steps of ``names`` after
-    ``current`` need when ``current`` makes the last of their inputs (e.g. pyvista and VTK for
-    the previews, the validation's module, while the cloud is merged and
-    validated: ~2 s of the demo's `reconstruct` on 2 cores). A failed import is left for the
+    ``current`` need when ``current`` makes the last of their inputs (e.g. the validation's
+    module while the cloud is merged). A failed import is left for the
     step itself to meet and report. Returns the thread, or None when there is nothing to do."""
     order = list(names)
     later = order[order.index(current) + 1:]
