@@ -23,7 +23,7 @@ import numpy as np
 from dotshell.errors import RunError
 from dotshell.events import EventBus, StepStarted
 from dotshell.fem.meshes import (MeshError, SurfaceResult, TetMesh, TriangleSurface,
-                                 quality_report)
+                                 boundary_faces_by_sorting, quality_report)
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.profile.mesh import MESH_SCHEMA
 from dotshell.fem.meshfiles import (optodes_from_settings, read_optodes, read_volume, write_optodes,
@@ -181,7 +181,10 @@ def estimated_nodes(points: np.ndarray, node_distance_mm: float) -> int:
     """Nodes of a volume mesh of the cloud at ``node_distance_mm``: its bounding box's volume
     over the node distance cubed (the order of tetgen's count; the test phantom's cloud at
     1 mm: 6,980)."""
-    extent = np.ptp(points, axis=0) if len(points) else np.zeros(3)
+    # column by column: np.ptp(axis=0) of the mapped (N, 3) cloud, whose rows are 16 bytes
+    # apart, took 0.3-0.6 s for 5.5 M points, a column 7 ms (the same values)
+    extent = (np.array([np.ptp(points[:, k]) for k in range(3)]) if len(points)
+              else np.zeros(3))
     return int(np.prod(np.maximum(extent, node_distance_mm)) / node_distance_mm ** 3)
 
 
@@ -202,6 +205,9 @@ def mesh_volume(result: SurfaceResult, t_surface: float, node_distance_mm: float
     t0 = time.perf_counter()
     volume = volume_mesher.volume(result.surface, node_distance_mm)
     t_volume = time.perf_counter() - t0
+    # the boundary (quality figures, volume.vtu) sorted with numpy: this process would
+    # otherwise start numba for it alone (~0.9 s of CPU)
+    volume.boundary_faces = boundary_faces_by_sorting(volume.tets)
     n = len(volume.nodes)
     optics = cfg.optics
     volume.point_data = {
