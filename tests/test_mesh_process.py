@@ -181,3 +181,44 @@ def test_the_cloud_is_mapped_not_copied_and_checked(tmp_path):
     write_ply(path, pts, view=np.zeros(5000))
     with pytest.raises(RunError, match=r"cloud\.ply .*1 of its 5000 points have non-finite"):
         map_ply(path, chunk=1000)
+
+
+def test_the_volume_and_its_quality_figures_start_no_numba(tmp_path):
+    """The mesh process makes the volume and its quality figures without numba (its first
+    compiled call costs ~0.6 s of CPU there: the boundary is sorted with numpy), and the
+    figures are the kernel's: the boundary of a 20 × 10 × 30 mm box at 4 mm. A fresh process:
+    this one has numba loaded."""
+    import subprocess
+    import sys
+
+    code = """
+import json, sys
+from types import SimpleNamespace
+import numpy as np
+from dotshell.fem.meshes import SurfaceResult, TriangleSurface
+from dotshell.pipeline.mesh import mesh_volume
+from dotshell_meshing.volume import SETTINGS, TetgenVolumeMesher
+
+corners = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], float)
+surface = TriangleSurface(corners * [20.0, 10.0, 30.0], np.array(
+    [[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7],
+     [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]]))  # outward
+optics = SimpleNamespace(mua_per_mm=0.01, musp_per_mm=1.0, refractive_index=1.4)
+mesher = TetgenVolumeMesher({k: s.default for k, s in SETTINGS.items()})
+_, volume, entry = mesh_volume(SurfaceResult(surface, {}), 0.0, 4.0, mesher, SimpleNamespace(optics=optics))
+print(json.dumps({"numba": "numba" in sys.modules, "volume": entry["volume"]["volume_mm3"],
+                  "boundary_faces": entry["volume"]["boundary_faces"]}))
+np.save(sys.argv[1], volume.tets)
+np.save(sys.argv[2], volume.boundary_faces)
+"""
+    tets, faces = tmp_path / "tets.npy", tmp_path / "faces.npy"
+    r = subprocess.run([sys.executable, "-c", code, str(tets), str(faces)], capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout.splitlines()[-1])
+    assert out["numba"] is False
+    assert out["volume"] == pytest.approx(20 * 10 * 30, rel=1e-9)
+    from dotshell.fem.meshes import boundary_faces
+
+    kernel = boundary_faces(np.load(tets))
+    assert np.array_equal(np.load(faces), kernel) and out["boundary_faces"] == len(kernel)
