@@ -24,13 +24,12 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from dotshell.fem.faces import TET_FACES  # the faces' order, shared with the numpy code
 from dotshell.runtime import numba_cache
 
 numba_cache.install()  # cache files safe for processes compiling at once
 
 _OPTS: dict = dict(nogil=True, cache=True)  # dict, not dict[str, bool]: njit's keywords differ in type
-
-from dotshell.fem.meshes import TET_FACES  # noqa: E402 - the faces' order, shared with numpy
 
 
 @numba.njit(**_OPTS)
