@@ -279,7 +279,7 @@ def cloud_step(ctx: StepContext) -> dict[str, Any]:
         records[start:start + len(part), 3] = v
         start += len(part)
     del parts
-    atomic_write_bytes(ctx.store.path(RunLayout.CLOUD), memoryview(data))
+    atomic_write_bytes(ctx.store.path(RunLayout.CLOUD), data.data)
     points = np.ascontiguousarray(records[:, :3])
     del data, records
     last_frame_at = ctx.options.get("last_frame_at")

@@ -38,7 +38,7 @@ def write_ply(path: Path, points: np.ndarray, **scalars: np.ndarray) -> Path:
     rec[:, :3] = points
     for i, v in enumerate(scalars.values(), 3):
         rec[:, i] = np.asarray(v).ravel()
-    atomic_write_bytes(Path(path), memoryview(data))
+    atomic_write_bytes(Path(path), data.data)  # the array's memoryview: no copy
     return Path(path)
 
 
