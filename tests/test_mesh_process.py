@@ -222,3 +222,48 @@ np.save(sys.argv[2], volume.boundary_faces)
 
     kernel = boundary_faces(np.load(tets))
     assert np.array_equal(np.load(faces), kernel) and out["boundary_faces"] == len(kernel)
+
+
+def child_pid_and_module(name: str) -> tuple[int, bool]:
+    import sys
+
+    return os.getpid(), name in sys.modules
+
+
+def test_a_process_started_early_imports_ahead_and_takes_the_next_job():
+    """start_early: the process imports its warm-up list at once and runs the next job;
+    a process started for each job otherwise (which imports nothing ahead)."""
+    from dotshell.pipeline import mesh_process
+
+    early = mesh_process.start_early(("colorsys",))
+    try:
+        assert mesh_process.start_early() is early  # one at a time
+        pid, warmed = run_in_child(child_pid_and_module, "colorsys")
+        assert pid == early.proc.pid and warmed
+        pid, warmed = run_in_child(child_pid_and_module, "colorsys")
+        assert pid != early.proc.pid and not warmed
+    finally:
+        mesh_process.discard_early()
+
+
+def test_a_process_started_early_without_a_job_ends():
+    from dotshell.pipeline import mesh_process
+
+    early = mesh_process.start_early(("colorsys", "no_such_module_here", "json:no_function"))
+    mesh_process.discard_early()
+    assert early.proc.returncode is not None and mesh_process._early is None  # ended
+    pid, _ = run_in_child(child_pid_and_module, "colorsys")  # the next job: a new process
+    assert pid != early.proc.pid
+
+
+def test_a_failed_warm_up_is_left_to_the_job(tmp_path):
+    """A warm-up import that fails (a mesher's library missing) is no error of the process:
+    the job meets it and reports it."""
+    from dotshell.pipeline import mesh_process
+
+    early = mesh_process.start_early(("no_such_module_here", "json:no_function", "colorsys"))
+    try:
+        pid, warmed = run_in_child(child_pid_and_module, "colorsys")
+        assert pid == early.proc.pid and warmed
+    finally:
+        mesh_process.discard_early()

@@ -30,7 +30,7 @@ from dotshell.fem.meshfiles import (optodes_from_settings, read_optodes, read_vo
                                 write_surface, write_volume)
 from dotshell.plugins import PluginManager
 from dotshell.run.layout import RunLayout
-from dotshell.pipeline.mesh_process import picklable, run_in_child
+from dotshell.pipeline.mesh_process import discard_early, picklable, run_in_child
 from dotshell.run.ply import map_ply
 from dotshell.profile.loader import Profile
 from dotshell.profile.sections import MeshSettings
@@ -159,6 +159,7 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
                   cfg, optodes_from_settings(cfg.optodes.as_table(), profile.source))
     in_child = picklable(job)
     if not in_child:
+        discard_early()  # a mesh process started for the command gets no job
         bus.info("meshing in this process: a mesher of the profile cannot be handed to a "
                  "process of its own (it does not pickle)")
     out: dict[str, Any] = {"meshes": []}
