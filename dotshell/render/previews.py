@@ -85,18 +85,22 @@ def cloud_previews(store, points: np.ndarray, profile, bus) -> dict[str, Any]:
     run's products} and warns if skipped."""
     out: dict[str, Any] = {}
     store.path(RunLayout.PREVIEWS).mkdir(parents=True, exist_ok=True)
+    n = len(points)
+    if n > PREVIEW_POINTS:  # the points drawn, and the colours computed for them only
+        points = points[::-(-n // PREVIEW_POINTS)]
     v = profile.validation
     style: dict[str, Any] = {}
     if v.shape == "cylinder":  # float64 arithmetic on float32 or float64 points (mm)
         scal, name = np.hypot(points[:, 0], points[:, 1], dtype=np.float64), "radius error [mm]"
         scal -= v.radius_mm
-        c = max(0.01, 4 * float(np.median(np.abs(scal), overwrite_input=True)))  # the cap saturates
+        # the colour scale: 4x the median |error| of the points drawn, at least 0.01 mm
+        c = max(0.01, 4 * float(np.median(np.abs(scal), overwrite_input=True)))
         style = {"clim": (-c, c), "cmap": "coolwarm"}
     else:
         scal, name = points[:, 2], "z [mm]"
     try:
         out["cloud"] = cloud_preview(points, scal, store.path(RunLayout.preview("cloud")),
-                                     f"{profile.name}: {len(points)} points", name, **style)
+                                     f"{profile.name}: {n} points", name, **style)
     except Exception as exc:  # a preview is never worth a failed step
         bus.warn(f"cloud preview skipped ({type(exc).__name__}: {exc}). The cloud is in "
                  "cloud.ply.")
