@@ -135,8 +135,8 @@ def test_installed_command_reconstructs_a_run_and_exits_with_its_status(small_sc
 
 
 def test_imports_ahead_start_with_the_step_that_makes_their_last_input():
-    """While the cloud is merged, the validation's and the previews' modules are imported in
-    the background (their last input is the cloud); no other step starts it."""
+    """While the cloud is merged, the validation's module is imported in the background (its
+    last input is the cloud); no other step starts it."""
     from dotshell.pipeline.steps import import_ahead
 
     names = ["calibration", "views", "cloud", "validation", "previews"]
@@ -145,7 +145,7 @@ def test_imports_ahead_start_with_the_step_that_makes_their_last_input():
     thread = import_ahead(names, "cloud")
     assert thread is not None and thread.daemon
     thread.join(120)
-    assert {"pyvista.plotting", "dotshell.pipeline.validate"} <= set(sys.modules)
+    assert "dotshell.pipeline.validate" in sys.modules
 
 
 def test_a_users_script_ends_with_pythons_exit_so_what_it_left_open_is_written(tmp_path):

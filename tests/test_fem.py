@@ -128,6 +128,20 @@ def test_boundary_faces_and_assembly_of_a_cube_grid(n):
                       2.35)
 
 
+@pytest.mark.parametrize("n", [1, 3, 6])
+def test_boundary_faces_by_sorting_are_the_kernels_faces(n):
+    """The numpy boundary (the mesh process and previews, which start no numba) gives the
+    kernel's faces in the kernel's order, on cube grids and on a cut half (an inner cut)."""
+    from dotshell.fem.meshes import boundary_faces_by_sorting
+
+    mesh = cube_grid(n, jitter_mm=0.1)
+    got = boundary_faces_by_sorting(mesh.tets)
+    assert len(got) == 12 * n ** 2 and np.array_equal(got, boundary_faces(mesh.tets))
+    half = mesh.tets[mesh.nodes[mesh.tets].mean(axis=1)[:, 1] <= n / 2]
+    assert np.array_equal(boundary_faces_by_sorting(half), boundary_faces(half))
+    assert boundary_faces_by_sorting(np.empty((0, 4), int)).shape == (0, 3)
+
+
 @pytest.fixture(scope="module")
 def sphere_mesh():
     """Sphere of radius 10 mm: icosphere surface (0.66 mm edges) + tetgen at 1.2 mm."""

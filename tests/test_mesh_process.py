@@ -181,3 +181,89 @@ def test_the_cloud_is_mapped_not_copied_and_checked(tmp_path):
     write_ply(path, pts, view=np.zeros(5000))
     with pytest.raises(RunError, match=r"cloud\.ply .*1 of its 5000 points have non-finite"):
         map_ply(path, chunk=1000)
+
+
+def test_the_volume_and_its_quality_figures_start_no_numba(tmp_path):
+    """The mesh process makes the volume and its quality figures without numba (its first
+    compiled call costs ~0.6 s of CPU there: the boundary is sorted with numpy), and the
+    figures are the kernel's: the boundary of a 20 × 10 × 30 mm box at 4 mm. A fresh process:
+    this one has numba loaded."""
+    import subprocess
+    import sys
+
+    code = """
+import json, sys
+from types import SimpleNamespace
+import numpy as np
+from dotshell.fem.meshes import SurfaceResult, TriangleSurface
+from dotshell.pipeline.mesh import mesh_volume
+from dotshell_meshing.volume import SETTINGS, TetgenVolumeMesher
+
+corners = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], float)
+surface = TriangleSurface(corners * [20.0, 10.0, 30.0], np.array(
+    [[0, 2, 1], [1, 2, 3], [4, 5, 6], [5, 7, 6], [0, 1, 4], [1, 5, 4], [2, 6, 3], [3, 6, 7],
+     [0, 4, 2], [2, 4, 6], [1, 3, 5], [3, 7, 5]]))  # outward
+optics = SimpleNamespace(mua_per_mm=0.01, musp_per_mm=1.0, refractive_index=1.4)
+mesher = TetgenVolumeMesher({k: s.default for k, s in SETTINGS.items()})
+_, volume, entry = mesh_volume(SurfaceResult(surface, {}), 0.0, 4.0, mesher, SimpleNamespace(optics=optics))
+print(json.dumps({"numba": "numba" in sys.modules, "volume": entry["volume"]["volume_mm3"],
+                  "boundary_faces": entry["volume"]["boundary_faces"]}))
+np.save(sys.argv[1], volume.tets)
+np.save(sys.argv[2], volume.boundary_faces)
+"""
+    tets, faces = tmp_path / "tets.npy", tmp_path / "faces.npy"
+    r = subprocess.run([sys.executable, "-c", code, str(tets), str(faces)], capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout.splitlines()[-1])
+    assert out["numba"] is False
+    assert out["volume"] == pytest.approx(20 * 10 * 30, rel=1e-9)
+    from dotshell.fem.meshes import boundary_faces
+
+    kernel = boundary_faces(np.load(tets))
+    assert np.array_equal(np.load(faces), kernel) and out["boundary_faces"] == len(kernel)
+
+
+def child_pid_and_module(name: str) -> tuple[int, bool]:
+    import sys
+
+    return os.getpid(), name in sys.modules
+
+
+def test_a_process_started_early_imports_ahead_and_takes_the_next_job():
+    """start_early: the process imports its warm-up list at once and runs the next job;
+    a process started for each job otherwise (which imports nothing ahead)."""
+    from dotshell.pipeline import mesh_process
+
+    early = mesh_process.start_early(("colorsys",))
+    try:
+        assert mesh_process.start_early() is early  # one at a time
+        pid, warmed = run_in_child(child_pid_and_module, "colorsys")
+        assert pid == early.proc.pid and warmed
+        pid, warmed = run_in_child(child_pid_and_module, "colorsys")
+        assert pid != early.proc.pid and not warmed
+    finally:
+        mesh_process.discard_early()
+
+
+def test_a_process_started_early_without_a_job_ends():
+    from dotshell.pipeline import mesh_process
+
+    early = mesh_process.start_early(("colorsys", "no_such_module_here", "json:no_function"))
+    mesh_process.discard_early()
+    assert early.proc.returncode is not None and mesh_process._early is None  # ended
+    pid, _ = run_in_child(child_pid_and_module, "colorsys")  # the next job: a new process
+    assert pid != early.proc.pid
+
+
+def test_a_failed_warm_up_is_left_to_the_job(tmp_path):
+    """A warm-up import that fails (a mesher's library missing) is no error of the process:
+    the job meets it and reports it."""
+    from dotshell.pipeline import mesh_process
+
+    early = mesh_process.start_early(("no_such_module_here", "json:no_function", "colorsys"))
+    try:
+        pid, warmed = run_in_child(child_pid_and_module, "colorsys")
+        assert pid == early.proc.pid and warmed
+    finally:
+        mesh_process.discard_early()

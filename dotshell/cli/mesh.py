@@ -34,7 +34,19 @@ def mesh_table(section: dict[str, Any]) -> Table:
     return t
 
 
-def cmd_mesh(args: argparse.Namespace, pm) -> int:
+def cmd_mesh(args: argparse.Namespace, pm_factory) -> int:
+    from dotshell.pipeline import mesh_process
+
+    # the mesh process first: it imports the meshers while this process loads the plugins,
+    # the profile and the run (two cores: ~0.3 s of the command's wall time)
+    mesh_process.start_early()
+    try:
+        return _mesh(args, pm_factory(args))
+    finally:
+        mesh_process.discard_early()
+
+
+def _mesh(args: argparse.Namespace, pm) -> int:
     from dotshell.cli.common import ScanProgress
     from dotshell.events import EventBus
     from dotshell.pipeline.commands import mesh_run
@@ -76,7 +88,7 @@ def add_mesh_parsers(sub, pm_factory) -> None:
     sp.add_argument("--node-distance", type=float, metavar="MM",
                     help="node distance in mm (default: the profile's [mesh] node_distance_mm)")
     sp.add_argument("--no-export", action="store_true", help="skip the profile's exporters")
-    sp.set_defaults(func=lambda a: cmd_mesh(a, pm_factory(a)))
+    sp.set_defaults(func=lambda a: cmd_mesh(a, pm_factory))
 
     sp = sub.add_parser("forward", help="CW diffusion forward solution for a point source on a "
                         "run's volume mesh")

@@ -24,15 +24,12 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from dotshell.fem.faces import TET_FACES  # the faces' order, shared with the numpy code
 from dotshell.runtime import numba_cache
 
 numba_cache.install()  # cache files safe for processes compiling at once
 
 _OPTS: dict = dict(nogil=True, cache=True)  # dict, not dict[str, bool]: njit's keywords differ in type
-
-#: the four faces of a positively oriented tetrahedron (a, b, c, d), each ordered so its
-#: right-hand normal points out of it: opposite to d, c, b, a
-TET_FACES = np.array([[0, 2, 1], [0, 1, 3], [1, 2, 3], [0, 3, 2]], np.int64)
 
 
 @numba.njit(**_OPTS)

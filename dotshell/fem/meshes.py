@@ -26,6 +26,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from dotshell.errors import DotshellError
+from dotshell.fem.faces import boundary_faces_by_sorting  # noqa: F401 - re-exported
 
 
 class MeshError(DotshellError):

@@ -119,7 +119,7 @@ def _previews(store, white: np.ndarray, corr, calib: RigCalibration, points: np.
 
 def camera_view_preview(points: np.ndarray, path: Path, title: str) -> Path:
     """Render a camera-frame cloud (mm) as seen from a little beside the camera, coloured by
-    depth (2nd–98th percentile), off-screen with pyvista."""
+    depth (2nd–98th percentile), drawn by :mod:`dotshell.render.raster`."""
     import numpy as np
 
     from dotshell.render.previews import cloud_preview

@@ -23,14 +23,14 @@ import numpy as np
 from dotshell.errors import RunError
 from dotshell.events import EventBus, StepStarted
 from dotshell.fem.meshes import (MeshError, SurfaceResult, TetMesh, TriangleSurface,
-                                 quality_report)
+                                 boundary_faces_by_sorting, quality_report)
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.profile.mesh import MESH_SCHEMA
 from dotshell.fem.meshfiles import (optodes_from_settings, read_optodes, read_volume, write_optodes,
                                 write_surface, write_volume)
 from dotshell.plugins import PluginManager
 from dotshell.run.layout import RunLayout
-from dotshell.pipeline.mesh_process import picklable, run_in_child
+from dotshell.pipeline.mesh_process import discard_early, picklable, run_in_child
 from dotshell.run.ply import map_ply
 from dotshell.profile.loader import Profile
 from dotshell.profile.sections import MeshSettings
@@ -159,6 +159,7 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
                   cfg, optodes_from_settings(cfg.optodes.as_table(), profile.source))
     in_child = picklable(job)
     if not in_child:
+        discard_early()  # a mesh process started for the command gets no job
         bus.info("meshing in this process: a mesher of the profile cannot be handed to a "
                  "process of its own (it does not pickle)")
     out: dict[str, Any] = {"meshes": []}
@@ -181,7 +182,10 @@ def estimated_nodes(points: np.ndarray, node_distance_mm: float) -> int:
     """Nodes of a volume mesh of the cloud at ``node_distance_mm``: its bounding box's volume
     over the node distance cubed (the order of tetgen's count; the test phantom's cloud at
     1 mm: 6,980)."""
-    extent = np.ptp(points, axis=0) if len(points) else np.zeros(3)
+    # column by column: np.ptp(axis=0) of the mapped (N, 3) cloud, whose rows are 16 bytes
+    # apart, took 0.3-0.6 s for 5.5 M points, a column 7 ms (the same values)
+    extent = (np.array([np.ptp(points[:, k]) for k in range(3)]) if len(points)
+              else np.zeros(3))
     return int(np.prod(np.maximum(extent, node_distance_mm)) / node_distance_mm ** 3)
 
 
@@ -202,6 +206,9 @@ def mesh_volume(result: SurfaceResult, t_surface: float, node_distance_mm: float
     t0 = time.perf_counter()
     volume = volume_mesher.volume(result.surface, node_distance_mm)
     t_volume = time.perf_counter() - t0
+    # the boundary (quality figures, volume.vtu) sorted with numpy: this process would
+    # otherwise start numba for it alone (~0.9 s of CPU)
+    volume.boundary_faces = boundary_faces_by_sorting(volume.tets)
     n = len(volume.nodes)
     optics = cfg.optics
     volume.point_data = {

@@ -9,7 +9,9 @@ the larger of its own memory and the mesher's, not their sum (issue 33: the agar
 ``multiprocessing``'s spawn: spawn runs the caller's main script again, which breaks scripts
 without an ``if __name__ == "__main__"`` guard.
 
-The parent writes the child's ``sys.path`` and then ``(func, args)`` pickled to its stdin; the
+The parent writes the child's ``sys.path``, what it imports at once (:data:`WARM_UP` for a
+process :func:`start_early` started while the command prepares the job, nothing otherwise) and
+then ``(func, args)`` pickled to its stdin; a child whose input ends before a job exits. The
 child writes back ``(True, result)`` or ``(False, exception)`` pickled on its stdout (a
 :class:`~dotshell.errors.DotshellError` such as MeshError unchanged, any other with the child's
 traceback added as a note); whatever the libraries print goes to its stderr, which the parent
@@ -35,39 +37,95 @@ from dotshell.fem.meshes import MeshError
 log = logging.getLogger(__name__)
 
 
+#: What the default meshers import, in a fresh process ~2 s of CPU (open3d 0.8 s, pyvista and
+#: pyacvd 0.7 s, ...): a mesh process started early (:func:`start_early`) imports them while the
+#: command prepares the job. "module" or "module:function" (a function called without
+#: arguments: open3d needs its libusb loaded first).
+WARM_UP = ("dotshell.pipeline.mesh", "dotshell.runtime.compat:import_open3d", "pyvista",
+           "pyacvd", "pymeshfix", "tetgen", "scipy.ndimage")
+
+
+class MeshProcess:
+    """A new Python process (``python -m dotshell.pipeline.mesh_process``) that imports
+    ``warm_up`` at once and then waits for one job (:meth:`run`)."""
+
+    def __init__(self, warm_up: tuple[str, ...] = ()) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", __name__], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(pickle.dumps(list(sys.path)) + pickle.dumps(tuple(warm_up)))
+        self.proc.stdin.flush()
+
+    def run(self, func: Callable[..., Any], *args: Any) -> Any:
+        """``func(*args)`` in the process (see :func:`run_in_child`)."""
+        proc = self.proc
+        try:
+            out, err = proc.communicate(pickle.dumps((func, args)))
+        finally:
+            if proc.poll() is None:  # interrupted while waiting: do not leave the mesher running
+                proc.kill()
+                proc.wait()
+        text = err.decode(errors="replace").strip()
+        if text:
+            log.debug("mesh process (pid %d) wrote:\n%s", proc.pid, text)
+        try:
+            ok, value = pickle.loads(out)
+        except Exception:
+            tail = "\n".join(text.splitlines()[-5:])
+            raise MeshError(f"the mesh process ended without a result ({_ending(proc.returncode)})"
+                            ": the system may have stopped it for lack of memory, or a mesher "
+                            "crashed. Try a larger node distance ([mesh] node_distance_mm or "
+                            "--node-distance), or free memory, and run `dotshell mesh RUN` again."
+                            + (f" Its last words:\n{tail}" if tail else "")) from None
+        if ok:
+            return value
+        raise value
+
+    def discard(self) -> None:
+        """End the process without a job: it holds nothing but what it imported, so it is
+        killed rather than left to finish its imports (a command that fails at once, a user's
+        error, ends at once)."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.communicate()
+
+
+#: the process :func:`start_early` started, until a job takes it or it is discarded
+_early: MeshProcess | None = None
+
+
+def start_early(warm_up: tuple[str, ...] = WARM_UP) -> MeshProcess:
+    """Start the next mesh process now, importing ``warm_up`` while the caller prepares its
+    job (``dotshell mesh`` calls it first thing: on two cores the command's own start-up, the
+    run's lock and plan overlap the mesher's imports); :func:`run_in_child` hands it the first
+    job. Call :func:`discard_early` when no job may come."""
+    global _early
+    if _early is None:
+        _early = MeshProcess(warm_up)
+    return _early
+
+
+def discard_early() -> None:
+    """End the process :func:`start_early` started if no job took it."""
+    global _early
+    early, _early = _early, None
+    if early is not None:
+        early.discard()
+
+
 def run_in_child(func: Callable[..., Any], *args: Any) -> Any:
-    """``func(*args)`` in a new Python process; its return value, or the exception it raised.
-    ``func`` and ``args`` must pickle (module-level functions, plain data, objects of
-    importable classes); :func:`picklable` checks.
+    """``func(*args)`` in a new Python process (the one :func:`start_early` started, if any);
+    its return value, or the exception it raised. ``func`` and ``args`` must pickle
+    (module-level functions, plain data, objects of importable classes); :func:`picklable`
+    checks.
 
     Raises:
         MeshError: the process ended without a result (killed, crashed), with its exit code
             or signal; whatever ``func`` raised, otherwise.
     """
-    payload = pickle.dumps(list(sys.path)) + pickle.dumps((func, args))
-    proc = subprocess.Popen([sys.executable, "-m", __name__], stdin=subprocess.PIPE,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-    try:
-        out, err = proc.communicate(payload)
-    finally:
-        if proc.poll() is None:  # interrupted while waiting: do not leave the mesher running
-            proc.kill()
-            proc.wait()
-    text = err.decode(errors="replace").strip()
-    if text:
-        log.debug("mesh process (pid %d) wrote:\n%s", proc.pid, text)
-    try:
-        ok, value = pickle.loads(out)
-    except Exception:
-        tail = "\n".join(text.splitlines()[-5:])
-        raise MeshError(f"the mesh process ended without a result ({_ending(proc.returncode)})"
-                        ": the system may have stopped it for lack of memory, or a mesher "
-                        "crashed. Try a larger node distance ([mesh] node_distance_mm or "
-                        "--node-distance), or free memory, and run `dotshell mesh RUN` again."
-                        + (f" Its last words:\n{tail}" if tail else "")) from None
-    if ok:
-        return value
-    raise value
+    global _early
+    process, _early = (_early or MeshProcess()), None
+    return process.run(func, *args)
 
 
 def picklable(*objects: Any) -> bool:
@@ -99,10 +157,15 @@ def _child_main() -> None:
     os.dup2(2, 1)
     faulthandler.enable()
     sys.path[:] = pickle.load(sys.stdin.buffer)
+    _warm_up(pickle.load(sys.stdin.buffer))
     try:
         from dotshell.runtime.process import fix_mmap_threshold, limit_blas_threads
 
-        func, args = pickle.load(sys.stdin.buffer)
+        try:
+            func, args = pickle.load(sys.stdin.buffer)
+        except EOFError:  # started early, and the caller ended without a job
+            result.close()
+            return
         limit_blas_threads()
         fix_mmap_threshold()
         outcome: tuple[bool, Any] = (True, func(*args))
@@ -114,6 +177,21 @@ def _child_main() -> None:
         data = pickle.dumps((False, _portable(exc)))
     result.write(data)
     result.close()
+
+
+def _warm_up(names: tuple[str, ...]) -> None:
+    """Import each "module" or call each "module:function" of ``names``; a failure is left for
+    the job to meet and report."""
+    import importlib
+
+    for name in names:
+        module, _, function = name.partition(":")
+        try:
+            loaded = importlib.import_module(module)
+            if function:
+                getattr(loaded, function)()
+        except Exception:  # noqa: BLE001 - the job imports it again and reports it
+            pass
 
 
 def _portable(exc: BaseException) -> BaseException:

@@ -192,12 +192,13 @@ def _finite(points: np.ndarray, views: np.ndarray | None):
     """The rows of ``points`` (and ``views``) that are finite, as float64; the arrays
     themselves when every row is (no copies: at 5.5 M points each was 133 MB)."""
     pts = np.asarray(points, np.float64).reshape(-1, 3)
-    ok = np.isfinite(pts).all(axis=1)
     if views is not None:
         views = np.asarray(views, np.float64).reshape(-1, 3)
+    if np.isfinite(pts).all() and (views is None or np.isfinite(views).all()):
+        return pts, views  # the usual case, found without the row-wise reduction
+    ok = np.isfinite(pts).all(axis=1)
+    if views is not None:
         ok &= np.isfinite(views).all(axis=1)
-    if ok.all():
-        return pts, views
     return pts[ok], (None if views is None else views[ok])
 
 
