@@ -495,8 +495,12 @@ def _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
     its inverse's global light differ by at most ``L_g − L_d``, so beyond it a bit's sign is
     sure. −1 when two pairs fall below, ``sep.shape[0]`` when none does (every bit is sure).
     float32 throughout, as numpy evaluates the documented formula; the finest pairs (the
-    weakest, mostly) first, and the second pair below the bound ends the test."""
+    weakest, mostly) first, and the second pair below the bound ends the test. Before the
+    separation's frames are read, ``|p − q| / σ`` (an upper bound of z: the ambiguous band is
+    ≥ 0) ends it where two pairs fall below by that alone (:func:`_two_surely_weak`)."""
     black = np.float32(stack[1, y, x])
+    if _two_surely_weak(stack, y, x, sep.shape[0], rescue, black):
+        return -1
     lmax = np.float32(-np.inf)
     lmin = np.float32(np.inf)
     for k in range(sep.shape[0]):
@@ -524,6 +528,26 @@ def _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
                 return -1
             weakest = k
     return weakest
+
+
+@numba.njit(**_INNER)
+def _two_surely_weak(stack, y, x, n_pairs, rescue, black):
+    """Two of pixel (y, x)'s ``n_pairs`` pattern/inverse pairs have ``|p − q| / σ`` below
+    ``rescue[SIGMAS]`` (NaN counts as below; σ as :func:`_all_but_one_sure`'s): their z is
+    smaller still, so the pixel cannot be rescued, whatever the direct/global separation
+    (on the agar body without PDI most uncertain pixels end here, after two pairs)."""
+    zero = np.float32(0.0)
+    below = 0
+    for k in range(n_pairs - 1, -1, -1):
+        p = np.float32(stack[2 + 2 * k, y, x])
+        q = np.float32(stack[3 + 2 * k, y, x])
+        var = max(rescue[FLOOR2] + rescue[GAIN] * max(p + q - np.float32(2) * black, zero),
+                  np.float32(1e-6))
+        if not abs(p - q) / np.sqrt(var) >= rescue[SIGMAS]:
+            below += 1
+            if below == 2:
+                return True
+    return False
 
 
 @numba.njit(**_ROW)
