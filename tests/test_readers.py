@@ -90,8 +90,18 @@ def mutate_bytes(data: st.DataObject, blob: bytes, max_changes: int = 4) -> byte
     return bytes(b)
 
 
+#: every file these tests write lives under one folder, removed when the test process exits
+#: (weakref.finalize of TemporaryDirectory), so hypothesis' many examples leave nothing in /tmp
+_SCRATCH = tempfile.TemporaryDirectory(prefix="dotshell-readers-")
+
+
+def scratch_dir() -> Path:
+    """A fresh empty folder under this module's scratch folder."""
+    return Path(tempfile.mkdtemp(dir=_SCRATCH.name))
+
+
 def in_file(content: bytes | str, name: str) -> Path:
-    d = Path(tempfile.mkdtemp(prefix="dotshell-readers-"))
+    d = scratch_dir()
     p = d / name
     p.write_bytes(content.encode() if isinstance(content, str) else content)
     return p
@@ -207,7 +217,7 @@ def test_opencv_calibration_reader(data, suffix):
 def _valid_manifest() -> dict:
     from dotshell.run.store import RunStore
 
-    store = RunStore(Path(tempfile.mkdtemp(prefix="dotshell-readers-")))
+    store = RunStore(scratch_dir())
     store.init_manifest("seed", [0.0, 180.0], ["white", "black", "col_00", "col_00_inv"])
     m = store.manifest
     m["views"][0].update(frames=4, complete=True, angle_read_deg=0.01)
@@ -382,7 +392,7 @@ def mesh_files() -> tuple[bytes, bytes]:
     from dotshell.fem.meshfiles import write_surface, write_volume
 
     nodes = 10.0 * np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
-    d = Path(tempfile.mkdtemp(prefix="dotshell-readers-"))
+    d = scratch_dir()
     write_surface(d / "s.ply", TriangleSurface(nodes, [[0, 2, 1], [0, 1, 3], [0, 3, 2],
                                                        [1, 2, 3]]))
     write_volume(d / "v.vtu", TetMesh(nodes, [[0, 1, 2, 3]], {"mua_per_mm": np.full(4, 0.01)}))

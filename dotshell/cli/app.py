@@ -153,6 +153,10 @@ def cmd_check(args: argparse.Namespace) -> int:
         if sec:
             info = pm.backend(role, sec["backend"])
             out.print(f"  {role:<13} {sec['backend']:<16} from {info.distribution}")
+    second = profile.role("camera2")
+    if second:
+        out.print(f"  camera2       {second['backend']:<16} a second camera: "
+                  "scan and --connect use camera 1 only (docs/profiles.md)")
     out.print(f"  views         {len(profile.angles_deg())}")
     if args.connect or args.latency:
         from dotshell.run.lifecycle import connected

@@ -78,6 +78,9 @@ SCHEMA: dict[str, Setting] = {
         "description": Setting("str", default="", help="one line for humans"),
     }),
     "camera": _device_role(True),
+    # a second camera sharing the projector: read by tools that capture both cameras (the
+    # simulator's dotshell_sim.two_camera); `dotshell scan` captures [camera] only
+    "camera2": _device_role(False),
     "projector": _device_role(True),
     "stage": _device_role(True, homing=True),
     "analyzer": _device_role(False, homing=True),
@@ -287,11 +290,12 @@ def validate_profile(raw: dict[str, Any], pm: PluginManager, where: str,
                      base_dir: Path | str = ".") -> Profile:
     """Validate a parsed profile dict; see :func:`load_profile`."""
     data = validate_settings(SCHEMA, raw, where)
-    for role in (*DEVICE_ROLES, "coding", "surface_mesher", "volume_mesher", "normalizer"):
+    for role in (*DEVICE_ROLES, "camera2", "coding", "surface_mesher", "volume_mesher",
+                 "normalizer"):
         section = data.get(role)
         if section is None:
             continue
-        info = pm.backend(role, section["backend"], where)
+        info = pm.backend(role.removesuffix("2"), section["backend"], where)
         section["settings"] = validate_settings(
             info.backend.settings_schema, section["settings"], where, f"{role}.settings")
     for name, settings in data["export"].items():

@@ -46,11 +46,11 @@ def scale_settings(settings: dict[str, Any], backend: str, factor: float) -> dic
 
 
 def scale_profile(profile: dict[str, Any], factor: float) -> dict[str, Any]:
-    """A deep copy of a parsed profile with its sim camera and projector scaled by ``factor``
-    (e.g. 0.25 → 320×256 camera, 256×192 projector for the reference bench). Sections using
-    other backends are left unchanged."""
+    """A deep copy of a parsed profile with its sim cameras (``[camera]``, ``[camera2]``) and
+    projector scaled by ``factor`` (e.g. 0.25 → 320×256 camera, 256×192 projector for the
+    reference bench). Sections using other backends are left unchanged."""
     out = copy.deepcopy(profile)
-    for role in ("camera", "projector"):
+    for role in ("camera", "camera2", "projector"):
         section = out.get(role)
         if isinstance(section, dict) and section.get("backend") in _SCHEMAS:
             section["settings"] = scale_settings(section.get("settings") or {},

@@ -4,8 +4,10 @@ The projector stores the shown pattern, the turntable its angle, the analyzer it
 laser its state; the camera renders the world on ``capture()`` (see :mod:`dotshell_sim.render`).
 
 The default settings describe the reference bench (also written out, with comments, in
-``profiles/sim-metal-cylinder.toml``). All poses are in the **camera frame** (mm; x right,
-y down, z along the camera's optical axis):
+``profiles/sim-metal-cylinder.toml``). All poses are in the **bench frame**, which is the
+camera's frame at its default pose (mm; x right, y down, z along the camera's optical axis); a
+camera placed elsewhere (``position_mm``, ``look_at_mm``, ``up``: a rig's second camera) sees
+the projector and the turntable moved into its own frame:
 
 * camera 1280×1024, 5.3 µm pixels, f ≈ 33.9 mm (fx = 6400 px) → 40 × 32 mm field at 200 mm;
   12 bit, full well 10 000 e-, read noise 10 e-; k1 = -0.08.
@@ -76,6 +78,15 @@ CAMERA_SCHEMA: dict[str, Setting] = {
     "ambient": Setting("float", 0.01, "room light relative to full projector light", min=0.0),
     "defocus_sigma_px": Setting("float", 0.5, "camera defocus (Gaussian sigma); 0 = sharp",
                                 "px", min=0.0),
+    # the camera's pose in the bench frame (the frame every other pose of the profile is given
+    # in); the defaults put it at the bench frame's origin, looking along its z, y down
+    "position_mm": Setting("list[float]", [0.0, 0.0, 0.0], "centre of projection in the bench "
+                           "frame (where the projector and turntable poses are given); a "
+                           "second camera of a rig sits away from the origin", "mm", length=3),
+    "look_at_mm": Setting("list[float]", [0.0, 0.0, 200.0], "point on the optical axis, bench "
+                          "frame", "mm", length=3),
+    "up": Setting("list[float]", [0.0, -1.0, 0.0], "bench-frame direction that appears as "
+                  "'up' (row 0 side) in the image; fixes the roll", length=3),
     "supersample": Setting("int", 2, "sub-pixel rays per pixel along each axis (pixel-area "
                            "integration)", min=1, max=4),
     "seed": Setting("int", 0, "noise seed; each frame's noise is drawn from this seed and the "
@@ -245,9 +256,10 @@ class SimWorld:
                               "\"sim-camera\" to the profile.")
         projector, stage = self.require(who)
         R, T = projector.pose()
-        return RigCalibration(camera=self.camera.lens, projector=projector.lens, R=R, T=T,
-                              axis_point=stage.axis_point, axis_direction=stage.axis_direction,
-                              source="ground-truth")
+        Rc, Tc = self.camera.pose()  # bench frame -> this camera's frame
+        return RigCalibration(camera=self.camera.lens, projector=projector.lens, R=R @ Rc.T,
+                              T=T - R @ Rc.T @ Tc, axis_point=Rc @ stage.axis_point + Tc,
+                              axis_direction=Rc @ stage.axis_direction, source="ground-truth")
 
     def state_digest(self, exposure_ms: float, light: bytes | None = None) -> bytes:
         """A digest of everything a frame depends on (pattern shown, stage and analyzer
@@ -318,6 +330,26 @@ _RENDERERS: OrderedDict[str, Renderer] = OrderedDict()
 _MAX_RENDERERS = 2
 
 
+def look_at_pose(s: dict, name: str, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """(R, T) with X_device = R @ X_bench + T for a device at ``position_mm`` looking at
+    ``look_at_mm`` with ``up`` towards its image's row 0 (bench frame, mm)."""
+    c = np.asarray(s["position_mm"], float)
+    z = np.asarray(s["look_at_mm"], float) - c
+    if np.linalg.norm(z) < 1e-6:
+        raise DeviceError(f"{name}: look_at_mm equals position_mm; the {what} needs a point to "
+                          "look at.")
+    z /= np.linalg.norm(z)
+    y = -np.asarray(s["up"], float)
+    y = y - z * (y @ z)
+    if np.linalg.norm(y) < 1e-6:
+        raise DeviceError(f"{name}: 'up' is parallel to the viewing direction; give an up "
+                          "direction across it (e.g. the turntable axis).")
+    y /= np.linalg.norm(y)
+    x = np.cross(y, z)
+    R = np.vstack([x, y, z])
+    return R, -R @ c
+
+
 def world_of(context: RigContext | None) -> SimWorld:
     """The rig's simulator world (created on first use)."""
     if context is None:
@@ -376,6 +408,7 @@ class SimCamera(_Device):
         s = settings
         self.lens: Lens = lens_from_fov(s["width"], s["height"], s["focal_px"], s["dist"],
                                         s["cx"], s["cy"])
+        self.pose()  # validate the geometry now
         full_scale = (1 << s["bit_depth"]) - 1
         self.sensor = SensorModel(s["bit_depth"], s["full_well_e"], s["read_noise_e"],
                                   s["gain_dn_per_e"] or full_scale / s["full_well_e"],
@@ -407,6 +440,10 @@ class SimCamera(_Device):
 
     def ground_truth_calibration(self) -> RigCalibration:
         return self.world.calibration(self.name)
+
+    def pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """(R, T) with X_camera = R @ X_bench + T (identity at the default pose)."""
+        return look_at_pose(self.settings, self.name, "camera")
 
     def close(self) -> None:
         super().close()
@@ -570,23 +607,8 @@ class SimProjector(_Device):
         return self.world.clock
 
     def pose(self) -> tuple[np.ndarray, np.ndarray]:
-        """(R, T) with X_projector = R @ X_camera + T, from position / look-at / up."""
-        s = self.settings
-        c = np.asarray(s["position_mm"], float)
-        z = np.asarray(s["look_at_mm"], float) - c
-        if np.linalg.norm(z) < 1e-6:
-            raise DeviceError(f"{self.name}: look_at_mm equals position_mm; the projector needs "
-                              "a point to look at.")
-        z /= np.linalg.norm(z)
-        y = -np.asarray(s["up"], float)
-        y = y - z * (y @ z)
-        if np.linalg.norm(y) < 1e-6:
-            raise DeviceError(f"{self.name}: 'up' is parallel to the viewing direction; give an "
-                              "up direction across it (e.g. the turntable axis).")
-        y /= np.linalg.norm(y)
-        x = np.cross(y, z)
-        R = np.vstack([x, y, z])
-        return R, -R @ c
+        """(R, T) with X_projector = R @ X_bench + T, from position / look-at / up."""
+        return look_at_pose(self.settings, self.name, "projector")
 
     def connect(self) -> None:
         super().connect()
