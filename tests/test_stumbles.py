@@ -44,6 +44,6 @@ def test_opencv_layout_says_what_min_contrast_does():
     from dotshell.run.capture_layouts import load_layout
 
     layout = load_layout("opencv-graycode")
-    assert layout.coding_settings()["classification"] == "adaptive"
+    assert layout.coding_settings()["classification"] == "robust"
     text = SETTINGS_SCHEMA["min_contrast"].help
     assert "contrast classification" in text and "robust and adaptive" in text
