@@ -1,7 +1,8 @@
 """What each gray-code classification costs on one view of the simulated bench, interleaved in
-one run: ``robust`` (the default), ``adaptive`` (robust's pass with a second chance for the
-pixels robust leaves uncertain, after the camera noise model is counted) and ``contrast``;
-min / median ms per view and the ratios to robust, with the decoded pixels of each.
+one run: ``robust``, ``adaptive`` (the gray code's default: robust's pass with a second chance
+for the pixels robust leaves uncertain, after the camera noise model is counted) and
+``contrast``; min / median ms per view and the ratios to robust, with the decoded pixels of
+each.
 
     PYTHONPATH=.:plugins python benchmarks/classification_cost.py [--quick] [--repeats N]
 """

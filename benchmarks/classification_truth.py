@@ -1,13 +1,16 @@
 """Decoded share and wrong codes of each gray-code classification against the simulator's
-ground truth (issue 27): ``contrast``, ``robust`` (the default) and ``adaptive`` on the metal
-cylinder (clean; and under room light as strong as the projector's with the camera defocused
-to σ = 1.5 px), the agar cylinder without analyzer under strong room light (ambient light +
-subsurface blur) and the agar cylinder with PDI (|I∥ − I⊥| frames). Per scene and
+ground truth (issue 27): ``contrast``, ``robust`` and ``adaptive`` (the gray code's default) on
+the metal cylinder (clean; and under room light as strong as the projector's with the camera
+defocused to σ = 1.5 px), the agar cylinder without analyzer under strong room light (ambient
+light + subsurface blur; and with the camera defocused too) and the agar cylinder with PDI
+(|I∥ − I⊥| frames). Per scene and
 classification: pixels decoded on the lit surface (share of the lit pixels), wrong codes there
 (more than 1.5 projector px from the true column or row), pixels decoded off it, and the
 neighbour-reversal estimate of wrong codes (:func:`decode_quality`), and the decode time:
 the classifications decoded in turn, in a rotating order, ``--repeats`` times after a warm-up
-(min / median ms, and the median's ratio to robust's measured in the same rounds).
+(min / median ms of wall time, and the median's ratio to robust's measured in the same rounds;
+then the median CPU time of the process, every decoding thread counted, and its ratio: on a
+busy shared host the steadier figure).
 
     PYTHONPATH=.:plugins:tests python benchmarks/classification_truth.py [--factor 0.25]
         [--repeats 3] [--scenes metal]      # --factor 1: full-resolution views
@@ -32,6 +35,8 @@ SCENES = (("clean metal", "sim-metal-cylinder", {}, False),
           ("metal, room light 1, blur", "sim-metal-cylinder",
            {"ambient": 1.0, "defocus_sigma_px": 1.5}, False),
           ("agar, room light 0.5", "sim-agar-cylinder-nopdi", {"ambient": 0.5}, False),
+          ("agar, room light 1, blur", "sim-agar-cylinder-nopdi",
+           {"ambient": 1.0, "defocus_sigma_px": 1.5}, False),
           ("agar PDI", "sim-agar-cylinder", {}, True))
 
 
@@ -78,22 +83,24 @@ def score(corr, u, v, lit) -> dict:
             "reversals": decode_quality(corr)["reversals"]}
 
 
-def timed_decodes(frames, size, repeats: int) -> tuple[dict, dict]:
-    """Each classification's correspondence and decode times (s), decoded in turn in a
-    rotating order ``repeats`` times after a round that compiles and warms up."""
+def timed_decodes(frames, size, repeats: int) -> tuple[dict, dict, dict]:
+    """Each classification's correspondence, decode wall times and CPU times (s), decoded in
+    turn in a rotating order ``repeats`` times after a round that compiles and warms up."""
     from dotshell_codings.graycode import make_graycode
 
     codings = {c: make_graycode({"axes": "both", "classification": c}) for c in CLASSIFICATIONS}
     times: dict[str, list[float]] = {c: [] for c in CLASSIFICATIONS}
+    cpu: dict[str, list[float]] = {c: [] for c in CLASSIFICATIONS}
     out = {}
     for r in range(repeats + 1):
         k = r % len(CLASSIFICATIONS)
         for c in CLASSIFICATIONS[k:] + CLASSIFICATIONS[:k]:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             out[c] = codings[c].decode(frames, size)
             if r:
                 times[c].append(time.perf_counter() - t0)
-    return out, times
+                cpu[c].append(time.process_time() - c0)
+    return out, times, cpu
 
 
 def main() -> None:
@@ -105,19 +112,22 @@ def main() -> None:
     print(f"== gray-code classifications against ground truth, {args.factor:g}x "
           f"(ms: min / median of {args.repeats}) ==")
     print(f"  {'scene':26s} {'classification':14s} {'decoded on lit':>18s} {'wrong':>6s} "
-          f"{'off lit':>8s} {'reversals':>9s} {'ms min / median':>17s} {'x robust':>8s}")
+          f"{'off lit':>8s} {'reversals':>9s} {'ms min / median':>17s} {'x robust':>8s} "
+          f"{'CPU ms':>7s} {'x robust':>8s}")
     for name, profile, camera, pdi in SCENES:
         if args.scenes not in name:
             continue
         frames, size, (u, v, lit) = scene_frames(profile, camera, pdi, args.factor)
-        out, times = timed_decodes(frames, size, args.repeats)
+        out, times, cpu = timed_decodes(frames, size, args.repeats)
         base = float(np.median(times["robust"]))
+        cpu_base = float(np.median(cpu["robust"]))
         for c in CLASSIFICATIONS:
             s = score(out[c], u, v, lit)
             t = np.array(times[c]) * 1e3
             print(f"  {name:26s} {c:14s} {s['decoded']:8d} ({100 * s['decoded'] / s['lit']:5.1f} %)"
                   f" {s['wrong']:6d} {s['off']:8d} {s['reversals']:9d} "
-                  f"{t.min():7.1f} / {np.median(t):7.1f} {np.median(t) / 1e3 / base:8.2f}")
+                  f"{t.min():7.1f} / {np.median(t):7.1f} {np.median(t) / 1e3 / base:8.2f} "
+                  f"{np.median(cpu[c]) * 1e3:7.1f} {np.median(cpu[c]) / cpu_base:8.2f}")
 
 
 if __name__ == "__main__":

@@ -112,15 +112,16 @@ def test_full_scale_and_noise_floor():
 
 
 def test_robust_needs_inverse():
-    g = make_coding("graycode", inverse=False)  # default robust: falls back to contrast
+    g = make_coding("graycode", inverse=False)  # default adaptive: falls back to contrast
     assert g.classification == "contrast"
-    assert make_coding("graycode").classification == "robust"
+    assert make_coding("graycode").classification == "adaptive"
 
 
 # ---- codings under global light ---------------------------------------------------------------
 
 def test_clean_scene_unchanged_by_robust_classification():
-    contrast, robust = run("graycode", "clean", classification="contrast"), run("graycode", "clean")
+    contrast, robust = (run("graycode", "clean", classification="contrast"),
+                        run("graycode", "clean", classification="robust"))
     for r in (contrast, robust):
         assert r["valid"] > 0.99 and r["wrong"] < 1e-3 and r["rms"] < 0.06
 
@@ -130,7 +131,7 @@ def test_long_range_global_light_contrast_vs_robust_vs_xor():
     low-frequency gray bits: plain thresholding decodes wrong codes. The robust rule marks
     them uncertain instead; the XOR-04 code (all patterns high-frequency) decodes them."""
     gray = run("graycode", "long_range", classification="contrast")
-    robust = run("graycode", "long_range")
+    robust = run("graycode", "long_range", classification="robust")
     xor = run("xor04", "long_range")
     xor_contrast = run("xor04", "long_range", classification="contrast")
     assert gray["wrong"] > 0.2                       # measured 0.43: every decoded pixel wrong
@@ -145,26 +146,26 @@ def test_pdi_like_low_contrast_float32():
     """Direct light 5 % of full scale, noisy, float32 PDI frames: decoded; the same scene
     without the analyzer (global light 95 %) is rejected, not decoded wrong."""
     contrast = run("graycode", "pdi", classification="contrast")
-    robust = run("graycode", "pdi")
+    robust = run("graycode", "pdi", classification="robust")
     for r in (contrast, robust):                      # measured 0.95 / 0.98 valid, 0.6 / 1.0 %
         assert r["valid"] > 0.9 and r["wrong"] < 0.02 and r["rms"] < 0.3
     plain = run("graycode", "no_pdi", classification="contrast")
-    plain_robust = run("graycode", "no_pdi")
+    plain_robust = run("graycode", "no_pdi", classification="robust")
     assert plain["valid"] < 0.01 and plain["low_contrast"] > 0.95
     assert plain_robust["valid"] < 0.01 and plain_robust["uncertain"] > 0.95
 
 
 def figures() -> None:
-    contrast = {"classification": "contrast"}
-    rows = [("graycode", contrast), ("graycode", {}), ("xor02", contrast), ("xor02", {}),
-            ("xor04", contrast), ("xor04", {}), ("graycode-phase", contrast),
-            ("graycode-phase", {}), ("graycode-phase", {"phase_steps": 8})]
+    rows = [(name, {"classification": c}) for name in ("graycode", "xor02", "xor04",
+                                                       "graycode-phase")
+            for c in ("contrast", "robust", "adaptive")] + [("graycode-phase",
+                                                             {"phase_steps": 8})]
     print("| scene | coding | settings | valid | wrong (>1 px) | uncertain | low_contrast | RMS col px |")
     print("|---|---|---|---|---|---|---|---|")
     for scene in ("clean", "long_range", "pdi", "no_pdi"):
         for name, kw in rows:
             r = run(name, scene, **kw)
-            print(f"| {scene} | {name} | {kw or 'robust (default)'} | {r['valid']:.3f} | {r['wrong']:.4f} | "
+            print(f"| {scene} | {name} | {kw} | {r['valid']:.3f} | {r['wrong']:.4f} | "
                   f"{r['uncertain']:.3f} | {r['low_contrast']:.3f} | {r['rms']:.3f} |")
 
 

@@ -40,6 +40,9 @@ def assert_same(new: Correspondence, old: Correspondence) -> None:
 
 
 def both(cls_new, cls_old, frames, proj=PROJ, **settings):
+    # the frozen decoder has no adaptive classification (robust plus rescued pixels, tested in
+    # tests/test_decode_adaptive.py; the gray code's default now): its default, robust, is asked
+    settings.setdefault("classification", "robust")
     for subpixel in (False, True):
         new = cls_new(subpixel=subpixel, **settings).decode(frames, proj)
         old = cls_old(subpixel=subpixel, **settings).decode(frames, proj)
@@ -96,9 +99,10 @@ def sim_bench_view():
     pm = get_plugin_manager()
     profile = load_bench_profile(pm, quick=True)
     # the frozen decoder has no adaptive classification (robust plus rescued pixels, tested in
-    # tests/test_decode_adaptive.py): its setting is left out
+    # tests/test_decode_adaptive.py): its settings are left out, robust is asked
     settings = {k: v for k, v in profile.role("coding")["settings"].items()
-                if k not in ("subpixel", "adaptive_sigmas")}
+                if k not in ("subpixel", "adaptive_sigmas", "adaptive_edge_ratio")}
+    settings["classification"] = "robust"
     coding = GrayCode(**settings)
     with Rig(profile, pm) as rig:
         rig.camera.set_exposure(profile.data["scan"]["exposure_ms"])

@@ -24,10 +24,12 @@ Decoding (per pixel, in one compiled pass over the view: :mod:`dotshell_codings.
   negative, so a bit that is weak everywhere (blur, scattering) still marks low_contrast;
 * ``out_of_range``: the decoded block does not overlap ``[0, N)``.
 
-That is ``classification = "contrast"``. With ``"robust"`` (the default) each bit is decided by
+That is ``classification = "contrast"``. With ``"robust"`` each bit is decided by
 the Xu & Aliaga rule after a direct/global separation (:mod:`dotshell_codings.robust`, see
 docs/codings.md), undecidable bits are *uncertain* instead of weak, and such pixels count as
-``uncertain``.
+``uncertain``. ``"adaptive"`` (the default) gives those pixels a second chance: decoded by the
+signs of their bits where the camera noise model and the separation's bound say the signs are
+sure (:func:`kernels._rescue_row`).
 
 Sub-pixel refinement (``subpixel = true``), for columns and rows alike: each axis is scanned
 along the image direction in which its code changes more often (camera rows when its stripes
@@ -66,20 +68,26 @@ SETTINGS_SCHEMA: dict[str, Setting] = {
         help="project each bit with its inverse and compare the pair (robust to albedo and "
              "defocus); false: compare with the per-pixel (white + black) / 2"),
     "classification": Setting(
-        "str", "robust", choices=("contrast", "robust", "adaptive"),
+        "str", "adaptive", choices=("contrast", "robust", "adaptive"),
         help="how each bit is decided: 'contrast' = pattern > inverse, bits weaker than "
              "min_contrast mark the pixel low_contrast; 'robust' = Xu & Aliaga's rule with "
-             "direct/global separation (bit decided or uncertain); 'adaptive' = robust, and "
-             "a pixel robust leaves uncertain is decoded as 'contrast' decodes it when all its "
-             "bits but one also stand out of the camera noise by adaptive_sigmas (the noise "
-             "model is measured from the frames) and beyond what global light could do, and "
-             "flipping the one that does not moves the code by one step (robust's edge "
-             "tolerance); without inverses 'contrast' is used"),
+             "direct/global separation (bit decided or uncertain); 'adaptive' (the gray code's "
+             "default) = robust, and a pixel robust leaves uncertain is decoded as 'contrast' decodes it "
+             "when all its bits but one also stand out of the camera noise by adaptive_sigmas "
+             "(the noise model is measured from the frames) and beyond what global light "
+             "could do, flipping the one that does not moves the code by one step (robust's "
+             "edge tolerance) and it is not beside a white - black edge (adaptive_edge_ratio); "
+             "without inverses 'contrast' is used"),
     "adaptive_sigmas": Setting(
         "float", 6.0, min=1.0,
         help="adaptive classification: the least |pattern - inverse| of a pixel's bits (all "
              "but its weakest) in noise sigmas for a pixel robust leaves uncertain to be "
              "decoded"),
+    "adaptive_edge_ratio": Setting(
+        "float", 0.7, min=0.0, max=1.0,
+        help="adaptive classification: a pixel robust leaves uncertain is not decoded when "
+             "one of its 8 neighbours has white - black below this fraction of its own (a "
+             "silhouette, shadow or depth edge, where a pixel mixes surfaces); 0 = no test"),
     "min_contrast": Setting(
         "float", 0.1, min=0.0, max=1.0,
         help="contrast classification: minimum |pattern - inverse| as a fraction of the "
@@ -228,9 +236,10 @@ class GrayCode:
 
     def __init__(self, axes: str = "both", inverse: bool = True, min_contrast: float = 0.1,
                  shadow_threshold: float = 0.03, drop_low_bits: int = 0, subpixel: bool = True,
-                 bit_depth: int = 0, classification: str = "robust", direct_min: float = 0.0,
+                 bit_depth: int = 0, classification: str = "adaptive", direct_min: float = 0.0,
                  high_frequency_pairs: int = 2, black_level: float = 0.0,
-                 centred: bool = True, adaptive_sigmas: float = 6.0) -> None:
+                 centred: bool = True, adaptive_sigmas: float = 6.0,
+                 adaptive_edge_ratio: float = 0.7) -> None:
         if axes not in ("columns", "both"):
             raise ValueError(f"axes must be 'columns' or 'both', not {axes!r}")
         if classification not in ("contrast", "robust", "adaptive"):
@@ -251,6 +260,7 @@ class GrayCode:
         self.black_level = float(black_level)
         self.centred = bool(centred)
         self.adaptive_sigmas = float(adaptive_sigmas)
+        self.adaptive_edge_ratio = float(adaptive_edge_ratio)
 
     # ---- patterns ------------------------------------------------------------------------
 
@@ -366,7 +376,8 @@ class GrayCode:
 
         floor, gain = noise_model(stack if np.issubdtype(stack.dtype, np.integer) else frames)
         return Rescue(np.array([self.sign_base(ax) for ax in axes], np.int64),
-                      np.array([2 * floor, gain, self.adaptive_sigmas], np.float32),
+                      np.array([2 * floor, gain, self.adaptive_sigmas, self.adaptive_edge_ratio],
+                               np.float32),
                       floor, gain)
 
     def sign_base(self, ax: _Axis) -> int:
@@ -422,7 +433,7 @@ class GrayCode:
         scan_i = np.empty((len(bounds) - 1, n_axes, 4, w), np.int64)
         scan_f = np.empty((len(bounds) - 1, n_axes, 4, w), np.float32)
         if adaptive is None:
-            adaptive_args = (False, np.full(n_axes, -1, np.int64), np.zeros(3, np.float32))
+            adaptive_args = (False, np.full(n_axes, -1, np.int64), np.zeros(4, np.float32))
         else:
             adaptive_args = (True, adaptive.bases, adaptive.values)
         args = (*rule, settings, flips, down, self.subpixel, classified, *adaptive_args,
@@ -590,8 +601,8 @@ class Rescue:
 
     Attributes:
         bases: (axes,) int64, each axis's :meth:`GrayCode.sign_base`.
-        values: (3,) float32, ``2 floor``, ``gain`` and ``adaptive_sigmas`` (the kernel's
-            :data:`kernels.FLOOR2` …).
+        values: (4,) float32, ``2 floor``, ``gain``, ``adaptive_sigmas`` and
+            ``adaptive_edge_ratio`` (the kernel's :data:`kernels.FLOOR2` …).
         floor, gain: the camera noise model ``var(I) = floor + gain (I − black)`` (frame
             units², :func:`robust.noise_model`).
     """

@@ -434,9 +434,10 @@ def _verdict_row(shadow, no_direct, flags, fy, valid, reason, counts):
 
 
 #: entries of :func:`decode_rows`' ``rescue`` (float32): the noise model's 2 × floor and gain
-#: (``var(p − q) = 2 floor + gain (p + q − 2 black)``, frame units) and the sigmas a pixel's
-#: bits (all but its weakest) must stand beyond the global-light bound
-FLOOR2, GAIN, SIGMAS = range(3)
+#: (``var(p − q) = 2 floor + gain (p + q − 2 black)``, frame units), the sigmas a pixel's
+#: bits (all but its weakest) must stand beyond the global-light bound and the edge ratio
+#: (:func:`_beside_edge`)
+FLOOR2, GAIN, SIGMAS, EDGE = range(4)
 
 
 @numba.njit(**_ROW)
@@ -447,7 +448,8 @@ def _rescue_row(stack, y, axis_bits, sep, axes, gray_base, rescue, one_minus_b, 
     the sign of every pattern − inverse (the contrast rule without its threshold) when all its
     bits but the weakest stand ``rescue[SIGMAS]`` noise sigmas beyond what global light could
     do to them (:func:`_all_but_one_sure`), flipping that weakest bit (if one falls below)
-    moves its axis's code by one step, and its code is on the projector on every axis. The
+    moves its axis's code by one step, its code is on the projector on every axis and it is
+    not beside an edge of the white − black image (:func:`_beside_edge`). The
     one-step test is the edge tolerance robust gives a single weak bit (:func:`_assemble_row`):
     a weak bit of the finest stripes' edge costs at most one code step, a weak coarse bit
     would throw the pixel blocks away (on the clean metal cylinder at full resolution such
@@ -481,7 +483,7 @@ def _rescue_row(stack, y, axis_bits, sep, axes, gray_base, rescue, one_minus_b, 
             lo = np.int64(codes[a]) * axes[a, BLOCK] - axes[a, OFFSET]
             if lo + (axes[a, BLOCK] - 1) < 0 or lo > axes[a, SIZE] - 1:
                 inside = False
-        if not inside:
+        if not inside or _beside_edge(stack, y, x, rescue[EDGE]):
             continue
         for a in range(n_axes):
             code[a, y, x] = codes[a]
@@ -491,6 +493,27 @@ def _rescue_row(stack, y, axis_bits, sep, axes, gray_base, rescue, one_minus_b, 
         counts[0] += 1
         counts[2] -= 1
         counts[5] += 1
+
+
+@numba.njit(**_INNER)
+def _beside_edge(stack, y, x, ratio):
+    """Pixel (y, x) has an 8-neighbour whose white − black is below ``ratio`` × its own (not
+    finite counts as 0; neighbours outside the image do not count): it lies on a silhouette, a
+    shadow's edge or a depth edge, where its footprint mixes surfaces or spans several
+    projector columns, so a bit taken by its sign can cost more than the one code step the
+    rescue allows (the adaptive classification's last test; ``ratio`` 0: never)."""
+    if not ratio > 0:
+        return False
+    here = np.float32(stack[0, y, x]) - np.float32(stack[1, y, x])
+    floor = ratio * here
+    for ny in range(max(y - 1, 0), min(y + 2, stack.shape[1])):
+        for nx in range(max(x - 1, 0), min(x + 2, stack.shape[2])):
+            r = np.float32(stack[0, ny, nx]) - np.float32(stack[1, ny, nx])
+            if not np.isfinite(r):
+                r = np.float32(0.0)
+            if r < floor:
+                return True
+    return False
 
 
 @numba.njit(**_INNER)
@@ -526,8 +549,12 @@ def _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
     its inverse's global light differ by at most ``L_g − L_d``, so beyond it a bit's sign is
     sure. −1 when two pairs fall below, ``sep.shape[0]`` when none does (every bit is sure).
     float32 throughout, as numpy evaluates the documented formula; the finest pairs (the
-    weakest, mostly) first, and the second pair below the bound ends the test."""
+    weakest, mostly) first, and the second pair below the bound ends the test. Before the
+    separation's frames are read, ``|p − q| / σ`` (an upper bound of z: the ambiguous band is
+    ≥ 0) ends it where two pairs fall below by that alone (:func:`_two_surely_weak`)."""
     black = np.float32(stack[1, y, x])
+    if _two_surely_weak(stack, y, x, sep.shape[0], rescue, black):
+        return -1
     lmax = np.float32(-np.inf)
     lmin = np.float32(np.inf)
     for k in range(sep.shape[0]):
@@ -555,6 +582,26 @@ def _all_but_one_sure(stack, y, x, sep, rescue, one_minus_b, lg_scale, b_level):
                 return -1
             weakest = k
     return weakest
+
+
+@numba.njit(**_INNER)
+def _two_surely_weak(stack, y, x, n_pairs, rescue, black):
+    """Two of pixel (y, x)'s ``n_pairs`` pattern/inverse pairs have ``|p − q| / σ`` below
+    ``rescue[SIGMAS]`` (NaN counts as below; σ as :func:`_all_but_one_sure`'s): their z is
+    smaller still, so the pixel cannot be rescued, whatever the direct/global separation
+    (on the agar body without PDI most uncertain pixels end here, after two pairs)."""
+    zero = np.float32(0.0)
+    below = 0
+    for k in range(n_pairs - 1, -1, -1):
+        p = np.float32(stack[2 + 2 * k, y, x])
+        q = np.float32(stack[3 + 2 * k, y, x])
+        var = max(rescue[FLOOR2] + rescue[GAIN] * max(p + q - np.float32(2) * black, zero),
+                  np.float32(1e-6))
+        if not abs(p - q) / np.sqrt(var) >= rescue[SIGMAS]:
+            below += 1
+            if below == 2:
+                return True
+    return False
 
 
 @numba.njit(**_ROW)
@@ -826,7 +873,7 @@ def decode_rows(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarr
             (``value``/``weak`` unused).
         adaptive: the pixels left with a bit undecided get :func:`_rescue_row`'s second
             chance (``mode`` is then :data:`ROBUST`), with ``gray_base`` (A,) int64 and
-            ``rescue`` (3,) float32 (:data:`FLOOR2` …).
+            ``rescue`` (4,) float32 (:data:`FLOOR2` …).
         code, coord, ok: (A, H, W) int32 / float32 / bool outputs: coarse code, projector
             coordinate (sub-pixel where refined, NaN where not decoded), refined.
         valid, reason, counts: (H, W) bool, (H, W) uint8, (H, 6) int64 (:func:`_verdict_row`).

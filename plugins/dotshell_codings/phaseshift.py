@@ -31,6 +31,7 @@ Stats: the gray code's (``shadow``, ``low_contrast``, ``uncertain``, ``out_of_ra
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any, Sequence
 
 import numpy as np
@@ -40,8 +41,9 @@ from dotshell.settings import Setting
 from dotshell_codings.graycode import SETTINGS_SCHEMA as GRAY_SETTINGS
 from dotshell_codings.graycode import GrayCode, code_offset
 
-_GRAY_KEYS = ("inverse", "classification", "min_contrast", "direct_min", "high_frequency_pairs",
-              "black_level", "shadow_threshold", "bit_depth")
+_GRAY_KEYS = ("inverse", "classification", "adaptive_sigmas", "adaptive_edge_ratio",
+              "min_contrast", "direct_min", "high_frequency_pairs", "black_level",
+              "shadow_threshold", "bit_depth")
 SETTINGS_SCHEMA: dict[str, Setting] = {
     "axes": GRAY_SETTINGS["axes"],
     "period_px": Setting(
@@ -55,6 +57,9 @@ SETTINGS_SCHEMA: dict[str, Setting] = {
         help="minimum sinusoid amplitude relative to (white - black)/2; weaker pixels are "
              "low_modulation"),
     **{k: GRAY_SETTINGS[k] for k in _GRAY_KEYS},
+    # robust by default: under long-range global light the adaptive rescue adds coarse codes
+    # as wrong as robust's (synthetic scene: 51.9 → 52.4 % of the pixels; docs/codings.md)
+    "classification": replace(GRAY_SETTINGS["classification"], default="robust"),
 }
 #: |phase coordinate − gray coordinate| above this many periods → phase_inconsistent
 MAX_COARSE_MISMATCH_PERIODS = 0.4
@@ -73,6 +78,7 @@ class GrayPhaseCode:
         self.steps = int(phase_steps)
         self.min_modulation = float(min_modulation)
         drop = int(round(math.log2(self.period // 4)))
+        gray_settings.setdefault("classification", "robust")  # as SETTINGS_SCHEMA says
         self.gray = GrayCode(axes=axes, drop_low_bits=drop, subpixel=False, **gray_settings)
 
     def _axis_sizes(self, projector_size: tuple[int, int]) -> list[tuple[str, int]]:
