@@ -12,10 +12,12 @@ with ``subpixel = false``, so the compared values are integers on both sides).
 
 from __future__ import annotations
 
+import inspect
 import json
 import subprocess
 import time
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -81,12 +83,26 @@ def _timed(fn) -> tuple[float, Any]:
     return time.perf_counter() - t0, out
 
 
+def frozen_settings(settings: dict[str, Any]) -> dict[str, Any]:
+    """The coding's settings as the frozen decoder takes them: its own keys only, and
+    ``classification = "robust"`` where the profile asks for one it predates (``adaptive``)."""
+    known = inspect.signature(graycode_before.GrayCode.__init__).parameters
+    out = {k: v for k, v in settings.items() if k in known}
+    if out.get("classification", "robust") not in ("contrast", "robust"):
+        out["classification"] = "robust"
+    return out
+
+
 def compare(view, integer_coding, peer: OpenCVPeer, repeats: int,
-            settings: dict[str, Any]) -> dict[str, Any]:
+            settings: dict[str, Any], make_coding: Callable[..., Any]) -> dict[str, Any]:
     """Interleaved timings of the decoders on ``view`` and their agreement; ``settings``: the
-    coding's settings (for the decoder before)."""
+    coding's settings (for the decoder before); ``make_coding(**overrides)``: the profile's
+    coding with overrides, for the bit-for-bit comparison with the frozen decoder (made with
+    the classification that decoder knows)."""
     frames, names, size = view.frames, view.names, view.projector_size
-    before = graycode_before.GrayCode(**settings)
+    frozen = frozen_settings(settings)
+    before = graycode_before.GrayCode(**frozen)
+    same_rule = {"classification": frozen.get("classification", "robust")}
     shadow_dn = view.coding.shadow_threshold * full_scale(frames[names.index("white")],
                                                           view.coding.bit_depth)
     sides = {
@@ -109,9 +125,11 @@ def compare(view, integer_coding, peer: OpenCVPeer, repeats: int,
                 runs[k].append(s)
     out: dict[str, Any] = {k: min_median(v) for k, v in runs.items()}
     out["identical_to_before"] = {
-        "integer": _identical(integer_coding.decode(frames, size), graycode_before.GrayCode(
-            **{**settings, "subpixel": False}).decode(frames, size)),
-        "subpixel": _identical(view.coding.decode(frames, size), before.decode(frames, size))}
+        "integer": _identical(
+            make_coding(subpixel=False, **same_rule).decode(frames, size),
+            graycode_before.GrayCode(**{**frozen, "subpixel": False}).decode(frames, size)),
+        "subpixel": _identical(make_coding(**same_rule).decode(frames, size),
+                               before.decode(frames, size))}
     ours = integer_coding.decode(frames, size)
     out["numpy_agreement"] = _numpy_agreement(ours, numpy_gray.decode(frames, names, size,
                                                                       shadow_dn))

@@ -264,7 +264,8 @@ def main() -> None:
                                    view.projector_size, view.bit_depth, work)
         integer = make_coding(profile, pm, subpixel=False)
         results["decoders"] = decoders.compare(view, integer, peer, args.repeats,
-                                               profile.role("coding")["settings"])
+                                               profile.role("coding")["settings"],
+                                               lambda **o: make_coding(profile, pm, **o))
         decoders.print_decoders(results["decoders"], baseline)
         del view, peer
         if not args.skip_scan:
