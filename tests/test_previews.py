@@ -123,3 +123,11 @@ def test_previews_load_no_opengl_renderer(tmp_path):
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout.splitlines()[-1]) == []
     assert (tmp_path / "c.png").stat().st_size > 1000
+
+
+def test_colour_bar_middle_of_a_symmetric_range_reads_zero():
+    """The colour bar's middle tick of a ±20 µm range is 0, not the sum's rounding noise."""
+    lo, hi = -20.000000000000004, 20.0
+    assert raster.tick_label((lo + hi) / 2, hi - lo) == "0"
+    assert raster.tick_label(8.77e-3, 40.0) == "0.00877"
+    assert raster.tick_label(-20.0, 40.0) == "-20"

@@ -159,6 +159,14 @@ def draw_title(canvas: Canvas, title: str) -> None:
     cv2.putText(canvas.image, ascii_text(title), (12, 28), FONT, 0.6, BLACK, 1, cv2.LINE_AA)
 
 
+def tick_label(value: float, span: float) -> str:
+    """``value`` to 3 significant digits, and 0 where it is rounding noise against the bar's
+    ``span`` (the middle of a symmetric range is 0, not 8.77e-10)."""
+    if span > 0 and abs(value) < 1e-9 * span:
+        value = 0.0
+    return f"{value:.3g}"
+
+
 def draw_colour_bar(canvas: Canvas, clim: tuple[float, float], cmap: str, label: str) -> None:
     """A vertical colour bar at the right edge, ``clim`` at its ends and its middle."""
     lut = colormap(cmap)
@@ -169,8 +177,8 @@ def draw_colour_bar(canvas: Canvas, clim: tuple[float, float], cmap: str, label:
     cv2.rectangle(canvas.image, (x0, y0), (x1 - 1, y1 - 1), BLACK, 1)
     lo, hi = clim
     for value, y in ((hi, y0), ((lo + hi) / 2, (y0 + y1) // 2), (lo, y1)):
-        cv2.putText(canvas.image, f"{value:.3g}", (x1 + 4, y + 5), FONT, 0.45, BLACK, 1,
-                    cv2.LINE_AA)
+        cv2.putText(canvas.image, tick_label(value, hi - lo), (x1 + 4, y + 5), FONT, 0.45,
+                    BLACK, 1, cv2.LINE_AA)
     cv2.putText(canvas.image, ascii_text(label), (x0 - 60, y0 - 12), FONT, 0.45, BLACK, 1,
                 cv2.LINE_AA)
 
