@@ -422,6 +422,10 @@ def run_command(args: argparse.Namespace) -> int:
                      "camera.settings.height=...), scan fewer views, or use a machine with more "
                      "memory.", 2)
     except OSError as exc:
+        if exc.errno is None and "shared object" in str(exc):  # dlopen refused: no address space
+            return _fail(args, exc, "could not load a library" + limits_in_force() + f" ({exc})"
+                         ": the process's memory limit is too small for it. Raise the limit, "
+                         "or close other programs.", 2)
         return _fail(args, exc, os_error_message(exc), 2)
     except RuntimeError as exc:
         if "can't start new thread" not in str(exc):
