@@ -82,6 +82,33 @@ class StageSampler:
         setattr(owner, name, labelled)
 
 
+def rusage() -> dict[str, dict[str, float]]:
+    """CPU seconds (user, kernel), page faults (minor, major) and peak RSS (MiB) of this
+    process and of its waited-for children (the mesh process: the largest child's peak)."""
+    import resource
+
+    out = {}
+    for who, flag in (("scan", resource.RUSAGE_SELF), ("children", resource.RUSAGE_CHILDREN)):
+        ru = resource.getrusage(flag)
+        out[who] = {"user_s": ru.ru_utime, "kernel_s": ru.ru_stime, "minor_faults": ru.ru_minflt,
+                    "major_faults": ru.ru_majflt, "peak_mib": ru.ru_maxrss / 1024.0}
+    return out
+
+
+def outputs(out: Path) -> dict[str, object]:
+    """The scan's clouds (sha256 of every PLY, to compare sides byte for byte) and the shape
+    validation of its report."""
+    import hashlib
+
+    found: dict[str, object] = {}
+    for ply in sorted(out.rglob("*.ply")):
+        found[str(ply.relative_to(out))] = hashlib.sha256(ply.read_bytes()).hexdigest()[:16]
+    for rep in sorted(out.rglob("report.json")):
+        validation = json.loads(rep.read_text()).get("validation")
+        found[str(rep.relative_to(out))] = validation
+    return found
+
+
 def child(args: argparse.Namespace) -> None:
     """The scan, in this process, with a probe at every view boundary."""
     import tracemalloc
@@ -136,7 +163,8 @@ def child(args: argparse.Namespace) -> None:
     rss, hwm = status_mib()
     sampler.done.set()
     out = {"exit": code, "wall_s": time.monotonic() - t0, "rss_end_mib": rss, "hwm_mib": hwm,
-           "views": records, "stages": sampler.peaks}
+           "views": records, "stages": sampler.peaks, "rusage": rusage(),
+           "outputs": outputs(Path(args.out))}
     Path(args.result).write_text(json.dumps(out))
 
 
@@ -165,6 +193,13 @@ def run_side(label: str, tree: Path, args: argparse.Namespace, tmp: Path) -> dic
 def report(label: str, res: dict) -> None:
     print(f"\n== {label}: exit {res['exit']}, wall {res['wall_s']:.0f} s, "
           f"peak RSS (VmHWM) {res['hwm_mib']:.0f} MiB, RSS at the end {res['rss_end_mib']:.0f} MiB")
+    for name, what in res.get("outputs", {}).items():
+        print(f"  {name}: {json.dumps(what)[:400]}")
+    for who, ru in res.get("rusage", {}).items():
+        print(f"  {who}: user {ru['user_s']:.0f} s, kernel {ru['kernel_s']:.0f} s "
+              f"({ru['kernel_s'] / max(ru['user_s'] + ru['kernel_s'], 1e-9):.0%}), "
+              f"{ru['minor_faults'] / 1e6:.1f} M minor faults, {ru['major_faults']} major, "
+              f"peak {ru['peak_mib']:.0f} MiB")
     print("  peak RSS by stage (sampled every 50 ms; main thread's stage, + the reconstruction "
           "worker when busy):")
     for label, mib in sorted(res["stages"].items(), key=lambda kv: -kv[1]):
