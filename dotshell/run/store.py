@@ -56,8 +56,9 @@ def temp_beside(path: Path) -> tuple[int, Path]:
     raise FileExistsError(errno.EEXIST, "no free temporary name", str(path))
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same directory and a rename. A
+def atomic_write_bytes(path: Path, data: bytes | memoryview) -> None:
+    """Write ``data`` (bytes, or a memoryview of a buffer such as a numpy array's, written
+    without a copy) to ``path`` via a temporary file in the same directory and a rename. A
     failure names ``path`` (not the temporary file) and leaves ``path`` as it was."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
