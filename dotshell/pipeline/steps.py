@@ -35,6 +35,7 @@ from dotshell.run.lost import is_lost, lost_views, usable
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.pdi import combine, shots_from_manifest
+from dotshell.pipeline.view_frames import PatternImages
 from dotshell.plugins import PluginManager
 from dotshell.run.layout import RunLayout
 from dotshell.run.ply import read_ply, write_ply
@@ -164,10 +165,6 @@ def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: 
     vc = reconstruct_view(view, angle_deg, patterns, coding, calib, profile.processing)
     return store_view(store, vc, first_frame, profile, calib, bus)
 
-
-#: What a view's reconstruction needs of its frames: one image per pattern and the first
-#: frame (the view's preview).
-PatternImages = tuple[list[np.ndarray], np.ndarray | None]
 
 
 def pattern_images(store: RunStore, frames: Sequence[np.ndarray] | np.ndarray) -> PatternImages:
