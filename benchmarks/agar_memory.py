@@ -5,11 +5,15 @@ with ``--trace``, the largest tracemalloc holders printed at every view boundary
 Usage::
 
     python benchmarks/agar_memory.py [--views 3] [--trace] [--mesh] [--out DIR] [--before REF]
+                                     [--malloc mmap=BYTES,trim=BYTES,arenas=N]
 
 ``--views N`` scans N views (transillumination at view 0 only, unless N = 12); ``--mesh`` keeps
 the profile's mesh and normalization after the scan (they run in a child process of their own).
 ``--before REF`` measures the dotshell of git revision REF (``git archive``, e.g. ``main``) in
 the same run, before this tree: one child process per side, the figures side by side.
+``--malloc`` sets glibc's malloc parameters in place of the command's own
+(:mod:`dotshell.runtime.process`) to compare kernel time, page faults and peak RSS; each side
+prints its CPU (user, kernel), faults and peak, and the clouds' hashes and accuracy figures.
 """
 
 from __future__ import annotations
@@ -109,6 +113,28 @@ def outputs(out: Path) -> dict[str, object]:
     return found
 
 
+def malloc_settings(spec: str) -> None:
+    """glibc malloc settings instead of the command's (``dotshell.runtime.process``), to
+    compare them: ``mmap=BYTES,trim=BYTES,arenas=N`` (any of them; ``mmap`` 0 keeps glibc's
+    dynamic threshold)."""
+    import ctypes
+    import ctypes.util
+
+    from dotshell.runtime import process
+
+    params = {"trim": -1, "mmap": -3, "arenas": -8}  # M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX
+    wanted = {k: int(v) for k, v in (item.split("=") for item in spec.split(","))}
+    mallopt = ctypes.CDLL(ctypes.util.find_library("c")).mallopt
+
+    def configure() -> None:
+        process.limit_blas_threads(1)
+        for key, value in wanted.items():
+            if not (key == "mmap" and value == 0):
+                mallopt(params[key], value)
+
+    process.configure_process = configure
+
+
 def child(args: argparse.Namespace) -> None:
     """The scan, in this process, with a probe at every view boundary."""
     import tracemalloc
@@ -120,6 +146,8 @@ def child(args: argparse.Namespace) -> None:
     from dotshell.pipeline import scan as scan_module
     from dotshell.pipeline import transillum as pipeline_transillum
 
+    if args.malloc:
+        malloc_settings(args.malloc)
     sampler = StageSampler()
     sampler.wrap(acquire.Acquisition, "run_view", "capture fringes")
     sampler.wrap(pipeline_transillum.TransilluminationCapture, "run_view", "trans-illumination")
@@ -186,6 +214,7 @@ def run_side(label: str, tree: Path, args: argparse.Namespace, tmp: Path) -> dic
            "--out", str(tmp / label), "--result", str(result), "--top", str(args.top)]
     cmd += ["--trace"] if args.trace else []
     cmd += ["--mesh"] if args.mesh else []
+    cmd += ["--malloc", args.malloc] if args.malloc else []
     subprocess.run(cmd, check=True, env=env, cwd=tree)
     return json.loads(result.read_text())
 
@@ -220,6 +249,9 @@ def main() -> None:
     ap.add_argument("--mesh", action="store_true")
     ap.add_argument("--top", type=int, default=12)
     ap.add_argument("--before", default=None)
+    ap.add_argument("--malloc", default=None,
+                    help="glibc malloc settings instead of the command's: mmap=BYTES,trim=BYTES,"
+                         "arenas=N (to compare kernel time, faults and peak RSS)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--result", default=None, help=argparse.SUPPRESS)
