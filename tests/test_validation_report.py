@@ -59,3 +59,8 @@ def test_report_figures_equal_the_one_pass_arithmetic(monkeypatch, chunk):
     assert {k: report[k] for k in expected} == expected
     assert report["fit"]["points_used"] == 5_000
     assert abs(report["fit"]["radius_mm"] - R_MM) < 0.005
+    # the merge hands the steps the cloud as columns of the PLY's bytes (strided, unaligned)
+    data = np.zeros(1 + points.size // 3 * 16, np.uint8)
+    table = data[1:].view(np.float32).reshape(-1, 4)
+    table[:, :3] = points
+    assert validate.cylinder_report(table[:, :3], None, SETTINGS, ROI) == report

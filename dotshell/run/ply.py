@@ -20,20 +20,36 @@ def write_ply(path: Path, points: np.ndarray, **scalars: np.ndarray) -> Path:
     a ``bytes`` copy was the merge's largest temporary, 133 MB for the agar scan's 8.3 M
     points, issue 33)."""
     points = np.asarray(points).reshape(-1, 3)
-    names = ["x", "y", "z", *scalars]
+    data, table = ply_table(len(points), list(scalars))
+    table[:, :3] = points
+    for i, v in enumerate(scalars.values()):
+        table[:, 3 + i] = np.asarray(v).ravel()
+    return write_ply_data(path, data)
+
+
+def ply_table(n: int, scalar_names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """The bytes of a binary PLY of ``n`` points with float32 x, y, z and ``scalar_names``
+    (uninitialised), and its vertex table: an (n, 3 + len(scalar_names)) float32 view of them
+    to fill in (its ``[:, :3]`` are the points), then :func:`write_ply_data`."""
+    names = ["x", "y", "z", *scalar_names]
     header = "\n".join(["ply", "format binary_little_endian 1.0", "comment dotshell, units mm",
-                        f"element vertex {len(points)}", *(f"property float {n}" for n in names),
+                        f"element vertex {n}", *(f"property float {name}" for name in names),
                         "end_header"]).encode("ascii") + b"\n"
-    dtype = np.dtype([(n, "<f4") for n in names])
-    data = np.empty(len(header) + len(points) * dtype.itemsize, np.uint8)
+    data = np.empty(len(header) + n * 4 * len(names), np.uint8)
     data[:len(header)] = np.frombuffer(header, np.uint8)
-    rec = data[len(header):].view(dtype)
-    for i, n in enumerate("xyz"):
-        rec[n] = points[:, i]
-    for n, v in scalars.items():
-        rec[n] = np.asarray(v).ravel()
+    return data, data[len(header):].view("<f4").reshape(n, len(names))
+
+
+def write_ply_data(path: Path, data: np.ndarray) -> Path:
+    """Write the bytes of :func:`ply_table` (filled in) to ``path`` atomically, without a copy."""
     atomic_write_bytes(Path(path), memoryview(data))
     return Path(path)
+
+
+def point_count(path: Path) -> int:
+    """The number of points of the PLY at ``path`` (its data mapped, not read; RunError naming
+    the file if it is not a point cloud dotshell can read)."""
+    return len(_cloud_vertices(Path(path)))
 
 
 def read_ply(path: Path, finite: bool = True,
