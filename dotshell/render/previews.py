@@ -63,6 +63,14 @@ def import_renderer() -> None:
     import pyvista.plotting  # noqa: F401
 
 
+def preview_pick(n: int) -> np.ndarray | slice:
+    """Which of ``n`` points a cloud preview draws: a fixed-seed random :data:`PREVIEW_POINTS`
+    of larger clouds (indices), else all (a slice)."""
+    if n > PREVIEW_POINTS:  # a 900 px image shows no more; VTK copies are large
+        return np.random.default_rng(0).choice(n, PREVIEW_POINTS, replace=False)
+    return slice(None)
+
+
 def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
                   title: str = "", scalar_name: str = "z [mm]",
                   clim: tuple[float, float] | None = None, cmap: str = "viridis",
@@ -75,7 +83,7 @@ def cloud_preview(points: np.ndarray, scalars: np.ndarray | None, path: Path,
     import pyvista as pv
 
     if len(points) > PREVIEW_POINTS:  # a 900 px image shows no more; VTK copies are large
-        pick = np.random.default_rng(0).choice(len(points), PREVIEW_POINTS, replace=False)
+        pick = preview_pick(len(points))
         points = points[pick]
         scalars = None if scalars is None else np.asarray(scalars)[pick]
     cloud = pv.PolyData(np.asarray(points, np.float32))
@@ -123,13 +131,19 @@ def cloud_previews(store, points: np.ndarray, profile, bus) -> dict[str, Any]:
     store.path(RunLayout.PREVIEWS).mkdir(parents=True, exist_ok=True)
     v = profile.validation
     style: dict[str, Any] = {}
+    drawn = preview_pick(len(points))  # the points drawn, picked before the colour scale is
+    # taken over all of them in place (no second cloud-sized float64 array; issue 33)
     if v.shape == "cylinder":  # float64 arithmetic on float32 or float64 points (mm)
         scal, name = np.hypot(points[:, 0], points[:, 1], dtype=np.float64), "radius error [mm]"
         scal -= v.radius_mm
-        c = max(0.01, 4 * float(np.median(np.abs(scal), overwrite_input=True)))  # the cap saturates
+        shown = np.array(scal[drawn])  # the drawn points' colours (a copy)
+        # the colour scale's cap (it saturates) from all the points' |r - R|, taken in place
+        c = max(0.01, 4 * float(np.median(np.abs(scal, out=scal), overwrite_input=True)))
+        scal = shown
         style = {"clim": (-c, c), "cmap": "coolwarm"}
     else:
-        scal, name = points[:, 2], "z [mm]"
+        scal, name = points[drawn, 2], "z [mm]"
+    points = points[drawn]
     try:
         out["cloud"] = cloud_preview(points, scal, store.path(RunLayout.preview("cloud")),
                                      f"{profile.name}: {len(points)} points", name, **style)
