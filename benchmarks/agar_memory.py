@@ -66,6 +66,7 @@ class StageSampler:
 
     def wrap(self, owner: object, name: str, label: str, worker: bool = False) -> None:
         """Label the time spent in ``owner.name`` (a function or method)."""
+        import dataclasses
         import functools
 
         fn = getattr(owner, name)
@@ -83,7 +84,10 @@ class StageSampler:
                     self.busy -= 1
                 else:
                     self.stack.pop()
-        setattr(owner, name, labelled)
+        if dataclasses.is_dataclass(owner) and not isinstance(owner, type):
+            object.__setattr__(owner, name, labelled)  # a Step: a frozen dataclass
+        else:
+            setattr(owner, name, labelled)
 
 
 def rusage() -> dict[str, dict[str, float]]:
@@ -144,6 +148,7 @@ def child(args: argparse.Namespace) -> None:
     from dotshell.cli.app import main
     from dotshell.pipeline import acquire
     from dotshell.pipeline import scan as scan_module
+    from dotshell.pipeline import steps
     from dotshell.pipeline import transillum as pipeline_transillum
 
     if args.malloc:
@@ -153,9 +158,11 @@ def child(args: argparse.Namespace) -> None:
     sampler.wrap(pipeline_transillum.TransilluminationCapture, "run_view", "trans-illumination")
     sampler.wrap(render.Renderer, "view", "render: new view")
     sampler.wrap(transillum, "laser_view", "laser view")
-    sampler.wrap(scan_module, "process", "merge, validate, previews")
+    sampler.wrap(scan_module, "process", "after the capture")
     sampler.wrap(scan_module, "_transillumination", "flat field")
     sampler.wrap(scan_module.ViewPipeline, "_reconstruct", "", worker=True)
+    for step in steps.STEPS:  # the steps after the capture, each on its own
+        sampler.wrap(step, "run", f"step {step.name}")
 
     if args.trace:
         tracemalloc.start(6)
