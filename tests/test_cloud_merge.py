@@ -60,3 +60,16 @@ def test_the_cloud_preview_draws_the_same_points_and_colours_picked_first(tmp_pa
     assert np.array_equal(got_points, points[pick]) and np.array_equal(got_scalars, error[pick])
     cap = max(0.01, 4 * float(np.median(np.abs(error))))
     assert style == {"clim": (-cap, cap), "cmap": "coolwarm"}
+
+
+def test_the_mesh_step_lets_the_in_memory_cloud_go(monkeypatch):
+    """The mesh process reads cloud.ply and no later step reads the cloud in this process: the
+    merge's in-memory cloud is let go when the mesh step starts (issue 33)."""
+    import dotshell.pipeline.mesh as mesh
+    from dotshell.pipeline.steps import mesh_step
+
+    held = []
+    ctx = SimpleNamespace(store=None, profile=None, pm=None, bus=None, options={}, _calib=None,
+                          cloud=np.zeros((10, 3), np.float32))
+    monkeypatch.setattr(mesh, "mesh_stage", lambda *args: held.append(ctx.cloud) or {})
+    assert mesh_step(ctx) == {"mesh": {}} and held == [None]

@@ -60,7 +60,8 @@ class StepContext:
     #: the calibration once loaded (by the calibration step or on first use); steps reuse it
     _calib: RigCalibration | None = None
     #: the merged cloud as ``cloud.ply`` holds it ((N, 3) float32, mm), kept by the merge for
-    #: the steps after it in this process (reading the 5.5 M-point file again cost ~0.5 s each)
+    #: the validation and previews (reading the 5.5 M-point file again cost ~0.5 s each) and
+    #: let go when the mesh step starts
     cloud: np.ndarray | None = None
 
     @property
@@ -349,6 +350,9 @@ def previews_step(ctx: StepContext) -> dict[str, Any]:
 def mesh_step(ctx: StepContext) -> dict[str, Any]:
     from dotshell.pipeline.mesh import mesh_stage
 
+    # the mesh process reads cloud.ply, and no step from here on reads the cloud in this
+    # process: let it go (133 MB through the mesh and normalize steps of the agar scan; issue 33)
+    ctx.cloud = None
     return {"mesh": mesh_stage(ctx.store, ctx.profile, ctx.pm, ctx.bus,
                                ctx.options.get("node_distance_mm"), ctx._calib)}
 
