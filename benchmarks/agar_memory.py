@@ -92,7 +92,10 @@ class StageSampler:
 
 def rusage() -> dict[str, dict[str, float]]:
     """CPU seconds (user, kernel), page faults (minor, major) and peak RSS (MiB) of this
-    process and of its waited-for children (the mesh process: the largest child's peak)."""
+    process and of its waited-for children (the mesh process). The children's peak is
+    getrusage's: a child forked from this process counts the parent's pages it shared until
+    it ran its own program, so it is at least this process's size at the fork (the mesh
+    process's own peak is measured by benchmarks/mesh_bench.py)."""
     import resource
 
     out = {}
@@ -235,7 +238,8 @@ def report(label: str, res: dict) -> None:
         print(f"  {who}: user {ru['user_s']:.0f} s, kernel {ru['kernel_s']:.0f} s "
               f"({ru['kernel_s'] / max(ru['user_s'] + ru['kernel_s'], 1e-9):.0%}), "
               f"{ru['minor_faults'] / 1e6:.1f} M minor faults, {ru['major_faults']} major, "
-              f"peak {ru['peak_mib']:.0f} MiB")
+              f"peak {ru['peak_mib']:.0f} MiB" + (" (ru_maxrss: at least the scan's size at "
+                                                  "the fork)" if who == "children" else ""))
     print("  peak RSS by stage (sampled every 50 ms; main thread's stage, + the reconstruction "
           "worker when busy):")
     for label, mib in sorted(res["stages"].items(), key=lambda kv: -kv[1]):
