@@ -5,11 +5,15 @@ with ``--trace``, the largest tracemalloc holders printed at every view boundary
 Usage::
 
     python benchmarks/agar_memory.py [--views 3] [--trace] [--mesh] [--out DIR] [--before REF]
+                                     [--malloc mmap=BYTES,trim=BYTES,arenas=N]
 
 ``--views N`` scans N views (transillumination at view 0 only, unless N = 12); ``--mesh`` keeps
 the profile's mesh and normalization after the scan (they run in a child process of their own).
 ``--before REF`` measures the dotshell of git revision REF (``git archive``, e.g. ``main``) in
 the same run, before this tree: one child process per side, the figures side by side.
+``--malloc`` sets glibc's malloc parameters in place of the command's own
+(:mod:`dotshell.runtime.process`) to compare kernel time, page faults and peak RSS; each side
+prints its CPU (user, kernel), faults and peak, and the clouds' hashes and accuracy figures.
 """
 
 from __future__ import annotations
@@ -62,6 +66,7 @@ class StageSampler:
 
     def wrap(self, owner: object, name: str, label: str, worker: bool = False) -> None:
         """Label the time spent in ``owner.name`` (a function or method)."""
+        import dataclasses
         import functools
 
         fn = getattr(owner, name)
@@ -79,7 +84,62 @@ class StageSampler:
                     self.busy -= 1
                 else:
                     self.stack.pop()
-        setattr(owner, name, labelled)
+        if dataclasses.is_dataclass(owner) and not isinstance(owner, type):
+            object.__setattr__(owner, name, labelled)  # a Step: a frozen dataclass
+        else:
+            setattr(owner, name, labelled)
+
+
+def rusage() -> dict[str, dict[str, float]]:
+    """CPU seconds (user, kernel), page faults (minor, major) and peak RSS (MiB) of this
+    process and of its waited-for children (the mesh process). The children's peak is
+    getrusage's: a child forked from this process counts the parent's pages it shared until
+    it ran its own program, so it is at least this process's size at the fork (the mesh
+    process's own peak is measured by benchmarks/mesh_bench.py)."""
+    import resource
+
+    out = {}
+    for who, flag in (("scan", resource.RUSAGE_SELF), ("children", resource.RUSAGE_CHILDREN)):
+        ru = resource.getrusage(flag)
+        out[who] = {"user_s": ru.ru_utime, "kernel_s": ru.ru_stime, "minor_faults": ru.ru_minflt,
+                    "major_faults": ru.ru_majflt, "peak_mib": ru.ru_maxrss / 1024.0}
+    return out
+
+
+def outputs(out: Path) -> dict[str, object]:
+    """The scan's clouds (sha256 of every PLY, to compare sides byte for byte) and the shape
+    validation of its report."""
+    import hashlib
+
+    found: dict[str, object] = {}
+    for ply in sorted(out.rglob("*.ply")):
+        found[str(ply.relative_to(out))] = hashlib.sha256(ply.read_bytes()).hexdigest()[:16]
+    for rep in sorted(out.rglob("report.json")):
+        validation = json.loads(rep.read_text()).get("validation")
+        found[str(rep.relative_to(out))] = validation
+    return found
+
+
+def malloc_settings(spec: str) -> None:
+    """glibc malloc settings instead of the command's (``dotshell.runtime.process``), to
+    compare them: ``mmap=BYTES,trim=BYTES,arenas=N`` (any of them; ``mmap`` 0 keeps glibc's
+    dynamic threshold)."""
+    import ctypes
+    import ctypes.util
+
+    from dotshell.runtime import process
+
+    params = {"trim": -1, "mmap": -3, "arenas": -8}  # M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX
+    wanted = {k: int(v) for k, v in (item.split("=") for item in spec.split(","))}
+    mallopt = ctypes.CDLL(ctypes.util.find_library("c")).mallopt
+
+    def configure() -> None:
+        process.limit_blas_threads(1)
+        for key, value in wanted.items():
+            if not (key == "mmap" and value == 0):
+                mallopt(params[key], value)
+
+    process.configure_process = configure
 
 
 def child(args: argparse.Namespace) -> None:
@@ -91,16 +151,21 @@ def child(args: argparse.Namespace) -> None:
     from dotshell.cli.app import main
     from dotshell.pipeline import acquire
     from dotshell.pipeline import scan as scan_module
+    from dotshell.pipeline import steps
     from dotshell.pipeline import transillum as pipeline_transillum
 
+    if args.malloc:
+        malloc_settings(args.malloc)
     sampler = StageSampler()
     sampler.wrap(acquire.Acquisition, "run_view", "capture fringes")
     sampler.wrap(pipeline_transillum.TransilluminationCapture, "run_view", "trans-illumination")
     sampler.wrap(render.Renderer, "view", "render: new view")
     sampler.wrap(transillum, "laser_view", "laser view")
-    sampler.wrap(scan_module, "process", "merge, validate, previews")
+    sampler.wrap(scan_module, "process", "after the capture")
     sampler.wrap(scan_module, "_transillumination", "flat field")
     sampler.wrap(scan_module.ViewPipeline, "_reconstruct", "", worker=True)
+    for step in steps.STEPS:  # the steps after the capture, each on its own
+        sampler.wrap(step, "run", f"step {step.name}")
 
     if args.trace:
         tracemalloc.start(6)
@@ -136,7 +201,8 @@ def child(args: argparse.Namespace) -> None:
     rss, hwm = status_mib()
     sampler.done.set()
     out = {"exit": code, "wall_s": time.monotonic() - t0, "rss_end_mib": rss, "hwm_mib": hwm,
-           "views": records, "stages": sampler.peaks}
+           "views": records, "stages": sampler.peaks, "rusage": rusage(),
+           "outputs": outputs(Path(args.out))}
     Path(args.result).write_text(json.dumps(out))
 
 
@@ -158,6 +224,7 @@ def run_side(label: str, tree: Path, args: argparse.Namespace, tmp: Path) -> dic
            "--out", str(tmp / label), "--result", str(result), "--top", str(args.top)]
     cmd += ["--trace"] if args.trace else []
     cmd += ["--mesh"] if args.mesh else []
+    cmd += ["--malloc", args.malloc] if args.malloc else []
     subprocess.run(cmd, check=True, env=env, cwd=tree)
     return json.loads(result.read_text())
 
@@ -165,6 +232,14 @@ def run_side(label: str, tree: Path, args: argparse.Namespace, tmp: Path) -> dic
 def report(label: str, res: dict) -> None:
     print(f"\n== {label}: exit {res['exit']}, wall {res['wall_s']:.0f} s, "
           f"peak RSS (VmHWM) {res['hwm_mib']:.0f} MiB, RSS at the end {res['rss_end_mib']:.0f} MiB")
+    for name, what in res.get("outputs", {}).items():
+        print(f"  {name}: {json.dumps(what)[:400]}")
+    for who, ru in res.get("rusage", {}).items():
+        print(f"  {who}: user {ru['user_s']:.0f} s, kernel {ru['kernel_s']:.0f} s "
+              f"({ru['kernel_s'] / max(ru['user_s'] + ru['kernel_s'], 1e-9):.0%}), "
+              f"{ru['minor_faults'] / 1e6:.1f} M minor faults, {ru['major_faults']} major, "
+              f"peak {ru['peak_mib']:.0f} MiB" + (" (ru_maxrss: at least the scan's size at "
+                                                  "the fork)" if who == "children" else ""))
     print("  peak RSS by stage (sampled every 50 ms; main thread's stage, + the reconstruction "
           "worker when busy):")
     for label, mib in sorted(res["stages"].items(), key=lambda kv: -kv[1]):
@@ -185,6 +260,9 @@ def main() -> None:
     ap.add_argument("--mesh", action="store_true")
     ap.add_argument("--top", type=int, default=12)
     ap.add_argument("--before", default=None)
+    ap.add_argument("--malloc", default=None,
+                    help="glibc malloc settings instead of the command's: mmap=BYTES,trim=BYTES,"
+                         "arenas=N (to compare kernel time, faults and peak RSS)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--result", default=None, help=argparse.SUPPRESS)

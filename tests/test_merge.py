@@ -43,7 +43,8 @@ def test_merge_writes_the_views_in_order_and_copies_the_points_once(tmp_path):
     points, scalars = read_ply(path, float_type=np.float32)
     assert np.array_equal(points, expected)
     assert np.array_equal(scalars["view"], np.repeat(list(views), list(views.values())))
-    assert np.array_equal(ctx.cloud, expected) and ctx.cloud.flags.c_contiguous
-    # the file's bytes once plus the points kept for the later steps (1.75x the file); each
-    # view read, their concatenation and a copy of the file's bytes made it 3.7x
-    assert peak < 2.0 * path.stat().st_size
+    assert np.array_equal(ctx.cloud, expected) and ctx.cloud.base is not None
+    # the file's bytes once, which the later steps read as the cloud (a float32 view of their
+    # columns); each view read, their concatenation and a copy of the file's bytes made it
+    # 3.7x, a compact copy of the points for the later steps 1.75x
+    assert peak < 1.3 * path.stat().st_size, peak / path.stat().st_size

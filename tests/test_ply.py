@@ -98,3 +98,25 @@ def test_open3d_ascii_double_reference_works_as_reconstruct_reference(tmp_path, 
     assert got["reference_points"] == 93876
     assert got["to_reference_plane"]["median_mm"] <= 0.3
     assert got["reference_to_points"]["median_mm"] <= 0.3
+
+
+def test_write_ply_writes_its_buffer_without_a_bytes_copy(tmp_path, monkeypatch):
+    """The file's bytes are built once and written from there: no ``bytes`` copy of them (the
+    merge's largest temporary, 133 MB on the agar scan's 8.3 M points; issue 33)."""
+    import dotshell.run.ply as ply
+
+    handed: list[object] = []
+    write = ply.atomic_write_bytes
+
+    def recording(path, data):
+        handed.append(data)
+        write(path, data)
+
+    monkeypatch.setattr(ply, "atomic_write_bytes", recording)
+    pts = _cloud(1000)
+    write_ply(tmp_path / "c.ply", pts, view=np.arange(1000) % 4)
+    assert len(handed) == 1 and not isinstance(handed[0], bytes)
+    assert memoryview(handed[0]).nbytes == (tmp_path / "c.ply").stat().st_size
+    got, scalars = read_ply(tmp_path / "c.ply", float_type=np.float32)
+    assert np.array_equal(got, pts.astype(np.float32))
+    assert np.array_equal(scalars["view"], np.arange(1000) % 4)

@@ -153,12 +153,11 @@ def test_a_scan_gives_each_views_maps_back_before_the_next_view(monkeypatch):
         return {"view": view}
 
     monkeypatch.setattr(scan_module, "reconstruct_one_view", reconstruct)
-    monkeypatch.setattr(scan_module, "pattern_images", lambda store, frames: (list(frames), None))
     hugepages.release()
     pipeline = scan_module.ViewPipeline(None, None, None, None, None)
     try:
         for view in range(3):
-            pipeline.submit(view, 0.0, [])
+            pipeline.submit(view, 0.0, ([], None))
         assert pipeline.results() == {v: {"view": v} for v in range(3)}
     finally:
         pipeline.close()

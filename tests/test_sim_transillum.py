@@ -324,3 +324,21 @@ def test_laser_view_in_chunks_is_the_one_pass_view_and_one_angle_is_kept(agar, m
         T.laser_irradiance(renderer, renderer.view(angle), shape, model, TARGET)
     assert [key[1] for key in T._VIEWS[renderer]] == [ANGLE + 40.0]
     assert held_while_tracing[-1] == 0  # the old angle's went before the new was traced
+
+
+def test_a_closed_camera_lets_large_laser_views_go(agar, monkeypatch):
+    """Issue 33: closing the camera releases the renderer's laser views when they are large (at
+    full resolution the last trans-illumination angle's ~0.12 GB stayed through the scan's
+    merge, validation and previews); small ones stay for the next rig of the same geometry."""
+    import dotshell_sim.devices as devices
+
+    cam, laser = agar["rig"]["camera"], agar["rig"]["light_source"]
+    renderer = cam.world.renderer()
+    shape, _ = laser._sample()
+    T.laser_irradiance(renderer, renderer.view(ANGLE), shape, laser._model(), TARGET)
+    assert len(T._VIEWS[renderer]) == 1
+    cam.world.release_renderer()  # this reduced view is small: kept
+    assert len(T._VIEWS[renderer]) == 1
+    monkeypatch.setattr(devices, "SMALL_VIEWS_BYTES", 0)  # as a full-resolution view is
+    cam.world.release_renderer()
+    assert len(T._VIEWS[renderer]) == 0

@@ -35,10 +35,11 @@ from dotshell.events import (EventBus, FrameCaptured, Message, ScanPaused, ScanR
                              ViewCaptured)
 from dotshell.run.frames import FrameStore
 from dotshell.run.framecheck import FrameSpec
-from dotshell.run.integrity import ViewIntegrity, check_view
+from dotshell.run.integrity import ViewIntegrity
 from dotshell.run.lifecycle import signals_deferred
 from dotshell.pipeline.engines import AcquisitionEngine, choose_engine
 from dotshell.pipeline.pdi import Shot, plan_shots
+from dotshell.pipeline.view_frames import ViewFrames
 from dotshell.rig.assembly import Rig
 from dotshell.rig.checks import refused_controls
 from dotshell.run.layout import RunLayout
@@ -259,8 +260,10 @@ class Acquisition:
         self.bus.emit(ScanResumed(view=view, index=index))
         return True
 
-    def run_view(self, view: int, angle_deg: float) -> list[np.ndarray] | None:
-        """Capture all frames of one view; None if the scan was stopped midway (frames taken
+    def run_view(self, view: int, angle_deg: float) -> ViewFrames | None:
+        """Capture all frames of one view (on disk as they come; returned as what the view's
+        reconstruction needs of them, :class:`~dotshell.pipeline.view_frames.ViewFrames`);
+        None if the scan was stopped midway (frames taken
         so far stay on disk and the view is marked incomplete). A view whose frames are not
         what was projected (:mod:`dotshell.run.integrity`) is named, its frames set aside
         (``frames/view_NNN.partial-K``, kept) and captured again, up to ``scan.retries`` times;
@@ -291,19 +294,18 @@ class Acquisition:
         self.writer.written[view] = 0
         self.store.mark_view(view, 0, False)
 
-    def _check_integrity(self, view: int, frames: list[np.ndarray],
+    def _check_integrity(self, view: int, frames: ViewFrames,
                          infos: list[dict[str, Any]]) -> ViewIntegrity | None:
         """The view's frames against what was projected; None when ``frame_checks`` is off."""
         if not self.scan.get("frame_checks", True) or len(frames) != len(self.shots):
             return None
-        full_scale = float((1 << self.spec.bit_depth) - 1)
-        return check_view(frames, [s.name for s in self.shots], full_scale, infos or None)
+        return frames.integrity(float((1 << self.spec.bit_depth) - 1), infos or None)
 
     def _run_view_once(self, view: int, angle_deg: float, attempt: int
-                       ) -> list[np.ndarray] | None:
+                       ) -> ViewFrames | None:
         t0 = time.perf_counter()
         verdict: ViewIntegrity | None = None
-        frames: list[np.ndarray] = []
+        frames = ViewFrames(self.shots)  # what the view needs of its frames, as they come
         infos: list[dict[str, Any]] = []
         reached: dict[str, Any] = {}
         try:
@@ -318,7 +320,7 @@ class Acquisition:
                 if info is not None:
                     infos.append({"index": i, "name": shot.name, **info.to_dict()})
                 self.writer.put(view, i, shot.name, frame)
-                frames.append(frame)
+                frames.add(frame)
                 self.flush_device_log()
                 self.bus.emit(FrameCaptured(view=view, index=i, name=shot.name))
             verdict = self._check_integrity(view, frames, infos)

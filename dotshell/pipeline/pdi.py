@@ -64,8 +64,13 @@ def combine(frames: Sequence[np.ndarray] | np.ndarray, shots: Sequence[Shot]) ->
         if len(imgs) == 1:
             out.append(imgs[0])
         elif len(imgs) == 2:
-            a, b = (np.asarray(i, np.int32) for i in imgs)
-            out.append(np.abs(a - b).astype(imgs[0].dtype))
+            out.append(difference(*imgs))
         else:
             raise RunError(f"a pattern has {len(imgs)} frames; PDI takes exactly 2.")
     return out
+
+
+def difference(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """``|first − second|`` of one pattern's two frames, exact, in the first frame's dtype."""
+    a, b = (np.asarray(i, np.int32) for i in (first, second))
+    return np.abs(a - b).astype(first.dtype)

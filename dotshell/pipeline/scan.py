@@ -19,8 +19,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
-import numpy as np
-
 from dotshell.runtime import hugepages
 from dotshell.errors import CalibrationError, FrameError, RunError
 from dotshell.run.framecheck import FrameSpec
@@ -34,8 +32,8 @@ from dotshell.run.frames import set_aside_partial
 from dotshell.run.generations import Generation, ProductStore
 from dotshell.run.lifecycle import connected, describe_holder, lock_holder
 from dotshell.pipeline.pdi import plan_shots
-from dotshell.pipeline.steps import (PatternImages, make_coding, pattern_images,
-                                     reconstruct_one_view, require_turntable_axis, view_angle)
+from dotshell.pipeline.steps import (PatternImages, make_coding, reconstruct_one_view,
+                                     require_turntable_axis, view_angle)
 from dotshell.pipeline.transillum import TransilluminationCapture
 from dotshell.plugins import PluginManager
 from dotshell.profile.loader import Profile, validate_profile
@@ -91,9 +89,9 @@ def _stoppable_rig(profile: Profile, pm: PluginManager, rig: Rig | None) -> Iter
 
 class ViewPipeline:
     """Reconstructs captured views on one worker thread while the next view is captured. At
-    most one view waits; views wait and are reconstructed as their pattern images
-    (:func:`~dotshell.pipeline.steps.pattern_images`: with PDI, half their frames), so memory
-    holds the frames of the view being captured and the pattern images of two others."""
+    most one view waits; views wait and are reconstructed as their pattern images (made as
+    the frames come, :class:`~dotshell.pipeline.view_frames.ViewFrames`: with PDI, half their
+    frames), so memory holds the pattern images of the view being captured and of two others."""
 
     def __init__(self, store: RunStore, profile: Profile, coding: Any, calib: RigCalibration,
                  bus: EventBus) -> None:
@@ -102,9 +100,8 @@ class ViewPipeline:
         self.pool = ThreadPoolExecutor(1, thread_name_prefix="dotshell-reconstruct")
         self.futures: dict[int, Future] = {}
 
-    def submit(self, view: int, angle_deg: float, frames: list[np.ndarray]) -> None:
+    def submit(self, view: int, angle_deg: float, images: PatternImages) -> None:
         self._wait(keep_pending=1)  # first: the view it waits for lets go of its images
-        images = pattern_images(self.store, frames)
         self.futures[view] = self.pool.submit(self._reconstruct, view, angle_deg, images)
 
     def _reconstruct(self, view: int, angle_deg: float, images: PatternImages
@@ -299,7 +296,8 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
                 else:
                     rig.stage.move_to(angle)
                 if fringes and frames is not None:  # None: stopped, the loop has ended
-                    pipeline.submit(view, view_angle(store.manifest["views"][view]), frames)
+                    pipeline.submit(view, view_angle(store.manifest["views"][view]),
+                                    frames.images())
                     del frames  # the pipeline holds their pattern images until reconstructed
                 if trans is not None and trans.covers(view):
                     trans.run_view(view)

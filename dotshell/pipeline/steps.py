@@ -35,9 +35,10 @@ from dotshell.run.lost import is_lost, lost_views, usable
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.pdi import combine, shots_from_manifest
+from dotshell.pipeline.view_frames import PatternImages
 from dotshell.plugins import PluginManager
 from dotshell.run.layout import RunLayout
-from dotshell.run.ply import map_ply, ply_buffer, read_ply, write_ply
+from dotshell.run.ply import map_ply, ply_buffer, point_count, read_ply, write_ply
 from dotshell.profile.loader import Profile
 from dotshell.run.store import RunStore, atomic_write_bytes, atomic_write_text, dumps
 
@@ -59,7 +60,8 @@ class StepContext:
     #: the calibration once loaded (by the calibration step or on first use); steps reuse it
     _calib: RigCalibration | None = None
     #: the merged cloud as ``cloud.ply`` holds it ((N, 3) float32, mm), kept by the merge for
-    #: the steps after it in this process (reading the 5.5 M-point file again cost ~0.5 s each)
+    #: the validation and previews (reading the 5.5 M-point file again cost ~0.5 s each) and
+    #: let go when the mesh step starts
     cloud: np.ndarray | None = None
 
     @property
@@ -165,10 +167,6 @@ def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: 
     return store_view(store, vc, first_frame, profile, calib, bus)
 
 
-#: What a view's reconstruction needs of its frames: one image per pattern and the first
-#: frame (the view's preview).
-PatternImages = tuple[list[np.ndarray], np.ndarray | None]
-
 
 def pattern_images(store: RunStore, frames: Sequence[np.ndarray] | np.ndarray) -> PatternImages:
     """A view's frames in the run's shot order → (one image per pattern, the first frame):
@@ -265,23 +263,23 @@ def cloud_step(ctx: StepContext) -> dict[str, Any]:
     ctx.bus.emit(StepStarted(step="merge"))
     views = stored_views(ctx.store)
     # the views' files mapped, copied once into the merged file's bytes (float32 as stored:
-    # the same values), which are written from there; the later steps keep a compact copy of
-    # the points, not the file's bytes (before: a copy per view, their concatenation and the
-    # file's bytes twice, ~3.5x the demo's 88 MB file at the merge's peak)
-    parts = [map_ply(ctx.store.path(RunLayout.view_cloud(v)))[0] for v in views]
-    n = sum(len(p) for p in parts)
+    # the same values), which are written from there and which the later steps read as the
+    # cloud (a float32 view of its columns): no list of parts, no concatenated copy (the agar
+    # scan's 8.3 M points: 133 MB, where parts, copy, view ids and the file's bytes took
+    # ~0.4 GB; issue 33)
+    paths = [ctx.store.path(RunLayout.view_cloud(v)) for v in views]
+    counts = [point_count(p) for p in paths]
+    n = sum(counts)
     if n == 0:
         raise _no_points(ctx, views)
     data, records = ply_buffer(n, ["view"])
     start = 0
-    for v, part in zip(views, parts):
-        records[start:start + len(part), :3] = part
-        records[start:start + len(part), 3] = v
-        start += len(part)
-    del parts
-    atomic_write_bytes(ctx.store.path(RunLayout.CLOUD), data.data)
-    points = np.ascontiguousarray(records[:, :3])
-    del data, records
+    for view, path, count in zip(views, paths, counts):
+        records[start:start + count, :3] = map_ply(path)[0]
+        records[start:start + count, 3] = view
+        start += count
+    atomic_write_bytes(ctx.store.path(RunLayout.CLOUD), data.data)  # no copy
+    points = records[:, :3]
     last_frame_at = ctx.options.get("last_frame_at")
     if last_frame_at is not None:  # a scan: the latency from its last stored frame (s)
         ctx.timings["last_frame_to_cloud"] = time.monotonic() - last_frame_at
@@ -318,7 +316,8 @@ def _no_points(ctx: StepContext, views: list[int]) -> ReconstructionError:
 
 
 def load_cloud(ctx: StepContext) -> np.ndarray:
-    """The merged cloud (N, 3) in mm: float32 as the merge left it in this process, else
+    """The merged cloud (N, 3) in mm: float32 as the merge left it in this process (a view of
+    the columns of ``cloud.ply``'s bytes), else
     ``cloud.ply`` read as float64 (the same values; the steps' arithmetic is float64)."""
     if ctx.cloud is not None:
         return ctx.cloud
@@ -352,6 +351,9 @@ def previews_step(ctx: StepContext) -> dict[str, Any]:
 def mesh_step(ctx: StepContext) -> dict[str, Any]:
     from dotshell.pipeline.mesh import mesh_stage
 
+    # the mesh process reads cloud.ply, and no step from here on reads the cloud in this
+    # process: let it go (133 MB through the mesh and normalize steps of the agar scan; issue 33)
+    ctx.cloud = None
     return {"mesh": mesh_stage(ctx.store, ctx.profile, ctx.pm, ctx.bus,
                                ctx.options.get("node_distance_mm"), ctx._calib)}
 

@@ -103,13 +103,18 @@ class ViewIntegrity:
 
 
 def check_view(frames: Sequence[np.ndarray], names: Sequence[str], full_scale: float,
-               infos: Sequence[dict[str, Any]] | None = None) -> ViewIntegrity:
+               infos: Sequence[dict[str, Any]] | None = None,
+               repeats: Sequence[int] | None = None) -> ViewIntegrity:
     """Check one view's ``frames`` (capture order) named ``names`` (``white``, ``black``,
     ``col_03``, ``col_03_inv``, …, with ``.par``/``.perp`` suffixes for PDI shots) against
     what was projected; ``full_scale`` is the camera's largest value (4095 at 12 bit);
-    ``infos`` the frames' metadata (``frame_id``, ``timestamp_s``) when the camera gives it."""
+    ``infos`` the frames' metadata (``frame_id``, ``timestamp_s``) when the camera gives it.
+
+    A caller that compared each frame with the one before it as they came may pass ``repeats``
+    (:func:`repeated`'s indices) and, as ``frames``, only the :func:`sample` of each frame: the
+    same verdict, without holding the view's frames (issue 33)."""
     out = ViewIntegrity()
-    _check_repeats(frames, names, out)
+    _report_repeats(repeated(frames) if repeats is None else repeats, names, out)
     for group in _by_suffix(names).values():
         _check_group({n.split(".")[0]: frames[i] for i, n in group}, full_scale, out)
     if infos:
@@ -124,12 +129,22 @@ def _by_suffix(names: Sequence[str]) -> dict[str, list[tuple[int, str]]]:
     return groups
 
 
-def _check_repeats(frames: Sequence[np.ndarray], names: Sequence[str],
-                   out: ViewIntegrity) -> None:
-    for i in range(1, len(frames)):
-        if np.array_equal(frames[i], frames[i - 1]):
-            out.problems.append(f"frame {names[i]!r} is identical to {names[i - 1]!r} "
-                                "(a duplicated frame)")
+def sample(frame: np.ndarray) -> np.ndarray:
+    """A copy of the pixels of ``frame`` that the checks compare (every k-th, about
+    :data:`SAMPLE_PIXELS`); checked again, a sample is its own sample."""
+    flat = frame.ravel()
+    return flat[::max(1, flat.size // SAMPLE_PIXELS)].copy()
+
+
+def repeated(frames: Sequence[np.ndarray]) -> list[int]:
+    """Indices of the frames identical to the frame before them."""
+    return [i for i in range(1, len(frames)) if np.array_equal(frames[i], frames[i - 1])]
+
+
+def _report_repeats(repeats: Sequence[int], names: Sequence[str], out: ViewIntegrity) -> None:
+    for i in repeats:
+        out.problems.append(f"frame {names[i]!r} is identical to {names[i - 1]!r} "
+                            "(a duplicated frame)")
 
 
 def _check_group(by_name: dict[str, np.ndarray], full_scale: float, out: ViewIntegrity) -> None:

@@ -42,6 +42,12 @@ def write_ply(path: Path, points: np.ndarray, **scalars: np.ndarray) -> Path:
     return Path(path)
 
 
+def point_count(path: Path) -> int:
+    """The number of points of the PLY at ``path`` (its data mapped, not read; RunError naming
+    the file if it is not a point cloud dotshell can read)."""
+    return len(_cloud_vertices(Path(path)))
+
+
 def read_ply(path: Path, finite: bool = True,
              float_type: type = np.float64) -> tuple[np.ndarray, dict[str, np.ndarray]]:
     """Read a PLY point cloud: (points (N, 3) in the file's units — mm for dotshell's —

@@ -311,17 +311,18 @@ class SimWorld:
                           sort_keys=True)
 
     def release_renderer(self) -> None:
-        """Free the shared renderer's cached views and rays when they are large: a closed
-        rig's views are rarely asked for again, and at full resolution they hold ~0.2 GB (a
-        scan's merge, validation and previews run after the rig is closed). Small ones (below
-        :data:`~dotshell_sim.render.SMALL_VIEWS_BYTES`) stay for the next rig of the same
-        geometry."""
+        """Free the shared renderer's cached views, rays and laser views when they are large:
+        a closed rig's views are rarely asked for again, and at full resolution they hold
+        ~0.3 GB (a scan's merge, validation and previews run after the rig is closed). Small
+        ones (below :data:`~dotshell_sim.render.SMALL_VIEWS_BYTES`) stay for the next rig of
+        the same geometry."""
         try:
             renderer = _RENDERERS.get(self._renderer_key())
         except DeviceError:  # not a complete rig: no renderer was made
             return
         if renderer is not None:
             renderer.release(keep_below_bytes=SMALL_VIEWS_BYTES)
+            transillum.release_laser_views(renderer, keep_below_bytes=SMALL_VIEWS_BYTES)
 
 
 #: Renderers shared across worlds, by geometry (a full-resolution renderer with its cached

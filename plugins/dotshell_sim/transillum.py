@@ -409,6 +409,16 @@ def emission_image(lv: LaserView, phi: np.ndarray) -> np.ndarray:
 _VIEWS: weakref.WeakKeyDictionary[Renderer, OrderedDict] = weakref.WeakKeyDictionary()
 
 
+def release_laser_views(renderer: Renderer, keep_below_bytes: int = 0) -> None:
+    """Forget ``renderer``'s laser views unless together they hold less than
+    ``keep_below_bytes``: at full resolution the last trans-illumination angle's is ~0.12 GB,
+    held after the rig closed through the scan's merge, validation and previews (issue 33)."""
+    views = _VIEWS.get(renderer)
+    if views and sum(a.nbytes for lv in views.values() for a in (lv.pixel, lv.nodes, lv.weights,
+                                                                   lv.base)) >= keep_below_bytes:
+        views.clear()
+
+
 def laser_irradiance(renderer: Renderer, view: View, shape, model: FluenceModel,
                      target_mm) -> np.ndarray:
     """Relative image irradiance (H, W) float32 from a unit-power beam at ``target_mm``
