@@ -38,12 +38,12 @@ def test_loss_lines_name_their_meaning_and_fix():
 
 def test_opencv_layout_says_what_min_contrast_does():
     """The shipped opencv-graycode layout names its classification, and min_contrast's help
-    says what it does under each (it guards only the finest pairs under robust)."""
+    says what it does under each (it guards only the finest pairs under robust and adaptive)."""
     from dotshell_codings.graycode import SETTINGS_SCHEMA
 
     from dotshell.run.capture_layouts import load_layout
 
     layout = load_layout("opencv-graycode")
-    assert layout.coding_settings()["classification"] == "robust"
+    assert layout.coding_settings()["classification"] == "adaptive"
     text = SETTINGS_SCHEMA["min_contrast"].help
     assert "contrast classification" in text and "robust and adaptive" in text
