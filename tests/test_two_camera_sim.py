@@ -108,9 +108,9 @@ def test_two_camera_sim_profile_through_the_commands(tmp_path):
 @pytest.mark.slow
 def test_two_camera_sim_profile_full_resolution(tmp_path):
     """The issue's bound through the commands at full resolution: the projector uncalibrated,
-    the cylinder within 0.05 % mean relative radius error. Measured (8 min): 340 683 lateral
-    points, radius 7.7006 mm, 0.0309 %; calibrated: camera–projector 0.0158 %, camera–camera
-    0.0335 %, fused 0.0099 % (docs/layouts.md; benchmarks/camera_pair_fusion.py --sim-profile
+    the cylinder within 0.05 % mean relative radius error. Measured (3–8 min): 345 189 lateral
+    points, radius 7.7007 mm, 0.0320 %; calibrated: camera–projector 0.0161 %, camera–camera
+    0.0350 %, fused 0.0102 % (docs/layouts.md; benchmarks/camera_pair_fusion.py --sim-profile
     --factor 1 prints the same figures)."""
     figures = two_camera_commands(tmp_path, 1.0)
     print_figures(figures, 1.0)
