@@ -24,7 +24,7 @@ from dotshell_codings.xor import XorCode, xor_factory
 from test_codings_robust import run
 from test_graycode import make_coding
 
-from dotshell.pipeline.decode_maps import decode_quality, neighbour_reversals
+from dotshell.pipeline.decode_quality import neighbour_reversals, view_quality
 
 
 def _truth_counts(corr, u, v, lit) -> tuple[int, int]:
@@ -116,7 +116,7 @@ def test_reversals_estimate_wrong_codes():
 def test_decode_quality_on_the_ambient_scene(ambient_scene):
     frames, size, u, v, lit = ambient_scene
     corr = make_graycode({"axes": "both", "classification": "adaptive"}).decode(frames, size)
-    q = decode_quality(corr)
+    q = view_quality(corr)
     _, wrong = _truth_counts(corr, u, v, lit)
     print(q, wrong)
     assert q["decoded_pct"] == pytest.approx(100 * corr.valid.mean(), abs=0.01)
