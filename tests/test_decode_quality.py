@@ -264,3 +264,29 @@ def test_decode_prints_the_reversal_note_from_its_share(share):
     counts = {"pixels": 1000, "decoded": 900}
     notes = loss_notes(counts, {"decoded_pct": 90.0, "reversals": 9, "reversals_pct": share})
     assert len(notes) == (share >= NOTE_REVERSALS_PCT)
+
+
+def test_a_scan_prints_each_views_quality_and_the_fix_once(tmp_path, capsys):
+    """`dotshell scan` of the tiny bench (2 views) under room light 1.5x the projector's with
+    robust classification: a quarter of each view is left uncertain, so each view's line
+    names the loss and the first one gives its meaning and fix; the report holds what the
+    lines say."""
+    from conftest import write_test_profile
+
+    from dotshell.cli.app import main
+
+    p = write_test_profile(tmp_path, views=2)
+    assert main(["scan", str(p), "--out", str(tmp_path / "runs"), "--set",
+                 'coding.settings.classification="robust"', "--set",
+                 "camera.settings.ambient=1.5"]) == 0
+    err = capsys.readouterr().err
+    (run,) = (tmp_path / "runs").iterdir()
+    report = json.loads((run / "report.json").read_text())
+    for v in report["views"]:
+        q, share = v["quality"], 100 * v["uncertain"] / v["pixels"]
+        assert share >= 5.0  # measured 26.0 and 24.5 %
+        assert (f"view {v['view'] + 1:3d}: {v['points']:8d} points; decoded "
+                f"{q['decoded_pct']:.1f} % of the image, {q['reversals']} neighbour reversals "
+                f"({q['reversals_pct']:.2f} % of decoded); uncertain {share:.1f} %") in err
+    assert err.count("    uncertain (") == 1
+    assert 'decode with classification = "adaptive"' in err
