@@ -24,7 +24,7 @@ from dotshell_codings.xor import XorCode, xor_factory
 from test_codings_robust import run
 from test_graycode import make_coding
 
-from dotshell.pipeline.decode_quality import neighbour_reversals, view_quality
+from dotshell.pipeline.decode_quality import view_quality
 
 
 def _truth_counts(corr, u, v, lit) -> tuple[int, int]:
@@ -98,19 +98,6 @@ def test_adaptive_rejects_like_robust_under_long_range_global_light():
     assert adaptive["wrong"] < 0.01 and adaptive["uncertain"] > 0.5
     clean = run("graycode", "clean", classification="adaptive")
     assert clean["valid"] > 0.99 and clean["wrong"] == 0
-
-
-def test_reversals_estimate_wrong_codes():
-    """The neighbour-reversal count follows the true wrong codes: none on a clean map, one per
-    wrong code spiking out of a smooth ramp."""
-    col = np.tile(np.arange(50, dtype=np.float32) * 0.8, (20, 1))
-    valid = np.ones(col.shape, bool)
-    assert neighbour_reversals(col, valid) == 0
-    bad = col.copy()
-    bad[5, 10] += 30.0
-    bad[12, 30] -= 25.0
-    assert neighbour_reversals(bad, valid) == 2
-    assert neighbour_reversals(bad.T, valid.T) == 2  # stripes the other way
 
 
 def test_decode_quality_on_the_ambient_scene(ambient_scene):

@@ -218,11 +218,11 @@ def test_the_per_view_line_says_the_figures_and_the_fix_once():
     assert lines[4] == "  view   3:       10 points" and len(lines) == 5
     from dotshell.server.describe import describe_event  # a detached scan's log line
 
+    line = ("view 1 reconstructed: 5120 points (9000 decoded pixels, 38.1 % of the image; "
+            "113 neighbour reversals)")
     assert describe_event(ViewReconstructed(view=0, n_points=5120, decoded_pixels=9000,
                                             decoded_pct=38.1, reversals=113,
-                                            reversals_pct=1.25)) == (
-        "info", "view 1 reconstructed: 5120 points (9000 decoded pixels, 38.1 % of the image; "
-        "113 neighbour reversals)")
+                                            reversals_pct=1.25)) == ("info", line)
 
 
 def test_reconstruct_captures_records_and_prints_the_quality(tmp_path, capsys):
