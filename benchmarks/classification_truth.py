@@ -6,7 +6,8 @@ light + subsurface blur; and with the camera defocused too) and the agar cylinde
 (|I∥ − I⊥| frames). Per scene and
 classification: pixels decoded on the lit surface (share of the lit pixels), wrong codes there
 (more than 1.5 projector px from the true column or row), pixels decoded off it, and the
-neighbour-reversal estimate of wrong codes (:func:`decode_quality`), and the decode time:
+neighbour-reversal estimate of wrong codes
+(:func:`~dotshell.pipeline.decode_quality.view_quality`), and the decode time:
 the classifications decoded in turn, in a rotating order, ``--repeats`` times after a warm-up
 (min / median ms of wall time, and the median's ratio to robust's measured in the same rounds;
 then the median CPU time of the process, every decoding thread counted, and its ratio: on a
@@ -72,7 +73,7 @@ def scene_frames(profile: str, camera: dict, pdi: bool, factor: float):
 
 def score(corr, u, v, lit) -> dict:
     """Decoded pixels on the lit surface, the wrong ones among them, decoded pixels off it."""
-    from dotshell.pipeline.decode_maps import decode_quality
+    from dotshell.pipeline.decode_quality import view_quality
 
     on = corr.valid & lit
     err = np.maximum(np.abs(corr.column - np.nan_to_num(u, nan=-1e6)),
@@ -80,7 +81,7 @@ def score(corr, u, v, lit) -> dict:
     return {"lit": int(lit.sum()), "decoded": int(on.sum()),
             "wrong": int(np.count_nonzero(on & (err > 1.5))),
             "off": int(np.count_nonzero(corr.valid & ~lit)),
-            "reversals": decode_quality(corr)["reversals"]}
+            "reversals": view_quality(corr)["reversals"]}
 
 
 def timed_decodes(frames, size, repeats: int) -> tuple[dict, dict, dict]:

@@ -75,9 +75,19 @@ class StepProgress(Event):
 
 @dataclass(frozen=True)
 class ViewReconstructed(Event):
+    """A view decoded and triangulated. ``decoded_pct`` (% of the image), ``reversals`` and
+    ``reversals_pct`` (% of the decoded pixels): its decode quality
+    (:mod:`dotshell.pipeline.decode_quality`); ``notes``: the losses and quality problems worth
+    their meaning and fix, (key, share %) as
+    :func:`dotshell.pipeline.decode_quality.view_notes` gives them."""
+
     view: int
     n_points: int
     decoded_pixels: int
+    decoded_pct: float | None = None
+    reversals: int | None = None
+    reversals_pct: float | None = None
+    notes: tuple[tuple[str, float], ...] = ()
 
 
 @dataclass(frozen=True)

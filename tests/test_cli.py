@@ -122,11 +122,17 @@ def test_installed_command_reconstructs_a_run_and_exits_with_its_status(small_sc
     lines = r.stdout.rstrip().splitlines()
     assert "Mean relative error" in r.stdout and lines[-1] == f"run: {run}  (status: completed)"
     assert f"cloud: {before['cloud']['points']} points → {run / 'cloud.ply'}" in lines
+    for v in before["views"]:  # each view's line, as the scan printed it: figures unchanged
+        q = v["quality"]
+        assert (f"view {v['view'] + 1:3d}: ") in r.stderr
+        assert (f"decoded {q['decoded_pct']:.1f} % of the image, {q['reversals']} neighbour "
+                f"reversals ({q['reversals_pct']:.2f} % of decoded)") in r.stderr
     report = json.loads((run / "current" / "report.json").read_text())
     assert report["generation"] == before["generation"] + 1
     assert report["cloud"]["points"] == before["cloud"]["points"] > 0
     for key in ("mean_rel_error_pct", "std_rel_error_pct", "coverage_pct"):
         assert report["validation"][key] == before["validation"][key]
+    assert [v["quality"] for v in report["views"]] == [v["quality"] for v in before["views"]]
     assert set(report["previews"]) == set(before["previews"]) >= {"cloud", "columns", "frame"}
     assert all((run / "current" / p).stat().st_size > 1000 for p in report["previews"].values())
     r = subprocess.run([*exe, "reconstruct", str(tmp_path / "nothing")], capture_output=True,

@@ -287,6 +287,10 @@ def test_camera_pair_fused_with_calibrated_projector_end_to_end(tmp_path, capsys
     out = next((tmp_path / "out").iterdir())
     report = json.loads((out / "report.json").read_text())
     assert report["fusion"]["camera2_px_per_projector_px"] > 1.0
+    for counts, q in zip(report["decode"], report["quality"]):  # each camera's decode quality
+        assert q["decoded_pct"] == round(100 * counts["decoded"] / counts["pixels"], 2) > 10
+        assert (f"decoded {q['decoded_pct']:.1f} % of the image; estimated wrong codes: "
+                f"{q['reversals']} neighbour reversals") in text
     errs = {name: lateral_error(read_ply(out / f"{name}.ply")[0], truths[0])
             for name in ("camera-projector", "camera-camera", "cloud")}
     print(errs)

@@ -24,7 +24,7 @@ from dotshell_codings.xor import XorCode, xor_factory
 from test_codings_robust import run
 from test_graycode import make_coding
 
-from dotshell.pipeline.decode_maps import decode_quality, neighbour_reversals
+from dotshell.pipeline.decode_quality import view_quality
 
 
 def _truth_counts(corr, u, v, lit) -> tuple[int, int]:
@@ -100,23 +100,10 @@ def test_adaptive_rejects_like_robust_under_long_range_global_light():
     assert clean["valid"] > 0.99 and clean["wrong"] == 0
 
 
-def test_reversals_estimate_wrong_codes():
-    """The neighbour-reversal count follows the true wrong codes: none on a clean map, one per
-    wrong code spiking out of a smooth ramp."""
-    col = np.tile(np.arange(50, dtype=np.float32) * 0.8, (20, 1))
-    valid = np.ones(col.shape, bool)
-    assert neighbour_reversals(col, valid) == 0
-    bad = col.copy()
-    bad[5, 10] += 30.0
-    bad[12, 30] -= 25.0
-    assert neighbour_reversals(bad, valid) == 2
-    assert neighbour_reversals(bad.T, valid.T) == 2  # stripes the other way
-
-
 def test_decode_quality_on_the_ambient_scene(ambient_scene):
     frames, size, u, v, lit = ambient_scene
     corr = make_graycode({"axes": "both", "classification": "adaptive"}).decode(frames, size)
-    q = decode_quality(corr)
+    q = view_quality(corr)
     _, wrong = _truth_counts(corr, u, v, lit)
     print(q, wrong)
     assert q["decoded_pct"] == pytest.approx(100 * corr.valid.mean(), abs=0.01)

@@ -1647,6 +1647,13 @@ def test_resume_view_captures_a_cut_stack_again(shared, tmp_path: Path, capsys) 
     assert m["status"] == "completed" and [v["frames"] for v in m["views"]] == [30, 30]
     counts_are_true(run)
     assert (run / "frames" / "view_001.partial-1.tif").read_bytes() == cut
+    err = " ".join(capsys.readouterr().err.split())
+    report = json.loads((run / "report.json").read_text())
+    for v in report["views"]:  # both views measured and printed, the resumed one too
+        q = v["quality"]
+        assert q["decoded_pct"] == round(100 * v["decoded"] / v["pixels"], 2)
+        assert (f"view {v['view'] + 1}: {v['points']} points; decoded {q['decoded_pct']:.1f} % "
+                f"of the image, {q['reversals']} neighbour reversals") in err
     assert main(["inspect", str(run)]) == 0
     assert "views: 2 of 2 complete, 60 frames on disk" in capsys.readouterr().out
 

@@ -16,6 +16,7 @@ from dotshell.cli.decode import (
     add_layout_arg,
     loss_notes,
     pixel_counts,
+    quality_line,
     refuse_layout_overrides,
 )
 from dotshell.cli.common import print_as_is
@@ -62,7 +63,8 @@ def reconstruct_captures_command(args: argparse.Namespace, pm, out: Console) -> 
     counts = {**r["decode"], "grazing": r.get("grazing", 0),
               "row_rejected": r.get("row_rejected", 0)}
     out.print(pixel_counts(counts))
-    for line in loss_notes(counts):
+    out.print(f"  {quality_line(r['quality'])}")
+    for line in loss_notes(counts, r["quality"]):
         print_as_is(out, f"  {line}")
     out.print(f"{r['cloud']['points']} points (camera frame, mm)")
     ref = r.get("reference")
@@ -105,8 +107,9 @@ def camera_pair_command(args: argparse.Namespace, pm, out: Console) -> int:
                                   args.layout2, pm, args.out,
                                   calibration=args.calibration)
     r = res.report
-    for name, counts in zip(("camera 1", "camera 2"), r["decode"]):
+    for name, counts, q in zip(("camera 1", "camera 2"), r["decode"], r["quality"]):
         out.print(f"{name}: {pixel_counts(counts)}")
+        out.print(f"  {quality_line(q)}")
     gap = r["ray_gap_mm"]
     out.print(f"{r['matches']} pixels matched by projector code; {r['cloud']['points']} points "
               f"(camera 1 frame, mm); median ray gap {gap['median']:.4f} mm, {gap['dropped']} "

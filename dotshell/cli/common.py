@@ -64,6 +64,8 @@ class ScanProgress:
                                  transient=False)
         self.tasks: dict[str, Any] = {}
         self.console = console
+        #: the view problems whose meaning and fix were printed (once per command)
+        self.noted: set[str] = set()
 
     def __call__(self, ev) -> None:
         p = self.progress
@@ -79,12 +81,42 @@ class ScanProgress:
             p.advance(self.tasks["views"])
             self.last_advance[self.tasks["views"]] = time.monotonic()
         elif isinstance(ev, ViewReconstructed):
-            p.console.print(f"  view {ev.view + 1:3d}: {ev.n_points:8d} points")
+            self.view_line(ev)
         elif isinstance(ev, StepStarted) and ev.step not in ("acquire",):
             p.console.print(f"[dim]→ {ev.step}[/]")
         elif isinstance(ev, Message):
             style = {"warning": "yellow", "error": "red"}.get(ev.level, "dim")
             p.console.print(f"[{style}]{ev.level}:[/] {escape(ev.text)}")
+
+    def view_line(self, ev: ViewReconstructed) -> None:
+        """``  view   3:    51234 points; decoded 38.1 % of the image, 12 neighbour reversals
+        (0.03 % of decoded); uncertain 27.0 %`` and, the first time this command meets a
+        problem, what it means and what would fix it
+        (:func:`dotshell.pipeline.decode_quality.view_notes`)."""
+        line = f"  view {ev.view + 1:3d}: {ev.n_points:8d} points"
+        if ev.decoded_pct is not None:
+            line += (f"; decoded {ev.decoded_pct:.1f} % of the image, {ev.reversals} neighbour "
+                     f"reversals ({ev.reversals_pct:.2f} % of decoded)")
+        notes = [(str(k), float(pct)) for k, pct in ev.notes]
+        losses = [f"{k.replace('_', ' ')} {pct:.1f} %" for k, pct in notes if k != "reversals"]
+        if losses:
+            line += "; " + ", ".join(losses)
+        print_as_is(self.console, line)
+        for key, pct in notes:
+            if key not in self.noted:
+                self.noted.add(key)
+                print_as_is(self.console, f"    {note_text(key, pct)}")
+
+
+def note_text(key: str, pct: float) -> str:
+    """One note of :func:`dotshell.pipeline.decode_quality.view_notes`: the loss or the
+    reversals with their share, what they mean and what would fix them."""
+    from dotshell.pipeline.decode_quality import WRONG_CODES
+    from dotshell.pipeline.reconstruct import LOSSES
+
+    if key == "reversals":
+        return f"neighbour reversals ({pct:.2f} % of the decoded pixels): {WRONG_CODES}"
+    return f"{key.replace('_', ' ')} ({pct:.1f} %): {LOSSES[key]}"
 
 
 def print_as_is(console: Console, text: str) -> None:

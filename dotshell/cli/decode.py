@@ -8,7 +8,10 @@ from typing import Any
 
 from rich.console import Console
 
-from dotshell.cli.common import print_as_is
+from dotshell.cli.common import note_text, print_as_is
+# a loss of at least NOTE_SHARE_PCT of the pixels (%) gets its meaning and fix printed (the
+# share a scanned view's notes use), reversals from NOTE_REVERSALS_PCT of the decoded pixels
+from dotshell.pipeline.decode_quality import NOTE_REVERSALS_PCT, NOTE_SHARE_PCT
 
 #: Reasons a pixel is lost, in the order they are printed.
 LOSS_ORDER = ("shadow", "low_contrast", "uncertain", "out_of_range", "low_modulation",
@@ -50,13 +53,10 @@ def refuse_layout_overrides(overrides: list[str], layout: str | None) -> None:
         f"{keys[0].split('.', 1)[1]} there and pass --layout my-layout.toml.")
 
 
-#: A loss at least this share of the pixels (%) gets its meaning and fix printed.
-NOTE_SHARE_PCT = 5.0
-
-
-def loss_notes(counts: dict[str, Any]) -> list[str]:
+def loss_notes(counts: dict[str, Any], quality: dict[str, Any] | None = None) -> list[str]:
     """What each large loss means and what would fix it (one line each; row rejections at any
-    share, since each is a code the calibration contradicts)."""
+    share, since each is a code the calibration contradicts), and what many neighbour
+    reversals in ``quality`` mean (:func:`dotshell.pipeline.decode_quality.view_quality`)."""
     from dotshell.pipeline.reconstruct import LOSSES
 
     total = max(int(counts.get("pixels", 0)), 1)
@@ -65,7 +65,18 @@ def loss_notes(counts: dict[str, Any]) -> list[str]:
         share = 100 * int(counts.get(key) or 0) / total
         if key in LOSSES and (share >= NOTE_SHARE_PCT or (key == "row_rejected" and share > 0)):
             out.append(f"{key.replace('_', ' ')} ({share:.1f} %): {LOSSES[key]}")
+    pct = (quality or {}).get("reversals_pct", 0.0)
+    if pct >= NOTE_REVERSALS_PCT:
+        out.append(note_text("reversals", pct))
     return out
+
+
+def quality_line(q: dict[str, Any]) -> str:
+    """``decoded 41.2 % of the image; estimated wrong codes: 3 neighbour reversals (0.01 % of
+    the decoded pixels)``."""
+    return (f"decoded {q['decoded_pct']:.1f} % of the image; estimated wrong codes: "
+            f"{q['reversals']} neighbour reversals ({q['reversals_pct']:.2f} % of the decoded "
+            "pixels)")
 
 
 def add_layout_arg(sp: argparse.ArgumentParser, what: str = "the sequence") -> None:
@@ -122,8 +133,6 @@ def print_view(view: dict[str, Any], out: Console) -> None:
     out.print(pixel_counts(view["counts"]))
     q = view.get("quality")
     if q:
-        out.print(f"  decoded {q['decoded_pct']:.1f} % of the image; estimated wrong codes: "
-                  f"{q['reversals']} neighbour reversals ({q['reversals_pct']:.2f} % of the "
-                  "decoded pixels)")
-    for line in loss_notes(view["counts"]):
+        out.print(f"  {quality_line(q)}")
+    for line in loss_notes(view["counts"], q):
         print_as_is(out, f"  {line}")

@@ -38,6 +38,7 @@ def reconstruct_camera_pair(captures1: Path | str, captures2: Path | str,
     points are fused (:func:`fuse_with_projector`)."""
     from dotshell.calibration.camera_only import load_camera_pair
     from dotshell.geometry.code_stereo import match_by_codes, triangulate_pair
+    from dotshell.pipeline.decode_quality import view_quality
     from dotshell.run.ply import write_ply
     from dotshell.run.store import RunStore
 
@@ -84,7 +85,8 @@ def reconstruct_camera_pair(captures1: Path | str, captures2: Path | str,
     report: dict[str, Any] = {
         "captures": [str(Path(c).resolve()) for c in (captures1, captures2)],
         "camera_pair": str(Path(pair_file).resolve()), "frame": "camera 1 (mm)",
-        "decode": [c1.stats, c2.stats], "matches": int(len(pix1)),
+        "decode": [c1.stats, c2.stats], "quality": [view_quality(c1), view_quality(c2)],
+        "matches": int(len(pix1)),
         "ray_gap_mm": {"median": float(np.median(gap)) if len(gap) else None,
                        "dropped_over": MAX_RAY_GAP_MM, "dropped": int((~keep).sum())},
         "cloud": {"path": RunLayout.CLOUD, "points": int(keep.sum())},

@@ -71,10 +71,13 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
     proc = {"min_ray_angle_deg": 5.0, "row_tolerance_px": 1.5, **(processing or {})}
     # here, not at the top: the triangulation's compiled loops (numba, ~1 s to import) are for
     # reconstructing only
+    from dotshell.pipeline.decode_quality import view_quality
     from dotshell.pipeline.reconstruct import no_points_error, triangulate_correspondence
 
     _, points, stats = triangulate_correspondence(corr, calib, proc)
     t3 = time.perf_counter()
+    quality = view_quality(corr)
+    t_quality = time.perf_counter() - t3
     if len(points) == 0:
         raise no_points_error(str(captures), {**corr.stats, **stats}, calib, corr.row is not None,
                               proc["min_ray_angle_deg"])
@@ -84,7 +87,8 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
     report: dict[str, Any] = {
         "captures": str(Path(captures).resolve()), "layout": layout.source,
         "calibration": calib.source, "frame": "camera (mm)",
-        "decode": corr.stats, **stats, "cloud": {"path": RunLayout.CLOUD, "points": int(len(points))},
+        "decode": corr.stats, **stats, "quality": quality,
+        "cloud": {"path": RunLayout.CLOUD, "points": int(len(points))},
     }
     if ref_points is not None:
         from dotshell.geometry.cloud_compare import compare_clouds
@@ -95,7 +99,8 @@ def reconstruct_captures(captures: Path | str, calibration: Path | str, layout_f
     if previews:
         report["previews"] = _previews(store, frames[0], corr, calib, points, layout.name, report)
     report["timings_s"] = {"read": round(t1 - t0, 3), "decode": round(t2 - t1, 3),
-                           "triangulate": round(t3 - t2, 3), "compare": round(t4 - t3, 3)}
+                           "triangulate": round(t3 - t2, 3), "quality": round(t_quality, 4),
+                           "compare": round(t4 - t3 - t_quality, 3)}
     store.write_json(RunLayout.REPORT, report)
     return CapturesResult(store.root, report)
 

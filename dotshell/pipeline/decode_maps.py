@@ -89,49 +89,12 @@ def mask_preview(reason: np.ndarray, names: tuple[str, ...], path: Path) -> Path
     return _write_png(path, lut[np.minimum(reason, len(names) - 1)])
 
 
-#: Adjacent decoded pixels whose coordinates step back by more than this (projector px)
-#: against the map's own direction count as a reversal.
-REVERSAL_STEP_PX = 1.5
-
-
-def neighbour_reversals(coord: np.ndarray, valid: np.ndarray) -> int:
-    """Adjacent decoded pixel pairs whose projector coordinate steps back by more than
-    :data:`REVERSAL_STEP_PX` against the map's direction, counted across the stripes (the
-    image direction in which the coordinate changes faster). On a continuous surface the map
-    is monotonic there, so each reversal marks a wrong code (an estimate: a true occlusion
-    boundary reverses too)."""
-    best = 0
-    best_slope = -1.0
-    for axis in (1, 0):
-        d = np.diff(coord, axis=axis)
-        both = valid[:, 1:] & valid[:, :-1] if axis == 1 else valid[1:] & valid[:-1]
-        steps = d[both]
-        if steps.size == 0:
-            continue
-        slope = float(np.median(steps))
-        if abs(slope) > best_slope:
-            sign = 1.0 if slope >= 0 else -1.0
-            best_slope = abs(slope)
-            best = int(np.count_nonzero(sign * steps < -REVERSAL_STEP_PX))
-    return best
-
-
-def decode_quality(corr: Correspondence) -> dict[str, Any]:
-    """Per view: the decoded share (%) and the estimated wrong codes (neighbour reversals of
-    the column and row maps, and their share of the decoded pixels in %)."""
-    n = int(corr.valid.sum())
-    rev = neighbour_reversals(corr.column, corr.valid)
-    if corr.row is not None:
-        rev += neighbour_reversals(corr.row, corr.valid)
-    return {"decoded_pct": round(100.0 * n / max(corr.valid.size, 1), 2), "reversals": rev,
-            "reversals_pct": round(100.0 * rev / max(n, 1), 3)}
-
-
 def write_maps(directory: Path, corr: Correspondence, projector_size: tuple[int, int],
                white: np.ndarray, fmt: str = "tiff") -> dict[str, Any]:
     """Write one view's maps, mask and previews into ``directory``; returns its report entry
     (files relative to ``directory``, reason codes, counts)."""
     from dotshell.coding import label_reasons
+    from dotshell.pipeline.decode_quality import view_quality
     from dotshell.render.previews import _write_png, column_map_preview, frame_preview
 
     if fmt not in MAP_FORMATS:
@@ -156,7 +119,7 @@ def write_maps(directory: Path, corr: Correspondence, projector_size: tuple[int,
     return {"files": rel,
             "previews": {k: str(Path(p).relative_to(directory)) for k, p in previews.items()},
             "reasons": dict(enumerate(names)), "counts": dict(corr.stats),
-            "quality": decode_quality(corr),
+            "quality": view_quality(corr),
             "camera_size": [int(corr.valid.shape[1]), int(corr.valid.shape[0])],
             "projector_size": list(projector_size)}
 

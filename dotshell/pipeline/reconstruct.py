@@ -14,6 +14,7 @@ from dotshell.coding import Correspondence, PatternCoding
 from dotshell.errors import CalibrationError, ReconstructionError
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.triangulate import ImageSolve, select, solve_image
+from dotshell.pipeline.decode_quality import view_quality
 from dotshell.runtime.parallel import bands, split, split_bands
 
 numba_cache.install()  # cache files safe for processes compiling at once
@@ -31,6 +32,8 @@ class ViewCloud:
     correspondence: Correspondence | None
     stats: dict[str, Any] = field(default_factory=dict)
     seconds: dict[str, float] = field(default_factory=dict)
+    #: :func:`~dotshell.pipeline.decode_quality.view_quality`: decoded share, reversals
+    quality: dict[str, Any] = field(default_factory=dict)
 
 
 def in_roi(points: np.ndarray, roi: Mapping[str, float]) -> np.ndarray:
@@ -370,5 +373,7 @@ def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
                                          processing["max_depth_jump_mm"], processing["roi"])
     stats = {**corr.stats, **tri.counts, **counts}
     t3 = time.perf_counter()
+    quality = view_quality(corr)
+    t4 = time.perf_counter()
     return ViewCloud(view, angle_deg, points, pixels, corr, stats,
-                     {"decode": t1 - t0, "triangulate": t3 - t1})
+                     {"decode": t1 - t0, "triangulate": t3 - t1, "quality": t4 - t3}, quality)

@@ -42,6 +42,8 @@ from dotshell.run.ply import map_ply, ply_buffer, point_count, read_ply, write_p
 from dotshell.profile.loader import Profile
 from dotshell.run.store import RunStore, atomic_write_bytes, atomic_write_text, dumps
 
+from dotshell.pipeline.decode_quality import quality_fields
+
 if TYPE_CHECKING:
     from dotshell.pipeline.reconstruct import ViewCloud
 
@@ -125,6 +127,8 @@ def store_view(store: RunStore, vc: ViewCloud, first_frame: np.ndarray | None,
     previews for the profile's preview view) and return its report record."""
     write_ply(store.path(RunLayout.view_cloud(vc.view)), vc.points)
     record: dict[str, Any] = {"view": vc.view, "angle_deg": vc.angle_deg, **vc.stats}
+    if vc.quality:  # decoded share and neighbour reversals (dotshell.pipeline.decode_quality)
+        record["quality"] = vc.quality
     integrity = getattr(store, "run", store).manifest["views"][vc.view].get("integrity")
     if integrity is not None:  # the capture's frame checks (dotshell.run.integrity)
         record["integrity"] = integrity
@@ -144,7 +148,8 @@ def store_view(store: RunStore, vc: ViewCloud, first_frame: np.ndarray | None,
     atomic_write_text(store.path(RunLayout.view_record(vc.view)),
                       dumps({**record, "seconds": {k: round(s, 4) for k, s in vc.seconds.items()}}))
     bus.emit(ViewReconstructed(view=vc.view, n_points=len(vc.points),
-                               decoded_pixels=int(vc.stats.get("decoded", 0))))
+                               decoded_pixels=int(vc.stats.get("decoded", 0)),
+                               **quality_fields(vc.stats, vc.quality)))
     return record
 
 
@@ -239,6 +244,7 @@ def views_step(ctx: StepContext) -> dict[str, Any]:
     seconds = [read_view_record(store, r["view"]).get("seconds", {}) for r in records]
     ctx.timings["decode"] = sum(s.get("decode", 0.0) for s in seconds)
     ctx.timings["triangulate"] = sum(s.get("triangulate", 0.0) for s in seconds)
+    ctx.timings["quality"] = sum(s.get("quality", 0.0) for s in seconds)
     lost = lost_views(manifest)
     return {"views": records, **({"lost_views": lost} if lost else {})}
 

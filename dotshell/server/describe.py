@@ -45,8 +45,10 @@ def describe_event(ev: Event) -> tuple[str, str]:
         return "info", (f"view {ev.view + 1} captured at {ev.angle_deg:.1f}° "
                         f"({ev.n_frames} frames)")
     if isinstance(ev, ViewReconstructed):
+        quality = ("" if ev.decoded_pct is None else
+                   f", {ev.decoded_pct:.1f} % of the image; {ev.reversals} neighbour reversals")
         return "info", (f"view {ev.view + 1} reconstructed: {ev.n_points} points "
-                        f"({ev.decoded_pixels} decoded pixels)")
+                        f"({ev.decoded_pixels} decoded pixels{quality})")
     if isinstance(ev, StepStarted):
         return "info", f"step: {ev.step}"
     if isinstance(ev, StepProgress):
