@@ -152,11 +152,7 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
         raise MeshError(f"--node-distance {node_distance_mm:g} mm is below the smallest node "
                         f"distance [mesh] node_distance_mm allows ({smallest:g} mm); give a "
                         "larger one (e.g. 1.0).")
-    extras = [d for d in cfg.also_node_distances_mm if d != primary]
-    job = MeshJob(store.path(RunLayout.CLOUD), ViewCentres.of_run(store, calib),
-                  [primary, *extras], cfg.bottom_z_mm if cfg.close_bottom else None,
-                  _mesher(profile, pm, "surface_mesher"), _mesher(profile, pm, "volume_mesher"),
-                  cfg, optodes_from_settings(cfg.optodes.as_table(), profile.source))
+    job = mesh_job(store, profile, pm, primary, calib)
     in_child = picklable(job)
     if not in_child:
         discard_early()  # a mesh process started for the command gets no job
@@ -176,6 +172,18 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
             entry["previews"] = _previews(store, target, d, bus)
         out["meshes"].append(entry)
     return out
+
+
+def mesh_job(store: RunStore, profile: Profile, pm: PluginManager, primary_mm: float,
+             calib: RigCalibration | None = None) -> MeshJob:
+    """The job of meshing the run's cloud at ``primary_mm`` and the profile's
+    ``[mesh] also_node_distances_mm``, with the profile's meshers."""
+    cfg = profile.mesh
+    extras = [d for d in cfg.also_node_distances_mm if d != primary_mm]
+    return MeshJob(store.path(RunLayout.CLOUD), ViewCentres.of_run(store, calib),
+                   [primary_mm, *extras], cfg.bottom_z_mm if cfg.close_bottom else None,
+                   _mesher(profile, pm, "surface_mesher"), _mesher(profile, pm, "volume_mesher"),
+                   cfg, optodes_from_settings(cfg.optodes.as_table(), profile.source))
 
 
 def estimated_nodes(points: np.ndarray, node_distance_mm: float) -> int:

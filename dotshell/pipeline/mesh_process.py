@@ -37,12 +37,13 @@ from dotshell.fem.meshes import MeshError
 log = logging.getLogger(__name__)
 
 
-#: What the default meshers import, in a fresh process ~2 s of CPU (open3d 0.8 s, pyvista and
-#: pyacvd 0.7 s, ...): a mesh process started early (:func:`start_early`) imports them while the
-#: command prepares the job. "module" or "module:function" (a function called without
-#: arguments: open3d needs its libusb loaded first).
+#: What the default meshers import, in a fresh process ~1.4 s of CPU (open3d 0.5 s without
+#: its plotly drawing, pyvista and pyacvd 0.7 s, ...): a mesh process started early
+#: (:func:`start_early`) imports them while the command prepares the job. "module" or
+#: "module:function" (a function called without arguments: open3d needs its libusb loaded
+#: first, and its plotly drawing deferred, :func:`dotshell.runtime.compat.import_open3d`).
 WARM_UP = ("dotshell.pipeline.mesh", "dotshell.runtime.compat:import_open3d", "pyvista",
-           "pyacvd", "pymeshfix", "tetgen", "scipy.ndimage")
+           "pyacvd", "pymeshfix", "tetgen")
 
 
 class MeshProcess:
