@@ -165,11 +165,11 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
         surface, volume, entry = (run_in_child(mesh_cloud, job, d) if in_child
                                   else mesh_cloud(job, d))
         write_meshes(target, surface, volume, job.optodes)
-        del surface, volume
         entry["dir"] = "." if target == store.root else str(target.relative_to(store.root))
         _validate_volume(entry, profile)
         if cfg.previews:
-            entry["previews"] = _previews(store, target, d, bus)
+            entry["previews"] = _previews(store, target, d, bus, surface, volume)
+        del surface, volume
         out["meshes"].append(entry)
     return out
 
@@ -259,12 +259,14 @@ def _validate_volume(entry: dict[str, Any], profile: Profile) -> None:
                            "section_mm": [bottom, v.height_mm]}
 
 
-def _previews(store: RunStore, target: Path, node_distance_mm: float, bus: EventBus) -> dict:
+def _previews(store: RunStore, target: Path, node_distance_mm: float, bus: EventBus,
+              surface: TriangleSurface, volume: TetMesh) -> dict:
     from dotshell.render.mesh_previews import render_mesh_previews
 
     try:
         files = render_mesh_previews(target, store.path(RunLayout.PREVIEWS),
-                                     f"_{RunLayout.mesh_dir_name(node_distance_mm)}")
+                                     f"_{RunLayout.mesh_dir_name(node_distance_mm)}",
+                                     surface, volume)
     except Exception as exc:  # rendering depends on the machine's OpenGL; degrade
         bus.warn(f"mesh previews skipped: 3-D rendering is not available here "
                  f"({type(exc).__name__}: {exc}). The meshes are written.")
