@@ -89,9 +89,28 @@ class ViewCentres:
     def per_point(self, views: np.ndarray) -> ViewpointsPerPoint | None:
         """The centre of the view each point came from (``views``: each point's view index);
         None when a point names a view the run does not list."""
-        if not np.isin(views, self.indices).all():
+        if not self.lists_every(views):
             return None
         return ViewpointsPerPoint(views, self.indices, self.centres_mm)
+
+    def lists_every(self, views: np.ndarray, chunk: int = 1 << 20) -> bool:
+        """Whether each value of ``views`` is one of :attr:`indices` (``np.isin(views,
+        indices).all()``): ``chunk`` values at a time through a table of the listed indices
+        when they are small non-negative integers (the sort-based ``np.isin`` of the demo's
+        5.5 M float32 view numbers took 0.075 s of the mesh process's CPU)."""
+        keys = np.asarray(self.indices)
+        if len(keys) == 0 or keys.min() < 0 or keys.max() >= 1 << 20:
+            return bool(np.isin(views, keys).all())
+        listed = np.zeros(int(keys.max()) + 1, bool)
+        listed[keys] = True
+        for s in range(0, len(views), chunk):
+            part = np.asarray(views[s:s + chunk])
+            if not (part.min() >= 0 and part.max() < len(listed)):  # NaN fails here too
+                return False
+            ids = part.astype(np.intp)
+            if not ((ids == part).all() and listed[ids].all()):
+                return False
+        return True
 
 
 @dataclass
