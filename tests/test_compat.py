@@ -16,7 +16,7 @@ def test_open3d_imports_with_bundled_libusb_and_mesh_scene_raycasts():
 
 
 def test_open3d_imports_without_its_plotly_drawing_until_it_is_used():
-    """import_open3d defers open3d.visualization.draw_plotly (dash and plotly: ~0.3 s of
+    """import_open3d defers open3d.visualization.draw_plotly (dash and plotly: ~0.35 s of
     CPU in every process importing open3d, unused by dotshell); a call of one of its functions
     imports it and answers as open3d would. A fresh process: the test session may hold dash."""
     import json
