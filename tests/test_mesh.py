@@ -211,3 +211,46 @@ def test_full_resolution_cylinder_mesh(tmp_path):
     assert entry["volume"]["inverted_elements"] == 0 and entry["volume"]["joe_liu_min"] >= 0.1
     assert (result.run_dir / "nirfast" / "mesh.node").is_file()
     assert (result.run_dir / "toast" / "mesh.msh").is_file()
+
+
+def test_the_footprint_raster_is_closed_and_filled_as_scipy_does():
+    """The closed bottom's footprint (closing with two iterations, holes filled, 4-neighbour
+    cross) without scipy.ndimage, whose import cost the mesh process ~0.25 s: the same masks
+    as scipy's on random rasters, including sets touching the edges, and on a ring."""
+    from scipy import ndimage
+
+    from dotshell_meshing.surface import closing, fill_holes
+
+    rng = np.random.default_rng(7)
+    for _ in range(500):
+        mask = rng.random(rng.integers(1, 30, 2)) < rng.uniform(0.05, 0.9)
+        iterations = int(rng.integers(1, 4))
+        assert np.array_equal(closing(mask, iterations),
+                              ndimage.binary_closing(mask, iterations=iterations))
+        assert np.array_equal(fill_holes(mask), ndimage.binary_fill_holes(mask))
+    y, x = np.mgrid[:41, :41]
+    ring = np.abs(np.hypot(x - 20, y - 20) - 15) < 1
+    filled = fill_holes(closing(ring, 2))
+    assert filled[20, 20] and not filled[0, 0]
+    assert filled.sum() == ndimage.binary_fill_holes(ndimage.binary_closing(
+        ring, iterations=2)).sum() > 600
+
+
+def test_a_cloud_naming_views_the_run_does_not_list_has_no_viewpoints():
+    """ViewCentres.lists_every is np.isin(views, indices).all() (a table of the listed views
+    instead of a sort: 0.075 s of the mesh process for 5.5 M points), float and integer view
+    numbers, values between or beyond the listed ones, NaN, chunk borders."""
+    from dotshell.pipeline.mesh import ViewCentres
+
+    centres = ViewCentres(np.array([0, 2, 3, 7]), np.arange(12.0).reshape(4, 3))
+    rng = np.random.default_rng(5)
+    for values in ([0, 2, 3, 7], [0, 1], [7, 8], [2.5], [-1], [np.nan], [3.0, 7.0], []):
+        for dtype in (np.float32, np.int64):
+            if dtype is np.int64 and any(not float(v).is_integer() for v in values):
+                continue
+            views = np.concatenate([rng.choice([0, 2, 3, 7], 2500), values]).astype(dtype)
+            want = bool(np.isin(views, centres.indices).all())
+            assert centres.lists_every(views, chunk=1000) == want, (values, dtype)
+            assert (centres.per_point(views) is None) == (not want)
+    vp = centres.per_point(np.array([7, 0, 3], np.float32))
+    np.testing.assert_array_equal(vp[0:3], [[9, 10, 11], [0, 1, 2], [6, 7, 8]])

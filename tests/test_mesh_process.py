@@ -267,3 +267,35 @@ def test_a_failed_warm_up_is_left_to_the_job(tmp_path):
         assert pid == early.proc.pid and warmed
     finally:
         mesh_process.discard_early()
+
+
+def child_meshes_and_lists_modules(job, node_distance_mm: float) -> tuple[int, list[str]]:
+    import sys
+
+    from dotshell.pipeline.mesh import mesh_cloud
+
+    _, volume, _ = mesh_cloud(job, node_distance_mm)
+    return len(volume.tets), sorted({m.split(".")[0] for m in sys.modules})
+
+
+def test_the_mesh_process_imports_no_web_drawing_nor_scipy(small_scan, mesh_pm):
+    """A mesh process as `dotshell mesh` starts it (early, its warm-up list) meshes the run's
+    cloud without importing open3d's plotly drawing (dash, plotly: ~0.3 s of CPU) or scipy
+    (the footprint's closing and hole filling: ~0.25 s), nor numba."""
+    from dotshell.pipeline import mesh_process
+    from dotshell.pipeline.mesh import mesh_job
+    from dotshell.pipeline.scan import load_run_profile
+    from dotshell.run.store import RunStore
+
+    mesh_process.start_early()
+    store = RunStore.open(small_scan[0].run_dir)
+    try:
+        profile = load_run_profile(store, mesh_pm)
+        d = profile.mesh.node_distance_mm
+        job = mesh_job(store, profile, mesh_pm, d)
+        tets, modules = run_in_child(child_meshes_and_lists_modules, job, d)
+    finally:
+        store.close()
+        mesh_process.discard_early()
+    assert tets > 1000 and {"open3d", "pyacvd", "tetgen"} <= set(modules)
+    assert not {"dash", "plotly", "scipy", "numba"} & set(modules)

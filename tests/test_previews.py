@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from dotshell.fem.meshes import TetMesh, TriangleSurface
-from dotshell.fem.meshfiles import write_surface, write_volume
+from dotshell.fem.meshfiles import read_surface, read_volume, write_surface, write_volume
 import dotshell.render.raster as raster
 from dotshell.render.mesh_previews import render_mesh_previews
 from dotshell.render.previews import cloud_preview
@@ -131,3 +131,15 @@ def test_colour_bar_middle_of_a_symmetric_range_reads_zero():
     assert raster.tick_label((lo + hi) / 2, hi - lo) == "0"
     assert raster.tick_label(8.77e-3, 40.0) == "0.00877"
     assert raster.tick_label(-20.0, 40.0) == "-20"
+
+
+def test_mesh_previews_of_the_meshes_in_hand_are_those_of_their_files(tmp_path):
+    """The mesh step hands its surface and volume to the previews instead of reading the files
+    it has just written: the same pictures, byte for byte, and no file is read (there is none)."""
+    d = _box_mesh(tmp_path / "mesh")
+    surface, volume = read_surface(d / "surface.ply"), read_volume(d / "volume.vtu")
+    from_files = render_mesh_previews(d, tmp_path / "from_files")
+    in_hand = render_mesh_previews(tmp_path / "no_such_dir", tmp_path / "in_hand",
+                                   surface=surface, volume=volume)
+    for name in ("surface", "volume"):
+        assert from_files[name].read_bytes() == in_hand[name].read_bytes()

@@ -37,12 +37,15 @@ from dotshell.fem.meshes import MeshError
 log = logging.getLogger(__name__)
 
 
-#: What the default meshers import, in a fresh process ~2 s of CPU (open3d 0.8 s, pyvista and
-#: pyacvd 0.7 s, ...): a mesh process started early (:func:`start_early`) imports them while the
-#: command prepares the job. "module" or "module:function" (a function called without
-#: arguments: open3d needs its libusb loaded first).
+#: What the default meshers import, in a fresh process 0.62-0.65 s of CPU at load 8
+#: (dotshell's mesh stage 0.09 s, open3d 0.29 s without its plotly drawing, pyvista and pyacvd
+#: 0.25 s; 1.14 s with open3d's plotly drawing and scipy.ndimage, issue 32's second round): a
+#: mesh process started early (:func:`start_early`) imports them while the command prepares
+#: the job. "module" or
+#: "module:function" (a function called without arguments: open3d needs its libusb loaded
+#: first, and its plotly drawing deferred, :func:`dotshell.runtime.compat.import_open3d`).
 WARM_UP = ("dotshell.pipeline.mesh", "dotshell.runtime.compat:import_open3d", "pyvista",
-           "pyacvd", "pymeshfix", "tetgen", "scipy.ndimage")
+           "pyacvd", "pymeshfix", "tetgen")
 
 
 class MeshProcess:

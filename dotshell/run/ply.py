@@ -87,14 +87,21 @@ def map_ply(path: Path, chunk: int = 1 << 20) -> tuple[np.ndarray, dict[str, np.
     vertex = _cloud_vertices(path)
     names = vertex.dtype.names or ()
     pts = structured_to_unstructured(vertex[["x", "y", "z"]], copy=False)
-    bad = sum(int((~np.isfinite(pts[s:s + chunk]).all(axis=1)).sum())
-              for s in range(0, len(pts), chunk))
+    bad = sum(_non_finite_rows(pts[s:s + chunk]) for s in range(0, len(pts), chunk))
     if bad:
         raise _damaged(path, f"{bad} of its {len(pts)} points have non-finite coordinates (NaN "
                              "or infinity)")
     scalars = {m: vertex[m] for m in names if m not in ("x", "y", "z")
                and vertex.dtype[m].shape == () and vertex.dtype[m].kind in "fiub"}
     return pts, scalars
+
+
+def _non_finite_rows(points: np.ndarray) -> int:
+    """How many rows of ``points`` (N, 3) hold a NaN or infinity. All finite is found with a
+    flat reduction first: the row-wise one over the mapped cloud (rows 16 bytes apart) took
+    ~0.1 s of the mesh process's CPU for 5.5 M points, the flat one a quarter of it."""
+    finite = np.isfinite(points)
+    return 0 if finite.all() else int((~finite.all(axis=1)).sum())
 
 
 def _cloud_vertices(path: Path) -> np.ndarray:
