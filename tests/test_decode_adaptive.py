@@ -118,21 +118,19 @@ def ambient_blur_scene():
 
 
 @pytest.mark.parametrize("scene", ["metal", "agar"])
-def test_default_decodes_more_than_robust_under_ambient_light_and_blur(scene,
-                                                                       ambient_blur_scene):
+def test_adaptive_decodes_more_than_robust_under_ambient_light_and_blur(scene,
+                                                                        ambient_blur_scene):
     """Issue 27's must-show: under room light as strong as the projector's with the stripes
     blurred — the metal cylinder seen through a camera defocused to σ = 1.5 px, the agar
     cylinder without analyzer (subsurface scattering blurs the stripes inside the body) with
-    the same room light and defocus — the default
-    classification (adaptive) decodes more pixels on the lit surface than robust with no more
+    the same room light and defocus — adaptive decodes more pixels on the lit surface than robust with no more
     wrong codes (> 1.5 projector px from the truth). Measured: metal robust 27 497 decoded,
     194 wrong; adaptive 27 746, 194 (its old 10 % contrast fallback rescued 1 pixel);
     agar robust 3 079, 90 wrong; adaptive 3 095, 90."""
     frames, size, u, v, lit = (ambient_blur_scene if scene == "metal" else
                                bench_scene(profile="sim-agar-cylinder-nopdi", ambient=1.0,
                                            defocus_sigma_px=1.5))
-    default = make_graycode({"axes": "both"})
-    assert default.classification == "adaptive"
+    default = make_graycode({"axes": "both", "classification": "adaptive"})
     out = {"robust": _truth_counts(make_graycode({"axes": "both", "classification": "robust"})
                                    .decode(frames, size), u, v, lit),
            "default": _truth_counts(default.decode(frames, size), u, v, lit)}
@@ -375,13 +373,16 @@ def test_rescue_takes_a_weak_bit_only_where_robust_would_tolerate_it():
     assert np.all(np.isin(x[rescued & outer], (15, 16, 47, 48)))
 
 
-def test_only_the_gray_code_defaults_to_adaptive():
-    """The gray code decodes adaptively by default; the XOR codes and graycode-phase keep
-    robust, because on the synthetic clean scene the rescue adds wrong codes to the XOR codes
+def test_every_coding_defaults_to_robust():
+    """Every coding decodes with robust by default. The gray code does because adaptive's
+    rescued pixels on the mouse phantom's ears and paws changed its 1.5 mm surface (442 nodes
+    instead of 448) and took the trans-illumination normalization's p95 from 8.75 % to 13.24 %
+    against the truth (the bound is 10 %; tests/test_mesh_phantoms.py, slow); the XOR codes and
+    graycode-phase, because on the synthetic clean scene the rescue adds wrong codes to the XOR codes
     (XOR-02: 67.8 % decoded with 3.1 % wrong under robust, 86.0 % with 7.9 % under adaptive;
     docs/codings.md). Built as the pipeline builds them (settings validated, defaults filled)
     and directly."""
-    assert make_coding("graycode").classification == "adaptive"
+    assert make_coding("graycode").classification == "robust"
     for name in ("xor02", "xor04"):
         assert make_coding(name).classification == "robust"
     assert make_coding("graycode-phase").gray.classification == "robust"
