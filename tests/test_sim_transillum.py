@@ -308,9 +308,16 @@ def test_laser_view_in_chunks_is_the_one_pass_view_and_one_angle_is_kept(agar, m
     monkeypatch.setattr(T, "LASER_CHUNK", 997)
     chunked = T.laser_view(renderer, view, shape, model)
     assert len(one_pass.pixel) > 10 * 997  # many chunks
+    renderer.camera_rays()
+    with_kept_rays = T.laser_view(renderer, view, shape, model)
+    renderer._rays = None  # as at full resolution: each chunk's rays made for it (issue 33)
+    own_rays = T.laser_view(renderer, view, shape, model)
+    assert renderer._rays is None
     for name in ("pixel", "nodes", "weights", "base"):
-        a, b = getattr(one_pass, name), getattr(chunked, name)
-        assert a.dtype == b.dtype and np.array_equal(a, b), name
+        a = getattr(one_pass, name)
+        for other in (chunked, with_kept_rays, own_rays):
+            b = getattr(other, name)
+            assert a.dtype == b.dtype and np.array_equal(a, b), name
 
     held_while_tracing = []
 

@@ -368,22 +368,21 @@ def laser_view(renderer: Renderer, view: View, shape, model: FluenceModel) -> La
     k = np.flatnonzero(view.material.ravel() == shape.material)
     o_s = renderer.calib.camera_to_sample(np.zeros((1, 3)), view.angle_deg)[0]
     M = renderer.calib.sample_rotation(view.angle_deg)
-    rays = renderer.camera_rays()
-    parts = [_laser_samples(k[s:s + LASER_CHUNK], rays, o_s, M, view.ss, cam.width, shape,
-                            model) for s in range(0, len(k), LASER_CHUNK)] or [
-        _laser_samples(k, rays, o_s, M, view.ss, cam.width, shape, model)]
-    del rays
-    renderer.forget_large_rays()
+    parts = [_laser_samples(k[s:s + LASER_CHUNK], renderer, o_s, M, view.ss, cam.width,
+                            shape, model) for s in range(0, len(k), LASER_CHUNK)] or [
+        _laser_samples(k, renderer, o_s, M, view.ss, cam.width, shape, model)]
     pixel, nodes, weights, base = (np.concatenate(p) for p in zip(*parts))
     return LaserView(pixel, nodes, weights, base, (cam.height, cam.width))
 
 
-def _laser_samples(k: np.ndarray, rays: np.ndarray, o_s: np.ndarray, M: np.ndarray, ss: int,
-                   width: int, shape, model: FluenceModel
+def _laser_samples(k: np.ndarray, renderer: Renderer, o_s: np.ndarray, M: np.ndarray,
+                   ss: int, width: int, shape, model: FluenceModel
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`laser_view`'s (pixel, nodes, weights, base) of the sub-samples ``k`` (flat
-    indices on the supersampled grid) that hit the true surface."""
-    d_c = rays[k]
+    indices on the supersampled grid) that hit the true surface; their rays are made for
+    them (:meth:`Renderer.sample_rays`: the whole image's 120 MiB of float64 rays were made
+    again for each full-resolution laser view, issue 33)."""
+    d_c = renderer.sample_rays(k)
     d_s = d_c @ M
     t, normals = shape.intersect(np.broadcast_to(o_s, d_s.shape), d_s)
     ok = np.isfinite(t)
