@@ -166,6 +166,25 @@ def child(args: argparse.Namespace) -> None:
     sampler.wrap(scan_module.ViewPipeline, "_reconstruct", "", worker=True)
     for step in steps.STEPS:  # the steps after the capture, each on its own
         sampler.wrap(step, "run", f"step {step.name}")
+    from dotshell.pipeline import normalize, normalize_outputs
+    for owner, name in ((normalize, "unscanned_nodes"), (normalize, "flat_field"),
+                        (normalize, "view_surface"), (normalize.Normalization, "_source"),
+                        (normalize.TruthAtNodes, "_closest_points"),
+                        (normalize_outputs.OutputWriter, "view"),
+                        (normalize_outputs, "write_vtu")):  # the normalize step's parts
+        sampler.wrap(owner, name, f"normalize: {owner.__name__.split('.')[-1]}.{name}")
+    drained: list[float] = []  # seconds the scan waited for reconstructions (trans views)
+    if hasattr(scan_module.ViewPipeline, "drain"):
+        drain = scan_module.ViewPipeline.drain
+
+        def timed_drain(self) -> None:
+            t0 = time.monotonic()
+            try:
+                drain(self)
+            finally:
+                drained.append(time.monotonic() - t0)
+
+        scan_module.ViewPipeline.drain = timed_drain  # type: ignore[method-assign]
 
     if args.trace:
         tracemalloc.start(6)
@@ -201,7 +220,7 @@ def child(args: argparse.Namespace) -> None:
     rss, hwm = status_mib()
     sampler.done.set()
     out = {"exit": code, "wall_s": time.monotonic() - t0, "rss_end_mib": rss, "hwm_mib": hwm,
-           "views": records, "stages": sampler.peaks, "rusage": rusage(),
+           "views": records, "stages": sampler.peaks, "rusage": rusage(), "drained_s": drained,
            "outputs": outputs(Path(args.out))}
     Path(args.result).write_text(json.dumps(out))
 
@@ -232,6 +251,9 @@ def run_side(label: str, tree: Path, args: argparse.Namespace, tmp: Path) -> dic
 def report(label: str, res: dict) -> None:
     print(f"\n== {label}: exit {res['exit']}, wall {res['wall_s']:.0f} s, "
           f"peak RSS (VmHWM) {res['hwm_mib']:.0f} MiB, RSS at the end {res['rss_end_mib']:.0f} MiB")
+    if res.get("drained_s"):
+        print(f"  waited for the reconstruction before a trans-illumination view: "
+              f"{sum(res['drained_s']):.1f} s ({', '.join(f'{s:.1f}' for s in res['drained_s'])})")
     for name, what in res.get("outputs", {}).items():
         print(f"  {name}: {json.dumps(what)[:400]}")
     for who, ru in res.get("rusage", {}).items():

@@ -301,6 +301,31 @@ def test_truth_comes_from_the_run_directory_not_from_a_rig(trans_run, tmp_path, 
     assert "vs_truth" not in n and n["sources"][0]["used"] > 0
 
 
+def test_unscanned_nodes_are_found_a_chunk_of_the_cloud_at_a_time(trans_run):
+    """Issue 33: the nodes with no cloud point near them are found by searching the mapped
+    cloud a chunk at a time (the agar's 8.3 M points as float64 and their k-d tree were the
+    scan's peak after the capture): the same nodes as one search of the whole cloud, whatever
+    the chunk, and the closed bottom among them."""
+    from scipy.spatial import cKDTree
+
+    from dotshell.fem.meshfiles import read_surface
+    from dotshell.pipeline.normalize import unscanned_nodes
+    from dotshell.run.ply import read_ply
+    from dotshell.run.store import RunStore
+
+    result, _ = trans_run
+    store = RunStore.open(result.run_dir)
+    surface = read_surface(store.path("surface.ply"))
+    points, _ = read_ply(store.path("cloud.ply"))
+    dist, _ = cKDTree(points).query(surface.vertices, distance_upper_bound=0.5)
+    whole = ~np.isfinite(dist)
+    assert 0 < whole.sum() < len(whole)  # the mesher's closed bottom, and the scanned side
+    bottom = surface.vertices[:, 2] < 0.1
+    assert whole[bottom].mean() > 0.9
+    for chunk in (997, 1 << 20):
+        assert np.array_equal(unscanned_nodes(store, surface, 0.5, chunk=chunk), whole)
+
+
 def test_bad_runs_are_clear_errors(trans_run, small_scan, tmp_path, capsys):
     from dotshell.cli.app import main
 
@@ -347,3 +372,62 @@ def test_saturated_frames_are_named_and_their_nodes_masked(tmp_path):
     n = result.report["normalize"]
     assert n["masked_total"]["saturated"] > 50  # measured 122 of 523 nodes (470 at 1 mm)
     assert any("view_000/src_00.png" in w and "saturated pixels" in w for w in warnings)
+
+
+def test_a_view_is_reconstructed_before_its_trans_illumination_is_captured(tmp_path,
+                                                                           monkeypatch):
+    """Issue 33: a trans-illumination view's light (the simulated laser's view, ~0.12 GB at full
+    resolution) is not made beside a view's reconstruction (~0.15 GB): together they were the
+    agar scan's peak memory. Each reconstruction here waits until the scan waits for it, so a
+    scan that captured the trans-illumination without waiting would find it unfinished."""
+    import threading
+
+    from conftest import write_profile
+
+    from dotshell.events import EventBus
+    from dotshell.pipeline import scan as scan_module
+    from dotshell.pipeline.transillum import TransilluminationCapture
+    from dotshell.plugins import PluginManager
+    from dotshell.profile.loader import load_profile
+
+    raw = transillumination_profile(views=[0, 1])
+    raw["scan"]["views"] = 3
+    raw["mesh"]["after_scan"] = False
+    raw["outputs"] = {"previews": False}
+    gates: dict[int, threading.Event] = {}
+    pipelines: list = []
+    seen: dict[int, bool] = {}
+    real_wait, real_reconstruct = scan_module.ViewPipeline._wait, \
+        scan_module.ViewPipeline._reconstruct
+    real_submit, real_trans = scan_module.ViewPipeline.submit, TransilluminationCapture.run_view
+
+    def gate(view: int) -> threading.Event:
+        return gates.setdefault(view, threading.Event())
+
+    def submit(self, view, angle_deg, images):
+        pipelines.append(self)
+        return real_submit(self, view, angle_deg, images)
+
+    def wait(self, keep_pending):  # whoever waits for the reconstructions lets them run
+        for view in list(self.futures):
+            gate(view).set()
+        return real_wait(self, keep_pending)
+
+    def reconstruct(self, view, angle_deg, images):
+        assert gate(view).wait(600), "nobody waited for the reconstruction"
+        return real_reconstruct(self, view, angle_deg, images)
+
+    def trans(self, view):
+        seen[view] = pipelines[-1].futures[view].done()
+        return real_trans(self, view)
+
+    monkeypatch.setattr(scan_module.ViewPipeline, "submit", submit)
+    monkeypatch.setattr(scan_module.ViewPipeline, "_wait", wait)
+    monkeypatch.setattr(scan_module.ViewPipeline, "_reconstruct", reconstruct)
+    monkeypatch.setattr(TransilluminationCapture, "run_view", trans)
+    pm = PluginManager()
+    pm.load_entry_points()
+    result = scan_module.scan(load_profile(write_profile(tmp_path / "p.toml", raw), pm), pm,
+                              tmp_path / "runs", bus=EventBus())
+    assert json.loads((result.run_dir / "manifest.json").read_text())["status"] == "completed"
+    assert seen == {0: True, 1: True}

@@ -74,6 +74,36 @@ def test_own_ply_round_trip_and_refusals(tmp_path):
         read_ply(tmp_path / "a.ply")
 
 
+def test_point_chunks_read_the_cloud_a_chunk_at_a_time(tmp_path):
+    """point_chunks (the normalization's pass over the cloud, issue 33): the points read_ply
+    reads, as float64 chunks, from dotshell's binary files (read, not mapped), big-endian
+    doubles with another element before them, and ASCII; a non-finite point is refused
+    naming the file, as read_ply does."""
+    from dotshell.run.ply import point_chunks
+
+    pts = _cloud(2503)
+    own = write_ply(tmp_path / "c.ply", pts, view=np.arange(len(pts)) % 3)
+    vertex = np.empty(len(pts), [("quality", ">f8"), ("x", ">f8"), ("y", ">f8"), ("z", ">f8")])
+    for i, a in enumerate("xyz"):
+        vertex[a] = pts[:, i]
+    vertex["quality"] = 1.0
+    faces = np.empty(1, [("vertex_indices", "O")])
+    faces["vertex_indices"] = [np.array([0, 1, 2], "i4")]
+    for text, name in ((False, "be.ply"), (True, "a.ply")):
+        PlyData([PlyElement.describe(faces, "face"), PlyElement.describe(vertex, "vertex")],
+                text=text, byte_order=">").write(str(tmp_path / name))
+    for path in (own, tmp_path / "be.ply", tmp_path / "a.ply"):
+        chunks = list(point_chunks(path, chunk=1000))
+        assert [len(c) for c in chunks] == [1000, 1000, 503]
+        assert all(c.dtype == np.float64 for c in chunks)
+        assert np.array_equal(np.vstack(chunks), read_ply(path)[0]), path.name
+    nan = pts.copy()
+    nan[[5, 2100]] = np.nan
+    write_ply(tmp_path / "nan.ply", nan)
+    with pytest.raises(RunError, match=r"nan\.ply .*2 of its 2503 points have non-finite"):
+        list(point_chunks(tmp_path / "nan.ply", chunk=1000))
+
+
 @needs_skull
 def test_open3d_ascii_double_reference_works_as_reconstruct_reference(tmp_path, capsys):
     """SLStudio's skull cloud (pointCloud.mat) written by open3d as an ASCII PLY of doubles:

@@ -94,19 +94,32 @@ def _load_surface(store: RunStore) -> TriangleSurface:
         f"surface. Run `dotshell mesh {store.root}` first, or scan with [mesh] after_scan = true."))
 
 
-def unscanned_nodes(store: RunStore, surface: TriangleSurface,
-                    max_distance_mm: float) -> np.ndarray:
+#: Cloud points searched at a time by :func:`unscanned_nodes` (a float64 copy and a k-d tree
+#: of ~50 MB), where the whole 8.3 M-point agar cloud as float64 and its tree took ~0.3 GB:
+#: the scan's peak after the capture (issue 33).
+CLOUD_CHUNK = 1 << 20
+
+
+def unscanned_nodes(store: RunStore, surface: TriangleSurface, max_distance_mm: float,
+                    chunk: int = CLOUD_CHUNK) -> np.ndarray:
     """Nodes farther than ``max_distance_mm`` from every point of the run's cloud: surface the
-    mesher made up (the closed bottom, filled holes), whose orientation is a guess."""
+    mesher made up (the closed bottom, filled holes), whose orientation is a guess. The cloud
+    is read and searched ``chunk`` points at a time (a node is scanned when any chunk has a
+    point within the distance: the same nodes as one search of the whole cloud)."""
     from scipy.spatial import cKDTree
 
-    from dotshell.run.ply import read_ply
+    from dotshell.run.ply import point_chunks
 
-    points, _ = read_ply(_required(
-        store, RunLayout.CLOUD, RunError, "the surface's nodes cannot be checked against the "
-        f"scanned points. Re-run `dotshell reconstruct {store.root}`."))
-    dist, _ = cKDTree(points).query(surface.vertices, distance_upper_bound=max_distance_mm)
-    return ~np.isfinite(dist)
+    unscanned = np.ones(len(surface.vertices), bool)
+    for part in point_chunks(_required(
+            store, RunLayout.CLOUD, RunError, "the surface's nodes cannot be checked against "
+            f"the scanned points. Re-run `dotshell reconstruct {store.root}`."), chunk):
+        todo = np.flatnonzero(unscanned)
+        if todo.size:
+            dist, _ = cKDTree(part).query(surface.vertices[todo],
+                                          distance_upper_bound=max_distance_mm)
+            unscanned[todo[np.isfinite(dist)]] = False
+    return unscanned
 
 
 def _load_calibration(store: RunStore) -> RigCalibration:

@@ -316,13 +316,28 @@ class SimWorld:
         ~0.3 GB (a scan's merge, validation and previews run after the rig is closed). Small
         ones (below :data:`~dotshell_sim.render.SMALL_VIEWS_BYTES`) stay for the next rig of
         the same geometry."""
-        try:
-            renderer = _RENDERERS.get(self._renderer_key())
-        except DeviceError:  # not a complete rig: no renderer was made
-            return
+        renderer = self._made_renderer()
         if renderer is not None:
             renderer.release(keep_below_bytes=SMALL_VIEWS_BYTES)
             transillum.release_laser_views(renderer, keep_below_bytes=SMALL_VIEWS_BYTES)
+
+    def release_laser_views(self) -> None:
+        """Free the shared renderer's laser views when they are large: the laser was switched
+        off, and a scan turns on to another angle, whose laser view is made anew. At full
+        resolution the last angle's (~0.12 GB) stayed through the fringe views up to the next
+        trans-illumination angle, beside a view's capture and reconstruction (issue 33)."""
+        renderer = self._made_renderer()
+        if renderer is not None:
+            transillum.release_laser_views(renderer, keep_below_bytes=SMALL_VIEWS_BYTES)
+
+    def _made_renderer(self) -> Renderer | None:
+        """The renderer of this world's geometry if one was made, else None."""
+        if self.camera is None:
+            return None
+        try:
+            return _RENDERERS.get(self._renderer_key())
+        except DeviceError:  # not a complete rig: no renderer was made
+            return None
 
 
 #: Renderers shared across worlds, by geometry (a full-resolution renderer with its cached
@@ -871,6 +886,8 @@ class SimLaser(_Device):
     def set(self, on: bool) -> None:
         self._check("switch the laser")
         self.on = bool(on)  # what it shines through is checked by aim() and at capture
+        if not self.on:
+            self.world.release_laser_views()
 
     def aim(self, target_mm: tuple[float, float]) -> None:
         self._check("aim the laser")

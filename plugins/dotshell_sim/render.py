@@ -349,6 +349,17 @@ class Renderer:
             self._rays = rays
         return self._rays
 
+    def sample_rays(self, k: np.ndarray) -> np.ndarray:
+        """Unit camera rays (len(k), 3) of the sub-samples ``k`` (flat indices of the
+        supersampled grid): the rows ``k`` of :meth:`camera_rays`, made for these samples
+        alone when the rays are not kept (the same numbers: each ray is undistorted on its
+        own). A full-resolution laser view so needs its chunk's rays, not all 120 MiB."""
+        if self._rays is not None:
+            return self._rays[k]
+        row, col = np.divmod(np.asarray(k), self.calib.camera.width * self.ss)
+        return self.calib.camera.rays(np.column_stack([(col + 0.5) / self.ss - 0.5,
+                                                       (row + 0.5) / self.ss - 0.5]))
+
     def view(self, angle_deg: float) -> View:
         """Per-view precompute on the supersampled grid, cached by stage angle."""
         key = round(float(angle_deg), 9)

@@ -184,8 +184,12 @@ class SubsurfaceView:
             rc = (np.asarray(receiver_points, float).reshape(-1, 3) - lo) / vox
             corner = np.clip(np.floor(rc).astype(np.int64), 0, np.array(shape) - 2)
             frac = (rc - corner).T.astype(np.float32)
+            # int32 voxel indices where the grid allows: 4 bytes less per receiver and
+            # component, ~14 MB of a full-resolution agar view (issue 33), the same voxels
+            index = np.int32 if math.prod(shape) < np.iinfo(np.int32).max else np.int64
             self.components.append(_Component(float(sigma), float(weight), vox, shape, lin,
-                                              np.ravel_multi_index(corner.T, shape), frac))
+                                              np.ravel_multi_index(corner.T, shape).astype(index),
+                                              frac))
         self._exitances: OrderedDict[bytes, np.ndarray] = OrderedDict()
 
     def exitance(self, radiance: np.ndarray) -> np.ndarray:

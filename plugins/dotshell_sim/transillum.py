@@ -368,22 +368,21 @@ def laser_view(renderer: Renderer, view: View, shape, model: FluenceModel) -> La
     k = np.flatnonzero(view.material.ravel() == shape.material)
     o_s = renderer.calib.camera_to_sample(np.zeros((1, 3)), view.angle_deg)[0]
     M = renderer.calib.sample_rotation(view.angle_deg)
-    rays = renderer.camera_rays()
-    parts = [_laser_samples(k[s:s + LASER_CHUNK], rays, o_s, M, view.ss, cam.width, shape,
-                            model) for s in range(0, len(k), LASER_CHUNK)] or [
-        _laser_samples(k, rays, o_s, M, view.ss, cam.width, shape, model)]
-    del rays
-    renderer.forget_large_rays()
+    parts = [_laser_samples(k[s:s + LASER_CHUNK], renderer, o_s, M, view.ss, cam.width,
+                            shape, model) for s in range(0, len(k), LASER_CHUNK)] or [
+        _laser_samples(k, renderer, o_s, M, view.ss, cam.width, shape, model)]
     pixel, nodes, weights, base = (np.concatenate(p) for p in zip(*parts))
     return LaserView(pixel, nodes, weights, base, (cam.height, cam.width))
 
 
-def _laser_samples(k: np.ndarray, rays: np.ndarray, o_s: np.ndarray, M: np.ndarray, ss: int,
-                   width: int, shape, model: FluenceModel
+def _laser_samples(k: np.ndarray, renderer: Renderer, o_s: np.ndarray, M: np.ndarray,
+                   ss: int, width: int, shape, model: FluenceModel
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`laser_view`'s (pixel, nodes, weights, base) of the sub-samples ``k`` (flat
-    indices on the supersampled grid) that hit the true surface."""
-    d_c = rays[k]
+    indices on the supersampled grid) that hit the true surface; their rays are made for
+    them (:meth:`Renderer.sample_rays`: the whole image's 120 MiB of float64 rays were made
+    again for each full-resolution laser view, issue 33)."""
+    d_c = renderer.sample_rays(k)
     d_s = d_c @ M
     t, normals = shape.intersect(np.broadcast_to(o_s, d_s.shape), d_s)
     ok = np.isfinite(t)
@@ -399,8 +398,15 @@ def _laser_samples(k: np.ndarray, rays: np.ndarray, o_s: np.ndarray, M: np.ndarr
 
 
 def emission_image(lv: LaserView, phi: np.ndarray) -> np.ndarray:
-    """Relative image irradiance (H, W) float32 for unit beam power and node fluence ``phi``."""
-    phi_k = np.einsum("ij,ij->i", phi[lv.nodes].astype(np.float32), lv.weights)
+    """Relative image irradiance (H, W) float32 for unit beam power and node fluence ``phi``.
+    The fluence at the sub-samples is made :data:`LASER_CHUNK` at a time from float32 node
+    values (the same numbers: each sample's three corners cast, then weighted): all at once,
+    through float64, took ~0.1 GB for a full-resolution agar view (issue 33)."""
+    phi32 = np.asarray(phi).astype(np.float32)
+    phi_k = np.empty(len(lv.pixel), np.float32)
+    for s in range(0, len(phi_k), LASER_CHUNK):
+        np.einsum("ij,ij->i", phi32[lv.nodes[s:s + LASER_CHUNK]], lv.weights[s:s + LASER_CHUNK],
+                  out=phi_k[s:s + LASER_CHUNK])
     img = np.bincount(lv.pixel, phi_k * lv.base, lv.shape[0] * lv.shape[1])
     return img.reshape(lv.shape).astype(np.float32)
 
