@@ -41,7 +41,7 @@ def assert_same(new: Correspondence, old: Correspondence) -> None:
 
 def both(cls_new, cls_old, frames, proj=PROJ, **settings):
     # the frozen decoder has no adaptive classification (robust plus rescued pixels, tested in
-    # tests/test_decode_adaptive.py; the gray code's default now): its default, robust, is asked
+    # tests/test_decode_adaptive.py): robust, the default, is asked
     settings.setdefault("classification", "robust")
     for subpixel in (False, True):
         new = cls_new(subpixel=subpixel, **settings).decode(frames, proj)

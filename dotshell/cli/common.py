@@ -102,21 +102,12 @@ class ScanProgress:
         if losses:
             line += "; " + ", ".join(losses)
         print_as_is(self.console, line)
+        from dotshell.pipeline.reconstruct import note_text
+
         for key, pct in notes:
             if key not in self.noted:
                 self.noted.add(key)
                 print_as_is(self.console, f"    {note_text(key, pct)}")
-
-
-def note_text(key: str, pct: float) -> str:
-    """One note of :func:`dotshell.pipeline.decode_quality.view_notes`: the loss or the
-    reversals with their share, what they mean and what would fix them."""
-    from dotshell.pipeline.decode_quality import WRONG_CODES
-    from dotshell.pipeline.reconstruct import LOSSES
-
-    if key == "reversals":
-        return f"neighbour reversals ({pct:.2f} % of the decoded pixels): {WRONG_CODES}"
-    return f"{key.replace('_', ' ')} ({pct:.1f} %): {LOSSES[key]}"
 
 
 def print_as_is(console: Console, text: str) -> None:

@@ -8,7 +8,7 @@ from typing import Any
 
 from rich.console import Console
 
-from dotshell.cli.common import note_text, print_as_is
+from dotshell.cli.common import print_as_is
 # a loss of at least NOTE_SHARE_PCT of the pixels (%) gets its meaning and fix printed (the
 # share a scanned view's notes use), reversals from NOTE_REVERSALS_PCT of the decoded pixels
 from dotshell.pipeline.decode_quality import NOTE_REVERSALS_PCT, NOTE_SHARE_PCT
@@ -57,14 +57,14 @@ def loss_notes(counts: dict[str, Any], quality: dict[str, Any] | None = None) ->
     """What each large loss means and what would fix it (one line each; row rejections at any
     share, since each is a code the calibration contradicts), and what many neighbour
     reversals in ``quality`` mean (:func:`dotshell.pipeline.decode_quality.view_quality`)."""
-    from dotshell.pipeline.reconstruct import LOSSES
+    from dotshell.pipeline.reconstruct import LOSSES, note_text
 
     total = max(int(counts.get("pixels", 0)), 1)
     out = []
     for key in LOSS_ORDER:
         share = 100 * int(counts.get(key) or 0) / total
         if key in LOSSES and (share >= NOTE_SHARE_PCT or (key == "row_rejected" and share > 0)):
-            out.append(f"{key.replace('_', ' ')} ({share:.1f} %): {LOSSES[key]}")
+            out.append(note_text(key, share))
     pct = (quality or {}).get("reversals_pct", 0.0)
     if pct >= NOTE_REVERSALS_PCT:
         out.append(note_text("reversals", pct))

@@ -14,7 +14,7 @@ from dotshell.coding import Correspondence, PatternCoding
 from dotshell.errors import CalibrationError, ReconstructionError
 from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.triangulate import ImageSolve, select, solve_image
-from dotshell.pipeline.decode_quality import view_quality
+from dotshell.pipeline.decode_quality import WRONG_CODES, view_quality
 from dotshell.runtime.parallel import bands, split, split_bands
 
 numba_cache.install()  # cache files safe for processes compiling at once
@@ -298,11 +298,11 @@ LOSSES: dict[str, str] = {
     "low_contrast": "pattern and inverse differ by less than min_contrast: check focus, the "
                     "layout's order and inverse, and the decoder's min_contrast",
     "uncertain": "the robust classification could not decide a bit (direct light too weak "
-                 "against the global light or the noise) and the adaptive rescue did not "
-                 "take the pixel: check focus and exposure, the layout's order and inverse; "
-                 "where \"robust\" is set, decode with classification = \"adaptive\" (the "
-                 "gray code's default: robust, plus the pixels whose bits clear the camera "
-                 "noise and the global light) or, on captures without global light, "
+                 "against the global light or the noise) and no adaptive rescue took the "
+                 "pixel: check focus and exposure, the layout's order and inverse; under "
+                 "\"robust\" (the default), decode with classification = \"adaptive\" "
+                 "(robust, plus the pixels whose bits clear the camera noise and the global "
+                 "light) or, on captures without global light, "
                  "\"contrast\" — in the layout's [decoder] or the profile's [coding.settings]",
     "out_of_range": "the decoded code lies outside the projector: check projector_width / "
                     "projector_height, centred and the polarity (bright_is_one) of the layout",
@@ -312,6 +312,15 @@ LOSSES: dict[str, str] = {
     "outside_roi": "points outside [processing.roi]",
     "speckle": "isolated depths removed by the speckle filter (max_depth_jump_mm)",
 }
+
+
+def note_text(key: str, pct: float) -> str:
+    """One note of :func:`dotshell.pipeline.decode_quality.view_notes`: the loss (``pct`` % of
+    the image, :data:`LOSSES`) or the reversals (``pct`` % of the decoded pixels), what it
+    means and what would fix it."""
+    if key == "reversals":
+        return f"neighbour reversals ({pct:.2f} % of the decoded pixels): {WRONG_CODES}"
+    return f"{key.replace('_', ' ')} ({pct:.1f} %): {LOSSES[key]}"
 
 
 def baseline_direction(calib: RigCalibration) -> str:

@@ -41,7 +41,6 @@ from dotshell.run.layout import RunLayout
 from dotshell.run.ply import map_ply, ply_buffer, point_count, read_ply, write_ply
 from dotshell.profile.loader import Profile
 from dotshell.run.store import RunStore, atomic_write_bytes, atomic_write_text, dumps
-
 from dotshell.pipeline.decode_quality import quality_fields
 
 if TYPE_CHECKING:
@@ -170,7 +169,6 @@ def reconstruct_one_view(store: RunStore, view: int, angle_deg: float, profile: 
     patterns, first_frame = images
     vc = reconstruct_view(view, angle_deg, patterns, coding, calib, profile.processing)
     return store_view(store, vc, first_frame, profile, calib, bus)
-
 
 
 def pattern_images(store: RunStore, frames: Sequence[np.ndarray] | np.ndarray) -> PatternImages:
