@@ -299,3 +299,69 @@ def test_the_mesh_process_imports_no_web_drawing_nor_scipy(small_scan, mesh_pm):
         mesh_process.discard_early()
     assert tets > 1000 and {"open3d", "pyacvd", "tetgen"} <= set(modules)
     assert not {"dash", "plotly", "scipy", "numba"} & set(modules)
+
+
+class _SaysAtTeardown:
+    """Writes ``path`` when the interpreter tears its module globals down."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __del__(self) -> None:
+        Path(self.path).write_text("torn down")
+
+
+def child_keeps_an_object_till_exit(marker: str) -> int:
+    import sys
+
+    sys.modules["__main__"].kept = _SaysAtTeardown(marker)
+    print("the child's last words", file=sys.stderr)
+    return os.getpid()
+
+
+def test_the_process_ends_without_the_interpreters_teardown(tmp_path, caplog):
+    """The child writes its result and ends at once (the parent waits for its stderr to
+    close): the interpreter's teardown, which frees every module's objects (0.13 s of the demo's
+    mesh step), does not run; what it printed still reaches the parent's log."""
+    import logging
+
+    marker = tmp_path / "teardown"
+    with caplog.at_level(logging.DEBUG, logger="dotshell.pipeline.mesh_process"):
+        pid = run_in_child(child_keeps_an_object_till_exit, str(marker))
+    assert pid != os.getpid() and "the child's last words" in caplog.text
+    assert not marker.exists()
+
+
+HEAP_PROBE = """
+import resource, sys
+import numpy as np
+from dotshell.runtime.process import fix_mmap_threshold, heap_reused
+
+def faults_of_a_loop():
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(20):
+        a = np.ones(750_000)  # 6 MB, allocated, touched and freed
+        del a
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+assert fix_mmap_threshold(1 << 20)
+outside = faults_of_a_loop()
+with heap_reused():
+    inside = faults_of_a_loop()
+after = faults_of_a_loop()
+print(outside, inside, after)
+"""
+
+
+def test_a_loop_within_heap_reused_reuses_its_memory():
+    """With the command's 1 MiB mmap threshold every 6 MB array is new pages the kernel zeroes
+    on first touch (up to ~1500 page faults each); within heap_reused the loop's freed blocks are
+    given to its next allocations, and after it the threshold is the command's again."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", HEAP_PROBE], capture_output=True, text=True,
+                         check=True).stdout
+    outside, inside, after = map(int, out.split())
+    assert outside > 20 * 100 and after > outside / 2  # (transparent huge pages: fewer)
+    assert inside < outside / 5
