@@ -254,3 +254,8 @@ def test_a_cloud_naming_views_the_run_does_not_list_has_no_viewpoints():
             assert (centres.per_point(views) is None) == (not want)
     vp = centres.per_point(np.array([7, 0, 3], np.float32))
     np.testing.assert_array_equal(vp[0:3], [[9, 10, 11], [0, 1, 2], [6, 7, 8]])
+    # view indices too large for a table of them: each point's centre all the same
+    far = ViewCentres(np.array([-5, 3, 2_000_000]), np.arange(9.0).reshape(3, 3))
+    vp = far.per_point(np.array([2_000_000, -5, 3, 3], np.float64))
+    np.testing.assert_array_equal(vp[1:4], [[0, 1, 2], [3, 4, 5], [3, 4, 5]])
+    np.testing.assert_array_equal(vp[0:1], [[6, 7, 8]])

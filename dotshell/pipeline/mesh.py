@@ -57,12 +57,20 @@ class ViewpointsPerPoint:
         self._ids = view_ids
         self._keys = view_indices
         self._centres = centres_mm
+        # the centres by view index when the indices are small: np.take of a chunk's rows
+        # (250 k: 1.0 ms) instead of searchsorted and fancy indexing (3.7 ms), the same values
+        self._table: np.ndarray | None = None
+        if len(view_indices) and view_indices.min() >= 0 and view_indices.max() < 1 << 20:
+            self._table = np.zeros((int(view_indices.max()) + 1, 3), centres_mm.dtype)
+            self._table[view_indices] = centres_mm
 
     def __len__(self) -> int:
         return len(self._ids)
 
     def __getitem__(self, index: slice) -> np.ndarray:
         ids = np.asarray(self._ids[index]).astype(int)
+        if self._table is not None:
+            return np.take(self._table, ids, axis=0)
         return self._centres[np.searchsorted(self._keys, ids)]
 
 
