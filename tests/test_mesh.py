@@ -259,3 +259,21 @@ def test_a_cloud_naming_views_the_run_does_not_list_has_no_viewpoints():
     vp = far.per_point(np.array([2_000_000, -5, 3, 3], np.float64))
     np.testing.assert_array_equal(vp[1:4], [[0, 1, 2], [3, 4, 5], [3, 4, 5]])
     np.testing.assert_array_equal(vp[0:1], [[6, 7, 8]])
+
+
+def test_a_mesh_file_that_cannot_be_written_fails_the_step(small_scan, tmp_path, monkeypatch):
+    """The meshes are written in a thread while the previews are drawn: a write that fails
+    (here a full disk at volume.vtu) fails the step as before, and the run keeps no volume."""
+    import errno
+
+    import dotshell.pipeline.mesh as mesh_module
+    from dotshell.pipeline.commands import mesh_run
+
+    def full_disk(path, mesh):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(mesh_module, "write_volume", full_disk)
+    run = copy_run(small_scan[0].run_dir, tmp_path / "run", mesh={"node_distance_mm": 2.0})
+    with pytest.raises((OSError, DotshellError), match="No space left on device"):
+        mesh_run(run, _pm())
+    assert not list(run.rglob("volume.vtu"))

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -191,11 +192,16 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
         bus.emit(StepStarted(step=f"mesh {d:g} mm"))
         surface, volume, entry = (run_in_child(mesh_cloud, job, d) if in_child
                                   else mesh_cloud(job, d))
-        write_meshes(target, surface, volume, job.optodes)
-        entry["dir"] = "." if target == store.root else str(target.relative_to(store.root))
-        _validate_volume(entry, profile)
-        if cfg.previews:
-            entry["previews"] = _previews(store, target, d, bus, surface, volume)
+        # the files written in a thread while the previews are drawn from the meshes in hand:
+        # zlib releases the GIL, and compressing volume.vtu was 0.14 s of the demo's 0.3 s
+        # after the mesh process
+        with ThreadPoolExecutor(1) as writer:
+            written = writer.submit(write_meshes, target, surface, volume, job.optodes)
+            entry["dir"] = "." if target == store.root else str(target.relative_to(store.root))
+            _validate_volume(entry, profile)
+            if cfg.previews:
+                entry["previews"] = _previews(store, target, d, bus, surface, volume)
+            written.result()
         del surface, volume
         out["meshes"].append(entry)
     return out
