@@ -367,3 +367,16 @@ def test_a_loop_within_heap_reused_reuses_its_memory():
     outside, inside, after = map(int, out.split())
     assert outside > 20 * 100 and after > outside / 2  # (transparent huge pages: fewer)
     assert inside < outside / 5
+
+
+def test_starting_the_mesh_process_waits_for_no_numpy():
+    """`dotshell mesh` starts the mesh process first thing: the module that starts it imports
+    no numpy first (0.1 s of the process's head start on the command's own start-up)."""
+    import subprocess
+    import sys
+
+    probe = ("import sys; import dotshell.pipeline.mesh_process as m; "
+             "print('numpy' in sys.modules, callable(m.start_early))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["False", "True"]

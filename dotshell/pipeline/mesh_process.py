@@ -32,8 +32,6 @@ import traceback
 from collections.abc import Callable
 from typing import Any
 
-from dotshell.fem.meshes import MeshError
-
 log = logging.getLogger(__name__)
 
 
@@ -53,6 +51,8 @@ class MeshProcess:
     ``warm_up`` at once and then waits for one job (:meth:`run`)."""
 
     def __init__(self, warm_up: tuple[str, ...] = ()) -> None:
+        # (this module imports no numpy: `dotshell mesh` starts the process first thing, and
+        # importing numpy before it took 0.1 s off the process's head start)
         self.proc = subprocess.Popen([sys.executable, "-m", __name__], stdin=subprocess.PIPE,
                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE)
         assert self.proc.stdin is not None
@@ -74,6 +74,8 @@ class MeshProcess:
         try:
             ok, value = pickle.loads(out)
         except Exception:
+            from dotshell.fem.meshes import MeshError
+
             tail = "\n".join(text.splitlines()[-5:])
             raise MeshError(f"the mesh process ended without a result ({_ending(proc.returncode)})"
                             ": the system may have stopped it for lack of memory, or a mesher "
