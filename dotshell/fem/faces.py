@@ -21,16 +21,21 @@ def boundary_faces_by_sorting(tets: np.ndarray) -> np.ndarray:
         return np.empty((0, 3), np.int64)
     faces = np.sort(tets[:, TET_FACES], axis=2).reshape(-1, 3)  # (4 M, 3), tet by tet
     n = int(tets.max()) + 1
-    if n < 2_000_000:  # n³ fits an int64: one key per face
-        order = np.argsort((faces[:, 0] * n + faces[:, 1]) * n + faces[:, 2], kind="stable")
+    if n < 2_000_000:  # n³ fits an int64: one key per face, equal keys for equal faces
+        keys = (faces[:, 0] * n + faces[:, 1]) * n + faces[:, 2]
+        # the order among equal faces does not matter (both are marked shared): numpy's
+        # default sort, 27 ms with the keys compared against 40 ms stable with the rows
+        order = np.argsort(keys)
+        k = keys[order]
+        same = k[1:] == k[:-1]  # a face equal to its neighbour in sorted order
     else:
         order = np.lexsort((faces[:, 2], faces[:, 1], faces[:, 0]))
-    s = faces[order]
-    same = (s[1:] == s[:-1]).all(axis=1)  # a face equal to its neighbour in sorted order
-    shared = np.zeros(len(s), bool)
+        s = faces[order]
+        same = (s[1:] == s[:-1]).all(axis=1)
+    shared = np.zeros(len(order), bool)
     shared[1:] |= same
     shared[:-1] |= same
-    unshared = np.empty(len(s), bool)
+    unshared = np.empty(len(order), bool)
     unshared[order] = ~shared
     t, f = np.nonzero(unshared.reshape(-1, 4))
     return tets[t[:, None], TET_FACES[f]]
