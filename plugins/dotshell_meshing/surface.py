@@ -182,7 +182,7 @@ def _thinned_cloud(o3d, points_mm: np.ndarray, viewpoints_mm: np.ndarray | None,
             if views is not None:
                 pcd.normals = o3d.utility.Vector3dVector(views)
             parts.append(pcd.voxel_down_sample(voxel_mm) if n > 200_000 else pcd)
-        del pts, views, pcd
+        pts = views = pcd = None  # the last chunk's arrays go before the heap is trimmed
     if len(parts) <= 1:
         return parts[0] if parts else o3d.geometry.PointCloud()
     out = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(
