@@ -277,3 +277,16 @@ def test_a_mesh_file_that_cannot_be_written_fails_the_step(small_scan, tmp_path,
     with pytest.raises((OSError, DotshellError), match="No space left on device"):
         mesh_run(run, _pm())
     assert not list(run.rglob("volume.vtu"))
+
+
+def test_the_thinning_of_an_empty_or_small_cloud():
+    """The chunked thinning (within runtime.process.heap_reused) of no points is no points; a
+    cloud under the chunked size is kept as it is, with its viewpoints as normals."""
+    from dotshell.runtime.compat import import_open3d
+    from dotshell_meshing.surface import _thinned_cloud
+
+    o3d = import_open3d()
+    assert len(_thinned_cloud(o3d, np.zeros((0, 3), np.float32), None, 0.1).points) == 0
+    pts = np.random.default_rng(2).uniform(0, 10, (1000, 3)).astype(np.float32)
+    cloud = _thinned_cloud(o3d, pts, np.tile([0.0, 0.0, 50.0], (1000, 1)), 0.1)
+    assert len(cloud.points) == 1000 and np.allclose(np.asarray(cloud.normals)[:, 2], 50.0)
