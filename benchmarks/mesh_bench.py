@@ -17,7 +17,7 @@ and the peak RSS of the process tree (``os.wait4``: the command and the mesh pro
 starts), and the mesh's accuracy — volume error against the true cylinder, median radius of
 the side's surface nodes against the true radius, Joe–Liu minimum, smallest dihedral angle.
 
-    python benchmarks/mesh_bench.py [--run RUN] [--repeats 2] [--before REF]
+    python benchmarks/mesh_bench.py [--run RUN] [--repeats 2] [--before REF] [--metal-only]
 """
 
 from __future__ import annotations
@@ -146,6 +146,13 @@ def accuracy(run: Path) -> dict[str, Any]:
             "nodes": entry["volume"]["nodes"], "timings_s": entry["timings_s"]}
 
 
+def spread(runs: list[dict[str, Any]], key: str) -> str:
+    """Median [min-max] of ``key`` over ``runs`` (on a shared host the best alone hides the
+    load's noise)."""
+    values = [r[key] for r in runs]
+    return f"{np.median(values):.2f} [{min(values):.2f}-{max(values):.2f}]"
+
+
 def summary(runs: list[dict[str, Any]]) -> str:
     best = min(runs, key=lambda r: r["cpu_s"])
     return (f"wall {min(r['wall_s'] for r in runs):5.1f} s, CPU {best['cpu_s']:5.1f} s, peak "
@@ -161,12 +168,17 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--before", default=BEFORE_REF, help="git ref of the peer")
     ap.add_argument("--json", type=Path, help="write the figures here")
+    ap.add_argument("--metal-only", action="store_true",
+                    help="the metal cylinder run alone (issue 32's demo run), not the agar-like "
+                         "cloud")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="dotshell-mesh-bench-") as tmp:
         work = Path(tmp)
         before = export_tree(args.before, work / "before")
         metal = args.run or scan_metal(work / "scan")
-        clouds = {"metal cylinder": metal, "agar-like": agar_like_run(metal, work / "agar")}
+        clouds = {"metal cylinder": metal}
+        if not args.metal_only:
+            clouds["agar-like"] = agar_like_run(metal, work / "agar")
         results: dict[str, dict[str, list]] = {}
         for name, run in clouds.items():
             results[name] = {"before": [], "after": []}
@@ -178,6 +190,10 @@ def main() -> None:
               f"best of {args.repeats} ==")
         for name, r in results.items():
             print(f"{name}\n  before {summary(r['before'])}\n  after  {summary(r['after'])}")
+            for side in ("before", "after"):
+                print(f"  {side:6s} median [range] of {len(r[side])}: wall "
+                      f"{spread(r[side], 'wall_s')} s, CPU {spread(r[side], 'cpu_s')} s, load "
+                      f"{spread(r[side], 'load')}")
             b, a = (min(x[k] for x in r[s]) for s in ("before", "after") for k in ("cpu_s",))
             pb = min(x["peak_rss_mib"] for x in r["before"])
             pa = min(x["peak_rss_mib"] for x in r["after"])

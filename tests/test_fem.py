@@ -159,6 +159,43 @@ def test_assembly_matches_coo_construction_on_the_sphere(sphere_mesh):
     assert_same_system(sphere_mesh[0])
 
 
+def test_boundary_slivers_peeled_are_those_the_definition_names():
+    """peel_boundary_slivers drops, round by round, the elements with two or more faces no
+    other element shares and a Joe–Liu quality below the bound: against a plain count of each
+    face's elements, on a cube grid with every node moved at random (its corners and edges
+    have such elements; the higher bounds peel more of them, round after round)."""
+    from collections import Counter
+
+    from dotshell.fem.faces import TET_FACES, unshared_faces
+    from dotshell_meshing.volume import peel_boundary_slivers
+
+    mesh = cube_grid(4)
+    nodes = mesh.nodes + np.random.default_rng(3).normal(0.0, 0.12, mesh.nodes.shape)
+    tets = mesh.tets
+
+    def alone_faces(tets):
+        faces = [tuple(sorted(f)) for t in tets.tolist() for f in np.array(t)[TET_FACES]]
+        count = Counter(faces)
+        return np.array([count[f] == 1 for f in faces]).reshape(-1, 4)
+
+    def reference(tets, bound):
+        for _ in range(5):
+            drop = (alone_faces(tets).sum(axis=1) >= 2) & (joe_liu_quality(nodes, tets) < bound)
+            if not drop.any():
+                break
+            tets = tets[~drop]
+        return tets
+
+    sizes = set()
+    for bound in (0.05, 0.6, 0.7, 0.8, 1.01):
+        got = peel_boundary_slivers(nodes, tets, bound)
+        assert np.array_equal(got, reference(tets, bound)), bound
+        sizes.add(len(got))
+    assert len(sizes) >= 3 and min(sizes) < len(tets) - 50  # some bounds peel, over rounds
+    assert np.array_equal(unshared_faces(tets), alone_faces(tets))
+    assert np.array_equal(unshared_faces(tets + 2_000_000), alone_faces(tets))  # lexsort branch
+
+
 def test_sphere_mesh_quality(sphere_mesh):
     mesh, surf = sphere_mesh
     q = quality_report(mesh, surf)

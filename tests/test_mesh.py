@@ -254,3 +254,39 @@ def test_a_cloud_naming_views_the_run_does_not_list_has_no_viewpoints():
             assert (centres.per_point(views) is None) == (not want)
     vp = centres.per_point(np.array([7, 0, 3], np.float32))
     np.testing.assert_array_equal(vp[0:3], [[9, 10, 11], [0, 1, 2], [6, 7, 8]])
+    # view indices too large for a table of them: each point's centre all the same
+    far = ViewCentres(np.array([-5, 3, 2_000_000]), np.arange(9.0).reshape(3, 3))
+    vp = far.per_point(np.array([2_000_000, -5, 3, 3], np.float64))
+    np.testing.assert_array_equal(vp[1:4], [[0, 1, 2], [3, 4, 5], [3, 4, 5]])
+    np.testing.assert_array_equal(vp[0:1], [[6, 7, 8]])
+
+
+def test_a_mesh_file_that_cannot_be_written_fails_the_step(small_scan, tmp_path, monkeypatch):
+    """The meshes are written in a thread while the previews are drawn: a write that fails
+    (here a full disk at volume.vtu) fails the step as before, and the run keeps no volume."""
+    import errno
+
+    import dotshell.pipeline.mesh as mesh_module
+    from dotshell.pipeline.commands import mesh_run
+
+    def full_disk(path, mesh):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(mesh_module, "write_volume", full_disk)
+    run = copy_run(small_scan[0].run_dir, tmp_path / "run", mesh={"node_distance_mm": 2.0})
+    with pytest.raises((OSError, DotshellError), match="No space left on device"):
+        mesh_run(run, _pm())
+    assert not list(run.rglob("volume.vtu"))
+
+
+def test_the_thinning_of_an_empty_or_small_cloud():
+    """The chunked thinning (within runtime.process.heap_reused) of no points is no points; a
+    cloud under the chunked size is kept as it is, with its viewpoints as normals."""
+    from dotshell.runtime.compat import import_open3d
+    from dotshell_meshing.surface import _thinned_cloud
+
+    o3d = import_open3d()
+    assert len(_thinned_cloud(o3d, np.zeros((0, 3), np.float32), None, 0.1).points) == 0
+    pts = np.random.default_rng(2).uniform(0, 10, (1000, 3)).astype(np.float32)
+    cloud = _thinned_cloud(o3d, pts, np.tile([0.0, 0.0, 50.0], (1000, 1)), 0.1)
+    assert len(cloud.points) == 1000 and np.allclose(np.asarray(cloud.normals)[:, 2], 50.0)

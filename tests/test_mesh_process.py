@@ -275,13 +275,15 @@ def child_meshes_and_lists_modules(job, node_distance_mm: float) -> tuple[int, l
     from dotshell.pipeline.mesh import mesh_cloud
 
     _, volume, _ = mesh_cloud(job, node_distance_mm)
-    return len(volume.tets), sorted({m.split(".")[0] for m in sys.modules})
+    return len(volume.tets), sorted({m.split(".")[0] for m, module in sys.modules.items()
+                                     if module is not None})
 
 
 def test_the_mesh_process_imports_no_web_drawing_nor_scipy(small_scan, mesh_pm):
     """A mesh process as `dotshell mesh` starts it (early, its warm-up list) meshes the run's
     cloud without importing open3d's plotly drawing (dash, plotly: ~0.3 s of CPU) or scipy
-    (the footprint's closing and hole filling: ~0.25 s), nor numba."""
+    (the footprint's closing and hole filling: ~0.25 s), nor numba, nor mypy (pyvista's
+    plugin for it, where mypy is installed: 0.04 s)."""
     from dotshell.pipeline import mesh_process
     from dotshell.pipeline.mesh import mesh_job
     from dotshell.pipeline.scan import load_run_profile
@@ -298,4 +300,83 @@ def test_the_mesh_process_imports_no_web_drawing_nor_scipy(small_scan, mesh_pm):
         store.close()
         mesh_process.discard_early()
     assert tets > 1000 and {"open3d", "pyacvd", "tetgen"} <= set(modules)
-    assert not {"dash", "plotly", "scipy", "numba"} & set(modules)
+    assert not {"dash", "plotly", "scipy", "numba", "mypy"} & set(modules)
+
+
+class _SaysAtTeardown:
+    """Writes ``path`` when the interpreter tears its module globals down."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def __del__(self) -> None:
+        Path(self.path).write_text("torn down")
+
+
+def child_keeps_an_object_till_exit(marker: str) -> int:
+    import sys
+
+    sys.modules["__main__"].kept = _SaysAtTeardown(marker)
+    print("the child's last words", file=sys.stderr)
+    return os.getpid()
+
+
+def test_the_process_ends_without_the_interpreters_teardown(tmp_path, caplog):
+    """The child writes its result and ends at once (the parent waits for its stderr to
+    close): the interpreter's teardown, which frees every module's objects (0.13 s of the demo's
+    mesh step), does not run; what it printed still reaches the parent's log."""
+    import logging
+
+    marker = tmp_path / "teardown"
+    with caplog.at_level(logging.DEBUG, logger="dotshell.pipeline.mesh_process"):
+        pid = run_in_child(child_keeps_an_object_till_exit, str(marker))
+    assert pid != os.getpid() and "the child's last words" in caplog.text
+    assert not marker.exists()
+
+
+HEAP_PROBE = """
+import resource, sys
+import numpy as np
+from dotshell.runtime.process import fix_mmap_threshold, heap_reused
+
+def faults_of_a_loop():
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(20):
+        a = np.ones(750_000)  # 6 MB, allocated, touched and freed
+        del a
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+assert fix_mmap_threshold(1 << 20)
+outside = faults_of_a_loop()
+with heap_reused():
+    inside = faults_of_a_loop()
+after = faults_of_a_loop()
+print(outside, inside, after)
+"""
+
+
+def test_a_loop_within_heap_reused_reuses_its_memory():
+    """With the command's 1 MiB mmap threshold every 6 MB array is new pages the kernel zeroes
+    on first touch (up to ~1500 page faults each); within heap_reused the loop's freed blocks are
+    given to its next allocations, and after it the threshold is the command's again."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", HEAP_PROBE], capture_output=True, text=True,
+                         check=True).stdout
+    outside, inside, after = map(int, out.split())
+    assert outside > 20 * 100 and after > outside / 2  # (transparent huge pages: fewer)
+    assert inside < outside / 5
+
+
+def test_starting_the_mesh_process_waits_for_no_numpy():
+    """`dotshell mesh` starts the mesh process first thing: the module that starts it imports
+    no numpy first (0.1 s of the process's head start on the command's own start-up)."""
+    import subprocess
+    import sys
+
+    probe = ("import sys; import dotshell.pipeline.mesh_process as m; "
+             "print('numpy' in sys.modules, callable(m.start_early))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         check=True).stdout.split()
+    assert out == ["False", "True"]

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -57,12 +58,20 @@ class ViewpointsPerPoint:
         self._ids = view_ids
         self._keys = view_indices
         self._centres = centres_mm
+        # the centres by view index when the indices are small: np.take of a chunk's rows
+        # (250 k: 1.0 ms) instead of searchsorted and fancy indexing (3.7 ms), the same values
+        self._table: np.ndarray | None = None
+        if len(view_indices) and view_indices.min() >= 0 and view_indices.max() < 1 << 20:
+            self._table = np.zeros((int(view_indices.max()) + 1, 3), centres_mm.dtype)
+            self._table[view_indices] = centres_mm
 
     def __len__(self) -> int:
         return len(self._ids)
 
     def __getitem__(self, index: slice) -> np.ndarray:
         ids = np.asarray(self._ids[index]).astype(int)
+        if self._table is not None:
+            return np.take(self._table, ids, axis=0)
         return self._centres[np.searchsorted(self._keys, ids)]
 
 
@@ -183,11 +192,16 @@ def mesh_stage(store: RunStore, profile: Profile, pm: PluginManager, bus: EventB
         bus.emit(StepStarted(step=f"mesh {d:g} mm"))
         surface, volume, entry = (run_in_child(mesh_cloud, job, d) if in_child
                                   else mesh_cloud(job, d))
-        write_meshes(target, surface, volume, job.optodes)
-        entry["dir"] = "." if target == store.root else str(target.relative_to(store.root))
-        _validate_volume(entry, profile)
-        if cfg.previews:
-            entry["previews"] = _previews(store, target, d, bus, surface, volume)
+        # the files written in a thread while the previews are drawn from the meshes in hand:
+        # zlib releases the GIL, and compressing volume.vtu was 0.14 s of the demo's 0.3 s
+        # after the mesh process
+        with ThreadPoolExecutor(1) as writer:
+            written = writer.submit(write_meshes, target, surface, volume, job.optodes)
+            entry["dir"] = "." if target == store.root else str(target.relative_to(store.root))
+            _validate_volume(entry, profile)
+            if cfg.previews:
+                entry["previews"] = _previews(store, target, d, bus, surface, volume)
+            written.result()
         del surface, volume
         out["meshes"].append(entry)
     return out
