@@ -261,7 +261,7 @@ def select(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
 KEPT, DROPPED, ROW_REJECTED, GRAZING = 0, 1, 2, 3
 #: bands of rows per core in :func:`solve_image`, taken by the cores one at a time: the core
 #: that finishes its last band first waits for the other, ~half a band on average (with 2 a
-#: core, ~1.6 ms of a full view's ~13 ms of CPU); a band costs a few short buffers
+#: core, ~1.7 ms of a full view's ~13.5 ms of CPU); a band costs a few short buffers
 SOLVE_BANDS_PER_WORKER = 6
 _OPTS: dict = dict(nogil=True, cache=True, error_model="numpy")  # njit's keywords differ in type
 #: per-point helpers are inlined: a compiled call passing arrays pays reference counting
