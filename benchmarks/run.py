@@ -4,8 +4,9 @@
    (:mod:`frame_io`).
 2. ``reconstruct_view`` of one view (simulated reference bench, full resolution by default):
    decode and triangulate (BLAS on one thread, as the ``dotshell`` command runs it), with the
-   compiled passes split across every core and on one thread (``DOTSHELL_THREADS``),
-   interleaved.
+   compiled passes split across every core and on one thread (``DOTSHELL_THREADS``), and the
+   plain numpy integer decoder of the same frames (:mod:`numpy_gray`, issue 32's peer),
+   interleaved, with the CPU seconds of each.
 3. Decoders on the same frames, interleaved (:mod:`decoders`): dotshell's; the decoder before
    issue 16 part 2 (``graycode_before``, frozen), with a bit-for-bit comparison; OpenCV contrib's
    ``GrayCodePattern.getProjPixel`` on every lit pixel in raster order, in its own venv
@@ -52,6 +53,7 @@ import decoders
 import forward_bench
 import frame_io
 import issue32
+import numpy_gray
 from bench_profile import RESULTS, ROOT, load_bench_profile, run_child
 from dotshell.runtime import parallel
 from dotshell.runtime.process import configure_process
@@ -62,6 +64,7 @@ from dotshell.pipeline.reconstruct import reconstruct_view
 from dotshell.plugins import PluginManager, get_plugin_manager
 from dotshell.profile.loader import Profile
 from dotshell.rig.assembly import Rig
+from dotshell_codings.robust import full_scale
 
 BENCH_DIR = Path(__file__).resolve().parent
 CONTRIB_VENV = ROOT / ".venv-bench-contrib"
@@ -115,19 +118,33 @@ def render_view(profile: Profile, pm: PluginManager) -> RenderedView:
 def time_reconstruct(view: RenderedView, processing: dict[str, Any], repeats: int
                      ) -> dict[str, Any]:
     """Decode / triangulate seconds of ``reconstruct_view`` (min and median of ``repeats``),
-    the compiled passes split across every core and on one thread, alternated."""
+    the compiled passes split across every core and on one thread, and the plain numpy
+    integer decoder of the same frames (:mod:`numpy_gray`, issue 32's peer), interleaved in
+    turn; with the process's CPU seconds (every thread) of each."""
     cores = parallel.workers()
+    shadow_dn = view.coding.shadow_threshold * full_scale(
+        view.frames[view.names.index("white")], view.coding.bit_depth)
     # untimed first run: loads the compiled passes from numba's cache (or compiles them)
     reconstruct_view(0, view.angle_deg, view.frames, view.coding, view.calib, processing)
-    runs: dict[str, list[dict[str, float]]] = {"cores": [], "one": []}
+    runs: dict[str, list[dict[str, float]]] = {"cores": [], "one": [], "numpy": []}
+    keys = list(runs)
     for r in range(repeats):
-        for key in (("cores", "one") if r % 2 == 0 else ("one", "cores")):
-            with parallel.threads(cores if key == "cores" else 1):
-                vc = reconstruct_view(0, view.angle_deg, view.frames, view.coding,
-                                      view.calib, processing)
-            runs[key].append(vc.seconds)
-    out: dict[str, Any] = {}
+        for key in keys[r % len(keys):] + keys[:r % len(keys)]:
+            c0, t0 = time.process_time(), time.perf_counter()
+            if key == "numpy":
+                numpy_gray.decode(view.frames, view.names, view.projector_size, shadow_dn)
+                runs[key].append({"decode": time.perf_counter() - t0})
+            else:
+                with parallel.threads(cores if key == "cores" else 1):
+                    vc = reconstruct_view(0, view.angle_deg, view.frames, view.coding,
+                                          view.calib, processing)
+                runs[key].append(dict(vc.seconds))
+            runs[key][-1]["cpu"] = time.process_time() - c0
+    out: dict[str, Any] = {"numpy": frame_io.min_median([r["decode"] for r in runs["numpy"]])}
     for key, rs in runs.items():
+        out[f"cpu_{key}"] = frame_io.min_median([r["cpu"] for r in rs])
+        if key == "numpy":
+            continue
         for stage in ("decode", "triangulate"):
             out[f"{stage}_{key}"] = frame_io.min_median([r[stage] for r in rs])
         out[f"total_{key}"] = frame_io.min_median([r["decode"] + r["triangulate"] for r in rs])
@@ -146,6 +163,8 @@ def _vs(now_s: float, before_ms: float | None) -> str:
 
 #: issue 16: decode + triangulate of one full view, median, ms
 TOTAL_BOUND_MS = 100
+#: issue 32: the same, ms, and its ratio to the plain numpy integer decoder of the same frames
+ISSUE32_MS, ISSUE32_RATIO = 30, 1.1
 
 
 def print_reconstruct(d: dict[str, Any], baseline: dict[str, Any]) -> None:
@@ -160,9 +179,19 @@ def print_reconstruct(d: dict[str, Any], baseline: dict[str, Any]) -> None:
         print(f"  {stage:16s} {every['min'] * 1e3:12.1f} / {every['median'] * 1e3:9.1f}"
               f"   {one['min'] * 1e3:9.1f} / {one['median'] * 1e3:9.1f}"
               + _vs(every["median"], baseline.get(f"{stage}_ms")))
+    if "numpy" in d:
+        numpy_ms, cpu = d["numpy"]["median"] * 1e3, d["cpu_cores"]["median"] * 1e3
+        print(f"  {'numpy integer':16s} {d['numpy']['min'] * 1e3:12.1f} / {numpy_ms:9.1f}"
+              f"   (plain numpy decoder of the same frames, interleaved)")
+        print(f"  CPU of a view (every thread) {cpu:.1f} ms on {d['threads']} threads, "
+              f"{d['cpu_one']['median'] * 1e3:.1f} ms on 1; numpy decoder "
+              f"{d['cpu_numpy']['median'] * 1e3:.1f} ms")
     total = d["total_cores"]["median"] * 1e3
     print(f"  decode + triangulate median {total:.1f} ms: "
-          f"{'within' if total <= TOTAL_BOUND_MS else 'ABOVE'} issue 16's {TOTAL_BOUND_MS} ms")
+          f"{'within' if total <= TOTAL_BOUND_MS else 'ABOVE'} issue 16's {TOTAL_BOUND_MS} ms"
+          + (f", {'within' if total <= ISSUE32_MS else 'ABOVE'} issue 32's {ISSUE32_MS} ms; "
+             f"{total / numpy_ms:.2f}x the numpy decoder (issue 32: <= {ISSUE32_RATIO})"
+             if "numpy" in d else ""))
     print(f"  {d['decoded_px']} px decoded, {d['points']} points in the ROI")
 
 

@@ -86,3 +86,56 @@ def test_a_thread_that_finishes_early_takes_the_ranges_left():
         parallel.split_bands(work, bounds)
     assert (done == 1).all()
 
+
+
+def _joins(threads: int) -> tuple[list[int], list[int]]:
+    """split_bands_joined on ``threads`` threads: (the bounds, the joins in the order made);
+    each join asserts that the ranges up to it were done."""
+    with parallel.threads(threads):
+        bounds = parallel.bands(1200, per_worker=6)
+    finished = np.zeros(len(bounds) - 1, bool)
+    joined: list[int] = []
+    lock = threading.Lock()
+
+    def work(band: int, start: int, stop: int) -> None:
+        with lock:
+            finished[band] = True
+
+    def join(i: int) -> None:
+        with lock:
+            assert finished[:i + 1].all(), f"join {i} before its ranges were done"
+            joined.append(i)
+
+    with parallel.threads(threads):
+        parallel.split_bands_joined(work, bounds, join)
+    return bounds, joined
+
+
+def test_joins_run_in_order_once_the_ranges_up_to_each_are_done():
+    """split_bands_joined: join(i) once for every range i >= 1, in order, each only after
+    ranges 0 ... i; on one thread after all of them."""
+    for threads in (1, 2, 3):
+        bounds, joined = _joins(threads)
+        assert joined == list(range(1, len(bounds) - 1))
+
+
+def test_joins_do_not_wait_for_the_last_range():
+    """The last range waits here until join(1) has run: the other thread makes the joins that
+    are due as it finishes its ranges. Joined only after every range (as before), the wait
+    would time out."""
+    n = 8
+    joined = threading.Event()
+
+    def work(band: int, start: int, stop: int) -> None:
+        if band == n - 1:
+            assert joined.wait(timeout=20), "join(1) waited for the last range"
+
+    def join(i: int) -> None:
+        if i == 1:
+            joined.set()
+
+    with parallel.threads(2):
+        bounds = parallel.bands(800, per_worker=4)
+        assert len(bounds) == n + 1
+        parallel.split_bands_joined(work, bounds, join)
+    assert joined.is_set()

@@ -234,7 +234,7 @@ def solve_image(valid: np.ndarray, column: np.ndarray, row: np.ndarray | None,
     kept = np.empty(n, bool)
     image = hugepages.empty((h, w) if depth_image else (0, 0), np.float32)
     # rows cut by their decoded pixels (a row's solve costs ~1 pixel's per 50 px it scans)
-    bounds = balanced_bands(per_row + w / 50.0, per_worker=2)
+    bounds = balanced_bands(per_row + w / 50.0, per_worker=SOLVE_BANDS_PER_WORKER)
     counts = np.zeros((len(bounds) - 1, 4), np.int64)  # per band, by flag
     split_bands(_solve_image, bounds, valid, column, rows, row is not None, iterations, rays,
                 start, affine, *_Rig.of(calib, row_tolerance_px, min_ray_angle_deg).args(), pts,
@@ -259,6 +259,10 @@ def select(mask: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray, ...]:
 # ---- compiled solves ------------------------------------------------------------------------
 
 KEPT, DROPPED, ROW_REJECTED, GRAZING = 0, 1, 2, 3
+#: bands of rows per core in :func:`solve_image`, taken by the cores one at a time: the core
+#: that finishes its last band first waits for the other, ~half a band on average (with 2 a
+#: core, ~1.7 ms of a full view's ~13.5 ms of CPU); a band costs a few short buffers
+SOLVE_BANDS_PER_WORKER = 6
 _OPTS: dict = dict(nogil=True, cache=True, error_model="numpy")  # njit's keywords differ in type
 #: per-point helpers are inlined: a compiled call passing arrays pays reference counting
 _INNER: dict = dict(_OPTS, inline="always")
@@ -304,12 +308,13 @@ def _undistort_step(d, x0, y0, x, y):
 
 
 @numba.njit(**_INNER)
-def _ideal_batch(K, dist, u, v, n, xs, ys, last):
+def _ideal_batch(K, dist, u, v, n, xs, ys, last, x0s, y0s):
     """:func:`_ideal` of the first ``n`` pixels (u, v): :data:`FIRST_UNDISTORT_STEPS` steps
     for all of them in a loop without branches that the compiler vectorizes across pixels,
     then one step at a time for all while one of them still moves (at most
     :data:`BATCH_UNDISTORT_STEPS` in all), then iterated on to convergence where the last step
-    still moved (``last``: scratch)."""
+    still moved (``last``: scratch; ``x0s``, ``y0s``: scratch, each pixel's distorted
+    normalized coordinates, divided out once rather than at every later step)."""
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     for j in range(n):
         x0 = (u[j] - cx) / fx
@@ -322,6 +327,8 @@ def _ideal_batch(K, dist, u, v, n, xs, ys, last):
             x, y = nx, ny
         xs[j] = x
         ys[j] = y
+        x0s[j] = x0
+        y0s[j] = y0
         last[j] = step
     for _ in range(BATCH_UNDISTORT_STEPS - FIRST_UNDISTORT_STEPS):
         moving = 0
@@ -330,9 +337,7 @@ def _ideal_batch(K, dist, u, v, n, xs, ys, last):
         if moving == 0:
             break
         for j in range(n):
-            x0 = (u[j] - cx) / fx
-            y0 = (v[j] - cy) / fy
-            nx, ny = _undistort_step(dist, x0, y0, xs[j], ys[j])
+            nx, ny = _undistort_step(dist, x0s[j], y0s[j], xs[j], ys[j])
             last[j] = max(abs(nx - xs[j]), abs(ny - ys[j]))
             xs[j] = nx
             ys[j] = ny
@@ -533,6 +538,7 @@ def _solve_rows_both(valid, column, row, rays, start, affine, R, T, K, dist, tol
     W = valid.shape[1]
     u, v, xs, ys, last = np.empty(W), np.empty(W), np.empty(W), np.empty(W), np.empty(W)
     rx, ry, scale = np.empty(W), np.empty(W), np.empty(W)
+    x0s, y0s = np.empty(W), np.empty(W)
     flag = np.empty(W, np.int64)
     at = np.empty(W, np.int64)
     pose = _pose(R, T, K)
@@ -546,7 +552,7 @@ def _solve_rows_both(valid, column, row, rays, start, affine, R, T, K, dist, tol
                 v[n] = row[yy, xx]
                 rx[n], ry[n] = rays[yy, xx, 0], rays[yy, xx, 1]
                 n += 1
-        _ideal_batch(K, dist, u, v, n, xs, ys, last)
+        _ideal_batch(K, dist, u, v, n, xs, ys, last, x0s, y0s)
         i0 = start[yy]
         n_kept = n_row = n_grazing = 0
         # the solves alone in one loop (it vectorizes: ~2x faster than with the stores in it)

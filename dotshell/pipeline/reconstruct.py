@@ -19,6 +19,10 @@ from dotshell.runtime.parallel import bands, split, split_bands
 
 numba_cache.install()  # cache files safe for processes compiling at once
 
+#: bands of points per core in the keep pass and its gather (taken by the cores one at a time;
+#: the core that finishes first waits ~half a band for the other)
+KEEP_BANDS_PER_WORKER = 6
+
 
 @dataclass
 class ViewCloud:
@@ -114,7 +118,7 @@ def _keep(sol: ImageSolve, shape: tuple[int, int], max_jump_mm: float, roi: Mapp
         img = sol.depth_image if sol.depth_image is not None else depth_image(pixels, depth,
                                                                               kept, shape)
     keep = np.empty(len(depth), bool)
-    bounds = bands(len(depth), min_chunk=1 << 14, per_worker=2)
+    bounds = bands(len(depth), min_chunk=1 << 14, per_worker=KEEP_BANDS_PER_WORKER)
     counts = np.zeros((len(bounds) - 1, 3), np.int64)
     split_bands(_keep_points, bounds, kept, pixels, depth,
                 np.ascontiguousarray(sol.points, np.float64), float(roi["radius_mm"]),

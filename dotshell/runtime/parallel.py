@@ -114,20 +114,34 @@ def split_bands(kernel: Callable[..., Any], bounds: list[int], *args: Any) -> No
     _run(kernel, bounds, args, True)
 
 
-def _run(kernel: Callable[..., Any], bounds: list[int], args: tuple, numbered: bool) -> None:
+def split_bands_joined(kernel: Callable[..., Any], bounds: list[int], join: Callable[[int], Any],
+                       *args: Any) -> None:
+    """:func:`split_bands`, then ``join(i)`` for every range i ≥ 1 in order, each as soon as
+    ranges 0 … i are done (by the thread that finished the last of them, while the other
+    threads go on with later ranges; what is left when the last range is done, after it).
+    For kernels whose ranges are joined in order afterwards (a scan that crosses the ranges'
+    borders): the joins need not wait for the last range. ``join(i)`` may only touch what
+    ranges 0 … i wrote (ranges after i run beside it)."""
+    _run(kernel, bounds, args, True, join)
+
+
+def _run(kernel: Callable[..., Any], bounds: list[int], args: tuple, numbered: bool,
+         join: Callable[[int], Any] | None = None) -> None:
     """The ranges of ``bounds`` on at most :func:`workers` threads (the caller's and the
     pool's), each thread taking the next range not yet taken until none is left: with more
     ranges than threads, a thread that finishes early (less work in its rows, or a core less
-    busy) takes over the rest."""
+    busy) takes over the rest. ``join``: see :func:`split_bands_joined`."""
     def call(i: int) -> Any:
         extra = (i, bounds[i], bounds[i + 1]) if numbered else (bounds[i], bounds[i + 1])
         return kernel(*args, *extra)
 
     n = len(bounds) - 1
+    joins = _Joins(n, join)
     threads = min(n, workers(), (os.cpu_count() or 1))
     if threads <= 1:
         for i in range(n):
             call(i)
+        joins.finish()
         return
     ranges = iter(range(n))
     lock = threading.Lock()
@@ -139,6 +153,7 @@ def _run(kernel: Callable[..., Any], bounds: list[int], args: tuple, numbered: b
             if i is None:
                 return
             call(i)
+            joins.done(i)
 
     futures = [_pool().submit(drain) for _ in range(threads - 1)]
     try:
@@ -146,3 +161,47 @@ def _run(kernel: Callable[..., Any], bounds: list[int], args: tuple, numbered: b
     finally:
         for f in futures:
             f.result()
+    joins.finish()
+
+
+class _Joins:
+    """The joins of :func:`split_bands_joined`: ``join(i)`` once ranges 0 … i are done, in
+    order, one thread at a time (a thread that finds another joining goes back to its
+    ranges; the last joins are made by :meth:`finish`)."""
+
+    def __init__(self, n: int, join: Callable[[int], Any] | None) -> None:
+        self.join, self.n = join, n
+        self.finished = [False] * n
+        self.next = 1  # the next range to join
+        self.lock = threading.Lock()  # finished and next
+        self.joining = threading.Lock()  # held by the thread making joins
+
+    def done(self, i: int) -> None:
+        """Range i is done: make the joins that are due, unless another thread is."""
+        if self.join is None:
+            return
+        with self.lock:
+            self.finished[i] = True
+        if self.joining.acquire(blocking=False):
+            try:
+                self._due()
+            finally:
+                self.joining.release()
+
+    def _due(self) -> None:
+        while True:
+            with self.lock:
+                i = self.next
+                if i >= self.n or not all(self.finished[:i + 1]):
+                    return
+                self.next = i + 1
+            self.join(i)
+
+    def finish(self) -> None:
+        """Every range is done: the joins not made yet, in order."""
+        if self.join is None:
+            return
+        with self.joining:
+            with self.lock:
+                self.finished = [True] * self.n
+            self._due()

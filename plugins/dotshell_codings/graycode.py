@@ -56,7 +56,7 @@ import numpy as np
 from dotshell.coding import Correspondence, PatternFrame
 from dotshell.runtime import hugepages
 from dotshell.settings import Setting
-from dotshell.runtime.parallel import bands, split, split_bands
+from dotshell.runtime.parallel import bands, split, split_bands_joined
 from dotshell_codings.robust import full_scale, noise_sigma
 
 SETTINGS_SCHEMA: dict[str, Setting] = {
@@ -391,7 +391,8 @@ class GrayCode:
                      adaptive: Rescue | None = None) -> tuple:
         """(valid, reason, per-row counts (H, 6), each axis's coordinates, refined counts)
         from one pass over the view (:func:`kernels.decode_rows`, bands of rows taken by the
-        cores one at a time, joined in order afterwards); ``words``: the Gray words, when the projected
+        cores one at a time, joined in order, each join as soon as the bands up to it are
+        done: :func:`parallel.split_bands_joined`); ``words``: the Gray words, when the projected
         bits are not Gray bits (else they are made in the pass); ``adaptive``:
         :meth:`_adaptive`'s (the pixels robust leaves uncertain get their second chance in
         the same pass).
@@ -440,9 +441,9 @@ class GrayCode:
                 words.value, words.weak,
                 code, coord, ok, valid, reason, counts, changed, words.range, words.shadow,
                 words.no_direct, scan_i, scan_f)
-        split_bands(k.decode_rows, bounds, *args, k.BAND)
-        for band in range(1, len(bounds) - 1):
-            k.decode_rows(*args, k.JOIN, band, bounds[band], bounds[band + 1])
+        split_bands_joined(k.decode_rows, bounds,
+                           lambda band: k.decode_rows(*args, k.JOIN, band, bounds[band],
+                                                      bounds[band + 1]), *args, k.BAND)
         refined = {}
         for a, ax in enumerate(axes):
             if not self.subpixel:

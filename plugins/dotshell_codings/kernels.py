@@ -21,8 +21,9 @@ temporary per bit. Row by row it:
   (:func:`_column_step`). Each scan finds the stripe edges (anchors) between adjacent valid
   pixels as it reaches them, reading the pattern/inverse frames only there, and places the
   pixels since the previous anchor linearly between the two, in place in the coordinate map.
-  The column scans cross the bands' borders: the bands are joined afterwards, in order
-  (:func:`_join`), as one scan down the whole column would have gone.
+  The column scans cross the bands' borders: the bands are joined in order (:func:`_join`),
+  each as soon as the bands up to it are done, as one scan down the whole column would have
+  gone.
 
 Two passes over the whole view remain, written with the same row functions:
 :func:`classify` for the codings whose projected bits are not Gray bits (their words are
@@ -859,7 +860,9 @@ def decode_rows(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarr
     (:func:`_behind`). The projected bits live in a three-row ring, not in image-sized words;
     the rows just outside the band are classified again into the ring rather than read from
     the neighbouring band's thread. ``phase`` = :data:`JOIN` joins band ``band`` (first row
-    ``start``) to the bands above it, once they are all done (:func:`_join`).
+    ``start``) to the bands above it, once they are all done (:func:`_join`; the bands
+    after it may still be running: a join reads and writes only rows of the bands up to
+    its own and band 0's scan state).
 
     Args (the classification's as :func:`classify`'s, then):
         axes: (A, 6) int64 per axis: block, offset, size, first pair, anchor bit (−1: all),
@@ -959,10 +962,11 @@ def _behind(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, val
 def _join(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid, changed,
           scan_i, scan_f, band, start):
     """Join band ``band`` (first row ``start``) of :func:`decode_rows` to the bands above it,
-    done in order after all bands' passes: the band above gets its last row's column steps
-    and change counts; the samples between each column scan's last anchor above and its first
-    anchor in this band are placed, as one scan down the whole column would have; the scan
-    goes on with this band's state. Band 0's ``scan_i``/``scan_f`` carry the state."""
+    in order, once their passes and its own are done: the band above gets its last row's
+    column steps and change counts; the samples between each column scan's last anchor above
+    and its first anchor in this band are placed, as one scan down the whole column would
+    have; the scan goes on with this band's state. Band 0's ``scan_i``/``scan_f`` carry the
+    state."""
     _behind(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid, changed,
             scan_i[0], scan_f[0], start - 1)
     for a in range(code.shape[0]):
@@ -984,22 +988,30 @@ def _join(stack, inverse, rng, axes, flips, down, refine, code, coord, ok, valid
 
 
 @numba.njit(**_OPTS)
-def difference_histogram(image: np.ndarray) -> tuple[int, np.ndarray]:
-    """(lowest value, counts) of the differences of horizontally adjacent pixels of an integer
-    image (``counts[i]`` = how often the difference ``lowest + i`` occurs)."""
-    H, W = image.shape
+def difference_extremes(image: np.ndarray, out: np.ndarray, band: int, start: int,
+                        stop: int) -> None:
+    """``out[band]`` = the least and greatest difference of horizontally adjacent pixels of an
+    integer image in rows ``start`` to ``stop`` (0 included: a histogram's range)."""
     low = np.int64(0)
     high = np.int64(0)
-    for y in range(H):
-        for x in range(W - 1):
+    for y in range(start, stop):
+        for x in range(image.shape[1] - 1):
             d = np.int64(image[y, x + 1]) - np.int64(image[y, x])
             low = min(low, d)
             high = max(high, d)
-    counts = np.zeros(high - low + 1, np.int64)
-    for y in range(H):
-        for x in range(W - 1):
-            counts[np.int64(image[y, x + 1]) - np.int64(image[y, x]) - low] += 1
-    return low, counts
+    out[band, 0] = low
+    out[band, 1] = high
+
+
+@numba.njit(**_OPTS)
+def difference_counts(image: np.ndarray, low: int, counts: np.ndarray, band: int, start: int,
+                      stop: int) -> None:
+    """``counts[band, i]`` = how often the difference ``low + i`` of horizontally adjacent
+    pixels occurs in rows ``start`` to ``stop`` of an integer image."""
+    out = counts[band]
+    for y in range(start, stop):
+        for x in range(image.shape[1] - 1):
+            out[np.int64(image[y, x + 1]) - np.int64(image[y, x]) - low] += 1
 
 
 @numba.njit(**_OPTS)

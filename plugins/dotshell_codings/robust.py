@@ -73,8 +73,6 @@ def noise_sigma(black: np.ndarray) -> float:
 def _noise_sigma_integer(black: np.ndarray) -> float:
     if black.shape[1] < 2 or black.shape[0] == 0:
         return 0.0
-    from dotshell_codings.kernels import difference_histogram  # numba, at first use
-
     low, counts = difference_histogram(black)
     values = np.nonzero(counts)[0]
     counts = counts[values]
@@ -84,6 +82,23 @@ def _noise_sigma_integer(black: np.ndarray) -> float:
     order = np.argsort(dev, kind="stable")
     mad = _median_of_counts(dev[order], counts[order])
     return 1.4826 * mad / math.sqrt(2.0)
+
+
+def difference_histogram(image: np.ndarray) -> tuple[int, np.ndarray]:
+    """(lowest value, counts) of the differences of horizontally adjacent pixels of a 2-D
+    integer image (``counts[i]``: how often ``lowest + i`` occurs; the range holds 0), counted
+    in bands of rows on every core (:func:`kernels.difference_extremes`,
+    :func:`kernels.difference_counts`): the decode waits for it before its passes start."""
+    from dotshell.runtime.parallel import bands, split_bands
+    from dotshell_codings import kernels  # numba, at first use
+
+    bounds = bands(image.shape[0])
+    extremes = np.zeros((len(bounds) - 1, 2), np.int64)
+    split_bands(kernels.difference_extremes, bounds, image, extremes)
+    low, high = int(extremes[:, 0].min()), int(extremes[:, 1].max())
+    counts = np.zeros((len(bounds) - 1, high - low + 1), np.int64)
+    split_bands(kernels.difference_counts, bounds, image, low, counts)
+    return low, counts.sum(axis=0)
 
 
 def _median_of_counts(values: np.ndarray, counts: np.ndarray) -> float:
