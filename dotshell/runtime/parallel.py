@@ -189,13 +189,15 @@ class _Joins:
                 self.joining.release()
 
     def _due(self) -> None:
+        join = self.join
+        assert join is not None  # done() and finish() return at once without joins
         while True:
             with self.lock:
                 i = self.next
                 if i >= self.n or not all(self.finished[:i + 1]):
                     return
                 self.next = i + 1
-            self.join(i)
+            join(i)
 
     def finish(self) -> None:
         """Every range is done: the joins not made yet, in order."""
