@@ -41,8 +41,8 @@ from dotshell_codings.graycode import SETTINGS_SCHEMA as GRAY_SETTINGS
 from dotshell_codings.graycode import GrayCode, code_offset
 
 _GRAY_KEYS = ("inverse", "classification", "adaptive_sigmas", "adaptive_edge_ratio",
-              "min_contrast", "direct_min", "high_frequency_pairs", "black_level",
-              "shadow_threshold", "bit_depth")
+              "adaptive_code_steps", "min_contrast", "direct_min", "high_frequency_pairs",
+              "black_level", "shadow_threshold", "bit_depth")
 SETTINGS_SCHEMA: dict[str, Setting] = {
     "axes": GRAY_SETTINGS["axes"],
     "period_px": Setting(
