@@ -27,7 +27,7 @@ Decoding (per pixel, in one compiled pass over the view: :mod:`dotshell_codings.
 That is ``classification = "contrast"``. With ``"robust"`` each bit is decided by
 the Xu & Aliaga rule after a direct/global separation (:mod:`dotshell_codings.robust`, see
 docs/codings.md), undecidable bits are *uncertain* instead of weak, and such pixels count as
-``uncertain`` (the default). ``"adaptive"`` gives those pixels a second chance: decoded by the
+``uncertain``. ``"adaptive"`` (the default) gives those pixels a second chance: decoded by the
 signs of their bits where the camera noise model and the separation's bound say the signs are
 sure (:func:`kernels._rescue_row`).
 
@@ -68,11 +68,11 @@ SETTINGS_SCHEMA: dict[str, Setting] = {
         help="project each bit with its inverse and compare the pair (robust to albedo and "
              "defocus); false: compare with the per-pixel (white + black) / 2"),
     "classification": Setting(
-        "str", "robust", choices=("contrast", "robust", "adaptive"),
+        "str", "adaptive", choices=("contrast", "robust", "adaptive"),
         help="how each bit is decided: 'contrast' = pattern > inverse, bits weaker than "
-             "min_contrast mark the pixel low_contrast; 'robust' (the default) = Xu & Aliaga's "
-             "rule with direct/global separation (bit decided or uncertain); 'adaptive' = "
-             "robust, and a pixel robust leaves uncertain is decoded as 'contrast' decodes it "
+             "min_contrast mark the pixel low_contrast; 'robust' = Xu & Aliaga's rule with "
+             "direct/global separation (bit decided or uncertain); 'adaptive' (the gray "
+             "code's default) = robust, and a pixel robust leaves uncertain is decoded as 'contrast' decodes it "
              "when all its bits but one also stand out of the camera noise by adaptive_sigmas "
              "(the noise model is measured from the frames) and beyond what global light "
              "could do, flipping the one that does not moves the code by one step (robust's "
@@ -242,7 +242,7 @@ class GrayCode:
 
     def __init__(self, axes: str = "both", inverse: bool = True, min_contrast: float = 0.1,
                  shadow_threshold: float = 0.03, drop_low_bits: int = 0, subpixel: bool = True,
-                 bit_depth: int = 0, classification: str = "robust", direct_min: float = 0.0,
+                 bit_depth: int = 0, classification: str = "adaptive", direct_min: float = 0.0,
                  high_frequency_pairs: int = 2, black_level: float = 0.0,
                  centred: bool = True, adaptive_sigmas: float = 6.0,
                  adaptive_edge_ratio: float = 0.7, adaptive_code_steps: int = 3) -> None:
