@@ -1,6 +1,7 @@
 """What each gray-code classification costs on one view of the simulated bench, interleaved in
 one run: ``robust``, ``adaptive`` (the gray code's default: robust's pass with a second chance
-for the pixels robust leaves uncertain, after the camera noise model is counted) and
+for the pixels robust leaves uncertain, after the camera noise model is counted), adaptive
+without its neighbour-continuity test (``adaptive_code_steps = 0``: what that test costs) and
 ``contrast``; min / median ms per view and the ratios to robust, with the decoded pixels of
 each.
 
@@ -19,7 +20,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_profile import load_bench_profile  # noqa: E402
 from frame_io import min_median  # noqa: E402
 
-CLASSIFICATIONS = ("robust", "adaptive", "contrast")
+#: name → the gray code's settings besides ``axes``
+CLASSIFICATIONS = {"robust": {"classification": "robust"},
+                   "adaptive": {"classification": "adaptive"},
+                   "adaptive, no continuity": {"classification": "adaptive",
+                                               "adaptive_code_steps": 0},
+                   "contrast": {"classification": "contrast"}}
 
 
 def bench_frames(quick: bool):
@@ -49,11 +55,13 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     args = ap.parse_args()
     frames, size = bench_frames(args.quick)
-    codings = {c: make_graycode({"axes": "both", "classification": c}) for c in CLASSIFICATIONS}
-    times = {c: [] for c in CLASSIFICATIONS}
+    codings = {c: make_graycode({"axes": "both", **settings})
+               for c, settings in CLASSIFICATIONS.items()}
+    names = list(CLASSIFICATIONS)
+    times = {c: [] for c in names}
     decoded = {}
     for r in range(args.repeats + 1):  # the first round compiles and warms up
-        order = CLASSIFICATIONS[r % 3:] + CLASSIFICATIONS[:r % 3]
+        order = names[r % len(names):] + names[:r % len(names)]
         for c in order:
             t0 = time.perf_counter()
             corr = codings[c].decode(frames, size)
@@ -66,7 +74,7 @@ def main() -> None:
     base = min_median(times["robust"])
     for c in CLASSIFICATIONS:
         m = min_median(times[c])
-        print(f"  {c:9s} {m['min'] * 1e3:8.1f} / {m['median'] * 1e3:8.1f}   "
+        print(f"  {c:23s} {m['min'] * 1e3:8.1f} / {m['median'] * 1e3:8.1f}   "
               f"{m['median'] / base['median']:5.2f}x robust   {decoded[c]} px decoded")
 
 

@@ -112,9 +112,9 @@ def test_full_scale_and_noise_floor():
 
 
 def test_robust_needs_inverse():
-    g = make_coding("graycode", inverse=False)  # default robust: falls back to contrast
+    g = make_coding("graycode", inverse=False)  # default adaptive: falls back to contrast
     assert g.classification == "contrast"
-    assert make_coding("graycode").classification == "robust"
+    assert make_coding("graycode").classification == "adaptive"
 
 
 # ---- codings under global light ---------------------------------------------------------------

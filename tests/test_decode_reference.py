@@ -101,7 +101,8 @@ def sim_bench_view():
     # the frozen decoder has no adaptive classification (robust plus rescued pixels, tested in
     # tests/test_decode_adaptive.py): its settings are left out, robust is asked
     settings = {k: v for k, v in profile.role("coding")["settings"].items()
-                if k not in ("subpixel", "adaptive_sigmas", "adaptive_edge_ratio")}
+                if k not in ("subpixel", "adaptive_sigmas", "adaptive_edge_ratio",
+                             "adaptive_code_steps")}
     settings["classification"] = "robust"
     coding = GrayCode(**settings)
     with Rig(profile, pm) as rig:

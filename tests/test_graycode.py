@@ -183,7 +183,7 @@ def test_backend_and_protocol():
     defaults = validate_settings(b.settings_schema, {}, "test")
     assert defaults["axes"] == "both" and defaults["inverse"] is True
     assert defaults["drop_low_bits"] == 0 and defaults["subpixel"] is True
-    assert defaults["classification"] == "robust" and defaults["direct_min"] == 0.0
+    assert defaults["classification"] == "adaptive" and defaults["direct_min"] == 0.0
     assert isinstance(make(), PatternCoding)
     assert set(SETTINGS_SCHEMA) >= {"axes", "inverse", "min_contrast", "shadow_threshold",
                                     "drop_low_bits", "subpixel"}

@@ -44,8 +44,8 @@ WRONG_CODES = (
     "adjacent decoded pixels step back across the stripes, each a likely wrong code (or an "
     "occlusion edge, where the reversals follow the object's outline): global light "
     "(inter-reflections, subsurface scattering) or blur flipping bits, or the sample moving "
-    "during the view. Where classification = \"contrast\" is set, decode with \"robust\" "
-    "(the default) or \"adaptive\"; check focus; keep the stage settled while a view "
+    "during the view. Where classification = \"contrast\" is set, decode with \"adaptive\" "
+    "(the gray code's default) or \"robust\"; check focus; keep the stage settled while a view "
     "is captured; on translucent samples capture with the analyzer (PDI)")
 #: Losses a view is checked for (:func:`view_notes`), in pipeline order: those with a meaning
 #: and fix in :data:`~dotshell.pipeline.reconstruct.LOSSES`.

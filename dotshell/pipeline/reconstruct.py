@@ -303,10 +303,10 @@ LOSSES: dict[str, str] = {
                     "layout's order and inverse, and the decoder's min_contrast",
     "uncertain": "the robust classification could not decide a bit (direct light too weak "
                  "against the global light or the noise) and no adaptive rescue took the "
-                 "pixel: check focus and exposure, the layout's order and inverse; under "
-                 "\"robust\" (the default), decode with classification = \"adaptive\" "
-                 "(robust, plus the pixels whose bits clear the camera noise and the global "
-                 "light) or, on captures without global light, "
+                 "pixel: check focus and exposure, the layout's order and inverse; where "
+                 "\"robust\" is set, decode with classification = \"adaptive\" (the "
+                 "default: robust, plus the pixels whose bits clear the camera noise and the "
+                 "global light) or, on captures without global light, "
                  "\"contrast\" — in the layout's [decoder] or the profile's [coding.settings]",
     "out_of_range": "the decoded code lies outside the projector: check projector_width / "
                     "projector_height, centred and the polarity (bright_is_one) of the layout",

@@ -27,7 +27,7 @@ Decoding (per pixel, in one compiled pass over the view: :mod:`dotshell_codings.
 That is ``classification = "contrast"``. With ``"robust"`` each bit is decided by
 the Xu & Aliaga rule after a direct/global separation (:mod:`dotshell_codings.robust`, see
 docs/codings.md), undecidable bits are *uncertain* instead of weak, and such pixels count as
-``uncertain`` (the default). ``"adaptive"`` gives those pixels a second chance: decoded by the
+``uncertain``. ``"adaptive"`` (the default) gives those pixels a second chance: decoded by the
 signs of their bits where the camera noise model and the separation's bound say the signs are
 sure (:func:`kernels._rescue_row`).
 
@@ -68,15 +68,16 @@ SETTINGS_SCHEMA: dict[str, Setting] = {
         help="project each bit with its inverse and compare the pair (robust to albedo and "
              "defocus); false: compare with the per-pixel (white + black) / 2"),
     "classification": Setting(
-        "str", "robust", choices=("contrast", "robust", "adaptive"),
+        "str", "adaptive", choices=("contrast", "robust", "adaptive"),
         help="how each bit is decided: 'contrast' = pattern > inverse, bits weaker than "
-             "min_contrast mark the pixel low_contrast; 'robust' (the default) = Xu & Aliaga's "
-             "rule with direct/global separation (bit decided or uncertain); 'adaptive' = "
-             "robust, and a pixel robust leaves uncertain is decoded as 'contrast' decodes it "
+             "min_contrast mark the pixel low_contrast; 'robust' = Xu & Aliaga's rule with "
+             "direct/global separation (bit decided or uncertain); 'adaptive' (the gray "
+             "code's default) = robust, and a pixel robust leaves uncertain is decoded as 'contrast' decodes it "
              "when all its bits but one also stand out of the camera noise by adaptive_sigmas "
              "(the noise model is measured from the frames) and beyond what global light "
              "could do, flipping the one that does not moves the code by one step (robust's "
-             "edge tolerance) and it is not beside a white - black edge (adaptive_edge_ratio); "
+             "edge tolerance), it is not beside a white - black edge (adaptive_edge_ratio) "
+             "and its code is continuous with its neighbours' (adaptive_code_steps); "
              "without inverses 'contrast' is used"),
     "adaptive_sigmas": Setting(
         "float", 6.0, min=1.0,
@@ -88,6 +89,11 @@ SETTINGS_SCHEMA: dict[str, Setting] = {
         help="adaptive classification: a pixel robust leaves uncertain is not decoded when "
              "one of its 8 neighbours has white - black below this fraction of its own (a "
              "silhouette, shadow or depth edge, where a pixel mixes surfaces); 0 = no test"),
+    "adaptive_code_steps": Setting(
+        "int", 3, min=0,
+        help="adaptive classification: a pixel robust leaves uncertain is not decoded when "
+             "one of its 8 neighbours' codes (every bit by its sign) lies more than this many "
+             "code steps from its own (a surface seen edge-on, a depth edge); 0 = no test"),
     "min_contrast": Setting(
         "float", 0.1, min=0.0, max=1.0,
         help="contrast classification: minimum |pattern - inverse| as a fraction of the "
@@ -236,10 +242,10 @@ class GrayCode:
 
     def __init__(self, axes: str = "both", inverse: bool = True, min_contrast: float = 0.1,
                  shadow_threshold: float = 0.03, drop_low_bits: int = 0, subpixel: bool = True,
-                 bit_depth: int = 0, classification: str = "robust", direct_min: float = 0.0,
+                 bit_depth: int = 0, classification: str = "adaptive", direct_min: float = 0.0,
                  high_frequency_pairs: int = 2, black_level: float = 0.0,
                  centred: bool = True, adaptive_sigmas: float = 6.0,
-                 adaptive_edge_ratio: float = 0.7) -> None:
+                 adaptive_edge_ratio: float = 0.7, adaptive_code_steps: int = 3) -> None:
         if axes not in ("columns", "both"):
             raise ValueError(f"axes must be 'columns' or 'both', not {axes!r}")
         if classification not in ("contrast", "robust", "adaptive"):
@@ -261,6 +267,7 @@ class GrayCode:
         self.centred = bool(centred)
         self.adaptive_sigmas = float(adaptive_sigmas)
         self.adaptive_edge_ratio = float(adaptive_edge_ratio)
+        self.adaptive_code_steps = int(adaptive_code_steps)
 
     # ---- patterns ------------------------------------------------------------------------
 
@@ -376,8 +383,8 @@ class GrayCode:
 
         floor, gain = noise_model(stack if np.issubdtype(stack.dtype, np.integer) else frames)
         return Rescue(np.array([self.sign_base(ax) for ax in axes], np.int64),
-                      np.array([2 * floor, gain, self.adaptive_sigmas, self.adaptive_edge_ratio],
-                               np.float32),
+                      np.array([2 * floor, gain, self.adaptive_sigmas, self.adaptive_edge_ratio,
+                                self.adaptive_code_steps], np.float32),
                       floor, gain)
 
     def sign_base(self, ax: _Axis) -> int:
@@ -434,7 +441,7 @@ class GrayCode:
         scan_i = np.empty((len(bounds) - 1, n_axes, 4, w), np.int64)
         scan_f = np.empty((len(bounds) - 1, n_axes, 4, w), np.float32)
         if adaptive is None:
-            adaptive_args = (False, np.full(n_axes, -1, np.int64), np.zeros(4, np.float32))
+            adaptive_args = (False, np.full(n_axes, -1, np.int64), np.zeros(5, np.float32))
         else:
             adaptive_args = (True, adaptive.bases, adaptive.values)
         args = (*rule, settings, flips, down, self.subpixel, classified, *adaptive_args,
@@ -602,8 +609,9 @@ class Rescue:
 
     Attributes:
         bases: (axes,) int64, each axis's :meth:`GrayCode.sign_base`.
-        values: (4,) float32, ``2 floor``, ``gain``, ``adaptive_sigmas`` and
-            ``adaptive_edge_ratio`` (the kernel's :data:`kernels.FLOOR2` …).
+        values: (5,) float32, ``2 floor``, ``gain``, ``adaptive_sigmas``,
+            ``adaptive_edge_ratio`` and ``adaptive_code_steps`` (the kernel's
+            :data:`kernels.FLOOR2` …).
         floor, gain: the camera noise model ``var(I) = floor + gain (I − black)`` (frame
             units², :func:`robust.noise_model`).
     """

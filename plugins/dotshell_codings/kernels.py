@@ -436,9 +436,9 @@ def _verdict_row(shadow, no_direct, flags, fy, valid, reason, counts):
 
 #: entries of :func:`decode_rows`' ``rescue`` (float32): the noise model's 2 × floor and gain
 #: (``var(p − q) = 2 floor + gain (p + q − 2 black)``, frame units), the sigmas a pixel's
-#: bits (all but its weakest) must stand beyond the global-light bound and the edge ratio
-#: (:func:`_beside_edge`)
-FLOOR2, GAIN, SIGMAS, EDGE = range(4)
+#: bits (all but its weakest) must stand beyond the global-light bound, the edge ratio
+#: (:func:`_beside_edge`) and the code steps a neighbour may be away (:func:`_off_its_neighbours`)
+FLOOR2, GAIN, SIGMAS, EDGE, STEPS = range(5)
 
 
 @numba.njit(**_ROW)
@@ -449,8 +449,9 @@ def _rescue_row(stack, y, axis_bits, sep, axes, gray_base, rescue, one_minus_b, 
     the sign of every pattern − inverse (the contrast rule without its threshold) when all its
     bits but the weakest stand ``rescue[SIGMAS]`` noise sigmas beyond what global light could
     do to them (:func:`_all_but_one_sure`), flipping that weakest bit (if one falls below)
-    moves its axis's code by one step, its code is on the projector on every axis and it is
-    not beside an edge of the white − black image (:func:`_beside_edge`). The
+    moves its axis's code by one step, its code is on the projector on every axis, it is
+    not beside an edge of the white − black image (:func:`_beside_edge`) and its code is
+    continuous with its neighbours' (:func:`_off_its_neighbours`). The
     one-step test is the edge tolerance robust gives a single weak bit (:func:`_assemble_row`):
     a weak bit of the finest stripes' edge costs at most one code step, a weak coarse bit
     would throw the pixel blocks away (on the clean metal cylinder at full resolution such
@@ -486,6 +487,8 @@ def _rescue_row(stack, y, axis_bits, sep, axes, gray_base, rescue, one_minus_b, 
                 inside = False
         if not inside or _beside_edge(stack, y, x, rescue[EDGE]):
             continue
+        if _off_its_neighbours(stack, y, x, axis_bits, gray_base, codes, rescue[STEPS]):
+            continue
         for a in range(n_axes):
             code[a, y, x] = codes[a]
             coord[a, y, x] = _centre(codes[a], axes[a, BLOCK], axes[a, OFFSET], axes[a, SIZE])
@@ -514,6 +517,31 @@ def _beside_edge(stack, y, x, ratio):
                 r = np.float32(0.0)
             if r < floor:
                 return True
+    return False
+
+
+@numba.njit(**_INNER)
+def _off_its_neighbours(stack, y, x, axis_bits, gray_base, codes, steps):
+    """One of pixel (y, x)'s 8 neighbours (inside the image) has, on some axis, a sign code
+    (:func:`_sign_code`) more than ``steps`` code steps from the pixel's own ``codes`` (A,)
+    (the adaptive classification's continuity test; ``steps`` 0: never). The rescue's
+    one-step tolerance holds where a camera pixel sees about one code step; where its
+    neighbours' codes lie further apart the pixel sees a surface edge-on (it spans several
+    projector columns: on the mouse phantom at full resolution the rescued codes 1.5-2.8
+    projector px off lay there, the surface at 85-88° to the view, its neighbours' codes
+    10-50 steps apart) or straddles a depth edge or silhouette (its neighbours see another
+    surface), and a bit taken by its sign can cost more than one step."""
+    if not steps > 0:
+        return False
+    k = 0
+    for a in range(axis_bits.shape[0]):
+        nb = axis_bits[a]
+        for ny in range(max(y - 1, 0), min(y + 2, stack.shape[1])):
+            for nx in range(max(x - 1, 0), min(x + 2, stack.shape[2])):
+                if (ny != y or nx != x) and abs(np.float32(
+                        _sign_code(stack, ny, nx, k, nb, gray_base[a], -1) - codes[a])) > steps:
+                    return True
+        k += nb
     return False
 
 
@@ -876,7 +904,7 @@ def decode_rows(stack: np.ndarray, inverse: bool, mode: int, axis_bits: np.ndarr
             (``value``/``weak`` unused).
         adaptive: the pixels left with a bit undecided get :func:`_rescue_row`'s second
             chance (``mode`` is then :data:`ROBUST`), with ``gray_base`` (A,) int64 and
-            ``rescue`` (4,) float32 (:data:`FLOOR2` …).
+            ``rescue`` (5,) float32 (:data:`FLOOR2` …).
         code, coord, ok: (A, H, W) int32 / float32 / bool outputs: coarse code, projector
             coordinate (sub-pixel where refined, NaN where not decoded), refined.
         valid, reason, counts: (H, W) bool, (H, W) uint8, (H, 6) int64 (:func:`_verdict_row`).

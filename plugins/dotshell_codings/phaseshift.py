@@ -31,6 +31,7 @@ Stats: the gray code's (``shadow``, ``low_contrast``, ``uncertain``, ``out_of_ra
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any, Sequence
 
 import numpy as np
@@ -41,8 +42,8 @@ from dotshell_codings.graycode import SETTINGS_SCHEMA as GRAY_SETTINGS
 from dotshell_codings.graycode import GrayCode, code_offset
 
 _GRAY_KEYS = ("inverse", "classification", "adaptive_sigmas", "adaptive_edge_ratio",
-              "min_contrast", "direct_min", "high_frequency_pairs", "black_level",
-              "shadow_threshold", "bit_depth")
+              "adaptive_code_steps", "min_contrast", "direct_min", "high_frequency_pairs",
+              "black_level", "shadow_threshold", "bit_depth")
 SETTINGS_SCHEMA: dict[str, Setting] = {
     "axes": GRAY_SETTINGS["axes"],
     "period_px": Setting(
@@ -55,10 +56,10 @@ SETTINGS_SCHEMA: dict[str, Setting] = {
         "float", 0.2, min=0.0, max=1.0,
         help="minimum sinusoid amplitude relative to (white - black)/2; weaker pixels are "
              "low_modulation"),
-    # classification robust by default, as the gray code's: under long-range global light the
-    # adaptive rescue adds coarse codes as wrong as robust's (synthetic scene: 51.9 → 52.4 %
-    # of the pixels; docs/codings.md)
     **{k: GRAY_SETTINGS[k] for k in _GRAY_KEYS},
+    # robust by default: under long-range global light the adaptive rescue adds coarse codes
+    # as wrong as robust's (synthetic scene: 51.9 → 52.4 % of the pixels; docs/codings.md)
+    "classification": replace(GRAY_SETTINGS["classification"], default="robust"),
 }
 #: |phase coordinate − gray coordinate| above this many periods → phase_inconsistent
 MAX_COARSE_MISMATCH_PERIODS = 0.4
