@@ -12,7 +12,7 @@ Model (docs/light-model.md, "Trans-illumination"; lengths mm, coefficients 1/mm)
    gradients with a Jacobi preconditioner (:func:`dotshell.fem.forward.jacobi_cg`, to a relative
    residual of 1e-10), the solver of :func:`dotshell.fem.forward.solve_cw`.
 2. **Surface**: φ at a surface point is read by snapping the point to the FEM boundary
-   (:class:`dotshell.geometry.raycast.TriangleScene`, closest point) and interpolating the
+   (:class:`dotshell.geometry.bvh.TriangleBVH`, closest point) and interpolating the
    boundary triangle's node values barycentrically.
 3. **Exit**: the radiance leaving the surface towards the camera is
    ``P · φ · L(θo)/φ`` with :func:`dotshell.fem.optics.exit_radiance_per_fluence` (Fresnel
@@ -43,7 +43,7 @@ from dotshell.fem.meshes import (MeshError, TetMesh, TriangleSurface, closed_man
                           compact, element_containing, orient_positive)
 from dotshell.geometry.calibration import rot_z
 from dotshell.geometry.lens import Lens
-from dotshell.geometry.raycast import TriangleScene
+from dotshell.geometry.bvh import TriangleBVH
 from dotshell.fem.optics import exit_radiance_per_fluence
 
 from dotshell_sim.lru import cached
@@ -218,7 +218,7 @@ class FluenceModel:
     mesh: TetMesh
     optics: Optics
     matrix: sp.csr_matrix
-    boundary: TriangleScene    # the FEM boundary, for reading φ at surface points
+    boundary: TriangleBVH    # the FEM boundary, for reading φ at surface points
     key: str
     _solved: OrderedDict = field(default_factory=OrderedDict)
 
@@ -232,7 +232,7 @@ class FluenceModel:
         mua = np.full(n, optics.mua_per_mm)
         kappa = np.full(n, 1.0 / (3.0 * (optics.mua_per_mm + optics.musp_per_mm)))
         matrix = system_matrix(mesh, mua, kappa, robin_A(optics.n)).tocsr()
-        return cls(mesh, optics, matrix, TriangleScene(mesh.nodes, mesh.boundary_faces), key)
+        return cls(mesh, optics, matrix, TriangleBVH(mesh.nodes, mesh.boundary_faces), key)
 
     def source_inside(self, entry_mm: np.ndarray, direction: np.ndarray) -> np.ndarray:
         """The source point: one transport length inside the entry point along the beam, or
