@@ -347,7 +347,7 @@ class LaserView:
     """Camera sub-samples whose first hit is the sample, at one stage angle: their camera
     pixel, boundary nodes and weights, and radiance-per-fluence × cos⁴ fall-off."""
 
-    pixel: np.ndarray        # (K,) int: flat camera pixel index (row · W + col)
+    pixel: np.ndarray        # (K,) int32: flat camera pixel index (row · W + col)
     nodes: np.ndarray        # (K, 3) int: FEM boundary nodes of the closest triangle
     weights: np.ndarray      # (K, 3) float32 barycentric weights
     base: np.ndarray         # (K,) float32: L(θo)/φ · cos⁴(field angle) / ss²
@@ -368,11 +368,21 @@ def laser_view(renderer: Renderer, view: View, shape, model: FluenceModel) -> La
     k = np.flatnonzero(view.material.ravel() == shape.material)
     o_s = renderer.calib.camera_to_sample(np.zeros((1, 3)), view.angle_deg)[0]
     M = renderer.calib.sample_rotation(view.angle_deg)
-    parts = [_laser_samples(k[s:s + LASER_CHUNK], renderer, o_s, M, view.ss, cam.width,
-                            shape, model) for s in range(0, len(k), LASER_CHUNK)] or [
-        _laser_samples(k, renderer, o_s, M, view.ss, cam.width, shape, model)]
-    pixel, nodes, weights, base = (np.concatenate(p) for p in zip(*parts))
-    return LaserView(pixel, nodes, weights, base, (cam.height, cam.width))
+    # the arrays are filled chunk by chunk in place: chunks then concatenated held the ~0.1 GB
+    # laser view twice at the scan's peak (issue 33); int32 pixels (the same indices)
+    n = len(k)
+    pixel, nodes = np.empty(n, np.int32), np.empty((n, 3), np.int32)
+    weights, base = np.empty((n, 3), np.float32), np.empty(n, np.float32)
+    filled = 0
+    for s in range(0, n, LASER_CHUNK):
+        part = _laser_samples(k[s:s + LASER_CHUNK], renderer, o_s, M, view.ss, cam.width,
+                              shape, model)
+        end = filled + len(part[0])
+        for whole, values in zip((pixel, nodes, weights, base), part):
+            whole[filled:end] = values
+        filled = end
+    return LaserView(pixel[:filled], nodes[:filled], weights[:filled], base[:filled],
+                     (cam.height, cam.width))
 
 
 def _laser_samples(k: np.ndarray, renderer: Renderer, o_s: np.ndarray, M: np.ndarray,
