@@ -161,6 +161,10 @@ def _closest(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, lo
     for i in range(n):
         p = points[i]
         best, best_t, bu, bv = np.inf, 0, 0.0, 0.0
+        if i > 0:  # neighbouring points (image order) share triangles: a tight bound at once
+            best_t = tri[i - 1]
+            bu, bv = _closest_on_triangle(p, vertices, triangles[best_t])
+            best = _distance2(p, vertices, triangles[best_t], bu, bv)
         stack[0] = 0
         top = 1
         while top:
