@@ -84,6 +84,28 @@ def test_ray_hits_are_open3ds(bumpy_sphere):
     assert (ours["primitive_normals"][~hit] == 0).all()
 
 
+def test_degenerate_triangles_and_empty_queries(bumpy_sphere):
+    """Zero-area triangles (a repeated corner, three corners on a line) give no answer of
+    their own and do not spoil their neighbours' (they are never the closest by NaN); no
+    points, no rays: empty answers."""
+    vertices, triangles = bumpy_sphere
+    n = len(vertices)
+    extra = np.array([[0.0, 0.0, 15.5], [1.0, 0.0, 15.5], [2.0, 0.0, 15.5]])
+    vertices = np.vstack([vertices, extra])
+    triangles = np.vstack([triangles, [[n, n + 1, n + 2], [n, n, n + 1], [n + 2, n + 2, n + 2]]])
+    rng = np.random.default_rng(3)
+    points = np.vstack([rng.normal(0.0, 0.2, (2000, 3)) + [1.0, 0.0, 15.4],
+                        rng.normal(size=(2000, 3)) * 15.0])
+    ours = TriangleBVH(vertices, triangles).closest(points)
+    theirs = TriangleScene(vertices, triangles).closest(points)
+    assert np.isfinite(ours.distance_mm).all()
+    assert (ours.distance_mm - theirs.distance_mm).max() < 1e-5
+    assert np.quantile(np.abs(ours.distance_mm - theirs.distance_mm), 0.99) < 1e-5
+    scene = TriangleBVH(vertices, triangles)
+    assert len(scene.closest(np.zeros((0, 3))).distance_mm) == 0
+    assert len(scene.cast(np.zeros((0, 3)), np.zeros((0, 3)))["t_hit"]) == 0
+
+
 def test_scan_queries_leave_open3d_unloaded():
     """The two queries load no open3d (what took it out of the scan process)."""
     import subprocess

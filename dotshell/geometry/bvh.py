@@ -165,6 +165,8 @@ def _closest(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, lo
             best_t = tri[i - 1]
             bu, bv = _closest_on_triangle(p, vertices, triangles[best_t])
             best = _distance2(p, vertices, triangles[best_t], bu, bv)
+            if not best < np.inf:  # NaN: a degenerate triangle gives no bound
+                best = np.inf
         stack[0] = 0
         top = 1
         while top:
