@@ -89,6 +89,16 @@ def _build(vertices: np.ndarray, triangles: np.ndarray, leaf_size: int
 
 
 @numba.njit(nogil=True, cache=True, inline="always")
+def _push_children(stack: np.ndarray, top: int, first: int, first_is_nearer: bool) -> int:
+    """Push a node's two children (``first``, ``first + 1``) on the traversal stack, the
+    nearer last so that it is visited first; the new stack height."""
+    near, far = (first, first + 1) if first_is_nearer else (first + 1, first)
+    stack[top] = far
+    stack[top + 1] = near
+    return top + 2
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
 def _box_distance2(p: np.ndarray, lo: np.ndarray, hi: np.ndarray, node: int) -> float:
     """Squared distance (mm²) from point ``p`` to a node's box (0 inside)."""
     d2 = 0.0
@@ -185,10 +195,7 @@ def _closest(points: np.ndarray, vertices: np.ndarray, triangles: np.ndarray, lo
                 continue
             d_first = _box_distance2(p, lo, hi, first)
             d_second = _box_distance2(p, lo, hi, first + 1)
-            near, far = (first, first + 1) if d_first <= d_second else (first + 1, first)
-            stack[top] = far  # the nearer child is popped first
-            stack[top + 1] = near
-            top += 2
+            top = _push_children(stack, top, first, d_first <= d_second)
         a, b, c = vertices[triangles[best_t, 0]], vertices[triangles[best_t, 1]], \
             vertices[triangles[best_t, 2]]
         for k in range(3):
@@ -271,10 +278,7 @@ def _cast(origins: np.ndarray, dirs: np.ndarray, vertices: np.ndarray, triangles
             if first >= 0:
                 e_first = _box_entry(o, inv, lo, hi, first, best)
                 e_second = _box_entry(o, inv, lo, hi, first + 1, best)
-                near, far = (first, first + 1) if e_first <= e_second else (first + 1, first)
-                stack[top] = far
-                stack[top + 1] = near
-                top += 2
+                top = _push_children(stack, top, first, e_first <= e_second)
                 continue
             for k in range(start[node], start[node] + count[node]):
                 th, u, v = _ray_triangle(o, dr, vertices, triangles[order[k]])
