@@ -67,12 +67,13 @@ def main() -> None:
     order = np.lexsort((a, np.floor(z / 0.05)))  # in rows, as a camera image's sub-samples
     points = np.column_stack([r * np.cos(a), r * np.sin(a), z])[order]
     camera = np.array([200.0, 0.0, 15.0])
-    target = np.column_stack([np.zeros(args.rays), rng.uniform(-16, 16, args.rays),
-                              rng.uniform(-2, 32, args.rays)])
+    side = int(np.sqrt(args.rays))  # a camera's rows of pixels across the cylinder
+    yy, zz = np.meshgrid(np.linspace(-16, 16, side), np.linspace(-2, 32, args.rays // side))
+    target = np.column_stack([np.zeros(yy.size), yy.ravel(), zz.ravel()])
     dirs = target - camera
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     origins = np.broadcast_to(camera, dirs.shape)
-    print(f"cylinder: {len(triangles)} triangles; {args.points} points, {args.rays} rays")
+    print(f"cylinder: {len(triangles)} triangles; {args.points} points, {len(dirs)} rays")
 
     import numba  # noqa: F401  (the scan process has numba loaded: not counted for either)
 
