@@ -221,7 +221,9 @@ def child(args: argparse.Namespace) -> None:
     sampler.done.set()
     out = {"exit": code, "wall_s": time.monotonic() - t0, "rss_end_mib": rss, "hwm_mib": hwm,
            "views": records, "stages": sampler.peaks, "rusage": rusage(), "drained_s": drained,
-           "outputs": outputs(Path(args.out))}
+           "outputs": outputs(Path(args.out)), "open3d_loaded": "open3d" in sys.modules,
+           "packages": sorted({m.partition(".")[0] for m in sys.modules
+                               if not m.startswith("_")})}
     Path(args.result).write_text(json.dumps(out))
 
 
@@ -251,6 +253,9 @@ def run_side(label: str, tree: Path, args: argparse.Namespace, tmp: Path) -> dic
 def report(label: str, res: dict) -> None:
     print(f"\n== {label}: exit {res['exit']}, wall {res['wall_s']:.0f} s, "
           f"peak RSS (VmHWM) {res['hwm_mib']:.0f} MiB, RSS at the end {res['rss_end_mib']:.0f} MiB")
+    if "open3d_loaded" in res:
+        print(f"  open3d loaded in the scan process: {'yes' if res['open3d_loaded'] else 'no'}")
+        print(f"  packages imported: {' '.join(res.get('packages', []))}")
     if res.get("drained_s"):
         print(f"  waited for the reconstruction before a trans-illumination view: "
               f"{sum(res['drained_s']):.1f} s ({', '.join(f'{s:.1f}' for s in res['drained_s'])})")

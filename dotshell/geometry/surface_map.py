@@ -6,9 +6,10 @@ Geometry (:func:`view_surface`), per view, in the camera frame (mm):
 * node normals: area-weighted vertex normals of the outward-oriented surface;
 * per node, the unit view vector from the node to the camera centre (not the optical axis) and
   ``sin β`` = normal · view vector, the paper's Eq. 1 orientation term;
-* every camera pixel inside the surface's image is ray-cast against the mesh (open3d); its first
-  hit gives the triangle, barycentric weights (each node's linear "hat" function there), the
-  distance and the cosine between the ray and the face normal;
+* every camera pixel inside the surface's image is ray-cast against the mesh
+  (:class:`dotshell.geometry.bvh.TriangleBVH`); its first hit gives the triangle, barycentric
+  weights (each node's linear "hat" function there), the distance and the cosine between the
+  ray and the face normal;
 * node masks, first reason wins: ``outside_image`` (projects outside the frame or behind the
   camera), ``facing_away`` (sin β ≤ 0), ``occluded`` (the ray from the camera centre to the node
   hits the surface first), ``grazing`` (sin β below the limit), ``crease`` (the surface turns
@@ -38,7 +39,8 @@ import numpy as np
 
 from dotshell.fem.meshes import TriangleSurface, enclosed_volume_mm3
 from dotshell.geometry.calibration import RigCalibration
-from dotshell.geometry.raycast import TriangleScene, barycentric_weights
+from dotshell.geometry.bvh import TriangleBVH
+from dotshell.geometry.raycast import barycentric_weights
 
 #: node mask reasons, in the order they are decided (code = index)
 MASK_REASONS = ("ok", "outside_image", "facing_away", "occluded", "grazing", "crease",
@@ -120,7 +122,7 @@ def view_surface(surface: TriangleSurface, calib: RigCalibration, angle_deg: flo
     px[in_front] = lens.project(nodes[in_front])
     inside = in_front & (px[:, 0] >= -0.5) & (px[:, 0] <= width - 0.5) \
         & (px[:, 1] >= -0.5) & (px[:, 1] <= height - 0.5)
-    scene = TriangleScene(nodes, surface.triangles)
+    scene = TriangleBVH(nodes, surface.triangles)
     hit = scene.cast(np.zeros_like(nodes), -to_cam)
     tol = np.maximum(0.02, 1e-4 * dist)
     occluded = hit["t_hit"] < dist - tol
@@ -135,7 +137,7 @@ def view_surface(surface: TriangleSurface, calib: RigCalibration, angle_deg: flo
     return SurfaceView(angle_deg, (width, height), nodes, normals, sin_beta, px, mask, *pixels)
 
 
-def _pixel_hits(scene: TriangleScene, lens, node_px: np.ndarray):
+def _pixel_hits(scene: TriangleBVH, lens, node_px: np.ndarray):
     width, height = lens.size
     if len(node_px) == 0:
         e = np.zeros(0)

@@ -27,7 +27,8 @@ from dotshell.events import EventBus, StepProgress, StepStarted
 from dotshell.fem.meshes import TriangleSurface
 from dotshell.run.framecheck import FrameSpec
 from dotshell.geometry.calibration import RigCalibration
-from dotshell.geometry.raycast import ClosestPoints, TriangleScene
+from dotshell.geometry.bvh import TriangleBVH
+from dotshell.geometry.raycast import ClosestPoints
 from dotshell.geometry.surface_map import (OK, NodeLight, SurfaceView, mask_counts,
                                            node_intensities, normal_spread_deg, view_surface)
 from dotshell.normalizer import Normalizer
@@ -209,7 +210,7 @@ class TruthAtNodes:
         last = self._closest
         if last is None or not (np.array_equal(last[0].vertices_mm, field.vertices_mm)
                                 and np.array_equal(last[0].triangles, field.triangles)):
-            scene = TriangleScene(field.vertices_mm, field.triangles)
+            scene = TriangleBVH(field.vertices_mm, field.triangles)
             last = self._closest = (field, scene.closest(self.nodes_mm))
         return last[1]
 

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
-from dotshell.geometry.raycast import TriangleScene
+from dotshell.geometry.bvh import TriangleBVH
 from dotshell.geometry.surface_map import MASK_REASONS, SurfaceView, resample_to_image
 from dotshell.pipeline.normalize import Normalization, SourceResult, error_stats
 from dotshell.profile.loader import Profile
@@ -158,7 +158,7 @@ class OutputWriter:
         detectors = np.asarray(profile.mesh.optodes.detectors_mm,
                                float).reshape(-1, 3)
         # the surface point nearest to each detector (sample frame), found once for all images
-        self.at_detectors = TriangleScene(job.surface.vertices, job.surface.triangles).closest(
+        self.at_detectors = TriangleBVH(job.surface.vertices, job.surface.triangles).closest(
             detectors) if len(detectors) else None
         self.entries: list[dict[str, Any]] = []
         store.path(RunLayout.NORMALIZE).mkdir(exist_ok=True)

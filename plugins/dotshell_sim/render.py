@@ -155,29 +155,36 @@ class View:
     ss: int
     map_x: np.ndarray        # float32 projector column per sample (_OUTSIDE where unlit)
     map_y: np.ndarray        # float32 projector row per sample
-    weight: np.ndarray       # float32 shading weight per sample (polarized + depolarized)
+    weight_dep: np.ndarray   # float32 shading weight per sample that loses the projector's
+    #                          polarization: float32 total − float32 ``weight_pol`` (issue 33:
+    #                          the total, kept beside it, was 21 MB more at full resolution)
     base: np.ndarray         # float32 (H, W) ambient weight, box-averaged (depolarized)
     material: np.ndarray     # int8 material id per sample (-1 = miss)
     shadow: np.ndarray       # bool per sample: cast shadow of the projector
-    weight_pol: np.ndarray | None = None   # float32 polarization-keeping share of ``weight``
+    weight_pol: np.ndarray | None = None   # float32 polarization-keeping share of the weight
     entering: np.ndarray | None = None     # float32 irradiance into turbid material per sample
     subsurface: SubsurfaceView | None = None  # diffuse transport (depolarized)
     retained: tuple[float, float] = (0.0, 0.0)  # (share of R_total kept polarized, sigma px)
     seconds: float = 0.0     # time the precompute took
-    _weight_dep: np.ndarray | None = None  # weight - weight_pol, made at the first frame
+
+    @property
+    def weight(self) -> np.ndarray:
+        """float32 shading weight per sample (polarized + depolarized), made when asked (to
+        float32 rounding of the total the view was traced with)."""
+        return self.weight_dep if self.weight_pol is None else self.weight_dep + self.weight_pol
 
     def depolarized_weight(self) -> np.ndarray:
-        """float32 share of ``weight`` that loses the projector's polarization (per sample)."""
-        if self._weight_dep is None:
-            self._weight_dep = self.weight - self.weight_pol
-        return self._weight_dep
+        """float32 share of the shading weight that loses the projector's polarization (per
+        sample)."""
+        return self.weight_dep
 
     def material_fraction(self, material_id: int) -> np.ndarray:
         """(H, W) fraction of each camera pixel's sub-samples that hit ``material_id``."""
         return _box(self.material == material_id, self.ss)
 
     def lit_fraction(self) -> np.ndarray:
-        """(H, W) fraction of each camera pixel's sub-samples lit by the projector."""
+        """(H, W) fraction of each camera pixel's sub-samples lit by the projector (both
+        shares are ≥ 0: their sum is > 0 where the total weight is)."""
         return _box(self.weight > 0, self.ss)
 
     def shadow_fraction(self) -> np.ndarray:
@@ -385,7 +392,7 @@ class Renderer:
         rays = self.camera_rays()
         map_x = np.empty(n, np.float32)
         map_y = np.empty(n, np.float32)
-        weight = np.empty(n, np.float32)
+        weight_dep = np.empty(n, np.float32)
         ambient = np.empty(n, np.float32)
         material = np.empty(n, np.int8)
         shadow = np.empty(n, bool)
@@ -400,15 +407,17 @@ class Renderer:
             lit = tr.weight > 0
             map_x[s:e] = np.where(lit, tr.projector[:, 0], _OUTSIDE)
             map_y[s:e] = np.where(lit, tr.projector[:, 1], _OUTSIDE)
-            weight[s:e] = tr.weight
             ambient[s:e] = tr.ambient
             material[s:e] = tr.material
             shadow[s:e] = tr.shadow
             weight_pol[s:e] = tr.weight_pol
+            # the float32 total less the float32 polarized share, as the frames always used
+            np.subtract(tr.weight.astype(np.float32), weight_pol[s:e], out=weight_dep[s:e])
             entering[s:e] = tr.entering
             if receivers is not None:
                 receivers.add(np.arange(s, e), tr, turbid)
-        view = View(key, ss, map_x.reshape(shape), map_y.reshape(shape), weight.reshape(shape),
+        view = View(key, ss, map_x.reshape(shape), map_y.reshape(shape),
+                    weight_dep.reshape(shape),
                     _box(ambient.reshape(shape), ss), material.reshape(shape),
                     shadow.reshape(shape), weight_pol=weight_pol.reshape(shape))
         if turbid is not None:

@@ -12,7 +12,7 @@ Model (docs/light-model.md, "Trans-illumination"; lengths mm, coefficients 1/mm)
    gradients with a Jacobi preconditioner (:func:`dotshell.fem.forward.jacobi_cg`, to a relative
    residual of 1e-10), the solver of :func:`dotshell.fem.forward.solve_cw`.
 2. **Surface**: φ at a surface point is read by snapping the point to the FEM boundary
-   (:class:`dotshell.geometry.raycast.TriangleScene`, closest point) and interpolating the
+   (:class:`dotshell.geometry.bvh.TriangleBVH`, closest point) and interpolating the
    boundary triangle's node values barycentrically.
 3. **Exit**: the radiance leaving the surface towards the camera is
    ``P · φ · L(θo)/φ`` with :func:`dotshell.fem.optics.exit_radiance_per_fluence` (Fresnel
@@ -43,7 +43,7 @@ from dotshell.fem.meshes import (MeshError, TetMesh, TriangleSurface, closed_man
                           compact, element_containing, orient_positive)
 from dotshell.geometry.calibration import rot_z
 from dotshell.geometry.lens import Lens
-from dotshell.geometry.raycast import TriangleScene
+from dotshell.geometry.bvh import TriangleBVH
 from dotshell.fem.optics import exit_radiance_per_fluence
 
 from dotshell_sim.lru import cached
@@ -218,7 +218,7 @@ class FluenceModel:
     mesh: TetMesh
     optics: Optics
     matrix: sp.csr_matrix
-    boundary: TriangleScene    # the FEM boundary, for reading φ at surface points
+    boundary: TriangleBVH    # the FEM boundary, for reading φ at surface points
     key: str
     _solved: OrderedDict = field(default_factory=OrderedDict)
 
@@ -232,7 +232,7 @@ class FluenceModel:
         mua = np.full(n, optics.mua_per_mm)
         kappa = np.full(n, 1.0 / (3.0 * (optics.mua_per_mm + optics.musp_per_mm)))
         matrix = system_matrix(mesh, mua, kappa, robin_A(optics.n)).tocsr()
-        return cls(mesh, optics, matrix, TriangleScene(mesh.nodes, mesh.boundary_faces), key)
+        return cls(mesh, optics, matrix, TriangleBVH(mesh.nodes, mesh.boundary_faces), key)
 
     def source_inside(self, entry_mm: np.ndarray, direction: np.ndarray) -> np.ndarray:
         """The source point: one transport length inside the entry point along the beam, or
@@ -347,7 +347,7 @@ class LaserView:
     """Camera sub-samples whose first hit is the sample, at one stage angle: their camera
     pixel, boundary nodes and weights, and radiance-per-fluence × cos⁴ fall-off."""
 
-    pixel: np.ndarray        # (K,) int: flat camera pixel index (row · W + col)
+    pixel: np.ndarray        # (K,) int32: flat camera pixel index (row · W + col)
     nodes: np.ndarray        # (K, 3) int: FEM boundary nodes of the closest triangle
     weights: np.ndarray      # (K, 3) float32 barycentric weights
     base: np.ndarray         # (K,) float32: L(θo)/φ · cos⁴(field angle) / ss²
@@ -368,11 +368,21 @@ def laser_view(renderer: Renderer, view: View, shape, model: FluenceModel) -> La
     k = np.flatnonzero(view.material.ravel() == shape.material)
     o_s = renderer.calib.camera_to_sample(np.zeros((1, 3)), view.angle_deg)[0]
     M = renderer.calib.sample_rotation(view.angle_deg)
-    parts = [_laser_samples(k[s:s + LASER_CHUNK], renderer, o_s, M, view.ss, cam.width,
-                            shape, model) for s in range(0, len(k), LASER_CHUNK)] or [
-        _laser_samples(k, renderer, o_s, M, view.ss, cam.width, shape, model)]
-    pixel, nodes, weights, base = (np.concatenate(p) for p in zip(*parts))
-    return LaserView(pixel, nodes, weights, base, (cam.height, cam.width))
+    # the arrays are filled chunk by chunk in place: chunks then concatenated held the ~0.1 GB
+    # laser view twice at the scan's peak (issue 33); int32 pixels (the same indices)
+    n = len(k)
+    pixel, nodes = np.empty(n, np.int32), np.empty((n, 3), np.int32)
+    weights, base = np.empty((n, 3), np.float32), np.empty(n, np.float32)
+    filled = 0
+    for s in range(0, n, LASER_CHUNK):
+        part = _laser_samples(k[s:s + LASER_CHUNK], renderer, o_s, M, view.ss, cam.width,
+                              shape, model)
+        end = filled + len(part[0])
+        for whole, values in zip((pixel, nodes, weights, base), part):
+            whole[filled:end] = values
+        filled = end
+    return LaserView(pixel[:filled], nodes[:filled], weights[:filled], base[:filled],
+                     (cam.height, cam.width))
 
 
 def _laser_samples(k: np.ndarray, renderer: Renderer, o_s: np.ndarray, M: np.ndarray,
