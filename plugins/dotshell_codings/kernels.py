@@ -1081,9 +1081,9 @@ def model_bins(stack: np.ndarray, least: np.float32, most: np.float32, rank0: np
 
 
 @numba.njit(**_OPTS)
-def model_residuals(stack: np.ndarray, bins: np.ndarray, counts: np.ndarray, band: int,
-                    start: int, stop: int) -> None:
-    """``|p + q − w − b|`` of every pair at the model pixels of ``bins``' rows ``start`` to
+def model_residuals(stack: np.ndarray, bins: np.ndarray, stride: int, counts: np.ndarray,
+                    band: int, start: int, stop: int) -> None:
+    """``|p + q − w − b|`` of every ``stride``-th pair (the first included) at the model pixels of ``bins``' rows ``start`` to
     ``stop`` counted per bin into ``counts[band]`` (B, bins, width) (integers; from width − 1
     on into the last column). Each row's model pixels are listed first, then read a pair at a
     time (two streams; a test per pixel and pair, taken half the time and mispredicted, cost
@@ -1102,7 +1102,7 @@ def model_residuals(stack: np.ndarray, bins: np.ndarray, counts: np.ndarray, ban
                 bin_of[m] = bins[sy, sx]
                 base[m] = np.float32(stack[0, y, 2 * sx]) + np.float32(stack[1, y, 2 * sx])
                 m += 1
-        for k in range(2, stack.shape[0] - 1, 2):
+        for k in range(2, stack.shape[0] - 1, 2 * stride):
             p, q = stack[k, y], stack[k + 1, y]
             for i in range(m):
                 r = abs(np.float32(p[xs[i]]) + np.float32(q[xs[i]]) - base[i])

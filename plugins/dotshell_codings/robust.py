@@ -180,7 +180,7 @@ def noise_model(frames: Sequence[np.ndarray] | np.ndarray) -> tuple[float, float
     included: ``r = p + q − w − b`` is pure noise with ``var(r) = 4 floor + 2 gain (w − b)``.
     The fit is a line through the medians of ``r²`` (÷ 0.4549, the median of χ²₁) in ten
     equal-count bins of ``w − b`` (ranked stably: equal levels in raster order), on every
-    second pixel each way. An 8- or 16-bit (F, H, W) stack is counted in compiled passes
+    second pixel each way and every :data:`_MODEL_PAIR_STRIDE`-th pair. An 8- or 16-bit (F, H, W) stack is counted in compiled passes
     (:func:`noise_model_counted`, the same figures), anything else sorted
     (:func:`noise_model_sorted`)."""
     if (isinstance(frames, np.ndarray) and frames.ndim == 3
@@ -205,6 +205,11 @@ def _model_line(xs: Sequence[float], ys: Sequence[float]) -> tuple[float, float]
 
 #: the noise model's bins of w − b
 _MODEL_BINS = 10
+#: the noise model reads every fifth pattern/inverse pair (the first included): ``p + q − w − b``
+#: is pure noise in every pair alike, and 4 of a full view's 20 pairs give ~1.3 M residuals,
+#: ~130 k a bin, whose medians move by well under 1 %; reading all 20 took 10 ms of the
+#: adaptive decode's 40 ms a full-resolution view (issue 32)
+_MODEL_PAIR_STRIDE = 5
 #: counted noise model: |p + q − w − b| counted one by one up to this (a median beyond it, a
 #: noise σ of thousands of frame units, is sorted instead)
 _MODEL_MAX_RESIDUAL = 8190
@@ -225,7 +230,8 @@ def noise_model_sorted(frames: Sequence[np.ndarray]) -> tuple[float, float]:
     level, base = rng[ok], (white + black)[ok]
     order = np.argsort(level, kind="stable")
     sq = np.stack([(sub(k)[ok] + sub(k + 1)[ok] - base) ** 2
-                   for k in range(2, len(frames) - 1, 2)], axis=1)[order]
+                   for k in range(2, len(frames) - 1, 2 * _MODEL_PAIR_STRIDE)],
+                  axis=1)[order]
     chunks = np.array_split(np.arange(len(order)), _MODEL_BINS)
     xs = [float(np.median(level[order][c])) for c in chunks]
     ys = [float(np.median(sq[c])) / 0.4549 for c in chunks]
@@ -259,7 +265,7 @@ def noise_model_counted(stack: np.ndarray) -> tuple[float, float] | None:
     width = min(2 * top, _MODEL_MAX_RESIDUAL) + 2  # beyond: the last
     bounds = bands(bins.shape[0])
     counts = np.zeros((len(bounds) - 1, _MODEL_BINS, width), np.int32)
-    split_bands(kernels.model_residuals, bounds, stack, bins, counts)
+    split_bands(kernels.model_residuals, bounds, stack, bins, _MODEL_PAIR_STRIDE, counts)
     residuals = counts.sum(axis=0)
     starts = np.concatenate([[0], ends[:-1]])
     xs, ys = [], []
