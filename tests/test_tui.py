@@ -380,10 +380,26 @@ async def test_what_the_server_says_before_the_screen_is_mounted_is_shown(server
 # ---- tabs, focus, keys ---------------------------------------------------------------------------
 
 async def show_tab(pilot, tab):
-    await pilot.pause()
-    pilot.app.action_show_tab(tab)
-    await pilot.pause()
-    await pilot.pause()
+    """Show ``tab`` once the main screen is up (``action_show_tab`` does nothing before: a
+    snapshot taken then showed the rig tab under a loaded CI host) and wait until it shows."""
+    app = pilot.app
+    await wait_until(pilot, lambda: app.main_ready and app.focused is not None)
+    await show_tab_when_up(pilot, tab)
+
+
+async def show_tab_when_up(pilot, tab):
+    """``action_show_tab`` until ``tab`` shows: on a loaded host the main screen's first focus
+    (AUTO_FOCUS, the rig panel) can land after the switch and take the tabs back to rig."""
+    app = pilot.app
+    for _ in range(200):
+        app.action_show_tab(tab)
+        for _ in range(10):
+            await pilot.pause(0.02)
+            if app.panel(TabbedContent).active == tab:
+                await pilot.pause()
+                if app.panel(TabbedContent).active == tab:
+                    return
+    raise AssertionError(f"the {tab} tab never showed")
 
 
 #: A key the footer shows while each tab's panel has the focus.

@@ -30,6 +30,7 @@ from dotshell.tui.widgets.console_input import ConsoleInput
 from dotshell.tui.widgets.keys_screen import KeysScreen
 from dotshell.tui.widgets.plugins_screen import PluginsScreen
 from rig_server import attach, served, user_dirs  # noqa: F401 (a fixture)
+from test_tui import show_tab_when_up
 
 pytestmark = pytest.mark.asyncio
 
@@ -107,6 +108,12 @@ async def until(pilot, condition):
     raise AssertionError("the screen never got there")
 
 
+async def show_tab(pilot, tab):
+    """``tab`` shown once the main screen is up (test_tui.show_tab)."""
+    await until(pilot, lambda: pilot.app.main_ready and pilot.app.focused is not None)
+    await show_tab_when_up(pilot, tab)
+
+
 async def test_rig_screen(server, tmp_path):
     app = DotshellApp(attach(server))
     async with app.run_test(size=SIZES[1]) as pilot:
@@ -132,9 +139,7 @@ async def test_scan_screen_paused_midway(server, tmp_path):
     session.bus.subscribe(hold)
     app = DotshellApp(attach(server))
     async with app.run_test(size=SIZES[1]) as pilot:
-        await until(pilot, lambda: app.focused is not None)
-        app.action_show_tab("scan")
-        await pilot.pause()
+        await show_tab(pilot, "scan")
         await pilot.press("s")
         await until(pilot, reached.is_set)
         await until(pilot, lambda: app.session.scanning)  # p pauses a scan the TUI knows of
@@ -151,9 +156,7 @@ async def test_scan_screen_paused_midway(server, tmp_path):
 async def test_console_screen(server, tmp_path):
     app = DotshellApp(attach(server))
     async with app.run_test(size=SIZES[1]) as pilot:
-        await until(pilot, lambda: app.focused is not None)
-        app.action_show_tab("console")
-        await pilot.pause()
+        await show_tab(pilot, "console")
         box = app.panel(ConsoleInput)
         box.cursor_blink = False
         for source in ("connect(); jog(12.5)", "rig.stage.position * 2",
