@@ -5,13 +5,16 @@ with ``--trace``, the largest tracemalloc holders printed at every view boundary
 Usage::
 
     python benchmarks/agar_memory.py [--views 3] [--trace] [--mesh] [--out DIR] [--before REF]
-                                     [--malloc mmap=BYTES,trim=BYTES,arenas=N]
+                                     [--malloc mmap=BYTES,trim=BYTES,arenas=N] [--cold]
 
 ``--views N`` scans N views (transillumination at view 0 only, unless N = 12); ``--mesh`` keeps
 the profile's mesh and normalization after the scan (they run in a child process of their own).
 ``--before REF`` measures the dotshell of git revision REF (``git archive``, e.g. ``main``) in
 the same run, before this tree: one child process per side, the figures side by side.
-``--malloc`` sets glibc's malloc parameters in place of the command's own
+``--cold`` gives each side an empty numba cache (``NUMBA_CACHE_DIR``): the first scan after
+an install, which compiles every kernel; each side prints how many kernels its scan process
+compiled itself (the rest came from the cache, or were compiled in the process
+:mod:`dotshell.pipeline.kernel_warmup` starts). ``--malloc`` sets glibc's malloc parameters in place of the command's own
 (:mod:`dotshell.runtime.process`) to compare kernel time, page faults and peak RSS; each side
 prints its CPU (user, kernel), faults and peak, and the clouds' hashes and accuracy figures.
 """
@@ -104,6 +107,20 @@ def rusage() -> dict[str, dict[str, float]]:
         out[who] = {"user_s": ru.ru_utime, "kernel_s": ru.ru_stime, "minor_faults": ru.ru_minflt,
                     "major_faults": ru.ru_majflt, "peak_mib": ru.ru_maxrss / 1024.0}
     return out
+
+
+def compiled_here() -> dict[str, int]:
+    """Kernel signatures this process compiled (not found in numba's cache), by kernel."""
+    from numba.core.registry import CPUDispatcher
+
+    found = {}
+    for name, module in list(sys.modules.items()):
+        for attr, value in list(vars(module).items() if module is not None else ()):
+            if issubclass(type(value), CPUDispatcher) and value.__module__ == name:
+                misses = sum(value.stats.cache_misses.values())
+                if misses:
+                    found[f"{name}.{attr}"] = misses
+    return found
 
 
 def outputs(out: Path) -> dict[str, object]:
@@ -222,6 +239,7 @@ def child(args: argparse.Namespace) -> None:
     out = {"exit": code, "wall_s": time.monotonic() - t0, "rss_end_mib": rss, "hwm_mib": hwm,
            "views": records, "stages": sampler.peaks, "rusage": rusage(), "drained_s": drained,
            "outputs": outputs(Path(args.out)), "open3d_loaded": "open3d" in sys.modules,
+           "compiled_here": compiled_here(),
            "packages": sorted({m.partition(".")[0] for m in sys.modules
                                if not m.startswith("_")})}
     Path(args.result).write_text(json.dumps(out))
@@ -241,6 +259,8 @@ def run_side(label: str, tree: Path, args: argparse.Namespace, tmp: Path) -> dic
     result = tmp / f"{label}.json"
     env = dict(os.environ, PYTHONPATH=f"{tree}:{tree / 'plugins'}", OMP_NUM_THREADS="1",
                OPENBLAS_NUM_THREADS="1")
+    if args.cold:
+        env["NUMBA_CACHE_DIR"] = str(tmp / f"{label}-numba-cache")
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", "--views", str(args.views),
            "--out", str(tmp / label), "--result", str(result), "--top", str(args.top)]
     cmd += ["--trace"] if args.trace else []
@@ -256,6 +276,10 @@ def report(label: str, res: dict) -> None:
     if "open3d_loaded" in res:
         print(f"  open3d loaded in the scan process: {'yes' if res['open3d_loaded'] else 'no'}")
         print(f"  packages imported: {' '.join(res.get('packages', []))}")
+    if "compiled_here" in res:
+        here = res["compiled_here"]
+        print(f"  kernel signatures compiled in the scan process: {sum(here.values())}"
+              + (f" ({', '.join(sorted(here))})" if here else ""))
     if res.get("drained_s"):
         print(f"  waited for the reconstruction before a trans-illumination view: "
               f"{sum(res['drained_s']):.1f} s ({', '.join(f'{s:.1f}' for s in res['drained_s'])})")
@@ -290,6 +314,8 @@ def main() -> None:
     ap.add_argument("--malloc", default=None,
                     help="glibc malloc settings instead of the command's: mmap=BYTES,trim=BYTES,"
                          "arenas=N (to compare kernel time, faults and peak RSS)")
+    ap.add_argument("--cold", action="store_true",
+                    help="each side with an empty numba cache (the first scan after an install)")
     ap.add_argument("--out", default=None)
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--result", default=None, help=argparse.SUPPRESS)

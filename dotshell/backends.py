@@ -153,6 +153,11 @@ class Backend:
         summary: one line for ``dotshell plugins``.
         usb_ids: ``"vid:pid"`` (lower-case hex) of the USB devices this backend drives, so
             ``dotshell ports`` can say which backend fits a plugged-in device.
+        compile_kernels: for a backend whose objects call compiled kernels (numba,
+            ``cache=True``) during a scan: a function of no arguments that calls them on small
+            inputs of the argument types a scan passes, so that a scan compiles them in a
+            process of its own before it starts (:mod:`dotshell.pipeline.kernel_warmup`);
+            ``None`` for the others.
     """
 
     name: str
@@ -160,3 +165,4 @@ class Backend:
     settings_schema: Mapping[str, Setting] = field(default_factory=dict)
     summary: str = ""
     usb_ids: tuple[str, ...] = ()
+    compile_kernels: Callable[[], None] | None = None

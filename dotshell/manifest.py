@@ -22,6 +22,7 @@ start-up and asked for its backends through the hooks of :mod:`dotshell.hookspec
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import importlib.util
 import tomllib
@@ -62,8 +63,8 @@ class ManifestBackend:
             raise PluginError(f"{self.python_name} must be (or return) a dotshell.backends."
                               f"Backend named {self.name!r}, as the manifest says; it is "
                               f"{short_repr(backend)}")
-        return Backend(self.name, backend.factory, backend.settings_schema,
-                       self.summary or backend.summary, self.usb_ids or backend.usb_ids)
+        return dataclasses.replace(backend, summary=self.summary or backend.summary,
+                                   usb_ids=self.usb_ids or backend.usb_ids)
 
 
 @dataclass(frozen=True)

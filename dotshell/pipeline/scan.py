@@ -17,7 +17,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 from dotshell.runtime import hugepages
 from dotshell.errors import CalibrationError, FrameError, RunError
@@ -28,6 +28,7 @@ from dotshell.geometry.calibration import RigCalibration
 from dotshell.geometry.opencv_io import load_any_calibration
 from dotshell.pipeline.acquire import Acquisition
 from dotshell.pipeline.engine import RunJob, process
+from dotshell.pipeline.kernel_warmup import KernelWarmup
 from dotshell.run.frames import set_aside_partial
 from dotshell.run.generations import Generation, ProductStore
 from dotshell.run.lifecycle import connected, describe_holder, lock_holder
@@ -94,8 +95,11 @@ class ViewPipeline:
     frames), so memory holds the pattern images of the view being captured and of two others."""
 
     def __init__(self, store: RunStore, profile: Profile, coding: Any, calib: RigCalibration,
-                 bus: EventBus) -> None:
+                 bus: EventBus, ready: Callable[[], None] | None = None) -> None:
         self.args = (profile, coding, calib, bus)
+        #: called before each view's reconstruction: returns once the kernels are compiled
+        #: (:class:`~dotshell.pipeline.kernel_warmup.KernelWarmup`), the capture going on
+        self.ready = ready
         self.store = store
         self.pool = ThreadPoolExecutor(1, thread_name_prefix="dotshell-reconstruct")
         self.futures: dict[int, Future] = {}
@@ -111,6 +115,8 @@ class ViewPipeline:
         capture needs the memory more than the next decode needs it lent."""
         profile, coding, calib, bus = self.args
         try:
+            if self.ready is not None:
+                self.ready()
             return reconstruct_one_view(self.store, view, angle_deg, profile, coding, calib, bus,
                                         images=images)
         finally:
@@ -277,6 +283,8 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
         _check_devices(store, rig, calib, resuming)
         if not resuming:
             calib.save(store.path(RunLayout.CALIBRATION))
+        kernels = KernelWarmup.start(store.root, profile.data,
+                                     FrameSpec.of_camera(rig.camera).bit_depth, pm)
         patterns = coding.patterns(rig.projector.resolution)
         shots = plan_shots(patterns, profile.scan)
         _record_sequence(store, shots, patterns, resuming)
@@ -285,7 +293,8 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
                              n_views=len(angles), frames_per_view=len(shots)))
         acq = Acquisition(rig, patterns, store, profile.scan, bus, stop, running,
                           shots=shots)
-        pipeline = ViewPipeline(products, profile, coding, calib, bus)
+        pipeline = ViewPipeline(products, profile, coding, calib, bus,
+                                ready=lambda: kernels.wait(bus, stop))
         try:
             trans = _transillumination(rig, store, profile, acq, bus)
             todo = _views_to_capture(store, trans, recapture)
@@ -308,6 +317,7 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
                     del frames  # the pipeline holds their pattern images until reconstructed
                 if trans is not None and trans.covers(view):
                     pipeline.drain()  # the laser view is not traced beside a reconstruction
+                    kernels.wait(bus, stop)  # the laser's FEM kernels
                     trans.run_view(view)
             last_frame_at = time.monotonic() if todo else None  # last frames stored
             reconstructed = pipeline.results()

@@ -38,5 +38,6 @@ def sim_analyzer() -> Backend:
 
 def sim_laser() -> Backend:
     from dotshell_sim.devices import LASER_SCHEMA, make_laser
+    from dotshell_sim.transillum import compile_kernels
 
-    return Backend("sim-laser", make_laser, LASER_SCHEMA)
+    return Backend("sim-laser", make_laser, LASER_SCHEMA, compile_kernels=compile_kernels)

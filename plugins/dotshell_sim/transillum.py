@@ -292,6 +292,20 @@ def fluence_model(shape, optics: Optics, spacing_mm: float) -> FluenceModel:
                                                            optics, spacing_mm, key), _MAX_MODELS)
 
 
+def compile_kernels() -> None:
+    """Call the FEM truth's compiled kernels (TetGen's mesh checks, the system matrix, the
+    conjugate gradients, the boundary's closest points) on a small cylinder, with the argument
+    types a laser view passes: the sim-laser backend's
+    :attr:`~dotshell.backends.Backend.compile_kernels`."""
+    model = FluenceModel.build(cylinder_surface(4.0, 6.0, 2.0), Optics(0.01, 1.0, 1.37), 2.0)
+    entry, direction = np.array([-4.0, 0.0, 3.0]), np.array([1.0, 0.0, 0.0])
+    phi = model.fluence(model.source_inside(entry, direction))
+    model.surface_fluence(phi, np.array([[4.0, 0.0, 3.0], [0.0, 4.1, 2.0]]))
+    from dotshell.fem.forward import move_inside
+
+    move_inside(model.mesh, entry, 1.0)
+
+
 # ---- the beam ----------------------------------------------------------------------------
 
 def beam_in_sample_frame(angle_deg: float, target_mm) -> tuple[np.ndarray, np.ndarray]:
