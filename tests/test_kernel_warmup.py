@@ -109,7 +109,8 @@ def test_the_cache_check_holds_only_what_numba_s_cache_holds(tmp_path, monkeypat
 def test_a_failed_compile_is_a_warning_and_the_scan_goes_on(tmp_path):
     """The compiling process fails (here: the run it is given does not exist): the scan is
     told, in a warning naming the cause, that its kernels are compiled where it first needs
-    them; nothing is raised."""
+    them; nothing is raised; a later scan of the same kind in that process is not warned
+    again (a console's scans)."""
     from dotshell.plugins import get_plugin_manager
 
     said = []
@@ -122,6 +123,9 @@ def test_a_failed_compile_is_a_warning_and_the_scan_goes_on(tmp_path):
     assert len(texts) == 1 and texts[0][0] == "warning", texts
     assert "could not be compiled beforehand" in texts[0][1]
     assert "no-run" in texts[0][1]
+    again = kw.KernelWarmup.start(tmp_path / "no-run", profile, 12, get_plugin_manager())
+    again.wait(bus)  # the next scan of that kind in this process: logged, not warned again
+    assert len(said) == 1
 
 
 def test_the_synthetic_view_decodes_in_both_image_directions():

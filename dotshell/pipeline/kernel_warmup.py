@@ -226,6 +226,10 @@ def _write_stamp(key: str, kernels: list[Kernel]) -> None:
         tmp.unlink(missing_ok=True)
 
 
+#: the kinds of scan (:func:`warmup_key`) whose failure to compile ahead was told
+_WARNED: set[str] = set()
+
+
 class KernelWarmup:
     """The scan's side: from :meth:`start` on, a thread checks numba's cache for the run's
     kernels and, on a miss, compiles them in a child process; :meth:`wait` joins it before
@@ -250,8 +254,10 @@ class KernelWarmup:
         from dotshell.pipeline.mesh_process import run_in_child
 
         run_root, profile_data, bit_depth, pm = self._args
+        key = ""
         try:
-            if cache_holds(warmup_key(profile_data, bit_depth, pm)):
+            key = warmup_key(profile_data, bit_depth, pm)
+            if cache_holds(key):
                 return
             done: WarmupOutcome = run_in_child(compile_for_run, run_root, bit_depth)
             if done.compiled:
@@ -262,7 +268,11 @@ class KernelWarmup:
             text = (f"dotshell's kernels could not be compiled beforehand ({exc}); the scan "
                     "compiles them where it first needs them, with more memory in the scan "
                     "process")
-            self._said = ("warning", text)
+            if key not in _WARNED:  # once a process for a kind (a console's scans)
+                _WARNED.add(key)
+                self._said = ("warning", text)
+            else:
+                log.info("%s", text)
 
     def wait(self, bus: EventBus, stop: threading.Event | None = None) -> None:
         """Block until the kernels are ready (or ``stop`` is set: the scan then compiles
