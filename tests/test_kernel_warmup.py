@@ -54,9 +54,10 @@ def _profile(tmp_path: Path, name: str, views: int = 2) -> Path:
     if "transillumination" in raw:
         raw["transillumination"]["views"] = [1]
         raw["light_source"]["settings"]["node_spacing_mm"] = 3.0
-    for step in ("mesh", "normalize"):
-        if step in raw:
-            raw[step]["after_scan"] = False
+    if "transillumination" not in raw:
+        raw.get("mesh", {})["after_scan"] = False
+    else:  # meshed and normalized after the scan: the normalization's kernels too
+        raw["mesh"]["node_distance_mm"] = 3.0
     path = tmp_path / "profile.toml"
     path.write_text(tomli_w.dumps(raw))
     return path
@@ -64,7 +65,8 @@ def _profile(tmp_path: Path, name: str, views: int = 2) -> Path:
 
 @pytest.mark.parametrize("name", ["sim-agar-cylinder.toml", "sim-metal-cylinder.toml"])
 def test_the_scan_process_calls_only_kernels_compiled_before_it(tmp_path, name):
-    """The agar scan (PDI, uint16 frames, the simulated laser's FEM truth) and the metal one:
+    """The agar scan (PDI, uint16 frames, the simulated laser's FEM truth, the normalization
+    after it) and the metal one:
     every kernel and argument type the scan process calls is one the compiling process
     called on its synthetic view and the backends' own inputs (the stamp lists them), so on
     an empty cache the scan process compiles none itself."""
@@ -79,6 +81,8 @@ def test_the_scan_process_calls_only_kernels_compiled_before_it(tmp_path, name):
     assert missing == [], "kernels the compiling process did not call:\n" + "\n".join(missing)
     assert res["compiled_here"] == 0
     assert "could not be compiled beforehand" not in out.stdout + out.stderr
+    normalized = list((tmp_path / "runs").glob("*/gen/001/normalize"))
+    assert len(normalized) == (1 if "agar" in name else 0)
 
 
 def test_the_cache_check_holds_only_what_numba_s_cache_holds(tmp_path, monkeypatch):

@@ -186,12 +186,33 @@ def compile_for_run(run_root: str, bit_depth: int) -> WarmupOutcome:
     patterns = [p.image for p in coding.patterns(calib.projector.size)]
     frames = synthetic_view(calib, patterns, bit_depth)
     reconstruct_view(0, 0.0, frames, coding, calib, profile.processing)
+    if profile.transillumination.enabled:  # the normalization may run after the scan
+        compile_fem_kernels()
     for compile_backend in _backend_compilers(profile.data, pm):
         compile_backend()
     kernels = compiled_kernels()
     _write_stamp(warmup_key(profile.data, bit_depth, pm), kernels)
     misses = sum(_misses(module, attr) for module, attr in {(m, a) for m, a, _ in kernels})
     return WarmupOutcome(len(kernels) - misses, misses, time.perf_counter() - t0)
+
+
+def compile_fem_kernels() -> None:
+    """Call the FEM's and the surface queries' kernels (the normalization's, after a scan with
+    trans-illumination) on a cube of five tetrahedra: its boundary, the system matrix's
+    pattern and assembly, a forward solve, the element holding a point, and ray casts and
+    closest points on its boundary."""
+    from dotshell.fem.forward import solve_cw
+    from dotshell.fem.meshes import TetMesh, orient_positive
+    from dotshell.geometry.bvh import TriangleBVH
+
+    corners = 10.0 * np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], float)
+    tets = np.array([[0, 1, 2, 4], [1, 3, 2, 7], [1, 2, 4, 7], [1, 5, 4, 7], [2, 4, 7, 6]])
+    mesh = TetMesh(corners, orient_positive(corners, tets))
+    solve_cw(mesh, [5.0, 5.0, 5.0], np.full(8, 0.01), np.full(8, 1.0), 1.37)
+    surface = TriangleBVH(mesh.nodes, mesh.boundary_faces)
+    inside = np.full((4, 3), 5.0)
+    surface.cast(np.zeros_like(inside), inside)
+    surface.closest(inside)
 
 
 def _backend_compilers(profile_data: dict[str, Any], pm: Any) -> list[Callable[[], None]]:
