@@ -280,7 +280,8 @@ class KernelWarmup:
             key = warmup_key(profile_data, bit_depth, pm)
             if cache_holds(key):
                 return
-            done: WarmupOutcome = run_in_child(compile_for_run, run_root, bit_depth)
+            done: WarmupOutcome = run_in_child(compile_for_run, run_root, bit_depth,
+                                                job="kernel compiling")
             if done.compiled:
                 text = (f"compiled {done.compiled} of dotshell's kernels for this machine in "
                         f"{done.seconds:.0f} s (once: numba's cache keeps them)")

@@ -59,8 +59,9 @@ class MeshProcess:
         self.proc.stdin.write(pickle.dumps(list(sys.path)) + pickle.dumps(tuple(warm_up)))
         self.proc.stdin.flush()
 
-    def run(self, func: Callable[..., Any], *args: Any) -> Any:
-        """``func(*args)`` in the process (see :func:`run_in_child`)."""
+    def run(self, func: Callable[..., Any], *args: Any, job: str = "mesh") -> Any:
+        """``func(*args)`` in the process (see :func:`run_in_child`); ``job`` names it in the
+        error of a process that died (``"mesh"``: with the advice on the mesh's size)."""
         proc = self.proc
         try:
             out, err = proc.communicate(pickle.dumps((func, args)))
@@ -77,10 +78,12 @@ class MeshProcess:
             from dotshell.fem.meshes import MeshError
 
             tail = "\n".join(text.splitlines()[-5:])
-            raise MeshError(f"the mesh process ended without a result ({_ending(proc.returncode)})"
-                            ": the system may have stopped it for lack of memory, or a mesher "
-                            "crashed. Try a larger node distance ([mesh] node_distance_mm or "
-                            "--node-distance), or free memory, and run `dotshell mesh RUN` again."
+            advice = (" or a mesher crashed. Try a larger node distance ([mesh] "
+                      "node_distance_mm or --node-distance), or free memory, and run "
+                      "`dotshell mesh RUN` again." if job == "mesh" else " or it crashed.")
+            raise MeshError(f"the {job} process ended without a result "
+                            f"({_ending(proc.returncode)}): the system may have stopped it for "
+                            f"lack of memory,{advice}"
                             + (f" Its last words:\n{tail}" if tail else "")) from None
         if ok:
             return value
@@ -118,7 +121,7 @@ def discard_early() -> None:
         early.discard()
 
 
-def run_in_child(func: Callable[..., Any], *args: Any) -> Any:
+def run_in_child(func: Callable[..., Any], *args: Any, job: str = "mesh") -> Any:
     """``func(*args)`` in a new Python process (the one :func:`start_early` started, if any);
     its return value, or the exception it raised. ``func`` and ``args`` must pickle
     (module-level functions, plain data, objects of importable classes); :func:`picklable`
@@ -130,7 +133,7 @@ def run_in_child(func: Callable[..., Any], *args: Any) -> Any:
     """
     global _early
     process, _early = (_early or MeshProcess()), None
-    return process.run(func, *args)
+    return process.run(func, *args, job=job)
 
 
 def picklable(*objects: Any) -> bool:
