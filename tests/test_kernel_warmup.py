@@ -157,3 +157,20 @@ def test_the_synthetic_view_decodes_in_both_image_directions():
         assert vc.stats["decoded"] > 0.9 * vc.stats["pixels"], vc.stats
         assert vc.stats["refined_column"] > 0.9 * vc.stats["decoded"], vc.stats
         assert vc.stats["points"] > 0.25 * vc.stats["pixels"], vc.stats
+
+
+def test_kinds_of_scan_that_call_other_kernels_have_other_stamps():
+    """The stamp's key changes with what changes the kernels a scan calls (the coding's
+    settings, the frame depth, trans-illumination) and not with what does not (the views)."""
+    from dotshell.plugins import get_plugin_manager
+
+    pm = get_plugin_manager()
+    raw = tomllib.loads((ROOT / "profiles" / "sim-agar-cylinder.toml").read_text())
+    base = kw.warmup_key(raw, 12, pm)
+    assert kw.warmup_key({**raw, "scan": {**raw["scan"], "views": 3}}, 12, pm) == base
+    assert kw.warmup_key(raw, 8, pm) != base
+    no_trans = {**raw, "transillumination": {**raw["transillumination"], "enabled": False}}
+    assert kw.warmup_key(no_trans, 12, pm) != base
+    robust = {**raw, "coding": {**raw["coding"], "settings": {**raw["coding"].get("settings", {}),
+                                                              "classification": "robust"}}}
+    assert kw.warmup_key(robust, 12, pm) != base

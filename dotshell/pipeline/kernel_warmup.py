@@ -64,15 +64,16 @@ class WarmupOutcome:
 
 
 def warmup_key(profile_data: dict[str, Any], bit_depth: int, pm: Any) -> str:
-    """What decides a scan's kernel argument types, hashed: the coding and its settings, the
-    frame depth (bits), the profile's backends that compile kernels of their own, and the
-    versions of Python and numba (16 hex digits)."""
+    """What decides which kernels a scan calls and their argument types, hashed: the coding
+    and its settings, the frame depth (bits), trans-illumination (the FEM's kernels), the
+    profile's backends that compile kernels of their own, and the versions of Python and
+    numba (16 hex digits)."""
     import numba
 
     coding = profile_data.get("coding") or {}
     basis = {"coding": coding.get("backend"), "settings": coding.get("settings") or {},
              "bit_depth": int(bit_depth), "numba": numba.__version__,
-             "python": sys.version_info[:2],
+             "python": sys.version_info[:2], "fem": _needs_fem(profile_data),
              "backends": sorted(f"{f.__module__}.{f.__qualname__}"
                                 for f in _backend_compilers(profile_data, pm))}
     text = json.dumps(basis, sort_keys=True, default=str)
@@ -186,7 +187,7 @@ def compile_for_run(run_root: str, bit_depth: int) -> WarmupOutcome:
     patterns = [p.image for p in coding.patterns(calib.projector.size)]
     frames = synthetic_view(calib, patterns, bit_depth)
     reconstruct_view(0, 0.0, frames, coding, calib, profile.processing)
-    if profile.transillumination.enabled:  # the normalization may run after the scan
+    if _needs_fem(profile.data):
         compile_fem_kernels()
     for compile_backend in _backend_compilers(profile.data, pm):
         compile_backend()
@@ -194,6 +195,12 @@ def compile_for_run(run_root: str, bit_depth: int) -> WarmupOutcome:
     _write_stamp(warmup_key(profile.data, bit_depth, pm), kernels)
     misses = sum(_misses(module, attr) for module, attr in {(m, a) for m, a, _ in kernels})
     return WarmupOutcome(len(kernels) - misses, misses, time.perf_counter() - t0)
+
+
+def _needs_fem(profile_data: dict[str, Any]) -> bool:
+    """Whether a scan of the profile may call the FEM's kernels in its process: with
+    trans-illumination, the normalization may run after the scan."""
+    return bool((profile_data.get("transillumination") or {}).get("enabled"))
 
 
 def compile_fem_kernels() -> None:
