@@ -27,6 +27,7 @@ from test_codings_robust import run
 from test_graycode import make_coding
 
 from dotshell.pipeline.decode_quality import view_quality
+from dotshell.runtime import parallel
 
 
 def _truth_counts(corr, u, v, lit) -> tuple[int, int]:
@@ -363,9 +364,12 @@ def test_one_pass_adaptive_decodes_what_two_decodes_did(make, scene, ambient_blu
 
 def test_counted_noise_model_equals_the_sorted_one(ambient_scene, ambient_blur_scene):
     """The compiled, counting noise model gives the sorting one's figures to the last bit
-    (16-bit frames of two scenes; 8-bit frames with many equal levels and odd sizes)."""
+    (16-bit frames of two scenes; 8-bit frames with many equal levels and odd sizes), in one
+    band of rows or several (each band ranks its pixels from the bands above it)."""
     for frames, *_ in (ambient_scene, ambient_blur_scene):
-        assert noise_model_counted(np.stack(frames)) == noise_model_sorted(frames)
+        for n_threads in (1, 3):
+            with parallel.threads(n_threads):
+                assert noise_model_counted(np.stack(frames)) == noise_model_sorted(frames)
     rng = np.random.default_rng(1)
     white = rng.integers(80, 255, (101, 77))
     black = rng.integers(0, 25, (101, 77))
@@ -377,6 +381,8 @@ def test_counted_noise_model_equals_the_sorted_one(ambient_scene, ambient_blur_s
     frames = [np.clip(np.round(f), 0, 255).astype(np.uint8) for f in frames]
     floor, gain = noise_model_counted(np.stack(frames))
     assert (floor, gain) == noise_model_sorted(frames)
+    with parallel.threads(3):
+        assert noise_model_counted(np.stack(frames)) == (floor, gain)
     assert np.sqrt(floor) == pytest.approx(3.0 / np.sqrt(2), rel=0.1)  # σ(p + q − w − b) = 2 σ
 
 
