@@ -172,7 +172,8 @@ def robust_bits(pattern: np.ndarray, inverse: np.ndarray, ld: np.ndarray, lg: np
 _MODEL_MIN_RANGE = 0.03
 
 
-def noise_model(frames: Sequence[np.ndarray] | np.ndarray) -> tuple[float, float]:
+def noise_model(frames: Sequence[np.ndarray] | np.ndarray, full: float | None = None
+                ) -> tuple[float, float]:
     """The camera's noise, ``var(I) = floor + gain · (I − black)`` (frame units²), measured
     from a pattern/inverse sequence (white, black, then pairs).
 
@@ -182,10 +183,11 @@ def noise_model(frames: Sequence[np.ndarray] | np.ndarray) -> tuple[float, float
     equal-count bins of ``w − b`` (ranked stably: equal levels in raster order), on every
     second pixel each way and every :data:`_MODEL_PAIR_STRIDE`-th pair. An 8- or 16-bit (F, H, W) stack is counted in compiled passes
     (:func:`noise_model_counted`, the same figures), anything else sorted
-    (:func:`noise_model_sorted`)."""
+    (:func:`noise_model_sorted`). ``full``: the stack's :func:`full_scale` (of its white
+    frame, without a bit depth), when the caller has it (a full-frame maximum less)."""
     if (isinstance(frames, np.ndarray) and frames.ndim == 3
             and frames.dtype in (np.uint8, np.uint16)):
-        model = noise_model_counted(frames)
+        model = noise_model_counted(frames, full)
         if model is not None:
             return model
     return noise_model_sorted(frames)
@@ -193,7 +195,11 @@ def noise_model(frames: Sequence[np.ndarray] | np.ndarray) -> tuple[float, float
 
 def _model_thresholds(white: np.ndarray) -> tuple[float, float]:
     """Noise-model fit: the least ``w − b`` (shadow) and the largest ``w`` (saturation)."""
-    top = full_scale(np.asarray(white))
+    return _thresholds_of(full_scale(np.asarray(white)))
+
+
+def _thresholds_of(top: float) -> tuple[float, float]:
+    """:func:`_model_thresholds` from the frames' full scale ``top``."""
     return _MODEL_MIN_RANGE * top, 0.99 * top
 
 
@@ -238,21 +244,23 @@ def noise_model_sorted(frames: Sequence[np.ndarray]) -> tuple[float, float]:
     return _model_line(xs, ys)
 
 
-def noise_model_counted(stack: np.ndarray) -> tuple[float, float] | None:
+def noise_model_counted(stack: np.ndarray, full: float | None = None
+                        ) -> tuple[float, float] | None:
     """:func:`noise_model` of an 8- or 16-bit (F, H, W) stack by counting, the same figures as
     :func:`noise_model_sorted` (equal to the last bit, ``tests/test_decode_adaptive.py``): the
     levels ``w − b`` and ``|r|`` are integers, so histograms give the bins (a level's pixels
     ranked in raster order, as a stable sort ranks them) and the medians (``r²`` grows with
     ``|r|``) in two compiled passes over bands of rows on every core (:mod:`kernels`: a sort
     of 1.5 M values and ten medians of 3 M took ~80 ms a full view, these ~3). None when the
-    median ``|r|`` is beyond the counted range (then sort)."""
+    median ``|r|`` is beyond the counted range (then sort). ``full``: as :func:`noise_model`'s."""
     from dotshell.runtime.parallel import bands, split_bands
     from dotshell_codings import kernels
 
     if stack.shape[0] < 4:
         return None
-    least, most = (np.float32(t) for t in _model_thresholds(stack[0]))
-    top = int(full_scale(stack[0]))  # w − b ≤ w ≤ top
+    full = full_scale(stack[0]) if full is None else full
+    least, most = (np.float32(t) for t in _thresholds_of(full))
+    top = int(full)  # w − b ≤ w ≤ top
     bounds = bands((stack.shape[1] + 1) // 2)  # the sampled rows
     per_band = np.zeros((len(bounds) - 1, top + 1), np.int64)
     split_bands(kernels.model_levels, bounds, stack, least, most, per_band)
