@@ -30,7 +30,8 @@ import numpy as np
 #: (module, kernels) wrapped: the compiled passes a view calls through module attributes
 KERNELS = {
     "dotshell_codings.kernels": ("decode_rows", "difference_extremes", "difference_counts",
-                                 "refine_rows", "refine_columns", "block_centres"),
+                                 "model_levels", "model_residuals", "refine_rows",
+                                 "refine_columns", "block_centres"),
     "dotshell.geometry.triangulate": ("_solve_image", "_count_rows", "_select_in_place"),
     "dotshell.pipeline.reconstruct": ("_keep_points", "_gather"),
     "dotshell.pipeline.reversal_pass": ("_count_steps",),

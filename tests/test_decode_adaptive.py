@@ -27,6 +27,7 @@ from test_codings_robust import run
 from test_graycode import make_coding
 
 from dotshell.pipeline.decode_quality import view_quality
+from dotshell.runtime import parallel
 
 
 def _truth_counts(corr, u, v, lit) -> tuple[int, int]:
@@ -363,21 +364,49 @@ def test_one_pass_adaptive_decodes_what_two_decodes_did(make, scene, ambient_blu
 
 def test_counted_noise_model_equals_the_sorted_one(ambient_scene, ambient_blur_scene):
     """The compiled, counting noise model gives the sorting one's figures to the last bit
-    (16-bit frames of two scenes; 8-bit frames with many equal levels and odd sizes)."""
+    (16-bit frames of two scenes; 8-bit frames with many equal levels and odd sizes), in one
+    band of rows or several (each band ranks its pixels from the bands above it)."""
     for frames, *_ in (ambient_scene, ambient_blur_scene):
-        assert noise_model_counted(np.stack(frames)) == noise_model_sorted(frames)
+        for n_threads in (1, 3):
+            with parallel.threads(n_threads):
+                assert noise_model_counted(np.stack(frames)) == noise_model_sorted(frames)
     rng = np.random.default_rng(1)
     white = rng.integers(80, 255, (101, 77))
     black = rng.integers(0, 25, (101, 77))
     frames = [white, black]
-    for _ in range(6):
+    for _ in range(11):  # pairs 0, 5 and 10 read: the residual pass's two-pair loop and its rest
         lit = np.where(rng.random(white.shape) < 0.5, white, black)
         frames += [lit + rng.normal(0, 3, white.shape),
                    white + black - lit + rng.normal(0, 3, white.shape)]
     frames = [np.clip(np.round(f), 0, 255).astype(np.uint8) for f in frames]
     floor, gain = noise_model_counted(np.stack(frames))
     assert (floor, gain) == noise_model_sorted(frames)
+    with parallel.threads(3):
+        assert noise_model_counted(np.stack(frames)) == (floor, gain)
     assert np.sqrt(floor) == pytest.approx(3.0 / np.sqrt(2), rel=0.1)  # σ(p + q − w − b) = 2 σ
+
+
+@pytest.mark.parametrize("pairs", [4, 6, 11, 16])
+def test_noise_model_residuals_count_every_fifth_pair_of_every_model_pixel(pairs):
+    """The residual pass's histogram (one bin) is numpy's of ``|p + q − w − b|`` over the model
+    pixels (every second each way, lit, unsaturated) and pairs 0, 5, 10, … (an even and an
+    odd number of them: the pass reads two pairs a loop, then the rest)."""
+    from dotshell_codings import kernels
+    from dotshell_codings.robust import _MODEL_PAIR_STRIDE
+
+    rng = np.random.default_rng(pairs)
+    stack = rng.integers(0, 256, (2 + 2 * pairs, 21, 17)).astype(np.uint16)
+    stack[0] = np.maximum(stack[0], stack[1])
+    least, most = np.float32(8.0), np.float32(250.0)
+    sub = stack[:, ::2, ::2].astype(np.float32)
+    model = (sub[0] - sub[1] > least) & (sub[0] < most)
+    want = np.concatenate([np.abs(sub[k] + sub[k + 1] - sub[0] - sub[1])[model]
+                           for k in range(2, len(stack) - 1, 2 * _MODEL_PAIR_STRIDE)])
+    rank0 = np.zeros((1, 256), np.int64)  # one bin: every rank's
+    counts = np.zeros((1, 1, 600), np.int32)
+    kernels.model_residuals(stack, least, most, rank0, np.array([model.sum()]),
+                            _MODEL_PAIR_STRIDE, counts, 0, 0, sub.shape[1])
+    assert np.array_equal(counts[0, 0], np.bincount(want.astype(np.int64), minlength=600))
 
 
 def silhouette_ring_frames(make=make_graycode, seed: int = 3):

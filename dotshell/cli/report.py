@@ -64,7 +64,8 @@ def timing_line(timings: dict[str, float]) -> str:
 
 #: Where a camera pixel can be lost on the way to a point, in pipeline order.
 LOSS_KEYS = ("shadow", "low_contrast", "uncertain", "out_of_range", "low_modulation",
-             "phase_inconsistent", "grazing", "row_rejected", "outside_roi", "speckle")
+             "phase_inconsistent", "ray_outside_roi", "grazing", "row_rejected", "outside_roi",
+             "speckle")
 
 
 def pixel_losses(views: list[dict[str, Any]]) -> list[tuple[str, float]]:

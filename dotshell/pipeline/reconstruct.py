@@ -13,6 +13,7 @@ from dotshell.runtime import hugepages, numba_cache
 from dotshell.coding import Correspondence, PatternCoding
 from dotshell.errors import CalibrationError, ReconstructionError
 from dotshell.geometry.calibration import RigCalibration
+from dotshell.geometry.roi_rays import roi_columns
 from dotshell.geometry.triangulate import ImageSolve, select, solve_image
 from dotshell.pipeline.decode_quality import WRONG_CODES, view_quality
 from dotshell.runtime.parallel import bands, split, split_bands
@@ -265,14 +266,16 @@ def check_frames(frames: Sequence[np.ndarray], calib: RigCalibration, view: int)
 
 
 def solve_pixels(corr: Correspondence, calib: RigCalibration, processing: Mapping[str, Any],
-                 to_frame: np.ndarray | None = None, depth_image: bool = False) -> ImageSolve:
+                 to_frame: np.ndarray | None = None, depth_image: bool = False,
+                 columns: np.ndarray | None = None) -> ImageSolve:
     """Solve every valid pixel of a correspondence (points in the camera frame, or in the frame
     of the (3, 4) affine map ``to_frame``), kept or not (:func:`solve_image`; ``depth_image``:
-    with the speckle test's depth image)."""
+    with the speckle test's depth image; ``columns``: only these columns of each row, the
+    other pixels counted as ``skipped``)."""
     return solve_image(corr.valid, corr.column, corr.row, calib,
                        row_tolerance_px=processing["row_tolerance_px"],
                        min_ray_angle_deg=processing["min_ray_angle_deg"], to_frame=to_frame,
-                       depth_image=depth_image)
+                       depth_image=depth_image, columns=columns)
 
 
 def triangulate_correspondence(corr: Correspondence, calib: RigCalibration,
@@ -310,6 +313,10 @@ LOSSES: dict[str, str] = {
                  "\"contrast\" — in the layout's [decoder] or the profile's [coding.settings]",
     "out_of_range": "the decoded code lies outside the projector: check projector_width / "
                     "projector_height, centred and the polarity (bright_is_one) of the layout",
+    "ray_outside_roi": "the camera ray misses [processing.roi] (not triangulated: its point "
+                       "would lie outside the region wherever it fell): check [processing.roi] "
+                       "(radius_mm, z_min_mm, z_max_mm) against the sample's size and the "
+                       "calibration's turntable axis",
     "row_rejected": "the decoded column and row do not meet in one point (more than "
                     "row_tolerance_px apart): the calibration does not belong to this rig "
                     "(camera–projector pose, projector size) or the layout swaps columns and rows",
@@ -355,12 +362,15 @@ def explain_grazing(calib: RigCalibration, has_rows: bool, min_angle_deg: float)
 def no_points_error(where: str, stats: dict[str, int], calib: RigCalibration, has_rows: bool,
                     min_angle_deg: float) -> ReconstructionError:
     """The error for a sequence that gave no point: every pixel count, then the cause — the
-    triangulation's largest loss when pixels were decoded, else the decoder's — and its fix."""
+    triangulation's largest loss when pixels were decoded (the region of interest when every
+    decoded pixel's ray missed it), else the decoder's — and its fix."""
     counts = {k: int(stats.get(k, 0)) for k in ("shadow", "low_contrast", "uncertain",
-                                                 "out_of_range", "grazing", "row_rejected")}
+                                                 "out_of_range", "ray_outside_roi", "grazing",
+                                                 "row_rejected")}
     decoded = int(stats.get("decoded", 0))
-    stage = ("grazing", "row_rejected") if decoded else ("shadow", "low_contrast", "uncertain",
-                                                         "out_of_range")
+    solve = ("grazing", "row_rejected")
+    stage = (("shadow", "low_contrast", "uncertain", "out_of_range") if not decoded
+             else solve if any(counts[k] for k in solve) else ("ray_outside_roi",))
     worst = max(stage, key=counts.__getitem__)
     why = (explain_grazing(calib, has_rows, min_angle_deg) if worst == "grazing"
            else LOSSES[worst])
@@ -375,16 +385,22 @@ def no_points_error(where: str, stats: dict[str, int], calib: RigCalibration, ha
 def reconstruct_view(view: int, angle_deg: float, frames: Sequence[np.ndarray],
                      coding: PatternCoding, calib: RigCalibration,
                      processing: Mapping[str, Any]) -> ViewCloud:
-    """Decode one view's frames and triangulate them into sample-frame points (mm)."""
+    """Decode one view's frames and triangulate them into sample-frame points (mm). Only the
+    pixels whose camera rays can meet the region of interest are triangulated
+    (:func:`~dotshell.geometry.roi_rays.roi_columns`: the same points kept, bit for bit); the
+    others are counted as ``ray_outside_roi``."""
     check_frames(frames, calib, view)
     t0 = time.perf_counter()
     corr = coding.decode(frames, calib.projector.size)
     t1 = time.perf_counter()
+    roi = processing["roi"]
     tri = solve_pixels(corr, calib, processing, sample_frame_map(calib, angle_deg),
-                       depth_image=processing["max_depth_jump_mm"] > 0)
+                       depth_image=processing["max_depth_jump_mm"] > 0,
+                       columns=roi_columns(calib, roi["radius_mm"], roi["z_min_mm"],
+                                           roi["z_max_mm"]))
     pixels, points, counts = view_points(tri, frames[0].shape[:2],
-                                         processing["max_depth_jump_mm"], processing["roi"])
-    stats = {**corr.stats, **tri.counts, **counts}
+                                         processing["max_depth_jump_mm"], roi)
+    stats = {**corr.stats, "ray_outside_roi": tri.skipped, **tri.counts, **counts}
     t3 = time.perf_counter()
     quality = view_quality(corr)
     t4 = time.perf_counter()

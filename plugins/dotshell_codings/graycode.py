@@ -348,7 +348,7 @@ class GrayCode:
             words = self._classify(stack, rule)
             for a, ax in enumerate(axes):
                 words.value[a], words.weak[a] = self.gray_words(ax, words.value[a], words.weak[a])
-        adaptive = self._adaptive(frames, stack, axes)
+        adaptive = self._adaptive(frames, stack, axes, full)
         valid, reason, counts, coords, refined = self._decode_rows(stack, axes, rule, words,
                                                                    adaptive)
         n = [int(c) for c in counts.sum(axis=0)]
@@ -373,8 +373,8 @@ class GrayCode:
         other.__dict__.update(changes)
         return other
 
-    def _adaptive(self, frames: Sequence[np.ndarray], stack: np.ndarray, axes: list[_Axis]
-                  ) -> Rescue | None:
+    def _adaptive(self, frames: Sequence[np.ndarray], stack: np.ndarray, axes: list[_Axis],
+                  full: float) -> Rescue | None:
         """The adaptive classification's second chance for the pixels robust leaves uncertain,
         with the camera noise model measured from the frames (:func:`robust.noise_model`);
         None for the other classifications."""
@@ -382,7 +382,10 @@ class GrayCode:
             return None
         from dotshell_codings.robust import noise_model
 
-        floor, gain = noise_model(stack if np.issubdtype(stack.dtype, np.integer) else frames)
+        integer = np.issubdtype(stack.dtype, np.integer)
+        # the stack's full scale is the noise model's where no bit depth set it (integers)
+        floor, gain = noise_model(stack if integer else frames,
+                                  full if integer and not self.bit_depth else None)
         return Rescue(np.array([self.sign_base(ax) for ax in axes], np.int64),
                       np.array([2 * floor, gain, self.adaptive_sigmas, self.adaptive_edge_ratio,
                                 self.adaptive_code_steps], np.float32),

@@ -172,7 +172,8 @@ def robust_bits(pattern: np.ndarray, inverse: np.ndarray, ld: np.ndarray, lg: np
 _MODEL_MIN_RANGE = 0.03
 
 
-def noise_model(frames: Sequence[np.ndarray] | np.ndarray) -> tuple[float, float]:
+def noise_model(frames: Sequence[np.ndarray] | np.ndarray, full: float | None = None
+                ) -> tuple[float, float]:
     """The camera's noise, ``var(I) = floor + gain · (I − black)`` (frame units²), measured
     from a pattern/inverse sequence (white, black, then pairs).
 
@@ -182,10 +183,11 @@ def noise_model(frames: Sequence[np.ndarray] | np.ndarray) -> tuple[float, float
     equal-count bins of ``w − b`` (ranked stably: equal levels in raster order), on every
     second pixel each way and every :data:`_MODEL_PAIR_STRIDE`-th pair. An 8- or 16-bit (F, H, W) stack is counted in compiled passes
     (:func:`noise_model_counted`, the same figures), anything else sorted
-    (:func:`noise_model_sorted`)."""
+    (:func:`noise_model_sorted`). ``full``: the stack's :func:`full_scale` (of its white
+    frame, without a bit depth), when the caller has it (a full-frame maximum less)."""
     if (isinstance(frames, np.ndarray) and frames.ndim == 3
             and frames.dtype in (np.uint8, np.uint16)):
-        model = noise_model_counted(frames)
+        model = noise_model_counted(frames, full)
         if model is not None:
             return model
     return noise_model_sorted(frames)
@@ -193,7 +195,11 @@ def noise_model(frames: Sequence[np.ndarray] | np.ndarray) -> tuple[float, float
 
 def _model_thresholds(white: np.ndarray) -> tuple[float, float]:
     """Noise-model fit: the least ``w − b`` (shadow) and the largest ``w`` (saturation)."""
-    top = full_scale(np.asarray(white))
+    return _thresholds_of(full_scale(np.asarray(white)))
+
+
+def _thresholds_of(top: float) -> tuple[float, float]:
+    """:func:`_model_thresholds` from the frames' full scale ``top``."""
     return _MODEL_MIN_RANGE * top, 0.99 * top
 
 
@@ -238,56 +244,49 @@ def noise_model_sorted(frames: Sequence[np.ndarray]) -> tuple[float, float]:
     return _model_line(xs, ys)
 
 
-def noise_model_counted(stack: np.ndarray) -> tuple[float, float] | None:
+def noise_model_counted(stack: np.ndarray, full: float | None = None
+                        ) -> tuple[float, float] | None:
     """:func:`noise_model` of an 8- or 16-bit (F, H, W) stack by counting, the same figures as
     :func:`noise_model_sorted` (equal to the last bit, ``tests/test_decode_adaptive.py``): the
     levels ``w − b`` and ``|r|`` are integers, so histograms give the bins (a level's pixels
     ranked in raster order, as a stable sort ranks them) and the medians (``r²`` grows with
-    ``|r|``) in three compiled passes that read each frame once (:mod:`kernels`: a sort of
-    1.5 M values and ten medians of 3 M took ~80 ms a full view, these ~10). None when the
-    median ``|r|`` is beyond the counted range (then sort)."""
+    ``|r|``) in two compiled passes over bands of rows on every core (:mod:`kernels`: a sort
+    of 1.5 M values and ten medians of 3 M took ~80 ms a full view, these ~3). None when the
+    median ``|r|`` is beyond the counted range (then sort). ``full``: as :func:`noise_model`'s."""
     from dotshell.runtime.parallel import bands, split_bands
     from dotshell_codings import kernels
 
-    least, most = (np.float32(t) for t in _model_thresholds(stack[0]))
     if stack.shape[0] < 4:
         return None
-    top = int(full_scale(stack[0]))  # w − b ≤ w ≤ top
-    levels = np.zeros(top + 1, np.int64)
-    kernels.model_levels(stack, least, most, levels)
+    full = full_scale(stack[0]) if full is None else full
+    least, most = (np.float32(t) for t in _thresholds_of(full))
+    top = int(full)  # w − b ≤ w ≤ top
+    bounds = bands((stack.shape[1] + 1) // 2)  # the sampled rows
+    per_band = np.zeros((len(bounds) - 1, top + 1), np.int64)
+    split_bands(kernels.model_levels, bounds, stack, least, most, per_band)
+    levels = per_band.sum(axis=0)
     n = int(levels.sum())
     if n < 100:
         return None
-    ends = np.cumsum([len(c) for c in np.array_split(np.arange(n), _MODEL_BINS)])
+    # the bins' ends as np.array_split cuts n ranks: the first n % bins one longer
+    ends = np.cumsum(n // _MODEL_BINS + (np.arange(_MODEL_BINS) < n % _MODEL_BINS))
     rank0 = np.cumsum(levels) - levels  # rank of each level's first pixel
-    bins = np.empty(((stack.shape[1] + 1) // 2, (stack.shape[2] + 1) // 2), np.uint8)
-    kernels.model_bins(stack, least, most, rank0, ends, bins)
+    first_rank = rank0 + np.cumsum(per_band, axis=0) - per_band  # ... in each band
     width = min(2 * top, _MODEL_MAX_RESIDUAL) + 2  # beyond: the last
-    bounds = bands(bins.shape[0])
     counts = np.zeros((len(bounds) - 1, _MODEL_BINS, width), np.int32)
-    split_bands(kernels.model_residuals, bounds, stack, bins, _MODEL_PAIR_STRIDE, counts)
-    residuals = counts.sum(axis=0)
+    split_bands(kernels.model_residuals, bounds, stack, least, most, first_rank, ends,
+                _MODEL_PAIR_STRIDE, counts)
+    below = np.cumsum(counts.sum(axis=0), axis=1)  # per bin: residuals up to each |r|
+    total = below[:, -1]
+    # per bin the two middle |r| (as searchsorted(side="right"): the sums ≤ the middle rank)
+    r_mid = np.stack([(below <= k[:, None]).sum(axis=1) for k in ((total - 1) // 2, total // 2)],
+                     axis=1)
+    if (r_mid[:, 1] >= width - 1).any():
+        return None
+    ys = [float(y) / 0.4549 for y in np.median(r_mid.astype(np.float32) ** 2, axis=1)]
+    # per bin the two middle ranks' levels, their median in float32 as np.median takes it
     starts = np.concatenate([[0], ends[:-1]])
-    xs, ys = [], []
-    for j in range(_MODEL_BINS):
-        xs.append(_middle(np.arange(top + 1), levels, rank0, int(starts[j]), int(ends[j])))
-        c = residuals[j]
-        total = int(c.sum())
-        r_lo, r_hi = (int(np.searchsorted(np.cumsum(c), k, side="right"))
-                      for k in ((total - 1) // 2, total // 2))
-        if r_hi >= width - 1:
-            return None
-        sq = np.float32([r_lo, r_hi]) ** 2
-        ys.append(float(np.median(sq)) / 0.4549)
-    return _model_line(xs, ys)
-
-
-def _middle(values: np.ndarray, counts: np.ndarray, rank0: np.ndarray, lo: int, hi: int
-            ) -> float:
-    """The median (float32, as ``np.median`` of float32) of the ranks ``lo`` to ``hi`` of
-    ``values`` occurring ``counts`` times (``rank0``: the rank of each value's first)."""
-    m = hi - lo
-    ends = rank0 + counts
-    pick = [lo + (m - 1) // 2, lo + m // 2]
-    mid = values[np.searchsorted(ends, pick, side="right")].astype(np.float32)
-    return float(np.median(mid))
+    picks = np.stack([starts + (ends - starts - 1) // 2, starts + (ends - starts) // 2], axis=1)
+    xs = np.median(np.searchsorted(rank0 + levels, picks, side="right").astype(np.float32),
+                   axis=1)
+    return _model_line([float(x) for x in xs], ys)
