@@ -724,8 +724,8 @@ def _(env):
 
 
 @case("profile", "every point outside the region of interest",
-      ("were triangulated but no point is left", "outside the region of interest",
-       "[processing.roi]"))
+      ("no pixel decoded into a point", "lost to ray_outside_roi",
+       "the camera ray misses [processing.roi]", "radius_mm, z_min_mm, z_max_mm"))
 def _(env):
     return ["scan", str(env.profile(processing__roi__radius_mm=0.01)), "--out",
             str(env.tmp / "runs")]
