@@ -731,6 +731,15 @@ def _(env):
             str(env.tmp / "runs")]
 
 
+@case("profile", "a region of interest the rays cross where the sample is not",
+      ("were triangulated but no point is left", "outside the region of interest",
+       "[processing.roi]"))
+def _(env):  # above the 30 mm cylinder: the rays cross it on their way to the background
+    return ["scan", str(env.profile(processing__roi__z_min_mm=32.0,
+                                    processing__roi__z_max_mm=36.0)),
+            "--out", str(env.tmp / "runs")]
+
+
 @case("calibration", "broken OpenCV .yml", ("{tmp}/cal.yml", "not a readable opencv"))
 def _(env):
     f = env.file("cal.yml", "%YAML:1.0\n---\nK: !!opencv-matrix\n  rows: 3\n  cols: [\n")
