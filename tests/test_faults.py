@@ -1812,7 +1812,9 @@ def _(env):
 
 def test_an_address_space_limit_exits_2_naming_it(tmp_path: Path) -> None:
     """`ulimit -v 700000`: the scan cannot start its threads or get its memory; it said
-    "internal error: RuntimeError: can't start new thread" with exit 1."""
+    "internal error: RuntimeError: can't start new thread" with exit 1 and, from a shell
+    without OPENBLAS_NUM_THREADS, "OpenBLAS error: Memory allocation still failed" (exit 1)
+    before the command could say anything."""
     import resource
 
     prof = write_profile(tmp_path / "p.toml", tiny_profile_dict())
@@ -1821,9 +1823,11 @@ def test_an_address_space_limit_exits_2_naming_it(tmp_path: Path) -> None:
     def limited() -> None:
         resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
 
+    env = {k: v for k, v in os.environ.items()  # a user's shell: no BLAS thread settings
+           if k not in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")}
     proc = subprocess.run([sys.executable, "-m", "dotshell.cli.app", "scan", str(prof), "--out",
                            str(tmp_path / "runs")], preexec_fn=limited, capture_output=True,
-                          text=True, timeout=600)
+                          text=True, timeout=600, env=env)
     assert proc.returncode == 2, proc.stderr
     assert "ulimit -v 700000 kB" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
     assert "internal error" not in proc.stderr, proc.stderr
