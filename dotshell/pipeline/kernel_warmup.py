@@ -119,7 +119,7 @@ def compiled_kernels() -> list[Kernel]:
 
     found: list[Kernel] = []
     for name, module in list(sys.modules.items()):
-        for attr, value in list(vars(module).items() if module is not None else ()):
+        for attr, value in list(getattr(module, "__dict__", {}).items()):
             # type(), not isinstance(): some modules hold objects whose __class__ raises
             if issubclass(type(value), CPUDispatcher) and value.__module__ == name \
                     and isinstance(getattr(value, "_cache", None), FunctionCache):
