@@ -56,9 +56,9 @@ Kernel = tuple[str, str, Any]
 
 @dataclass
 class WarmupOutcome:
-    """What the child did: kernels it loaded from numba's cache and those it compiled."""
+    """What the child did: the kernel signatures it compiled (not found in numba's cache) and
+    its time (seconds)."""
 
-    loaded: int
     compiled: int
     seconds: float
 
@@ -168,7 +168,7 @@ def compile_for_run(run_root: str, bit_depth: int) -> WarmupOutcome:
     """In this process: call every kernel a view of the run at ``run_root`` calls (its
     profile, calibration and ``bit_depth``-bit frames) and its backends' own
     (:attr:`~dotshell.backends.Backend.compile_kernels`), so numba's cache holds them all; then
-    write the stamp of the run's kind. Returns what was loaded and compiled."""
+    write the stamp of the run's kind. Returns what it compiled."""
     from dotshell.geometry.calibration import RigCalibration
     from dotshell.pipeline.reconstruct import reconstruct_view
     from dotshell.pipeline.steps import make_coding
@@ -194,7 +194,7 @@ def compile_for_run(run_root: str, bit_depth: int) -> WarmupOutcome:
     kernels = compiled_kernels()
     _write_stamp(warmup_key(profile.data, bit_depth, pm), kernels)
     misses = sum(_misses(module, attr) for module, attr in {(m, a) for m, a, _ in kernels})
-    return WarmupOutcome(len(kernels) - misses, misses, time.perf_counter() - t0)
+    return WarmupOutcome(misses, time.perf_counter() - t0)
 
 
 def _needs_fem(profile_data: dict[str, Any]) -> bool:
@@ -309,9 +309,10 @@ class KernelWarmup:
         went wrong. Any thread may call it, any number of times."""
         while self._thread.is_alive() and not (stop is not None and stop.is_set()):
             self._thread.join(0.2)  # a stop is seen within 0.2 s
+        if self._thread.is_alive():  # stopped waiting: the outcome is told by a later call
+            return
         with self._lock:
-            said, self._said = (None, self._said) if self._thread.is_alive() else \
-                (self._said, None)
+            said, self._said = self._said, None
         if said is not None:
             level, text = said
             (bus.warn if level == "warning" else bus.info)(text)

@@ -280,11 +280,10 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
         else:
             calib = loaded or rig.calibration(calibration_file)
             require_turntable_axis(calib, profile.angles_deg(), profile.source)
-        _check_devices(store, rig, calib, resuming)
+        spec = _check_devices(store, rig, calib, resuming)
         if not resuming:
             calib.save(store.path(RunLayout.CALIBRATION))
-        kernels = KernelWarmup.start(store.root, profile.data,
-                                     FrameSpec.of_camera(rig.camera).bit_depth, pm)
+        kernels = KernelWarmup.start(store.root, profile.data, spec.bit_depth, pm)
         patterns = coding.patterns(rig.projector.resolution)
         shots = plan_shots(patterns, profile.scan)
         _record_sequence(store, shots, patterns, resuming)
@@ -333,9 +332,11 @@ def _acquire_then_process(job: RunJob, profile: Profile, pm: PluginManager, codi
                    final_status=job.status or "completed", generation=gen)
 
 
-def _check_devices(store: RunStore, rig: Rig, calib: RigCalibration, resuming: bool) -> None:
+def _check_devices(store: RunStore, rig: Rig, calib: RigCalibration, resuming: bool
+                   ) -> FrameSpec:
     """The calibration fits the camera and projector, and a resumed run's camera gives the
-    frames the run was captured with; a new run records what its frames are (``camera``)."""
+    frames the run was captured with; a new run records what its frames are (``camera``).
+    Returns the camera's frame format."""
     spec = FrameSpec.of_camera(rig.camera)
     for role, lens, size in (("camera", calib.camera, rig.camera.resolution),
                              ("projector", calib.projector, rig.projector.resolution)):
@@ -347,7 +348,7 @@ def _check_devices(store: RunStore, rig: Rig, calib: RigCalibration, resuming: b
                 "resolution to the calibrated one).")
     if not resuming:
         store.update_manifest(camera=spec.to_dict())
-        return
+        return spec
     recorded = store.manifest.get("camera")
     if recorded is not None and FrameSpec.from_dict(recorded) != spec:
         was = FrameSpec.from_dict(recorded)
@@ -356,6 +357,7 @@ def _check_devices(store: RunStore, rig: Rig, calib: RigCalibration, resuming: b
             f"the camera ({rig.profile.required_role('camera')['backend']}) now reports {spec.bit_depth} "
             f"bit, {spec.width}x{spec.height} px: a resumed view must match the others. Set the "
             f"camera's bit_depth and resolution as they were (in {store.path('profile.toml')}).")
+    return spec
 
 
 def _record_sequence(store: RunStore, shots, patterns, resuming: bool) -> None:
