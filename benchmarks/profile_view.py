@@ -10,8 +10,13 @@ sample (``--call-graph dwarf,64``): a sample inside numba's reference counting
 (``NRT_incref``/``NRT_decref``, small functions that push nothing) has its caller's return
 address there, which names the caller.
 
+``--annotate NAME`` (a compiled function, e.g. ``_refine_row``) also lays the samples on that
+function's instructions: its machine code is read from the process's memory and disassembled
+by ``objdump``, and the hottest stretches are printed with their share of its samples.
+
 Run (Linux with ``perf``; ~1 minute of compiling first, then the views):
-``.venv/bin/python benchmarks/profile_view.py [--quick] [--threads N] [--views N]``.
+``.venv/bin/python benchmarks/profile_view.py [--quick] [--threads N] [--views N]
+[--annotate NAME]``.
 docs/performance.md, "Part 6", shows what it found.
 """
 
@@ -20,6 +25,7 @@ from __future__ import annotations
 import argparse
 import bisect
 import collections
+import ctypes
 import os
 import re
 import signal
@@ -140,11 +146,66 @@ def counting_callers(data: Path, functions: dict[int, tuple[int, str]]) -> colle
     return callers
 
 
+def disassembly(address: int, size: int) -> list[tuple[int, str]]:
+    """(address, instruction) of the ``size`` bytes of machine code at ``address`` in this
+    process (``objdump`` of a copy)."""
+    with tempfile.NamedTemporaryFile(suffix=".bin") as f:
+        f.write(ctypes.string_at(address, size))
+        f.flush()
+        out = subprocess.run(["objdump", "-D", "-b", "binary", "-m", "i386:x86-64",
+                              "--no-show-raw-insn", f"--adjust-vma={address:#x}", f.name],
+                             capture_output=True, text=True, check=True).stdout
+    code = []
+    for line in out.splitlines():
+        m = re.match(r"\s+([0-9a-f]+):\s+(.*)", line)
+        if m:
+            code.append((int(m.group(1), 16), m.group(2).strip()))
+    return code
+
+
+def annotate(data: Path, functions: dict[int, tuple[int, str]], name: str,
+             context: int = 6, stretches: int = 8) -> None:
+    """Print the hottest stretches of compiled function ``name`` (the first whose name ends
+    with it) with the samples ``perf`` took at each instruction."""
+    found = [(a, size) for a, (size, n) in functions.items() if n.endswith(name)]
+    if not found:
+        print(f"== no compiled function named *{name}")
+        return
+    ips = subprocess.run(["perf", "script", "-i", str(data), "-F", "ip", "-G"],
+                         capture_output=True, text=True, check=True).stdout.split()
+    sampled = collections.Counter(int(ip, 16) for ip in ips if re.fullmatch(r"[0-9a-f]+", ip))
+    # a function called from another library runs as that library's copy: the most sampled
+    start, size = max(found, key=lambda f: sum(n for a, n in sampled.items()
+                                               if f[0] <= a < f[0] + f[1]))
+    hits = collections.Counter({a: n for a, n in sampled.items() if start <= a < start + size})
+    code = disassembly(start, size)
+    total = sum(hits.values()) or 1
+    print(f"== {name}: {total} samples over {len(code)} instructions; hottest stretches "
+          "(% of the function's samples, per instruction)")
+    index = {a: i for i, (a, _) in enumerate(code)}
+    shown: set[int] = set()
+    for address, _ in hits.most_common():
+        if len(shown) >= stretches * (2 * context + 1) or address not in index:
+            continue
+        i = index[address]
+        if i in shown:
+            continue
+        lo, hi = max(i - context, 0), min(i + context + 1, len(code))
+        print("  ...")
+        for k in range(lo, hi):
+            shown.add(k)
+            a, text = code[k]
+            n = hits.get(a, 0)
+            print(f"  {100 * n / total:5.1f}  {a - start:6x}  {text}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="the 320x256 bench view")
     ap.add_argument("--threads", type=int, default=1, help="threads of the passes (default 1)")
     ap.add_argument("--views", type=int, default=25, help="reconstructions recorded")
+    ap.add_argument("--annotate", metavar="NAME", action="append", default=[],
+                    help="lay the samples on this compiled function's instructions")
     args = ap.parse_args()
     configure_process()
     pm = get_plugin_manager()
@@ -175,6 +236,8 @@ def main() -> None:
     print("== callers of numba's reference counting (samples)")
     for (fn, caller), n in counting_callers(data, functions).most_common(10):
         print(f"  {n:6d}  {fn:12s} from {caller}")
+    for name in args.annotate:
+        annotate(data, functions, name)
 
 
 if __name__ == "__main__":
