@@ -174,3 +174,54 @@ def test_kinds_of_scan_that_call_other_kernels_have_other_stamps():
     robust = {**raw, "coding": {**raw["coding"], "settings": {**raw["coding"].get("settings", {}),
                                                               "classification": "robust"}}}
     assert kw.warmup_key(robust, 12, pm) != base
+
+
+#: ``dotshell reconstruct`` of a run, in a fresh process, the cache check forced to miss; then
+#: the kernels that process called, the stamp the compiling process wrote and when, as JSON
+RECONSTRUCT_SCRIPT = r"""
+import json, os, pickle, sys, time
+from pathlib import Path
+from dotshell.cli.app import main
+from dotshell.pipeline import kernel_warmup as kw
+from dotshell.plugins import get_plugin_manager
+from dotshell.run.store import RunStore
+
+kw.cache_holds = lambda key: False
+started = time.time()
+code = main(["reconstruct", sys.argv[1]])
+store = RunStore.open(Path(sys.argv[1]))
+key = kw.warmup_key(store.read_profile(), store.manifest["camera"]["bit_depth"],
+                    get_plugin_manager())
+stamp = kw.stamp_path(key)
+print(json.dumps({
+    "exit": code,
+    "used": sorted({f"{m}.{a} {s}" for m, a, s in kw.compiled_kernels()}),
+    "stamp": sorted({f"{m}.{a} {s}" for m, a, s in pickle.loads(stamp.read_bytes())}),
+    "stamp_new": stamp.stat().st_mtime >= started,
+}))
+"""
+
+
+def test_reconstruct_compiles_a_missing_kernel_before_its_first_view_and_says_so(tmp_path):
+    """``dotshell reconstruct`` on a cache that lacks the run's kernels: before the first view
+    it tells the user it is compiling them (on an empty cache it sat silent for ~20 s) and
+    the compiling process writes the stamp of the run's kind, which lists every kernel the
+    reconstruct process then calls."""
+    profile = _profile(tmp_path, "sim-metal-cylinder.toml")
+    scan = subprocess.run([sys.executable, "-c", "import sys; from dotshell.cli.app import main; "
+                           "sys.exit(main(sys.argv[1:]))", "scan", str(profile), "--out",
+                           str(tmp_path / "runs")], capture_output=True, text=True, cwd=tmp_path,
+                          timeout=900)
+    assert scan.returncode == 0, scan.stdout[-3000:] + scan.stderr[-3000:]
+    run = next((tmp_path / "runs").iterdir())
+    out = subprocess.run([sys.executable, "-c", RECONSTRUCT_SCRIPT, str(run)],
+                         capture_output=True, text=True, cwd=tmp_path, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert res["exit"] == 0, out.stdout[-3000:]
+    told = out.stderr.replace("\n", " ")  # the progress lines
+    assert told.index("compiling dotshell's kernels") < told.index("view   1:"), told[:2000]
+    assert res["stamp_new"]
+    assert len(res["used"]) >= 10
+    missing = sorted(set(res["used"]) - set(res["stamp"]))
+    assert missing == [], "kernels the compiling process did not call:\n" + "\n".join(missing)

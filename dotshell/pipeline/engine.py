@@ -32,6 +32,7 @@ from dotshell.run.generations import (Generation, ProductStore, current_number,
 from dotshell.run.layout import RunLayout
 from dotshell.run.lifecycle import Interrupted, RunLock, effective_status
 from dotshell.run.lost import finished, lost_reason
+from dotshell.pipeline.kernel_warmup import kernels_before_views
 from dotshell.pipeline.steps import STEP_BY_NAME, STEPS, StepContext, import_ahead
 from dotshell.plugins import PluginManager
 from dotshell.profile.loader import Profile
@@ -253,7 +254,8 @@ def prepare(job: RunJob, profile: Profile, pm: PluginManager, targets: Iterable[
                      f"missing (deleted?); generation {gen.number} makes every product again "
                      "from the frames.")
     options = dict(options or {})
-    ctx = StepContext(ProductStore(job.store, gen.dir), profile, pm, job.bus, options)
+    ctx = StepContext(ProductStore(job.store, gen.dir), profile, pm, job.bus, options,
+                      before_views=kernels_before_views)
     base = set(gen.base_products())
     run, carry, dropped = plan(targets, ctx, base)
     gen.carry(carry)
@@ -284,7 +286,8 @@ def run_steps(work: JobWork, profile: Profile, pm: PluginManager, bus: EventBus,
     gen = work.generation_of(run)
     gen.files = {p: list(f) for p, f in work.files.items()}
     options = {**work.options, **(extra or {})}
-    ctx = StepContext(ProductStore(run, gen.dir), profile, pm, bus, options)
+    ctx = StepContext(ProductStore(run, gen.dir), profile, pm, bus, options,
+                      before_views=kernels_before_views)
     ctx.timings.update(options.pop("timings", {}))
     prewritten: dict[str, set[str]] = options.pop("prewritten", {})
     done = StepsDone()

@@ -58,6 +58,9 @@ class StepContext:
     bus: EventBus
     options: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
+    #: called before the first view is reconstructed, with the context and that view's index
+    #: (the engine's: :func:`dotshell.pipeline.kernel_warmup.kernels_before_views`)
+    before_views: Callable[[StepContext, int], None] | None = None
     #: the calibration once loaded (by the calibration step or on first use); steps reuse it
     _calib: RigCalibration | None = None
     #: the merged cloud as ``cloud.ply`` holds it ((N, 3) float32, mm), kept by the merge for
@@ -185,16 +188,21 @@ def stored_frames(store: RunStore, view: int, calib: RigCalibration,
     manifest's ``camera``; for runs made before it was recorded, the calibration's camera size
     and the depth of the view's first frame). ``out``: the previous view's frames, read over
     when the same size (:meth:`~dotshell.run.frames.FrameStore.read_all`)."""
-    recorded = store.manifest.get("camera")
-    if recorded is not None:
-        spec = FrameSpec.from_dict(recorded)
-    else:
-        first = store.frames(view).read_one(0)
-        spec = FrameSpec(*calib.camera.size, 8 if first.dtype == np.uint8 else 16)
+    spec = stored_frame_spec(store, view, calib)
     root = store.run_root
     return store.read_frames(view, spec, "Restore the run's frames from a backup, re-capture "
                              f"the view (`dotshell resume {root} --view {view}`), or mark it "
                              f"lost (`dotshell lose-view {root} {view} --reason TEXT`).", out)
+
+
+def stored_frame_spec(store: RunStore, view: int, calib: RigCalibration) -> FrameSpec:
+    """The run's frames: the manifest's ``camera``, or for runs made before it was recorded,
+    the calibration's camera size and the depth of ``view``'s first frame."""
+    recorded = store.manifest.get("camera")
+    if recorded is not None:
+        return FrameSpec.from_dict(recorded)
+    first = store.frames(view).read_one(0)
+    return FrameSpec(*calib.camera.size, 8 if first.dtype == np.uint8 else 16)
 
 
 def view_angle(view: dict[str, Any]) -> float:
@@ -231,7 +239,10 @@ def views_step(ctx: StepContext) -> dict[str, Any]:
                          f"{len(manifest['frame_names'])} frames; skipped")
             continue
         if v["index"] not in done:
-            coding = coding or make_coding(ctx.profile, ctx.pm)
+            if coding is None:  # the first view to reconstruct: its kernels ready first
+                coding = make_coding(ctx.profile, ctx.pm)
+                if ctx.before_views is not None:
+                    ctx.before_views(ctx, v["index"])
             frames = stored_frames(store, v["index"], ctx.calibration, frames)
             done[v["index"]] = reconstruct_one_view(store, v["index"], view_angle(v),
                                                     ctx.profile, coding, ctx.calibration, ctx.bus,
