@@ -1,6 +1,7 @@
-"""The mesh stage's process of its own (dotshell.pipeline.mesh_process, issue 33): results and
-errors come back, a mesher that kills its process is a clear MeshError, the run's recorded
-state stays true, and a mesher that cannot be handed to a process is run in this one."""
+"""The mesh stage's process of its own (dotshell.pipeline.mesh_process on
+dotshell.runtime.child, issue 33): results and errors come back, a mesher that kills its
+process is a clear MeshError, the run's recorded state stays true, and a mesher that cannot be
+handed to a process is run in this one."""
 
 import json
 import os
@@ -328,7 +329,7 @@ def test_the_process_ends_without_the_interpreters_teardown(tmp_path, caplog):
     import logging
 
     marker = tmp_path / "teardown"
-    with caplog.at_level(logging.DEBUG, logger="dotshell.pipeline.mesh_process"):
+    with caplog.at_level(logging.DEBUG, logger="dotshell.runtime.child"):
         pid = run_in_child(child_keeps_an_object_till_exit, str(marker))
     assert pid != os.getpid() and "the child's last words" in caplog.text
     assert not marker.exists()
@@ -393,11 +394,11 @@ def test_dotshell_mesh_starts_the_mesh_process_before_the_cli_loads(tmp_path):
         "import sys\n"
         "import dotshell.pipeline.mesh_process as m\n"
         "started = []\n"
-        "init = m.MeshProcess.__init__\n"
+        "init = m.ChildProcess.__init__\n"
         "def spy(self, *a):\n"
         "    init(self, *a)\n"
         "    started.append((self, 'dotshell.cli.app' in sys.modules))\n"
-        "m.MeshProcess.__init__ = spy\n"
+        "m.ChildProcess.__init__ = spy\n"
         "from dotshell.cli.entry import main\n"
         "code = main(sys.argv[1:])\n"
         "print('RESULT', code, [cli for _, cli in started],\n"
@@ -411,3 +412,24 @@ def test_dotshell_mesh_starts_the_mesh_process_before_the_cli_loads(tmp_path):
     from dotshell.cli.entry import _runs_the_mesher
 
     assert not _runs_the_mesher(["mesh", "--help"]) and not _runs_the_mesher(["scan", "mesh"])
+
+
+def test_a_job_other_than_the_mesh_names_itself_when_its_process_dies():
+    """dotshell.runtime.child serves other jobs too (the kernel compiling): a process that dies
+    is a ChildProcessLost naming the job and how it ended, not the mesh's advice; an error
+    raised in it carries the job's name in its note; the error crosses processes whole."""
+    import pickle
+
+    from dotshell.runtime import child
+
+    with pytest.raises(child.ChildProcessLost,
+                       match=r"the kernel compiling process ended without a result \(killed by "
+                             r"SIGKILL\)") as lost:
+        child.run_in_child(child_kills_itself, job="kernel compiling")
+    assert "node distance" not in str(lost.value)
+    again = pickle.loads(pickle.dumps(lost.value))
+    assert (again.job, again.ending, str(again)) == (lost.value.job, lost.value.ending,
+                                                     str(lost.value))
+    with pytest.raises(ValueError) as raised:
+        child.run_in_child(child_raises_value_error, job="kernel compiling")
+    assert "in the kernel compiling process" in "".join(getattr(raised.value, "__notes__", []))

@@ -9,7 +9,7 @@ peaked at 1105 MiB on an empty cache, 930 MiB on a full one; issue 33).
 Now a scan asks, once its devices are connected and its frame format known, whether numba's
 cache holds every kernel its views will call (:func:`cache_holds`, a few index files read), and
 if not, compiles them in a new Python process (:func:`compile_for_run`, through
-:func:`dotshell.pipeline.mesh_process.run_in_child`) while the first view is captured. The
+:func:`dotshell.runtime.child.run_in_child`) while the first view is captured. The
 first view's reconstruction waits for that process on its worker thread, the capture going on,
 and so does a trans-illumination view (the simulated laser's FEM truth). The child calls the kernels the way a view
 does: :func:`~dotshell.pipeline.reconstruct.reconstruct_view` of a synthetic view (the run's
@@ -289,7 +289,7 @@ class KernelWarmup:
         return warmup
 
     def _run(self) -> None:
-        from dotshell.pipeline.mesh_process import run_in_child
+        from dotshell.runtime.child import run_in_child
 
         run_root, profile_data, bit_depth, pm = self._args
         key = ""
