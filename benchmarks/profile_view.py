@@ -163,17 +163,22 @@ def disassembly(address: int, size: int) -> list[tuple[int, str]]:
     return code
 
 
-def annotate(data: Path, functions: dict[int, tuple[int, str]], name: str,
+def sampled_addresses(data: Path) -> collections.Counter:
+    """address → samples ``perf`` took there (the sampled instruction, not its callers)."""
+    ips = subprocess.run(["perf", "script", "-i", str(data), "-F", "ip", "-G"],
+                         capture_output=True, text=True, check=True).stdout.split()
+    return collections.Counter(int(ip, 16) for ip in ips if re.fullmatch(r"[0-9a-f]+", ip))
+
+
+def annotate(sampled: collections.Counter, functions: dict[int, tuple[int, str]], name: str,
              context: int = 6, stretches: int = 8) -> None:
-    """Print the hottest stretches of compiled function ``name`` (the first whose name ends
-    with it) with the samples ``perf`` took at each instruction."""
+    """Print the hottest stretches of compiled function ``name`` (the one whose name ends with
+    it that has the most samples) with the samples at each instruction (``sampled``:
+    :func:`sampled_addresses`)."""
     found = [(a, size) for a, (size, n) in functions.items() if n.endswith(name)]
     if not found:
         print(f"== no compiled function named *{name}")
         return
-    ips = subprocess.run(["perf", "script", "-i", str(data), "-F", "ip", "-G"],
-                         capture_output=True, text=True, check=True).stdout.split()
-    sampled = collections.Counter(int(ip, 16) for ip in ips if re.fullmatch(r"[0-9a-f]+", ip))
     # a function called from another library runs as that library's copy: the most sampled
     start, size = max(found, key=lambda f: sum(n for a, n in sampled.items()
                                                if f[0] <= a < f[0] + f[1]))
@@ -236,8 +241,9 @@ def main() -> None:
     print("== callers of numba's reference counting (samples)")
     for (fn, caller), n in counting_callers(data, functions).most_common(10):
         print(f"  {n:6d}  {fn:12s} from {caller}")
+    sampled = sampled_addresses(data) if args.annotate else collections.Counter()
     for name in args.annotate:
-        annotate(data, functions, name)
+        annotate(sampled, functions, name)
 
 
 if __name__ == "__main__":

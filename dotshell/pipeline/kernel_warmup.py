@@ -45,12 +45,15 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
 from dotshell.backends import ROLES
 from dotshell.events import EventBus
+
+if TYPE_CHECKING:
+    from dotshell.pipeline.steps import StepContext
 
 log = logging.getLogger(__name__)
 
@@ -332,7 +335,7 @@ class KernelWarmup:
             (bus.warn if level == "warning" else bus.info)(text)
 
 
-def kernels_before_views(ctx: Any, view: int) -> None:
+def kernels_before_views(ctx: StepContext, view: int) -> None:
     """Before the first view a processing job reconstructs from the run's frames
     (:class:`~dotshell.pipeline.steps.StepContext` ``ctx``, view ``view``): numba's cache
     checked for the run's kind, and on a miss its kernels compiled in a process of their own,
